@@ -1,0 +1,1 @@
+"""SlipMap's QGIS face: a Processing provider (filled by the QGIS issue)."""

@@ -1,0 +1,73 @@
+#!/usr/bin/env bash
+# Set up everything SlipMap needs on Debian 12 (or any Debian-like Linux with QGIS).
+#  1. apt packages of design.md's recipe, only those missing (sudo when not root);
+#  2. .venv from /usr/bin/python3 with --system-site-packages (QGIS, GDAL, PyOpenCL from Debian),
+#     editable install with numpy<2 constrained;
+#  3. .venv-np2: a plain PyPI venv from the default python3 with numpy>=2, for the core/io tests
+#     (conda PDAL users run numpy 2).
+# A second run does nothing that is already done.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+APT_PACKAGES=(python3-qgis qgis-providers python3-gdal gdal-bin python3-pyopencl pocl-opencl-icd
+  python3-numpy python3-scipy python3-pyproj proj-data python3-matplotlib python3-venv python3-pip
+  xvfb)
+
+what=${1:-all}
+
+apt_missing() {
+  local missing=()
+  for p in "${APT_PACKAGES[@]}"; do
+    if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
+      missing+=("$p")
+    fi
+  done
+  echo "${missing[@]:-}"
+}
+
+install_apt() {
+  command -v dpkg-query >/dev/null || { echo "setup: not a Debian-like system; install QGIS, GDAL, PyOpenCL yourself" >&2; return 0; }
+  local missing
+  missing=$(apt_missing)
+  [ -z "$missing" ] && return 0
+  echo "setup: installing apt packages: $missing"
+  local sudo=""
+  if [ "$(id -u)" != 0 ]; then
+    if command -v sudo >/dev/null; then sudo="sudo"; else
+      echo "setup: need root to run: apt-get install -y $missing" >&2; exit 1; fi
+  fi
+  export DEBIAN_FRONTEND=noninteractive
+  $sudo apt-get update -q
+  # shellcheck disable=SC2086
+  $sudo apt-get install -y -q --no-install-recommends $missing
+}
+
+stamp_ok() {  # $1 = stamp file; up to date when newer than pyproject.toml and constraints.txt
+  [ -f "$1" ] && [ "$1" -nt pyproject.toml ] && [ "$1" -nt constraints.txt ]
+}
+
+install_venv() {
+  if stamp_ok .venv/.slipmap-installed; then return 0; fi
+  [ -x .venv/bin/python ] || /usr/bin/python3 -m venv --system-site-packages .venv
+  .venv/bin/python -m pip install -q --upgrade "pip>=23" -c constraints.txt
+  .venv/bin/python -m pip install -q -c constraints.txt -e '.[dev]'
+  touch .venv/.slipmap-installed
+}
+
+install_np2() {
+  if stamp_ok .venv-np2/.slipmap-installed; then return 0; fi
+  # The machine's default python3 (first on PATH), not the Debian one with its numpy 1.24.
+  local py
+  py=$(PATH=$(echo "$PATH" | tr ':' '\n' | grep -v "/\.venv" | paste -sd:) command -v python3)
+  [ -x .venv-np2/bin/python ] || "$py" -m venv .venv-np2
+  .venv-np2/bin/python -m pip install -q --upgrade "pip>=23"
+  .venv-np2/bin/python -m pip install -q -e '.[test]' "numpy>=2"
+  touch .venv-np2/.slipmap-installed
+}
+
+case "$what" in
+  all) install_apt; install_venv; install_np2 ;;
+  main) install_apt; install_venv ;;
+  np2) install_np2 ;;
+  *) echo "usage: $0 [all|main|np2]" >&2; exit 2 ;;
+esac
