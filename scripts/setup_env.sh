@@ -49,8 +49,12 @@ stamp_ok() {  # $1 = stamp file; up to date when newer than pyproject.toml and c
 install_venv() {
   if stamp_ok .venv/.slipmap-installed; then return 0; fi
   [ -x .venv/bin/python ] || /usr/bin/python3 -m venv --system-site-packages .venv
+  # Debian's pyproj looks for its PROJ database under sys.prefix: point the venv at the system one.
+  if [ -f /usr/share/proj/proj.db ] && [ ! -e .venv/share/proj ]; then
+    mkdir -p .venv/share && ln -s /usr/share/proj .venv/share/proj
+  fi
   .venv/bin/python -m pip install -q --upgrade "pip>=23" -c constraints.txt
-  .venv/bin/python -m pip install -q -c constraints.txt -e '.[dev]'
+  .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt -e '.[dev]'
   touch .venv/.slipmap-installed
 }
 

@@ -1,0 +1,765 @@
+"""The ``slipmap`` command line: one subcommand per job, a thin adapter over ``slipmap.core``.
+
+Exit codes: 0 success, 2 bad input or options (one-line message; ``--debug`` for the
+traceback), 1 unexpected failure, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Sequence
+
+from ._version import __version__
+from .core.errors import CancelledError, InvalidParameterError, SlipMapError
+
+log = logging.getLogger("slipmap")
+
+#: subcommand name -> (add_arguments(parser), run(args) -> int)
+_COMMANDS: Dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable]] = {}
+
+
+def command(name: str, help_text: str):
+    """Register ``add_arguments`` / ``run`` pairs: decorate the ``run`` function."""
+
+    def deco(run: Callable[[argparse.Namespace], int]):
+        def register(add_arguments: Callable[[argparse.ArgumentParser], None]):
+            _COMMANDS[name] = (help_text, add_arguments, run)
+            return add_arguments
+
+        run.arguments = register  # type: ignore[attr-defined]
+        return run
+
+    return deco
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+class _ProgressBar:
+    """Maps SlipMap's progress callback onto a tqdm bar on stderr (hidden when not a TTY)."""
+
+    def __init__(self, description: str, *, enabled: bool = True):
+        self._bar = None
+        if enabled:
+            try:
+                from tqdm import tqdm
+            except ImportError:  # pragma: no cover - tqdm is a dependency
+                tqdm = None
+            if tqdm is not None:
+                self._bar = tqdm(
+                    total=1000,
+                    desc=description,
+                    unit="‰",
+                    disable=None,
+                    leave=False,
+                    file=sys.stderr,
+                )
+
+    def __call__(self, fraction: float, message: str = "") -> None:
+        if self._bar is None:
+            return
+        self._bar.n = int(round(1000 * fraction))
+        if message:
+            self._bar.set_postfix_str(message, refresh=False)
+        self._bar.refresh()
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _check_output_dir(directory: Path) -> None:
+    """Fail early (before long work) when ``directory`` could not be created or written."""
+    import os
+
+    d = Path(directory).absolute()
+    probe = d
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if probe.exists() and not probe.is_dir():
+        raise SlipMapError(f"--out: {str(probe)!r} exists and is not a directory")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise SlipMapError(f"--out: directory {str(probe)!r} is not writable; choose another --out")
+
+
+def _positive(kind: type, name: str):
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
+        if not value > 0:
+            raise argparse.ArgumentTypeError(f"{name} must be > 0, got {text}")
+        return value
+
+    return parse
+
+
+def _write_json(path: Path, payload: dict) -> None:
+    from .core.io.atomic import write_text_atomic
+
+    write_text_atomic(path, json.dumps(payload, indent=2, allow_nan=False) + "\n")
+
+
+# --------------------------------------------------------------------------- planes
+
+
+def _add_selection_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("point selection")
+    g.add_argument(
+        "--classes",
+        type=int,
+        nargs="+",
+        metavar="C",
+        help="keep only these ASPRS classifications (e.g. 6 for buildings)",
+    )
+    g.add_argument(
+        "--exclude-classes",
+        type=int,
+        nargs="+",
+        metavar="C",
+        help="drop these classifications (default: 2, ground, when the file has classes and "
+        "--classes is not given; the method removes ground first). Use --exclude-classes "
+        "with no ground code, e.g. --exclude-classes 7, to keep ground.",
+    )
+
+
+def _add_plane_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group(
+        "segmentation (defaults are estimated from the data; the values used are logged)"
+    )
+    g.add_argument(
+        "--min-node-size",
+        type=_positive(float, "--min-node-size"),
+        metavar="M",
+        help="smallest octree leaf edge, metres",
+    )
+    g.add_argument(
+        "--planarity-threshold",
+        type=_positive(float, "--planarity-threshold"),
+        metavar="M",
+        help="point-to-plane distance for the planarity test, metres",
+    )
+    g.add_argument(
+        "--planarity-ratio",
+        type=float,
+        metavar="R",
+        help="fraction of a leaf's points within the threshold for it to be planar "
+        "(0-1, default 0.9)",
+    )
+    g.add_argument(
+        "--angle-threshold",
+        type=_positive(float, "--angle-threshold"),
+        metavar="DEG",
+        help="largest angle between normals of joined leaves, degrees",
+    )
+    g.add_argument(
+        "--distance-threshold",
+        type=_positive(float, "--distance-threshold"),
+        metavar="M",
+        help="largest centroid-to-plane distance of joined leaves, metres",
+    )
+    g.add_argument(
+        "--min-points",
+        type=_positive(int, "--min-points"),
+        metavar="N",
+        help="smallest number of points of a reported plane",
+    )
+    g.add_argument(
+        "--min-leaf-points",
+        type=_positive(int, "--min-leaf-points"),
+        metavar="N",
+        help="smallest number of points in a leaf for a plane fit (default 10)",
+    )
+    g.add_argument(
+        "--backend",
+        choices=("numpy", "opencl", "auto"),
+        default="numpy",
+        help="numpy (reference) or OpenCL via PyOpenCL; auto uses OpenCL when a "
+        "device is available (default numpy)",
+    )
+
+
+def _plane_options(args: argparse.Namespace) -> dict:
+    return dict(
+        min_node_size_m=args.min_node_size,
+        planarity_threshold_m=args.planarity_threshold,
+        planarity_ratio=args.planarity_ratio,
+        angle_threshold_deg=args.angle_threshold,
+        distance_threshold_m=args.distance_threshold,
+        min_plane_points=args.min_points,
+        min_leaf_points=args.min_leaf_points,
+        backend=args.backend,
+    )
+
+
+def _select_points(cloud, classes: Optional[Sequence[int]], exclude: Optional[Sequence[int]]):
+    """Indices of the points kept by the class filters (see ``--classes``)."""
+    import numpy as np
+
+    n = len(cloud)
+    cls = cloud.attributes.get("Classification")
+    if cls is None or (classes is None and exclude is None and not np.any(cls == 2)):
+        if classes:
+            raise InvalidParameterError(
+                "--classes: the input has no Classification dimension; remove --classes"
+            )
+        return np.arange(n)
+    keep = np.ones(n, dtype=bool)
+    if classes:
+        keep &= np.isin(cls, np.asarray(classes))
+    if exclude is not None:
+        keep &= ~np.isin(cls, np.asarray(exclude))
+    elif not classes:
+        keep &= cls != 2
+        log.info("excluding ground (class 2) points; pass --exclude-classes to change this")
+    return np.flatnonzero(keep)
+
+
+def run_planes_on_cloud(cloud, args, out_dir: Path, *, label: str = "planes"):
+    """Segment ``cloud`` with the CLI's options and write planes.json and the labelled LAS."""
+    import numpy as np
+
+    from .core.io.atomic import ensure_output_dir
+    from .core.io.las import write_las
+    from .core.planes import segment_planes
+
+    if len(cloud) == 0:
+        raise SlipMapError(f"{cloud.source}: the file has no points")
+    sel = _select_points(cloud, args.classes, args.exclude_classes)
+    log.info("%d of %d points selected", sel.size, len(cloud))
+    t0 = time.perf_counter()
+    with _ProgressBar(label, enabled=not args.quiet) as bar:
+        planes = segment_planes(cloud.xyz[sel], progress=bar, **_plane_options(args))
+    runtime = time.perf_counter() - t0
+    labels = np.full(len(cloud), -1, dtype=np.int32)
+    labels[sel] = planes.labels
+    params = planes.parameters.to_dict()
+    for key, value in params.items():
+        log.info("  %-24s %s", key, value)
+    n_lab = int(np.count_nonzero(labels >= 0))
+    log.info(
+        "%d planes, %d of %d points labelled (%.1f %%), %.2f s",
+        len(planes),
+        n_lab,
+        len(cloud),
+        100.0 * n_lab / max(1, len(cloud)),
+        runtime,
+    )
+    ensure_output_dir(out_dir)
+    payload = {
+        "planes": planes.to_records(),
+        "n_points": int(len(cloud)),
+        "n_selected": int(sel.size),
+        "n_labelled": n_lab,
+        "parameters": params,
+        "runtime_s": round(runtime, 4),
+        "input": str(cloud.source) if cloud.source else None,
+        "crs": cloud.crs.to_wkt() if cloud.crs is not None else None,
+        "slipmap_version": __version__,
+    }
+    _write_json(out_dir / "planes.json", payload)
+    src = Path(cloud.source) if cloud.source else Path("points.las")
+    suffix = ".laz" if src.suffix.lower() == ".laz" else ".las"
+    las_out = out_dir / f"{src.stem}_planes{suffix}"
+    write_las(las_out, cloud, extra_dims={"PlaneId": labels}, inputs=[cloud.source])
+    log.info("wrote %s and %s", out_dir / "planes.json", las_out)
+    return planes, labels, payload
+
+
+@command("planes", "planar segmentation (octree + region growing) of one point cloud")
+def _run_planes(args: argparse.Namespace) -> int:
+    from .core.io.las import read_las
+
+    out = Path(args.out)
+    _check_output_dir(out)
+    cloud = read_las(args.input)
+    run_planes_on_cloud(cloud, args, out)
+    return 0
+
+
+@_run_planes.arguments
+def _planes_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", help="LAS/LAZ point cloud")
+    p.add_argument("--out", required=True, help="output directory")
+    _add_selection_arguments(p)
+    _add_plane_arguments(p)
+
+
+# --------------------------------------------------------------------------- demo
+
+
+@command("demo", "run the main job on an embedded synthetic scene and compare with the truth")
+def _run_demo(args: argparse.Namespace) -> int:
+    from .core.demo import run_planes_demo
+
+    out = Path(args.out)
+    _check_output_dir(out)
+    with _ProgressBar("demo", enabled=not args.quiet) as bar:
+        summary = run_planes_demo(out, seed=args.seed, progress=bar)
+    for line in summary.lines():
+        log.info("%s", line)
+    return 0
+
+
+@_run_demo.arguments
+def _demo_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", default="demo_output", help="output directory (default demo_output)")
+    p.add_argument("--seed", type=int, default=2019, help="seed of the synthetic scene")
+
+
+# --------------------------------------------------------------------------- roughness
+
+_ROUGHNESS_BANDS = (
+    "theta_odr_m",
+    "theta_ols_m",
+    "e_ols_m",
+    "theta_odr_normalised",
+    "theta_ols_normalised",
+    "binary_odr",
+    "binary_ols",
+)
+
+
+def _cell_label(cell_m: float) -> str:
+    return f"{cell_m:g}"
+
+
+def _roughness_csv_text(grid) -> str:
+    """One row per evaluated cell: ix,iy,iz,x,y,z,n,theta_odr,theta_ols,e_ols,degenerate."""
+    import io
+
+    import numpy as np
+
+    centre = grid.centre_m
+    cols = [
+        grid.index[:, 0],
+        grid.index[:, 1],
+        grid.index[:, 2],
+        centre[:, 0],
+        centre[:, 1],
+        centre[:, 2],
+        grid.n_points,
+        grid.theta_odr,
+        grid.theta_ols,
+        grid.e_ols,
+        grid.degenerate.astype(np.int64),
+    ]
+    table = np.empty((len(grid), len(cols)), dtype=object)
+    for j, col in enumerate(cols):
+        table[:, j] = col
+    buf = io.StringIO()
+    buf.write("ix,iy,iz,x,y,z,n,theta_odr,theta_ols,e_ols,degenerate\n")
+    fmt = ["%d", "%d", "%d", "%.6f", "%.6f", "%.6f", "%d", "%.9g", "%.9g", "%.9g", "%d"]
+    if len(grid):
+        np.savetxt(buf, table, fmt=fmt, delimiter=",")
+    return buf.getvalue()
+
+
+def _have_matplotlib() -> bool:
+    """True when matplotlib imports; else warn that the figures are skipped."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        log.warning("matplotlib is not installed: no PNG figures (pip install matplotlib)")
+        return False
+    return True
+
+
+def _local_frame_wkt(plane) -> str:
+    return (
+        f'LOCAL_CS["SlipMap {plane.name} map plane (u, v in the input CRS units)",'
+        'LOCAL_DATUM["SlipMap map plane",0],UNIT["metre",1],'
+        'AXIS["u",EAST],AXIS["v",NORTH]]'
+    )
+
+
+def _roughness_one_size(grid, plane, cloud, args, out_dir: Path, files: dict) -> dict:
+    """Write the CSV, GeoTIFF, figures and semivariogram of one cell size; Table-1 record."""
+    import numpy as np
+
+    from .core import roughness as rg
+    from .core.errors import DependencyError
+    from .core.io.atomic import write_text_atomic
+    from .core.io.raster import write_geotiff
+
+    label = _cell_label(grid.cell_size_m)
+    summary = rg.summarize_roughness(grid)
+    record = summary.to_dict()
+    csv_path = out_dir / f"roughness_{label}.csv"
+    write_text_atomic(csv_path, _roughness_csv_text(grid))
+    files["csv"] = csv_path.name
+
+    norm_odr = rg.normalise_range(grid.theta_odr)
+    norm_ols = rg.normalise_range(grid.theta_ols)
+    _, hist_odr = rg.roughness_histogram(norm_odr)
+    _, hist_ols = rg.roughness_histogram(norm_ols)
+    record["fraction_first_histogram_bin"] = {
+        "odr": float(hist_odr[0]) if len(grid) else None,
+        "ols": float(hist_ols[0]) if len(grid) else None,
+    }
+    record["fraction_cells_at_or_above_cutoff"] = {
+        "odr": rg._json_float(np.nanmean(rg.binary_transform(norm_odr, cutoff=args.cutoff)))
+        if np.isfinite(norm_odr).any()
+        else None,
+        "ols": rg._json_float(np.nanmean(rg.binary_transform(norm_ols, cutoff=args.cutoff)))
+        if np.isfinite(norm_ols).any()
+        else None,
+    }
+    if len(grid) == 0:
+        log.warning("cell %s m: no cell has %d or more points", label, grid.min_points)
+        return record
+
+    values = np.column_stack([grid.theta_odr, grid.theta_ols, grid.e_ols, norm_odr, norm_ols])
+    raster = rg.rasterize_cells(grid.centre_m, values, plane, pixel_size_m=grid.cell_size_m)
+    bands = np.empty((len(_ROUGHNESS_BANDS),) + raster.count.shape)
+    bands[:5] = raster.values
+    bands[5] = rg.binary_transform(raster.values[3], cutoff=args.cutoff)
+    bands[6] = rg.binary_transform(raster.values[4], cutoff=args.cutoff)
+    if plane.georeferenced:
+        crs_wkt = cloud.crs.to_wkt() if cloud.crs is not None else None
+    else:
+        crs_wkt = _local_frame_wkt(plane)
+    meta = {
+        "SLIPMAP_MAP_PLANE": plane.name,
+        "SLIPMAP_PLANE_ORIGIN": " ".join(f"{v:.6f}" for v in plane.origin_m),
+        "SLIPMAP_U_AXIS": " ".join(f"{v:.9f}" for v in plane.u_axis),
+        "SLIPMAP_V_AXIS": " ".join(f"{v:.9f}" for v in plane.v_axis),
+        "SLIPMAP_CELL_SIZE_M": f"{grid.cell_size_m:g}",
+        "SLIPMAP_CUTOFF": f"{args.cutoff:g}",
+        "SLIPMAP_SIGNED": str(bool(args.signed)),
+        "SLIPMAP_OLS_AXIS": grid.ols_axis,
+    }
+    tif = out_dir / f"roughness_{label}.tif"
+    try:
+        write_geotiff(
+            tif,
+            bands.astype(np.float32),
+            origin_xy=raster.origin_uv_m,
+            pixel_size_m=raster.pixel_size_m,
+            crs_wkt=crs_wkt,
+            band_names=_ROUGHNESS_BANDS,
+            metadata=meta,
+        )
+        files["geotiff"] = tif.name
+    except DependencyError as exc:
+        log.warning("no GeoTIFF written: %s", exc)
+        files["geotiff"] = None
+
+    variograms = {}
+    rows = []
+    for name, band in (("theta_odr", 0), ("theta_ols", 1), ("e_ols", 2)):
+        sv = rg.semivariogram_raster(raster.values[band], pixel_size_m=raster.pixel_size_m)
+        variograms[name] = sv
+        rows.append(sv)
+    sv_path = out_dir / f"semivariogram_{label}.csv"
+    lines = [
+        "lag_m,n_pairs_odr,gamma_odr,gamma_odr_normalised,n_pairs_ols,gamma_ols,"
+        "gamma_ols_normalised,n_pairs_e_ols,gamma_e_ols,gamma_e_ols_normalised"
+    ]
+    ref = variograms["theta_odr"]
+    for k in range(ref.gamma.size):
+        cells = [f"{ref.lag_m[k]:.6g}"]
+        for sv in rows:
+            cells += [f"{sv.n_pairs[k]:d}", f"{sv.gamma[k]:.9g}", f"{sv.normalised[k]:.9g}"]
+        lines.append(",".join(cells))
+    write_text_atomic(sv_path, "\n".join(lines) + "\n")
+    files["semivariogram_csv"] = sv_path.name
+    record["semivariogram_variance_m2"] = {
+        k: rg._json_float(v.variance) for k, v in variograms.items()
+    }
+
+    if args.figures:
+        from .core import report
+
+        title = f"{label} m grid ({plane.name} map plane)"
+        extent = raster.extent
+        png = out_dir / f"roughness_{label}_binary.png"
+        report.plot_roughness_map(
+            png,
+            {"A: OLS": bands[4], "B: ODR": bands[3]},
+            extent=extent,
+            cutoff=args.cutoff,
+            axis_labels=plane.axis_labels,
+            title=f"Normalised roughness, binary transform at {args.cutoff:g}: {title}",
+        )
+        files["binary_map_png"] = png.name
+        png = out_dir / f"roughness_{label}_map.png"
+        report.plot_roughness_map(
+            png,
+            {"theta ODR": bands[0], "theta OLS": bands[1]},
+            extent=extent,
+            axis_labels=plane.axis_labels,
+            title=f"Roughness: {title}",
+        )
+        files["map_png"] = png.name
+        png = out_dir / f"roughness_{label}_hist.png"
+        report.plot_roughness_histograms(
+            png, {"OLS": norm_ols, "ODR": norm_odr}, title=f"Normalised roughness: {title}"
+        )
+        files["histogram_png"] = png.name
+    record["_variograms"] = variograms
+    return record
+
+
+@command("roughness", "surface roughness by ODR on a 3D grid, with the OLS comparison")
+def _run_roughness(args: argparse.Namespace) -> int:
+    from .core import roughness as rg
+    from .core.io.atomic import ensure_output_dir
+    from .core.io.las import read_las
+
+    if not 0.0 <= args.cutoff <= 1.0:
+        raise InvalidParameterError(f"--cutoff must be within [0, 1], got {args.cutoff:g}")
+    if args.min_points < 3:
+        raise InvalidParameterError(f"--min-points must be at least 3, got {args.min_points}")
+    out = Path(args.out)
+    _check_output_dir(out)
+    cloud = read_las(args.input)
+    if len(cloud) == 0:
+        raise SlipMapError(f"{args.input}: the file has no points")
+    args.figures = not args.no_figures and _have_matplotlib()
+    t0 = time.perf_counter()
+    frame = rg.principal_frame(cloud.xyz)
+    ols_axis = rg.resolve_ols_axis(frame, args.ols_axis)
+    plane = rg.choose_map_plane(frame, args.map_plane)
+    log.info("OLS axis %s, map plane %s", ols_axis, plane.name)
+    with _ProgressBar("roughness", enabled=not args.quiet) as bar:
+        grids = rg.grid_roughness_multi(
+            cloud.xyz,
+            cell_sizes_m=args.cell,
+            min_points=args.min_points,
+            ols_axis=ols_axis,
+            signed=args.signed,
+            progress=bar,
+        )
+    ensure_output_dir(out)
+    records = []
+    panels = []
+    for grid in grids:
+        files: dict = {}
+        rec = _roughness_one_size(grid, plane, cloud, args, out, files)
+        variograms = rec.pop("_variograms", None)
+        rec["files"] = files
+        records.append(rec)
+        if variograms:
+            panels.append(
+                (
+                    f"{_cell_label(grid.cell_size_m)} m grid",
+                    {
+                        "ODR": (variograms["theta_odr"].lag_m, variograms["theta_odr"].normalised),
+                        "OLS": (variograms["theta_ols"].lag_m, variograms["theta_ols"].normalised),
+                        "E_OLS": (variograms["e_ols"].lag_m, variograms["e_ols"].normalised),
+                    },
+                )
+            )
+        s = rg.summarize_roughness(grid)
+        log.info(
+            "cell %s m: %d cells (%.0f points/cell; %d skipped < %d points, %d degenerate)",
+            _cell_label(grid.cell_size_m),
+            s.n_cells,
+            s.mean_points_per_cell,
+            s.n_cells_skipped,
+            grid.min_points,
+            s.n_degenerate,
+        )
+        for name, st in (("ODR", s.odr), ("OLS", s.ols)):
+            log.info(
+                "  %s  min %.4g  max %.4g  mean %.4g  var %.3g  std %.4g m",
+                name,
+                st.minimum,
+                st.maximum,
+                st.mean,
+                st.variance,
+                st.std,
+            )
+    semivariogram_png = None
+    if panels and args.figures:
+        from .core import report
+
+        semivariogram_png = out / "semivariograms.png"
+        report.plot_semivariograms(
+            semivariogram_png,
+            panels,
+            title="Normalised experimental semivariograms of roughness",
+        )
+    points_out = None
+    if args.points_out:
+        grid = grids[0]
+        values = rg.roughness_per_point(cloud.xyz, grid, value="theta_odr")
+        from .core.io.las import write_las
+
+        points_out = Path(args.points_out)
+        write_las(points_out, cloud, extra_dims={"Roughness": values}, inputs=[cloud.source])
+        log.info(
+            "wrote %s (Roughness = cell theta_ODR at %s m; NaN in skipped/degenerate cells)",
+            points_out,
+            _cell_label(grid.cell_size_m),
+        )
+    runtime = time.perf_counter() - t0
+    payload = {
+        "input": str(cloud.source) if cloud.source else None,
+        "crs": cloud.crs.to_wkt() if cloud.crs is not None else None,
+        "n_points": int(len(cloud)),
+        "method": "Pollyea & Fairley (2011): ODR plane per grid cell; theta = population std "
+        + ("of signed distances" if args.signed else "of absolute orthogonal distances (Eq. 4)"),
+        "options": {
+            "cell_sizes_m": [float(c) for c in args.cell],
+            "min_points": args.min_points,
+            "signed": bool(args.signed),
+            "ols_axis": ols_axis,
+            "cutoff": args.cutoff,
+            "map_plane": args.map_plane,
+        },
+        "map_plane": plane.to_dict(),
+        "principal_frame": {
+            "centroid_m": [float(v) for v in frame.centroid_m],
+            "axes": [[float(v) for v in row] for row in frame.axes],
+            "eigenvalues_m2": [float(v) for v in frame.eigenvalues_m2],
+        },
+        "cell_sizes": records,
+        "semivariograms_png": semivariogram_png.name if semivariogram_png else None,
+        "points_out": str(points_out) if points_out else None,
+        "points_out_cell_m": float(grids[0].cell_size_m) if points_out else None,
+        "runtime_s": round(runtime, 4),
+        "slipmap_version": __version__,
+    }
+    _write_json(out / "summary.json", payload)
+    log.info("wrote %s", out / "summary.json")
+    return 0
+
+
+@_run_roughness.arguments
+def _roughness_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", help="LAS/LAZ point cloud")
+    p.add_argument(
+        "--cell",
+        type=_positive(float, "--cell"),
+        action="append",
+        required=True,
+        metavar="M",
+        help="grid cell size in metres; repeat for several sizes (the study: 1, 0.5, 0.25, "
+        "0.125). --points-out uses the first one.",
+    )
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument(
+        "--min-points",
+        type=_positive(int, "--min-points"),
+        default=10,
+        metavar="N",
+        help="cells with fewer points are skipped and counted (default 10, at least 3)",
+    )
+    p.add_argument(
+        "--signed",
+        action="store_true",
+        help="roughness = std of signed distances (RMS) instead of the study's std of absolute "
+        "distances (Eq. 4)",
+    )
+    p.add_argument(
+        "--ols-axis",
+        choices=("auto", "x", "y", "z"),
+        default="auto",
+        help="dependent axis of the OLS comparison plane; auto = the axis closest to the "
+        "normal of the cloud's principal plane (the study: y, exposure-normal)",
+    )
+    p.add_argument(
+        "--cutoff",
+        type=float,
+        default=0.05,
+        metavar="F",
+        help="binary-map cutoff of normalised roughness, 0-1 (default 0.05)",
+    )
+    p.add_argument(
+        "--map-plane",
+        choices=("auto", "xy", "xz", "yz", "principal"),
+        default="auto",
+        help="plane of the maps: xy (map view, keeps the CRS), xz, yz, principal (local frame "
+        "on the cloud's principal plane); auto = principal, snapped to a coordinate plane "
+        "within 15 degrees",
+    )
+    p.add_argument(
+        "--points-out",
+        metavar="FILE.las",
+        help="also write the cloud with a Roughness dimension (cell theta_ODR, first --cell)",
+    )
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+
+
+# --------------------------------------------------------------------------- main
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="slipmap",
+        description="Fault slip, displacement fields and roughness from repeat LiDAR surveys.",
+    )
+    parser.add_argument("--version", action="version", version=f"slipmap {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name, (help_text, add_arguments, run) in _COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        add_arguments(p)
+        p.set_defaults(_run=run)
+    return parser
+
+
+def _configure_logging(debug: bool, quiet: bool) -> None:
+    level = logging.DEBUG if debug else (logging.WARNING if quiet else logging.INFO)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s" if not debug else "%(name)s: %(message)s"))
+    root = logging.getLogger("slipmap")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
+    logging.captureWarnings(True)
+    warnings_logger = logging.getLogger("py.warnings")
+    warnings_logger.handlers[:] = [handler]
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _configure_logging(args.debug, args.quiet)
+    try:
+        return int(args._run(args) or 0)
+    except CancelledError:
+        log.error("slipmap: cancelled")
+        return 130
+    except SlipMapError as exc:
+        if args.debug:
+            log.exception("slipmap %s", args.command)
+        else:
+            log.error("slipmap %s: error: %s", args.command, exc)
+        return 2
+    except KeyboardInterrupt:
+        log.error("slipmap: interrupted")
+        return 130
+    except Exception as exc:  # noqa: BLE001 - last resort: one line unless --debug
+        if args.debug:
+            log.exception("slipmap %s: unexpected error", args.command)
+        else:
+            log.error(
+                "slipmap %s: unexpected error: %s: %s (run with --debug for the traceback)",
+                args.command,
+                type(exc).__name__,
+                exc,
+            )
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,1224 @@
+"""Synthetic LiDAR scenes with known planar surfaces.
+
+A scene is flat ground (the plane ``z = 0``) with box buildings (flat or gable roofs) and
+a few trees, sampled as an airborne ("als"), mobile ("mls") or terrestrial ("tls") survey
+would roughly see it. Every planar surface (the ground, each roof plane, each wall) is a
+:class:`Surface` with its exact plane, so tests and benchmarks of the plane-segmentation
+engine can score recovered planes against the truth, and :func:`plane_distances` gives each
+point's signed distance to its true plane.
+
+Conventions
+-----------
+- Coordinates are metres, ``(N, 3)`` float64. The scene is built in a local frame whose
+  ground covers ``[0, extent_m] x [0, extent_m]`` at ``z = 0``, then every point is shifted
+  by ``origin`` (``points = local + origin``, so a shifted scene equals the unshifted one
+  plus ``origin`` bit for bit). :attr:`Surface.d` refers to the shifted points.
+- Sampling is uniform by area: a surface of area ``A`` sampled at density ``rho`` gets a
+  Poisson number of points with mean ``rho * A``. Each surface kind has a density relative
+  to the scene's nominal density (see :data:`PROFILES`), e.g. MLS sees roofs and ground
+  more sparsely than facades; :attr:`Surface.density_pts_m2` is the density actually used.
+- Noise: by default Gaussian noise of standard deviation ``noise_m`` is added **along the
+  surface normal** only, so the true plane stays exactly the plane of the noise-free points
+  and a point's truth distance is its noise draw. ``isotropic_noise=True`` adds the noise
+  on all three axes instead (the distance to the plane still has standard deviation
+  ``noise_m``, but points also move within the plane, e.g. across surface edges).
+- Labels: ``Scene.labels`` holds the :attr:`Surface.id` of each point, ``-1`` for clutter
+  (vegetation). ``Scene.classification`` uses ASPRS codes: 2 ground, 6 building (roofs and
+  facades), 5 high vegetation.
+- Randomness: everything derives from ``seed`` through :class:`numpy.random.SeedSequence`
+  with a fixed spawn key per purpose (building sizes, building placement, tree sizes, tree
+  placement, one key per surface, shuffling). So the same seed gives the same scene, and
+  switching off e.g. vegetation or the ground leaves the buildings and their points
+  unchanged; building ``i`` has the same size whatever ``n_buildings`` is.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from .errors import InvalidParameterError
+
+__all__ = [
+    "ASPRS_BUILDING",
+    "ASPRS_GROUND",
+    "ASPRS_HIGH_VEGETATION",
+    "PROFILES",
+    "Building",
+    "ProfileSpec",
+    "Scene",
+    "Surface",
+    "make_scene",
+    "make_scene_n_points",
+    "plane_distances",
+]
+
+ASPRS_GROUND = 2
+"""ASPRS classification code of ground points."""
+ASPRS_HIGH_VEGETATION = 5
+"""ASPRS classification code of vegetation (clutter) points."""
+ASPRS_BUILDING = 6
+"""ASPRS classification code of roof and facade points."""
+
+SURFACE_KINDS = ("ground", "roof", "facade")
+ROOF_KINDS = ("flat", "gable")
+
+# Random building layout.
+_FOOTPRINT_RANGE_M = (8.0, 25.0)  # each side of a random footprint
+_HEIGHT_RANGE_M = (4.0, 15.0)  # eave height of a random building
+_PITCH_RANGE_RAD = (math.radians(20.0), math.radians(40.0))  # gable roof pitch
+_GAP_M = 3.0  # minimum gap between two random footprints
+_BORDER_M = 1.5  # minimum distance of a random footprint to the extent's border
+_MAX_FILL = 0.55  # (footprint + gap) area over extent area beyond which placement is refused
+_BATCH = 64  # candidate positions drawn at once in rejection sampling
+_MAX_BATCHES = 40  # batches tried per building before giving up
+
+# Vegetation.
+_TREES_PER_M2 = 6e-4  # default tree density (6 per hectare)
+_TREE_RADIUS_RANGE_M = (2.0, 4.0)  # horizontal crown semi-axis
+_TREE_ASPECT_RANGE = (1.0, 1.5)  # vertical / horizontal crown semi-axis
+_TREE_BASE_RANGE_M = (1.5, 3.0)  # height of the crown's bottom above the ground
+_TREE_SHELL = 0.75  # crown points lie between this fraction and 1 of the crown's radius
+_TREE_CLEARANCE_M = 1.0  # minimum horizontal gap between a crown and a footprint
+
+# Scene scaling in make_scene_n_points.
+_BUILDINGS_PER_M2 = 6e-4  # the default 6 buildings per 100 m x 100 m
+
+_GROUND_TILE_M = 50.0  # ground is sampled tile by tile (cheap footprint exclusion)
+
+# SeedSequence spawn keys, one per purpose.
+_KEY_BUILDING_PARAMS = 1
+_KEY_BUILDING_PLACE = 2
+_KEY_TREE_PARAMS = 3
+_KEY_TREE_PLACE = 4
+_KEY_SURFACE = 5
+_KEY_TREE_POINTS = 6
+_KEY_SHUFFLE = 7
+
+
+# --------------------------------------------------------------------------------------
+# Public data types
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ProfileSpec:
+    """Acquisition profile: nominal density, noise and what the sensor sees.
+
+    Attributes
+    ----------
+    name : str
+        "als", "mls" or "tls".
+    density_pts_m2 : float
+        Default nominal density (points per square metre).
+    typical_density_pts_m2 : tuple of float
+        Usual range of the nominal density for this kind of survey (informative only; any
+        positive density is accepted).
+    noise_m : float
+        Default range noise standard deviation (metres).
+    ground_factor, roof_factor, facade_factor, vegetation_factor : float
+        Density of each surface kind relative to ``density_pts_m2``; 0 means the kind is
+        not sampled at all (no :class:`Surface` is created for it).
+    """
+
+    name: str
+    density_pts_m2: float
+    typical_density_pts_m2: tuple[float, float]
+    noise_m: float
+    ground_factor: float
+    roof_factor: float
+    facade_factor: float
+    vegetation_factor: float
+
+    def relative_density(self, kind: str) -> float:
+        """Density factor of a surface kind ("ground", "roof", "facade", "vegetation")."""
+        return float(getattr(self, f"{kind}_factor"))
+
+
+PROFILES: Mapping[str, ProfileSpec] = MappingProxyType(
+    {
+        # Airborne: roofs and ground at the nominal density, no facades.
+        "als": ProfileSpec("als", 10.0, (1.0, 20.0), 0.05, 1.0, 1.0, 0.0, 1.0),
+        # Mobile: facades at the nominal density; roofs (seen from the street) and the
+        # ground (kept sparse so the default scene stays test-sized) thinner.
+        "mls": ProfileSpec("mls", 100.0, (50.0, 300.0), 0.02, 0.15, 0.25, 1.0, 0.5),
+        # Terrestrial: mostly facades; roofs and ground seen at grazing angles.
+        "tls": ProfileSpec("tls", 500.0, (100.0, 2000.0), 0.005, 0.05, 0.1, 1.0, 0.2),
+    }
+)
+"""The acquisition profiles accepted by :func:`make_scene`, by name."""
+
+
+@dataclass(frozen=True)
+class Building:
+    """A box building on the ground, with a flat or gable roof.
+
+    Attributes
+    ----------
+    center_xy_m : tuple of float
+        (2,) footprint centre in the scene's local frame (metres, before ``origin``).
+    length_m, width_m : float
+        Footprint side lengths (metres); ``length_m`` runs along ``rotation_rad``.
+    height_m : float
+        Eave height: height of the walls' horizontal top edge above the ground (metres).
+    rotation_rad : float
+        Counter-clockwise angle from the +x axis to the ``length_m`` side (radians).
+    roof : str
+        "flat" or "gable". A gable's ridge runs along the footprint's longer side.
+    roof_pitch_rad : float
+        Slope of the two gable roof planes (radians); unused for flat roofs.
+    """
+
+    center_xy_m: tuple[float, float]
+    length_m: float
+    width_m: float
+    height_m: float
+    rotation_rad: float = 0.0
+    roof: str = "flat"
+    roof_pitch_rad: float = math.radians(30.0)
+
+    def _frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+        """Centre (3,), long-axis unit vector u (3,), v = z x u (3,), long and short sides."""
+        a = float(self.rotation_rad)
+        long_side, short_side = float(self.length_m), float(self.width_m)
+        if short_side > long_side:
+            long_side, short_side = short_side, long_side
+            a += 0.5 * math.pi
+        u = np.array([math.cos(a), math.sin(a), 0.0])
+        v = np.array([-math.sin(a), math.cos(a), 0.0])
+        c = np.array([float(self.center_xy_m[0]), float(self.center_xy_m[1]), 0.0])
+        return c, u, v, long_side, short_side
+
+    def footprint_xy(self) -> np.ndarray:
+        """Footprint corners, counter-clockwise, shape (4, 2), metres (local frame)."""
+        c, u, v, long_side, short_side = self._frame()
+        hl, hw = 0.5 * long_side, 0.5 * short_side
+        corners = [c - hl * u - hw * v, c + hl * u - hw * v, c + hl * u + hw * v]
+        corners.append(c - hl * u + hw * v)
+        return np.array(corners)[:, :2]
+
+    @property
+    def footprint_area_m2(self) -> float:
+        """Footprint area (square metres)."""
+        return float(self.length_m) * float(self.width_m)
+
+    @property
+    def ridge_height_m(self) -> float:
+        """Highest point of the roof above the ground (metres)."""
+        if self.roof != "gable":
+            return float(self.height_m)
+        short_side = min(float(self.length_m), float(self.width_m))
+        return float(self.height_m) + 0.5 * short_side * math.tan(float(self.roof_pitch_rad))
+
+
+@dataclass(frozen=True, eq=False)
+class Surface:
+    """One true planar surface of a scene.
+
+    Attributes
+    ----------
+    id : int
+        Label of the surface's points in :attr:`Scene.labels`.
+    kind : str
+        "ground", "roof" or "facade".
+    normal : numpy.ndarray
+        (3,) unit normal with ``normal[2] >= 0``; horizontal normals (facades) point out of
+        the building.
+    d : float
+        Hessian offset (metres): ``normal @ p + d == 0`` for noise-free points ``p`` of the
+        surface, in the scene's (shifted) coordinates.
+    n_points : int
+        Number of points sampled on the surface.
+    building : int
+        Index of the building in :attr:`Scene.buildings`, -1 for the ground.
+    area_m2 : float
+        Area of the surface (square metres); for the ground, the extent minus footprints.
+    density_pts_m2 : float
+        Nominal sampling density of the surface (points per square metre): the scene's
+        density times the profile's factor for this kind.
+    """
+
+    id: int
+    kind: str
+    normal: np.ndarray
+    d: float
+    n_points: int
+    building: int
+    area_m2: float = float("nan")
+    density_pts_m2: float = float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """A synthetic point cloud with its ground truth.
+
+    Attributes
+    ----------
+    points : numpy.ndarray
+        (N, 3) float64 coordinates (metres), shifted by ``origin``.
+    labels : numpy.ndarray
+        (N,) int32 true surface id (:attr:`Surface.id`), -1 for clutter (vegetation).
+    classification : numpy.ndarray
+        (N,) uint8 ASPRS class: 2 ground, 6 building, 5 high vegetation.
+    surfaces : tuple of Surface
+        The true planar surfaces; ``surfaces[i].id == i``.
+    building_ids : numpy.ndarray
+        (N,) int32 building index of each point, -1 for ground and clutter.
+    noise_m : float
+        Standard deviation of the added Gaussian noise (metres).
+    density_pts_m2 : float
+        Nominal density (points per square metre); see :attr:`Surface.density_pts_m2`.
+    profile : str
+        Acquisition profile ("als", "mls", "tls").
+    seed : int
+        Seed the scene was generated from.
+    buildings : tuple of Building
+        The buildings, in the local frame (before ``origin``).
+    extent_m : float
+        Side of the square scene (metres).
+    origin : numpy.ndarray
+        (3,) shift added to the local coordinates (metres).
+    isotropic_noise : bool
+        Whether noise was added on all axes rather than along the normals.
+    """
+
+    points: np.ndarray
+    labels: np.ndarray
+    classification: np.ndarray
+    surfaces: tuple[Surface, ...]
+    building_ids: np.ndarray
+    noise_m: float
+    density_pts_m2: float
+    profile: str
+    seed: int
+    buildings: tuple[Building, ...] = ()
+    extent_m: float = float("nan")
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    isotropic_noise: bool = False
+
+    def planar_mask(self) -> np.ndarray:
+        """(N,) bool: True where the point belongs to a true planar surface (label >= 0)."""
+        return self.labels >= 0
+
+    @property
+    def n_points(self) -> int:
+        """Number of points N."""
+        return int(self.points.shape[0])
+
+
+# --------------------------------------------------------------------------------------
+# Public functions
+# --------------------------------------------------------------------------------------
+
+
+def make_scene(
+    profile: str = "mls",
+    *,
+    seed: int = 0,
+    n_buildings: int = 6,
+    extent_m: float = 100.0,
+    density_pts_m2: float | None = None,
+    noise_m: float | None = None,
+    ground: bool = True,
+    vegetation: bool = True,
+    origin: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
+    roof_kinds: Sequence[str] = ROOF_KINDS,
+    isotropic_noise: bool = False,
+    n_trees: int | None = None,
+    buildings: Sequence[Building] | None = None,
+    shuffle: bool = True,
+) -> Scene:
+    """Generate a synthetic LiDAR scene with known planar surfaces.
+
+    Parameters
+    ----------
+    profile : str
+        Acquisition profile, a key of :data:`PROFILES`: "als" (airborne: roofs and ground,
+        no facades; 10 pts/m², 0.05 m), "mls" (mobile: facades, thinner roofs and ground;
+        100 pts/m², 0.02 m) or "tls" (terrestrial: mostly facades; 500 pts/m², 0.005 m).
+    seed : int
+        Non-negative seed; the same seed and options give the same scene.
+    n_buildings : int
+        Number of random buildings (footprints 8–25 m by 8–25 m, eave heights 4–15 m, any
+        rotation, at least 3 m apart). Ignored when ``buildings`` is given.
+    extent_m : float
+        Side of the square scene (metres); the ground covers ``[0, extent_m]²``.
+    density_pts_m2 : float, optional
+        Nominal density (points per square metre); default: the profile's.
+    noise_m : float, optional
+        Gaussian noise standard deviation (metres); default: the profile's.
+    ground : bool
+        Sample the ground plane (outside the footprints).
+    vegetation : bool
+        Add trees (ellipsoidal crowns, label -1, class 5) that do not touch buildings.
+    origin : array-like
+        (3,) shift added to all coordinates (metres), e.g. ``(500000, 4200000, 100)``.
+    roof_kinds : sequence of str
+        Roof kinds random buildings draw from, uniformly: "flat", "gable".
+    isotropic_noise : bool
+        Add the noise on all three axes instead of along the surface normal.
+    n_trees : int, optional
+        Number of trees to try to place; default 6 per hectare. Trees that find no room
+        are left out.
+    buildings : sequence of Building, optional
+        Hand-placed buildings (local frame) used instead of random ones; they must lie
+        inside the extent and must not overlap.
+    shuffle : bool
+        Shuffle the points (default); otherwise points come surface by surface (in id
+        order), then vegetation.
+
+    Returns
+    -------
+    Scene
+        Points (N, 3), labels, classification, building ids and the true surfaces.
+
+    Raises
+    ------
+    InvalidParameterError
+        For an unknown profile, a non-positive density or extent, a negative noise, a
+        bad origin or roof kind, or buildings that do not fit in the extent.
+    """
+    spec = _check_profile(profile)
+    seed = _check_int("seed", seed, minimum=0)
+    extent = _check_positive("extent_m", extent_m)
+    if density_pts_m2 is None:
+        density = spec.density_pts_m2
+    else:
+        density = _check_positive("density_pts_m2", density_pts_m2)
+    noise = spec.noise_m if noise_m is None else _check_non_negative("noise_m", noise_m)
+    origin_arr = _check_origin(origin)
+    kinds = _check_roof_kinds(roof_kinds)
+    if buildings is None:
+        count = _check_int("n_buildings", n_buildings, minimum=0)
+        params = _random_building_params(seed, count, kinds)
+        blds = _place_buildings(seed, params, extent)
+    else:
+        blds = _check_buildings(buildings, extent)
+    if vegetation:
+        if n_trees is None:
+            tree_count = _default_tree_count(extent)
+        else:
+            tree_count = _check_int("n_trees", n_trees, minimum=0)
+        trees = _place_trees(seed, _random_tree_params(seed, tree_count), extent, blds)
+    else:
+        trees = np.zeros((0, 5))
+    return _render(
+        spec=spec,
+        seed=seed,
+        extent=extent,
+        density=density,
+        noise=noise,
+        isotropic=bool(isotropic_noise),
+        origin=origin_arr,
+        buildings=blds,
+        trees=trees,
+        ground=bool(ground),
+        shuffle=bool(shuffle),
+    )
+
+
+def make_scene_n_points(n_points: int, profile: str = "mls", seed: int = 0, **kw: Any) -> Scene:
+    """Generate a scene of about ``n_points`` points by scaling its extent and buildings.
+
+    The scene keeps the default layout density (6 buildings and, with vegetation, 6 trees
+    per hectare) and grows ``extent_m`` and ``n_buildings`` together; the ground then fine
+    tunes the count. The expected count (Poisson mean) is matched to within 3 %, so the
+    actual count is within a few percent of ``n_points`` for any target above the smallest
+    one-building scene (depending on the seed about 0.1 M points for "mls", 0.3-0.5 M for
+    "tls" and 10⁴ for "als" at their default densities).
+
+    Parameters
+    ----------
+    n_points : int
+        Target number of points (> 0).
+    profile : str
+        Acquisition profile (see :func:`make_scene`); its default density is used unless
+        ``density_pts_m2`` is given in ``kw``.
+    seed : int
+        Non-negative seed.
+    **kw
+        Other keyword options of :func:`make_scene`, except ``extent_m``, ``n_buildings``
+        and ``buildings``, which this function chooses.
+
+    Returns
+    -------
+    Scene
+        The scene; ``scene.extent_m`` and ``len(scene.buildings)`` tell the chosen layout.
+
+    Raises
+    ------
+    InvalidParameterError
+        For bad options, or a target too small for one building at this density (or not
+        reachable at all, e.g. with ``ground=False`` and ``vegetation=False``).
+    """
+    for name in ("extent_m", "n_buildings", "buildings"):
+        if name in kw:
+            raise InvalidParameterError(
+                f"make_scene_n_points chooses {name} itself; call make_scene to set it"
+            )
+    target = _check_int("n_points", n_points, minimum=1)
+    spec = _check_profile(profile)
+    seed = _check_int("seed", seed, minimum=0)
+    density = kw.get("density_pts_m2")
+    density = spec.density_pts_m2 if density is None else _check_positive("density_pts_m2", density)
+    kinds = _check_roof_kinds(kw.get("roof_kinds", ROOF_KINDS))
+    n_trees = kw.get("n_trees")
+    if n_trees is not None:
+        n_trees = _check_int("n_trees", n_trees, minimum=0)
+    model = _CountModel(
+        seed=seed,
+        spec=spec,
+        density=density,
+        roof_kinds=kinds,
+        ground=bool(kw.get("ground", True)),
+        vegetation=bool(kw.get("vegetation", True)),
+        n_trees=n_trees,
+    )
+
+    def coupled(extent: float) -> float:
+        return model.expected(model.buildings_for(extent), extent)
+
+    extent0 = _solve_increasing(coupled, target, 10.0)
+    n0 = model.buildings_for(extent0)
+    candidates = [n0]
+    for step in range(1, 4):
+        candidates += [n0 - step, n0 + step]
+    for count in candidates:
+        if count < 1:
+            continue
+        lo = model.min_extent(count)
+        if model.ground_rho > 0.0 or model.veg_rho > 0.0:
+            extent = _solve_increasing(lambda e, c=count: model.expected(c, e), target, lo)
+        else:  # only buildings: the count does not depend on the extent
+            extent = max(lo, math.sqrt(count / _BUILDINGS_PER_M2))
+        if abs(model.expected(count, extent) / target - 1.0) > 0.03:
+            continue
+        try:
+            return make_scene(profile, seed=seed, n_buildings=count, extent_m=extent, **kw)
+        except _LayoutError:  # placement failed at this size: try another building count
+            continue
+    smallest = model.expected(1, model.min_extent(1))
+    if target < smallest:
+        why = f"the smallest scene, with one building, has about {smallest:.0f} points"
+    else:
+        why = "without ground and vegetation only whole buildings change the count"
+    raise InvalidParameterError(
+        f"n_points={target} cannot be reached within 3 % with profile {spec.name!r} at "
+        f"density_pts_m2={density:g}: {why}; choose another n_points or density_pts_m2, "
+        "or call make_scene directly"
+    )
+
+
+def plane_distances(scene: Scene) -> np.ndarray:
+    """Signed distance of each point to its true surface plane.
+
+    Parameters
+    ----------
+    scene : Scene
+        A scene from :func:`make_scene`.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N,) float64 distances ``normal @ p + d`` (metres), positive on the normal's side;
+        NaN for clutter (label -1).
+    """
+    n = scene.points.shape[0]
+    out = np.full(n, np.nan)
+    if not scene.surfaces or n == 0:
+        return out
+    ids = np.array([s.id for s in scene.surfaces], dtype=np.int64)
+    lookup = np.full(int(ids.max()) + 1, -1, dtype=np.int64)
+    lookup[ids] = np.arange(ids.size)
+    normals = np.array([s.normal for s in scene.surfaces], dtype=np.float64)
+    ref = np.asarray(scene.origin, dtype=np.float64)
+    offsets = np.array([s.d for s in scene.surfaces], dtype=np.float64) + normals @ ref
+    mask = scene.labels >= 0
+    idx = lookup[scene.labels[mask]]
+    local = scene.points[mask] - ref
+    out[mask] = np.einsum("ij,ij->i", local, normals[idx]) + offsets[idx]
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Validation
+# --------------------------------------------------------------------------------------
+
+
+def _check_profile(profile: Any) -> ProfileSpec:
+    if not isinstance(profile, str) or profile.lower() not in PROFILES:
+        allowed = ", ".join(repr(p) for p in PROFILES)
+        raise InvalidParameterError(f"profile={profile!r} is unknown; use one of {allowed}")
+    return PROFILES[profile.lower()]
+
+
+def _check_int(name: str, value: Any, *, minimum: int) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise InvalidParameterError(f"{name}={value!r} must be an integer >= {minimum}")
+    if value < minimum:
+        raise InvalidParameterError(f"{name}={value!r} must be an integer >= {minimum}")
+    return int(value)
+
+
+def _check_float(name: str, value: Any) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise InvalidParameterError(f"{name}={value!r} must be a number") from None
+    if not math.isfinite(out):
+        raise InvalidParameterError(f"{name}={value!r} must be finite")
+    return out
+
+
+def _check_positive(name: str, value: Any) -> float:
+    out = _check_float(name, value)
+    if out <= 0.0:
+        raise InvalidParameterError(f"{name}={value!r} must be > 0")
+    return out
+
+
+def _check_non_negative(name: str, value: Any) -> float:
+    out = _check_float(name, value)
+    if out < 0.0:
+        raise InvalidParameterError(f"{name}={value!r} must be >= 0")
+    return out
+
+
+def _check_origin(origin: Any) -> np.ndarray:
+    try:
+        arr = np.array(origin, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidParameterError(f"origin={origin!r} must be 3 numbers (x, y, z)") from None
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise InvalidParameterError(f"origin={origin!r} must be 3 finite numbers (x, y, z)")
+    return arr
+
+
+def _check_roof_kinds(roof_kinds: Any) -> tuple[str, ...]:
+    if isinstance(roof_kinds, str):
+        roof_kinds = (roof_kinds,)
+    try:
+        kinds = tuple(roof_kinds)
+    except TypeError:
+        kinds = ()
+    if not kinds or any(k not in ROOF_KINDS for k in kinds):
+        raise InvalidParameterError(
+            f"roof_kinds={roof_kinds!r} must be a non-empty sequence of {ROOF_KINDS}"
+        )
+    return kinds
+
+
+def _check_buildings(buildings: Sequence[Building], extent: float) -> tuple[Building, ...]:
+    """Validate hand-placed buildings: sizes, roof, inside the extent, no overlap."""
+    out = tuple(buildings)
+    for i, b in enumerate(out):
+        if not isinstance(b, Building):
+            raise InvalidParameterError(f"buildings[{i}] must be a Building, not {type(b)}")
+        for attr in ("length_m", "width_m", "height_m"):
+            _check_positive(f"buildings[{i}].{attr}", getattr(b, attr))
+        _check_float(f"buildings[{i}].rotation_rad", b.rotation_rad)
+        if b.roof not in ROOF_KINDS:
+            raise InvalidParameterError(
+                f"buildings[{i}].roof={b.roof!r} must be one of {ROOF_KINDS}"
+            )
+        pitch = _check_float(f"buildings[{i}].roof_pitch_rad", b.roof_pitch_rad)
+        if b.roof == "gable" and not 0.0 < pitch < 0.5 * math.pi:
+            raise InvalidParameterError(
+                f"buildings[{i}].roof_pitch_rad={pitch!r} must be in (0, pi/2)"
+            )
+        corners = b.footprint_xy()
+        if corners.min() < 0.0 or corners.max() > extent or not np.all(np.isfinite(corners)):
+            raise InvalidParameterError(
+                f"buildings[{i}] does not lie inside extent_m={extent:g} "
+                f"(footprint x {corners[:, 0].min():.2f}..{corners[:, 0].max():.2f}, "
+                f"y {corners[:, 1].min():.2f}..{corners[:, 1].max():.2f})"
+            )
+    if len(out) > 1:
+        polys = np.array([b.footprint_xy() for b in out])
+        first, second = np.triu_indices(len(out), k=1)
+        bad = np.flatnonzero(_polygon_gaps(polys[first], polys[second]) <= 0.0)
+        if bad.size:
+            i, j = first[bad[0]], second[bad[0]]
+            raise InvalidParameterError(
+                f"buildings[{i}] and buildings[{j}] overlap; move them apart"
+            )
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Random layout: buildings and trees
+# --------------------------------------------------------------------------------------
+
+
+class _LayoutError(InvalidParameterError):
+    """Random buildings do not fit in the extent (make_scene_n_points retries on it)."""
+
+
+def _rng(seed: int, *key: int) -> np.random.Generator:
+    """Generator for one purpose: independent of every other key's stream."""
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=key))
+
+
+def _random_building_params(
+    seed: int, count: int, roof_kinds: tuple[str, ...]
+) -> list[dict[str, Any]]:
+    """Sizes, rotation and roof of ``count`` random buildings (no position yet).
+
+    Building ``i`` depends only on ``seed`` and ``i`` (``Generator.random`` fills row by
+    row, so the first rows do not depend on ``count``).
+    """
+    u = _rng(seed, _KEY_BUILDING_PARAMS).random((count, 6))
+    lo, hi = _FOOTPRINT_RANGE_M
+    hlo, hhi = _HEIGHT_RANGE_M
+    plo, phi = _PITCH_RANGE_RAD
+    out = []
+    for row in u:
+        out.append(
+            {
+                "length_m": lo + (hi - lo) * row[0],
+                "width_m": lo + (hi - lo) * row[1],
+                "height_m": hlo + (hhi - hlo) * row[2],
+                "rotation_rad": math.pi * row[3],
+                "roof": roof_kinds[min(int(row[4] * len(roof_kinds)), len(roof_kinds) - 1)],
+                "roof_pitch_rad": plo + (phi - plo) * row[5],
+            }
+        )
+    return out
+
+
+def _half_extents(length: float, width: float, angle: float) -> tuple[float, float]:
+    """Half sizes (x, y) of the axis-aligned box around a rotated rectangle."""
+    c, s = abs(math.cos(angle)), abs(math.sin(angle))
+    return 0.5 * (length * c + width * s), 0.5 * (length * s + width * c)
+
+
+def _place_buildings(
+    seed: int, params: list[dict[str, Any]], extent: float
+) -> tuple[Building, ...]:
+    """Place buildings one by one by rejection sampling, ``_GAP_M`` apart."""
+    if not params:
+        return ()
+    need = sum((p["length_m"] + _GAP_M) * (p["width_m"] + _GAP_M) for p in params)
+    advice = (
+        f"increase extent_m (to at least ~{math.sqrt(need / _MAX_FILL) + 2 * _BORDER_M:.0f} m) "
+        "or lower n_buildings"
+    )
+    if need > _MAX_FILL * extent**2:
+        raise _LayoutError(
+            f"n_buildings={len(params)} random buildings (footprints "
+            f"{_FOOTPRINT_RANGE_M[0]:g}-{_FOOTPRINT_RANGE_M[1]:g} m, {_GAP_M:g} m apart) "
+            f"do not fit in extent_m={extent:g}; {advice}"
+        )
+    rng = _rng(seed, _KEY_BUILDING_PLACE)
+    placed: list[Building] = []
+    polys = np.zeros((0, 4, 2))
+    radii = np.zeros(0)
+    centers = np.zeros((0, 2))
+    for i, p in enumerate(params):
+        hx, hy = _half_extents(p["length_m"], p["width_m"], p["rotation_rad"])
+        span_x = extent - 2.0 * (_BORDER_M + hx)
+        span_y = extent - 2.0 * (_BORDER_M + hy)
+        if span_x < 0.0 or span_y < 0.0:
+            raise _LayoutError(
+                f"random building {i} ({p['length_m']:.1f} m x {p['width_m']:.1f} m) does "
+                f"not fit in extent_m={extent:g}; {advice}"
+            )
+        radius = 0.5 * math.hypot(p["length_m"], p["width_m"])
+        template = Building((0.0, 0.0), **{k: p[k] for k in p}).footprint_xy()
+        chosen = None
+        for _ in range(_MAX_BATCHES):
+            cand = rng.random((_BATCH, 2)) * [span_x, span_y] + [_BORDER_M + hx, _BORDER_M + hy]
+            ok = np.ones(_BATCH, dtype=bool)
+            if centers.shape[0]:
+                dist = np.linalg.norm(cand[:, None, :] - centers[None, :, :], axis=-1)
+                rows, cols = np.nonzero(dist < radius + radii[None, :] + _GAP_M)
+                if rows.size:  # exact test only for pairs whose circles are close
+                    gaps = _polygon_gaps(cand[rows, None, :] + template[None], polys[cols])
+                    ok[rows[gaps < _GAP_M]] = False
+            hits = np.flatnonzero(ok)
+            if hits.size:
+                chosen = cand[hits[0]]
+                break
+        if chosen is None:
+            raise _LayoutError(
+                f"could place only {i} of n_buildings={len(params)} random buildings in "
+                f"extent_m={extent:g} with a {_GAP_M:g} m gap; {advice}"
+            )
+        b = Building((float(chosen[0]), float(chosen[1])), **{k: p[k] for k in p})
+        placed.append(b)
+        polys = np.concatenate([polys, b.footprint_xy()[None]])
+        radii = np.append(radii, radius)
+        centers = np.concatenate([centers, chosen[None]])
+    return tuple(placed)
+
+
+def _default_tree_count(extent: float) -> int:
+    return max(1, int(round(_TREES_PER_M2 * extent**2)))
+
+
+def _random_tree_params(seed: int, count: int) -> np.ndarray:
+    """(count, 3): crown horizontal semi-axis, vertical semi-axis, crown base height (m)."""
+    u = _rng(seed, _KEY_TREE_PARAMS).random((count, 3))
+    r = _TREE_RADIUS_RANGE_M[0] + np.diff(_TREE_RADIUS_RANGE_M) * u[:, 0]
+    aspect = _TREE_ASPECT_RANGE[0] + np.diff(_TREE_ASPECT_RANGE) * u[:, 1]
+    base = _TREE_BASE_RANGE_M[0] + np.diff(_TREE_BASE_RANGE_M) * u[:, 2]
+    return np.column_stack([r, r * aspect, base])
+
+
+def _ellipsoid_area(a: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Surface area (m²) of spheroids with semi-axes (a, a, c) (Thomsen, error < 1.1 %)."""
+    p = 1.6075
+    return 4.0 * math.pi * ((a ** (2 * p) + 2.0 * (a * c) ** p) / 3.0) ** (1.0 / p)
+
+
+def _place_trees(
+    seed: int, params: np.ndarray, extent: float, buildings: tuple[Building, ...]
+) -> np.ndarray:
+    """Place tree crowns clear of buildings and of each other; unplaceable ones are dropped.
+
+    Returns
+    -------
+    numpy.ndarray
+        (T, 5) crown centre x, y, z (local, metres), horizontal and vertical semi-axes.
+    """
+    rng = _rng(seed, _KEY_TREE_PLACE)
+    polys = np.array([b.footprint_xy() for b in buildings]).reshape(-1, 4, 2)
+    centers = polys.mean(axis=1)
+    radii = np.array([0.5 * math.hypot(b.length_m, b.width_m) for b in buildings])
+    rows: list[list[float]] = []
+    for r, rz, base in params:
+        margin = r + _TREE_CLEARANCE_M
+        span = extent - 2.0 * margin
+        if span <= 0.0:
+            continue
+        for _ in range(_MAX_BATCHES // 4):
+            cand = margin + span * rng.random((_BATCH, 2))
+            ok = np.ones(_BATCH, dtype=bool)
+            if polys.shape[0]:
+                dist = np.linalg.norm(cand[:, None, :] - centers[None, :, :], axis=-1)
+                near_c, near_b = np.nonzero(dist < radii[None, :] + margin)
+                if near_c.size:  # exact test only where the building's circle is close
+                    gap = _point_polygon_distance(cand[near_c], polys[near_b])
+                    ok[near_c[gap < margin]] = False
+            if rows:
+                prev = np.array(rows)
+                dist = np.linalg.norm(cand[:, None, :] - prev[None, :, :2], axis=-1)
+                ok &= np.all(dist >= r + prev[None, :, 3], axis=1)
+            hits = np.flatnonzero(ok)
+            if hits.size:
+                x, y = cand[hits[0]]
+                rows.append([x, y, base + rz, r, rz])
+                break
+    return np.array(rows, dtype=np.float64).reshape(-1, 5)
+
+
+def _edge_normals(polys: np.ndarray) -> np.ndarray:
+    """(..., 4, 2) polygons -> (..., 4, 2) edge normals (not normalised)."""
+    e = np.roll(polys, -1, axis=-2) - polys
+    return np.stack([-e[..., 1], e[..., 0]], axis=-1)
+
+
+def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance from points p to segments [a, b]; all (..., 2), broadcast."""
+    ab = b - a
+    t = np.einsum("...i,...i->...", p - a, ab) / np.einsum("...i,...i->...", ab, ab)
+    t = np.clip(t, 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1)
+
+
+def _polygon_gaps(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Gaps between pairs of convex quadrilaterals: (P, 4, 2), (P, 4, 2) -> (P,), 0 if overlapping.
+
+    Separating-axis test for overlap; otherwise the smallest vertex-to-edge distance.
+    """
+    axes = np.concatenate([_edge_normals(p), _edge_normals(q)], axis=-2)  # (P, 8, 2)
+    proj_p = np.einsum("kad,kvd->kav", axes, p)
+    proj_q = np.einsum("kad,kvd->kav", axes, q)
+    separated = np.any(
+        (proj_p.max(-1) < proj_q.min(-1)) | (proj_q.max(-1) < proj_p.min(-1)), axis=-1
+    )
+    q_end, p_end = np.roll(q, -1, axis=-2), np.roll(p, -1, axis=-2)
+    d_pq = _point_segment_distance(p[:, :, None], q[:, None], q_end[:, None]).min(axis=(1, 2))
+    d_qp = _point_segment_distance(q[:, :, None], p[:, None], p_end[:, None]).min(axis=(1, 2))
+    return np.where(separated, np.minimum(d_pq, d_qp), 0.0)
+
+
+def _point_polygon_distance(pts: np.ndarray, polys: np.ndarray) -> np.ndarray:
+    """Pairs of points and counter-clockwise convex quadrilaterals: (P, 2), (P, 4, 2) -> (P,).
+
+    The distance is 0 for a point inside its polygon.
+    """
+    a, b, p = polys, np.roll(polys, -1, axis=-2), pts[:, None, :]
+    e, w = b - a, p - a
+    inside = np.all(e[..., 0] * w[..., 1] - e[..., 1] * w[..., 0] >= 0.0, axis=-1)
+    dist = _point_segment_distance(p, a, b).min(axis=-1)
+    return np.where(inside, 0.0, dist)
+
+
+# --------------------------------------------------------------------------------------
+# Surface geometry (local frame): each planar surface is a union of patches
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class _Patch:
+    """Parallelogram ``o + a e1 + b e2`` (a, b in [0, 1]) or triangle (a + b <= 1)."""
+
+    origin: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+    triangle: bool = False
+
+    @property
+    def area(self) -> float:
+        full = float(np.linalg.norm(np.cross(self.e1, self.e2)))
+        return 0.5 * full if self.triangle else full
+
+
+@dataclass(frozen=True, eq=False)
+class _PlaneGeom:
+    """A true planar surface before sampling (local frame)."""
+
+    kind: str
+    building: int  # -1 for the ground
+    role: int  # index of the surface within its building (spawn key)
+    patches: tuple[_Patch, ...]
+    normal: np.ndarray
+    d: float
+    area_m2: float
+
+
+def _plane_geom(
+    kind: str, building: int, role: int, patches: list[_Patch], outward: np.ndarray
+) -> _PlaneGeom:
+    """Normal (nz >= 0; horizontal ones along ``outward``), offset and area of patches."""
+    first = patches[0]
+    normal = np.cross(first.e1, first.e2)
+    normal = normal / np.linalg.norm(normal)
+    if normal[2] < -1e-12 or (abs(normal[2]) <= 1e-12 and normal @ outward < 0.0):
+        normal = -normal
+    if abs(normal[2]) <= 1e-12:
+        normal[2] = 0.0
+    d = -float(normal @ first.origin)
+    area = float(sum(p.area for p in patches))
+    return _PlaneGeom(kind, building, role, tuple(patches), normal, d, area)
+
+
+def _ground_geom(extent: float, buildings: tuple[Building, ...]) -> _PlaneGeom:
+    """The ground square; its area excludes the footprints (not sampled under buildings)."""
+    patch = _Patch(np.zeros(3), np.array([extent, 0.0, 0.0]), np.array([0.0, extent, 0.0]))
+    g = _plane_geom("ground", -1, 0, [patch], np.zeros(3))
+    area = extent**2 - sum(b.footprint_area_m2 for b in buildings)
+    return _PlaneGeom("ground", -1, 0, g.patches, g.normal, g.d, area)
+
+
+def _roof_geoms(b: Building, index: int) -> list[_PlaneGeom]:
+    """One flat roof rectangle, or the two rectangles of a gable roof (ridge along u)."""
+    c, u, v, long_side, short_side = b._frame()
+    z = np.array([0.0, 0.0, 1.0])
+    h = float(b.height_m)
+    if b.roof == "flat":
+        o = c - 0.5 * long_side * u - 0.5 * short_side * v + h * z
+        return [_plane_geom("roof", index, 0, [_Patch(o, long_side * u, short_side * v)], z)]
+    rise = 0.5 * short_side * math.tan(float(b.roof_pitch_rad))
+    ridge_start = c - 0.5 * long_side * u + (h + rise) * z
+    out = []
+    for role, side in enumerate((1.0, -1.0)):
+        e2 = side * 0.5 * short_side * v - rise * z
+        out.append(
+            _plane_geom("roof", index, role, [_Patch(ridge_start, long_side * u, e2)], side * v)
+        )
+    return out
+
+
+def _facade_geoms(b: Building, index: int) -> list[_PlaneGeom]:
+    """Four walls: two rectangles along the long sides, two end walls (pentagons if gable)."""
+    c, u, v, long_side, short_side = b._frame()
+    z = np.array([0.0, 0.0, 1.0])
+    h = float(b.height_m)
+    hl, hw = 0.5 * long_side, 0.5 * short_side
+    out = []
+    for k, side in enumerate((1.0, -1.0)):  # long walls at +-v
+        o = c - hl * u + side * hw * v
+        out.append(_plane_geom("facade", index, 2 + k, [_Patch(o, long_side * u, h * z)], side * v))
+    for k, side in enumerate((1.0, -1.0)):  # end walls at +-u
+        o = c + side * hl * u - hw * v
+        patches = [_Patch(o, short_side * v, h * z)]
+        if b.roof == "gable":
+            rise = hw * math.tan(float(b.roof_pitch_rad))
+            patches.append(_Patch(o + h * z, short_side * v, hw * v + rise * z, triangle=True))
+        out.append(_plane_geom("facade", index, 4 + k, patches, side * u))
+    return out
+
+
+def _building_geoms(b: Building, index: int, spec: ProfileSpec) -> list[_PlaneGeom]:
+    """The surfaces of one building that the profile samples."""
+    out: list[_PlaneGeom] = []
+    if spec.roof_factor > 0.0:
+        out += _roof_geoms(b, index)
+    if spec.facade_factor > 0.0:
+        out += _facade_geoms(b, index)
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Sampling
+# --------------------------------------------------------------------------------------
+
+
+def _sample_patches(
+    rng: np.random.Generator, patches: tuple[_Patch, ...], density: float
+) -> np.ndarray:
+    """Uniform points on a union of patches, Poisson count of mean density * area: (n, 3)."""
+    areas = np.array([p.area for p in patches])
+    n = int(rng.poisson(density * areas.sum()))
+    counts = rng.multinomial(n, areas / areas.sum()) if len(patches) > 1 else [n]
+    out = []
+    for patch, count in zip(patches, counts):
+        ab = rng.random((int(count), 2))
+        if patch.triangle:
+            flip = ab.sum(axis=1) > 1.0
+            ab[flip] = 1.0 - ab[flip]
+        out.append(patch.origin + ab[:, :1] * patch.e1 + ab[:, 1:] * patch.e2)
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def _sample_ground(
+    rng: np.random.Generator, extent: float, buildings: tuple[Building, ...], density: float
+) -> np.ndarray:
+    """Uniform points on the ground square outside the footprints: (n, 3), z = 0.
+
+    The square is split in tiles; each tile draws a Poisson count over its whole area and
+    drops points inside the footprints that touch it (thinning keeps the count Poisson with
+    mean density * remaining area).
+    """
+    n_tiles = max(1, int(math.ceil(extent / _GROUND_TILE_M)))
+    edges = np.linspace(0.0, extent, n_tiles + 1)
+    frames = [b._frame() for b in buildings]
+    boxes = np.array([b.footprint_xy() for b in buildings]).reshape(-1, 4, 2)
+    lo, hi = boxes.min(axis=1), boxes.max(axis=1)
+    out = []
+    for i in range(n_tiles):
+        for j in range(n_tiles):
+            x0, x1, y0, y1 = edges[i], edges[i + 1], edges[j], edges[j + 1]
+            n = int(rng.poisson(density * (x1 - x0) * (y1 - y0)))
+            xy = rng.random((n, 2)) * [x1 - x0, y1 - y0] + [x0, y0]
+            keep = np.ones(n, dtype=bool)
+            touching = np.flatnonzero(
+                (lo[:, 0] < x1) & (hi[:, 0] > x0) & (lo[:, 1] < y1) & (hi[:, 1] > y0)
+            )
+            for k in touching:
+                c, u, v, long_side, short_side = frames[k]
+                rel = xy - c[:2]
+                inside = (np.abs(rel @ u[:2]) < 0.5 * long_side) & (
+                    np.abs(rel @ v[:2]) < 0.5 * short_side
+                )
+                keep &= ~inside
+            xy = xy[keep]
+            out.append(np.column_stack([xy, np.zeros(xy.shape[0])]))
+    return np.concatenate(out)
+
+
+def _sample_trees(rng: np.random.Generator, trees: np.ndarray, density: float) -> np.ndarray:
+    """Points in a shell (radius fraction 0.75-1) of each spheroidal crown: (n, 3)."""
+    if trees.shape[0] == 0 or density <= 0.0:
+        return np.zeros((0, 3))
+    area = _ellipsoid_area(trees[:, 3], trees[:, 4])
+    counts = rng.poisson(density * area)
+    rows = np.repeat(np.arange(trees.shape[0]), counts)
+    direction = rng.normal(size=(rows.size, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    scale = _TREE_SHELL + (1.0 - _TREE_SHELL) * rng.random(rows.size)
+    axes = trees[rows][:, [3, 3, 4]]
+    return trees[rows, :3] + (scale[:, None] * direction) * axes
+
+
+def _add_noise(
+    rng: np.random.Generator, pts: np.ndarray, normal: np.ndarray, noise: float, isotropic: bool
+) -> np.ndarray:
+    """Gaussian noise of std ``noise`` along ``normal`` (or on all axes): (n, 3)."""
+    if isotropic:
+        return pts + rng.normal(0.0, noise, size=pts.shape)
+    return pts + rng.normal(0.0, noise, size=(pts.shape[0], 1)) * normal
+
+
+def _render(
+    *,
+    spec: ProfileSpec,
+    seed: int,
+    extent: float,
+    density: float,
+    noise: float,
+    isotropic: bool,
+    origin: np.ndarray,
+    buildings: tuple[Building, ...],
+    trees: np.ndarray,
+    ground: bool,
+    shuffle: bool,
+) -> Scene:
+    """Sample every surface and the vegetation, add noise, label, shift and shuffle."""
+    geoms: list[_PlaneGeom] = []
+    if ground and spec.ground_factor > 0.0:
+        geoms.append(_ground_geom(extent, buildings))
+    for index, b in enumerate(buildings):
+        geoms += _building_geoms(b, index, spec)
+
+    chunks, labels, classes, bids, surfaces = [], [], [], [], []
+    for sid, g in enumerate(geoms):
+        rng = _rng(seed, _KEY_SURFACE, g.building + 1, g.role)
+        rho = density * spec.relative_density(g.kind)
+        if g.kind == "ground":
+            pts = _sample_ground(rng, extent, buildings, rho)
+        else:
+            pts = _sample_patches(rng, g.patches, rho)
+        pts = _add_noise(rng, pts, g.normal, noise, isotropic)
+        n = pts.shape[0]
+        chunks.append(pts)
+        labels.append(np.full(n, sid, dtype=np.int32))
+        code = ASPRS_GROUND if g.kind == "ground" else ASPRS_BUILDING
+        classes.append(np.full(n, code, dtype=np.uint8))
+        bids.append(np.full(n, g.building, dtype=np.int32))
+        normal = g.normal.copy()
+        normal.flags.writeable = False
+        d = g.d - float(normal @ origin)
+        surfaces.append(Surface(sid, g.kind, normal, d, n, g.building, g.area_m2, rho))
+
+    rng = _rng(seed, _KEY_TREE_POINTS)
+    veg = _sample_trees(rng, trees, density * spec.vegetation_factor)
+    if isotropic and veg.shape[0]:
+        veg = veg + rng.normal(0.0, noise, size=veg.shape)
+    chunks.append(veg)
+    labels.append(np.full(veg.shape[0], -1, dtype=np.int32))
+    classes.append(np.full(veg.shape[0], ASPRS_HIGH_VEGETATION, dtype=np.uint8))
+    bids.append(np.full(veg.shape[0], -1, dtype=np.int32))
+
+    points = np.concatenate(chunks)
+    label_arr = np.concatenate(labels)
+    class_arr = np.concatenate(classes)
+    bid_arr = np.concatenate(bids)
+    if shuffle:
+        order = _rng(seed, _KEY_SHUFFLE).permutation(points.shape[0])
+        points, label_arr = points[order], label_arr[order]
+        class_arr, bid_arr = class_arr[order], bid_arr[order]
+    points += origin
+    return Scene(
+        points=points,
+        labels=label_arr,
+        classification=class_arr,
+        surfaces=tuple(surfaces),
+        building_ids=bid_arr,
+        noise_m=noise,
+        density_pts_m2=density,
+        profile=spec.name,
+        seed=seed,
+        buildings=buildings,
+        extent_m=extent,
+        origin=origin.copy(),
+        isotropic_noise=isotropic,
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Expected point counts (for make_scene_n_points)
+# --------------------------------------------------------------------------------------
+
+
+class _CountModel:
+    """Expected point count of a random scene as a function of (n_buildings, extent_m).
+
+    Building sizes and tree sizes do not depend on placement (own random streams), so the
+    expected count is exact for a given layout, assuming every tree finds room.
+    """
+
+    def __init__(
+        self,
+        *,
+        seed: int,
+        spec: ProfileSpec,
+        density: float,
+        roof_kinds: tuple[str, ...],
+        ground: bool,
+        vegetation: bool,
+        n_trees: int | None,
+    ) -> None:
+        self.seed, self.spec, self.density, self.roof_kinds = seed, spec, density, roof_kinds
+        self.ground_rho = density * spec.ground_factor if ground else 0.0
+        self.veg_rho = density * spec.vegetation_factor if vegetation else 0.0
+        self.n_trees = n_trees
+        self._params: list[dict[str, Any]] = []
+        self._bpts = np.zeros(1)  # cumulative building points, [0] = 0
+        self._bfoot = np.zeros(1)  # cumulative footprint areas
+        self._bneed = np.zeros(1)  # cumulative (footprint + gap) areas
+        self._tree_pts = np.zeros(1)  # cumulative tree points
+
+    def _grow_buildings(self, count: int) -> None:
+        if count < len(self._params):
+            return
+        size = max(count + 1, 2 * len(self._params), 16)
+        self._params = _random_building_params(self.seed, size, self.roof_kinds)
+        pts, foot, need = [0.0], [0.0], [0.0]
+        for p in self._params:
+            b = Building((0.0, 0.0), **p)
+            geoms = _building_geoms(b, 0, self.spec)
+            pts.append(
+                sum(self.density * self.spec.relative_density(g.kind) * g.area_m2 for g in geoms)
+            )
+            foot.append(b.footprint_area_m2)
+            need.append((p["length_m"] + _GAP_M) * (p["width_m"] + _GAP_M))
+        self._bpts, self._bfoot, self._bneed = np.cumsum(pts), np.cumsum(foot), np.cumsum(need)
+
+    def _trees_points(self, count: int) -> float:
+        if count >= self._tree_pts.size:
+            size = max(count + 1, 2 * self._tree_pts.size, 16)
+            params = _random_tree_params(self.seed, size)
+            area = _ellipsoid_area(params[:, 0], params[:, 1])
+            self._tree_pts = np.concatenate([[0.0], np.cumsum(self.veg_rho * area)])
+        return float(self._tree_pts[count])
+
+    def buildings_for(self, extent: float) -> int:
+        """Building count at the default layout density for this extent (>= 1)."""
+        return max(1, int(round(_BUILDINGS_PER_M2 * extent**2)))
+
+    def min_extent(self, count: int) -> float:
+        """Smallest extent the placement accepts for the first ``count`` buildings."""
+        self._grow_buildings(count)
+        fill = math.sqrt(self._bneed[count] / _MAX_FILL)
+        biggest = max(math.hypot(p["length_m"], p["width_m"]) for p in self._params[:count])
+        return max(fill, biggest + 2.0 * _BORDER_M)
+
+    def expected(self, count: int, extent: float) -> float:
+        """Expected number of points with ``count`` buildings in ``extent`` x ``extent``."""
+        self._grow_buildings(count)
+        n = self._bpts[count] + self.ground_rho * (extent**2 - self._bfoot[count])
+        if self.veg_rho > 0.0:
+            trees = _default_tree_count(extent) if self.n_trees is None else self.n_trees
+            n += self._trees_points(trees)
+        return float(n)
+
+
+def _solve_increasing(func: Any, target: float, lo: float) -> float:
+    """Smallest-ish x >= lo with func(x) ~= target, for a non-decreasing func (bisection).
+
+    Returns ``lo`` if func(lo) >= target and the last upper bound tried if func never
+    reaches the target.
+    """
+    if func(lo) >= target:
+        return lo
+    hi = 2.0 * lo
+    while func(hi) < target:
+        if hi > 1e6:
+            return hi
+        lo, hi = hi, 2.0 * hi
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if func(mid) < target:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-6 * hi:
+            break
+    return hi
