@@ -229,8 +229,11 @@ def _select_points(cloud, classes: Optional[Sequence[int]], exclude: Optional[Se
     return np.flatnonzero(keep)
 
 
-def run_planes_on_cloud(cloud, args, out_dir: Path, *, label: str = "planes"):
-    """Segment ``cloud`` with the CLI's options and write planes.json and the labelled LAS."""
+def run_planes_on_cloud(cloud, args, out_dir: Path, *, progress=None):
+    """Segment ``cloud`` with the CLI's options and write planes.json and the labelled LAS.
+
+    Returns ``(PlaneSet, labels of every input point (N,) int32, planes.json payload)``.
+    """
     import numpy as np
 
     from .core.io.atomic import ensure_output_dir
@@ -242,8 +245,11 @@ def run_planes_on_cloud(cloud, args, out_dir: Path, *, label: str = "planes"):
     sel = _select_points(cloud, args.classes, args.exclude_classes)
     log.info("%d of %d points selected", sel.size, len(cloud))
     t0 = time.perf_counter()
-    with _ProgressBar(label, enabled=not args.quiet) as bar:
-        planes = segment_planes(cloud.xyz[sel], progress=bar, **_plane_options(args))
+    if progress is None:
+        with _ProgressBar("planes", enabled=not args.quiet) as bar:
+            planes = segment_planes(cloud.xyz[sel], progress=bar, **_plane_options(args))
+    else:
+        planes = segment_planes(cloud.xyz[sel], progress=progress, **_plane_options(args))
     runtime = time.perf_counter() - t0
     labels = np.full(len(cloud), -1, dtype=np.int32)
     labels[sel] = planes.labels
@@ -304,7 +310,7 @@ def _planes_arguments(p: argparse.ArgumentParser) -> None:
 
 @command("demo", "run the main job on an embedded synthetic scene and compare with the truth")
 def _run_demo(args: argparse.Namespace) -> int:
-    from .core.demo import run_planes_demo
+    from .demo import run_planes_demo
 
     out = Path(args.out)
     _check_output_dir(out)

@@ -88,6 +88,11 @@ def atomic_path(path: PathLike, *, suffix: Optional[str] = None) -> Iterator[Pat
     tmp = Path(tmp_name)
     try:
         yield tmp
+        if tmp.exists():
+            # mkstemp creates 0600 files; give outputs the usual permissions (umask applies)
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, target)
     except BaseException:
         with contextlib.suppress(OSError):
