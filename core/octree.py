@@ -169,6 +169,17 @@ def run_boundaries(sorted_keys: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.
     return sorted_keys[starts], starts, counts
 
 
+_LUT_BITS = 11
+_SPREAD_LUT = None
+
+
+def _spread_lut() -> np.ndarray:
+    global _SPREAD_LUT
+    if _SPREAD_LUT is None:
+        _SPREAD_LUT = _spread_bits(np.arange(1 << _LUT_BITS, dtype=np.uint64))
+    return _SPREAD_LUT
+
+
 def quantise_encode(pts: np.ndarray, lo: np.ndarray, scale: float, cells: int) -> np.ndarray:
     """Morton keys of points: cell ``floor((p - lo) * scale)`` clipped to ``[0, cells)``.
 
@@ -184,14 +195,22 @@ def quantise_encode(pts: np.ndarray, lo: np.ndarray, scale: float, cells: int) -
 
     Returns
     -------
-    (N,) uint64
+    (N,) uint64, equal to ``morton_encode`` of the cells (table look-up, 11 bits at a time).
     """
-    ijk = np.empty((pts.shape[0], 3), dtype=np.int64)
+    lut = _spread_lut()
+    keys = np.zeros(pts.shape[0], dtype=np.uint64)
+    wide = cells > (1 << _LUT_BITS)
     for a in range(3):
         col = np.floor((pts[:, a] - lo[a]) * scale)
         np.clip(col, 0, cells - 1, out=col)
-        ijk[:, a] = col
-    return morton_encode(ijk)
+        c = col.astype(np.int64)
+        part = lut[c & ((1 << _LUT_BITS) - 1)]
+        if wide:
+            part |= lut[c >> _LUT_BITS] << _U(3 * _LUT_BITS)
+        if a:
+            part <<= _U(a)
+        keys |= part
+    return keys
 
 
 def build_octree(

@@ -37,10 +37,14 @@ from .progress import ProgressCallback, report
 
 log = logging.getLogger(__name__)
 
+_U3 = np.uint64(3)
+NOISE_SAMPLE_POINTS = 200_000  # points used to estimate the noise (whole nodes, Morton-spread)
+
 TARGET_LEAF_POINTS = 40  # points per leaf the automatic node size aims at
 NOISE_QUANTILE = 25.0  # percentile of leaf residual scales taken as the noise (robust to clutter)
 NOISE_QUANTILE_BIAS = 1.12  # that percentile is ~0.89 sigma for 40-point Gaussian leaves
 PLANARITY_SIGMAS = 3.0  # planarity threshold = 3 noise sigmas
+CONTAMINATED = 0.98  # planar nodes with fewer inliers than this share are refitted on inliers
 ADAPTIVE_LEVELS = 2  # automatic max node size = min node size * 2**ADAPTIVE_LEVELS
 MIN_PLANE_LEAVES = 3  # automatic min_plane_points = this many typical leaves
 
@@ -178,19 +182,21 @@ class NumpyKernels:
         ``threshold`` of their node's plane; within : (n,) bool per point.
         """
         m = starts.size
-        node_of = np.repeat(np.arange(m), counts)
-        mean = np.add.reduceat(sub, starts, axis=0) / counts[:, None]
-        d = sub - mean[node_of]
+        cols = (sub[:, 0], sub[:, 1], sub[:, 2])
+        inv = 1.0 / counts
+        mean = np.empty((m, 3))
+        for a in range(3):
+            mean[:, a] = np.add.reduceat(cols[a], starts) * inv
+        # single pass: E[ab] - E[a]E[b]; callers centre the coordinates (bounding-box centre)
+        # so the cancellation stays far below the noise (see node_fit_reference)
         cov = np.empty((m, 3, 3))
         for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
-            s = np.add.reduceat(d[:, a] * d[:, b], starts) / counts
-            cov[:, a, b] = s
-            cov[:, b, a] = s
+            c = np.add.reduceat(cols[a] * cols[b], starts) * inv - mean[:, a] * mean[:, b]
+            cov[:, a, b] = c
+            cov[:, b, a] = c
         evals, evecs = np.linalg.eigh(cov)
         normal = np.ascontiguousarray(evecs[:, :, 0])
-        dist = np.einsum("ij,ij->i", d, normal[node_of])
-        within = np.abs(dist) <= threshold
-        n_within = np.add.reduceat(within.astype(np.int64), starts)
+        n_within, within = self.plane_within(sub, starts, counts, mean, normal, threshold)
         return mean, evals, normal, n_within, within
 
     def plane_within(
@@ -215,10 +221,13 @@ class NumpyKernels:
         -------
         n_within : (M,) int64; within : (n,) bool
         """
-        node_of = np.repeat(np.arange(starts.size), counts)
-        dist = np.einsum("ij,ij->i", sub - origin[node_of], normal[node_of])
+        off = -np.einsum("ij,ij->i", normal, origin)
+        dist = np.repeat(off, counts)
+        for a in range(3):
+            dist += sub[:, a] * np.repeat(normal[:, a], counts)
         within = np.abs(dist) <= threshold
-        return np.add.reduceat(within.astype(np.int64), starts), within
+        n_within = np.add.reduceat(within.view(np.uint8), starts, dtype=np.int64)
+        return n_within, within
 
     def propagate_labels(
         self, indptr: np.ndarray, indices: np.ndarray, nodes: np.ndarray, n: int
@@ -254,6 +263,28 @@ class NumpyKernels:
             if np.array_equal(new, lab):
                 return lab
             lab = new
+
+
+def node_fit_reference(
+    sub: np.ndarray, starts: np.ndarray, counts: np.ndarray, threshold: float
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Slow, obvious per-node loop (two-pass centred covariance) for testing ``node_fit``."""
+    m = starts.size
+    mean = np.empty((m, 3))
+    evals = np.empty((m, 3))
+    normal = np.empty((m, 3))
+    n_within = np.empty(m, dtype=np.int64)
+    within = np.empty(sub.shape[0], dtype=bool)
+    for k in range(m):
+        pts = sub[starts[k] : starts[k] + counts[k]]
+        c = pts.mean(axis=0)
+        d = pts - c
+        w, v = np.linalg.eigh(d.T @ d / len(pts))
+        mean[k], evals[k], normal[k] = c, w, v[:, 0]
+        inside = np.abs(d @ v[:, 0]) <= threshold
+        within[starts[k] : starts[k] + counts[k]] = inside
+        n_within[k] = inside.sum()
+    return mean, evals, normal, n_within, within
 
 
 def get_kernels(backend: str):
@@ -316,29 +347,53 @@ def _ranges_to_index(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     return offs + np.arange(total, dtype=np.int64)
 
 
-def _median_occupancy(tree: Octree, level: int) -> float:
-    _, _, counts = tree.nodes(level)
-    return float(np.median(counts))
+def occupancy_by_level(tree: Octree, min_median: float = 16.0) -> Dict[int, np.ndarray]:
+    """Points per occupied node, by level, around the deepest level whose median occupancy
+    reaches ``min_median``.
+
+    The search starts where a surface-like cloud of the footprint's area would put about
+    ``min_median`` points in a node, goes finer while the median stays above ``min_median``
+    and coarser (each level from the one below, cheaply) until it reaches it.
+    """
+    n = tree.keys.size
+    guess = tree.root_size_m * math.sqrt(min_median / max(n, 1))
+    level = min(tree.depth, max(1, tree.level_for_size(guess) + 1))
+    out: Dict[int, np.ndarray] = {}
+
+    def at(lv: int):
+        return run_boundaries(tree.keys >> np.uint64(3 * (tree.depth - lv)))
+
+    keys, _, counts = at(level)
+    out[level] = counts
+    while level < tree.depth and np.median(counts) >= min_median:
+        level += 1
+        keys, _, counts = at(level)
+        out[level] = counts
+    while level > 1 and np.median(counts) < min_median:
+        keys, starts, _ = run_boundaries(keys >> _U3)
+        counts = np.add.reduceat(counts, starts)
+        level -= 1
+        out[level] = counts
+    return out
 
 
-def estimate_point_spacing(tree: Octree) -> float:
+def estimate_point_spacing(
+    tree: Octree, occupancy: Optional[Dict[int, np.ndarray]] = None
+) -> float:
     """Typical point spacing (metres) of a surface-like cloud from octree occupancy.
 
     The deepest level whose median points per occupied node is at least 16 is taken; a
     surface crossing a node of edge a holds about a² / s² points, so s = a / sqrt(median).
     Depends only on the set of points, not their order.
     """
-    lo, hi = 1, tree.depth
-    best = 1
-    while lo <= hi:  # median occupancy falls with level: bisect for the last level >= 16
-        mid = (lo + hi) // 2
-        if _median_occupancy(tree, mid) >= 16:
-            best = mid
-            lo = mid + 1
-        else:
-            hi = mid - 1
-    med = _median_occupancy(tree, best)
-    return tree.cell_size_m(best) / math.sqrt(max(med, 1.0))
+    occ = occupancy if occupancy is not None else occupancy_by_level(tree)
+    level = (
+        max(lv for lv, c in occ.items() if np.median(c) >= 16.0)
+        if any(np.median(c) >= 16.0 for c in occ.values())
+        else min(occ)
+    )
+    med = float(np.median(occ[level]))
+    return tree.cell_size_m(level) / math.sqrt(max(med, 1.0))
 
 
 def _estimate_noise(
@@ -346,20 +401,22 @@ def _estimate_noise(
 ) -> Tuple[float, float]:
     """Robust noise (metres) from leaf fits at ``level``, and the median points per fitted node.
 
-    Uses at most ~20 000 nodes, taken evenly in Morton order (independent of point order).
+    Uses whole nodes taken evenly in Morton order (independent of point order), about
+    ``NOISE_SAMPLE_POINTS`` points in all.
     """
     keys, starts, counts = tree.nodes(level)
     ok = np.flatnonzero(counts >= max(min_points, 6))
     if ok.size == 0:
         return float("nan"), float("nan")
-    step = max(1, ok.size // 20000)
+    typical = float(np.median(counts[ok]))
+    step = max(1, int(counts[ok].sum()) // NOISE_SAMPLE_POINTS)
     ok = ok[::step]
     st, ct = starts[ok], counts[ok]
     idx = _ranges_to_index(st, ct)
     sub_starts = np.cumsum(ct) - ct
     _, evals, _, _, _ = kernels.node_fit(ps[idx], sub_starts, ct, 0.0)
     scale = np.sqrt(np.maximum(evals[:, 0], 0.0))
-    return float(np.percentile(scale, NOISE_QUANTILE) * NOISE_QUANTILE_BIAS), float(np.median(ct))
+    return float(np.percentile(scale, NOISE_QUANTILE) * NOISE_QUANTILE_BIAS), typical
 
 
 # --------------------------------------------------------------------------- main function
@@ -457,19 +514,19 @@ def segment_planes(
 
     # Centre (order-independent: bounding-box centre) for precision at UTM offsets.
     centre = 0.5 * (pts_in.min(axis=0) + pts_in.max(axis=0))
-    p = pts_in - centre
     report(progress, 0.02, "octree")
 
     t0 = time.perf_counter()
-    tree = build_octree(p, min_node_size_m=min_node_size_m, encoder=kernels.encode)
-    ps = p[tree.order]
-    del p
+    tree = build_octree(pts_in, min_node_size_m=min_node_size_m, encoder=kernels.encode)
+    ps = pts_in[tree.order]
+    ps -= centre
     timings["octree"] = time.perf_counter() - t0
     report(progress, 0.2, "parameters")
 
     # ---- parameters
     t0 = time.perf_counter()
-    spacing = estimate_point_spacing(tree)
+    occupancy = occupancy_by_level(tree)
+    spacing = estimate_point_spacing(tree, occupancy)
     if min_node_size_m is None:
         target = spacing * math.sqrt(TARGET_LEAF_POINTS)
         level = int(round(math.log2(tree.root_size_m / target)))
@@ -530,9 +587,8 @@ def segment_planes(
     n = ps.shape[0]
     thr = params.planarity_threshold_m
     inlier = np.zeros(n, dtype=bool)
-    leaves: Dict[str, List[np.ndarray]] = {
-        k: [] for k in ("key", "level", "start", "count", "planar", "mean", "normal", "ratio")
-    }
+    names = ("key", "level", "start", "count", "planar", "mean", "normal", "ratio", "n_within")
+    leaves: Dict[str, List[np.ndarray]] = {k: [] for k in names}
     active = None  # sorted positions of the points still to test; None = all
     for level in range(top_level, leaf_level + 1):
         keys_l = tree.keys >> np.uint64(3 * (tree.depth - level))
@@ -546,14 +602,13 @@ def segment_planes(
             break
         mean, evals, normal, n_within, within = kernels.node_fit(sub, starts, counts, thr)
         fitted = counts >= min_leaf_points
-        ratio = np.where(fitted, n_within / counts, np.nan)
         # planar: enough points within the threshold, and spread in two directions (not a line)
         planar = fitted & (n_within >= planarity_ratio * counts)
         planar &= np.sqrt(np.maximum(evals[:, 1], 0.0)) > thr
-        if np.any(planar):
-            # refit planar nodes on their inliers, so up to (1 - ratio) of points from another
-            # surface (at corners and edges) do not tilt the plane, then test again
-            pl = np.flatnonzero(planar)
+        # Refit contaminated planar nodes on their inliers, so the up to (1 - ratio) points of
+        # another surface (at corners and edges) do not tilt the plane; then test again.
+        pl = np.flatnonzero(planar & (n_within < CONTAMINATED * counts))
+        if pl.size:
             pts_pl = _ranges_to_index(starts[pl], counts[pl])
             inl = pts_pl[within[pts_pl]]
             in_starts = np.cumsum(n_within[pl]) - n_within[pl]
@@ -562,10 +617,10 @@ def segment_planes(
             nw2, w2 = kernels.plane_within(sub[pts_pl], pl_starts, counts[pl], m2, n2, thr)
             mean[pl], evals[pl], normal[pl], n_within[pl] = m2, e2, n2, nw2
             within[pts_pl] = w2
-            ratio = np.where(fitted, n_within / counts, np.nan)
             planar[pl] = (nw2 >= planarity_ratio * counts[pl]) & (
                 np.sqrt(np.maximum(e2[:, 1], 0)) > thr
             )
+        ratio = np.where(fitted, n_within / counts, np.nan)
         last = level == leaf_level
         leaf = planar | ~fitted | last
         gstart = starts if active is None else active[starts]
@@ -578,10 +633,10 @@ def segment_planes(
             ("mean", mean[leaf]),
             ("normal", normal[leaf]),
             ("ratio", ratio[leaf]),
+            ("n_within", np.where(planar, n_within, 0)[leaf]),
         ):
             leaves[k].append(v)
-        pt_planar = np.repeat(planar, counts)
-        pos = np.flatnonzero(pt_planar & within)
+        pos = np.flatnonzero(np.repeat(planar, counts) & within)
         inlier[pos if active is None else active[pos]] = True
         if not last:
             keep = np.repeat(~leaf, counts)
@@ -593,11 +648,11 @@ def segment_planes(
     order = np.argsort(lv["start"], kind="stable")
     lv = {k: v[order] for k, v in lv.items()}
     n_leaves = lv["start"].size
-    leaf_of_point = np.repeat(np.arange(n_leaves), lv["count"])
+    leaf_count = lv["count"]
     timings["planarity"] = time.perf_counter() - t0
     report(progress, 0.6, "region growing")
 
-    # ---- region growing over touching planar leaves
+    # ---- region growing over touching planar leaves (Eq. 7 and Eq. 8 both ways)
     t0 = time.perf_counter()
     ni, nj = leaf_neighbours(lv["key"], lv["level"], tree.depth)
     planar_leaf = lv["planar"]
@@ -618,52 +673,30 @@ def segment_planes(
 
     # ---- segments: gather by sort + unique over the roots of planar leaves
     t0 = time.perf_counter()
-    seg_of_leaf = np.full(n_leaves, -1, dtype=np.int64)
+    seg_of_leaf = np.full(n_leaves, -1, dtype=np.int32)
     planar_ids = np.flatnonzero(planar_leaf)
     roots, seg = np.unique(root[planar_ids], return_inverse=True)
     seg_of_leaf[planar_ids] = seg
-    lab_sorted = np.full(n, -1, dtype=np.int64)
-    lab_sorted[inlier] = seg_of_leaf[leaf_of_point[inlier]]
-
-    # ---- boundaries: unlabelled points join the closest plane of a touching planar leaf
-    pn_keep = planar_leaf[nj]
-    bi, bj = ni[pn_keep], nj[pn_keep]  # leaf -> planar neighbour, sorted by bi
-    if bi.size:
-        deg = np.bincount(bi, minlength=n_leaves)
-        ptr = np.cumsum(deg) - deg
-        cand = np.flatnonzero(~inlier & (deg[leaf_of_point] > 0))
-        if cand.size:
-            cl = leaf_of_point[cand]
-            cnt = deg[cl]
-            rep = np.repeat(np.arange(cand.size), cnt)
-            within_rank = np.arange(rep.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-            j = bj[ptr[cl][rep] + within_rank]
-            dist = np.abs(np.einsum("ij,ij->i", ps[cand[rep]] - cen[j], nrm[j]))
-            ok = dist <= thr
-            rep, j, dist = rep[ok], j[ok], dist[ok]
-            if rep.size:
-                o = np.lexsort((j, dist, rep))
-                rep, j = rep[o], j[o]
-                firsts = np.flatnonzero(np.r_[True, rep[1:] != rep[:-1]])
-                lab_sorted[cand[rep[firsts]]] = seg_of_leaf[j[firsts]]
+    lab_sorted = np.repeat(seg_of_leaf, leaf_count)
+    lab_sorted[~inlier] = -1
+    _assign_boundaries(ps, lab_sorted, inlier, lv, seg_of_leaf, ni, nj, thr)
     timings["boundaries"] = time.perf_counter() - t0
     report(progress, 0.85, "plane fits")
 
     # ---- drop small segments, renumber in Morton order of their first leaf, refit
     t0 = time.perf_counter()
     nseg = roots.size
-    # support = points of the plane's planar leaves; boundary points do not make a plane
-    sizes = np.bincount(seg_of_leaf[leaf_of_point[inlier]], minlength=nseg)
+    # support = inliers of the plane's planar leaves; boundary points do not make a plane
+    sizes = np.bincount(seg, weights=lv["n_within"][planar_ids], minlength=nseg)
     keep_seg = sizes >= params.min_plane_points
-    new_id = np.full(nseg, -1, dtype=np.int64)
-    new_id[keep_seg] = np.arange(int(keep_seg.sum()))
-    labelled = lab_sorted >= 0
-    lab_sorted[labelled] = new_id[lab_sorted[labelled]]
+    new_id = np.full(nseg + 1, -1, dtype=np.int32)  # index -1 (unlabelled) maps to -1
+    new_id[:nseg][keep_seg] = np.arange(int(keep_seg.sum()), dtype=np.int32)
+    lab_sorted = new_id[lab_sorted]
     planes = _fit_planes(ps, lab_sorted, int(keep_seg.sum()), centre)
     labels = np.empty(n, dtype=np.int32)
     labels[tree.order] = lab_sorted
     planarity = np.empty(n, dtype=np.float32)
-    planarity[tree.order] = lv["ratio"][leaf_of_point]
+    planarity[tree.order] = np.repeat(lv["ratio"].astype(np.float32), leaf_count)
     timings["fit"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     if planes["normals"].shape[0] == 0:
@@ -678,6 +711,64 @@ def segment_planes(
         timings_s=timings,
         **planes,
     )
+
+
+def _assign_boundaries(
+    ps: np.ndarray,
+    lab: np.ndarray,
+    inlier: np.ndarray,
+    lv: Dict[str, np.ndarray],
+    seg_of_leaf: np.ndarray,
+    ni: np.ndarray,
+    nj: np.ndarray,
+    threshold: float,
+) -> None:
+    """Unlabelled points join the closest plane of a touching planar leaf (in place).
+
+    For every leaf, only one planar neighbour per segment is tried: the one whose centroid is
+    nearest the leaf's. A point joins the segment whose plane is nearest, if within
+    ``threshold``.
+    """
+    keep = seg_of_leaf[nj] >= 0
+    bi, bj = ni[keep], nj[keep]
+    if bi.size == 0:
+        return
+    cen, nrm = lv["mean"], lv["normal"]
+    gap = np.einsum("ij,ij->i", cen[bj] - cen[bi], cen[bj] - cen[bi])
+    o = np.lexsort((bj, gap, seg_of_leaf[bj], bi))
+    bi, bj = bi[o], bj[o]
+    sj = seg_of_leaf[bj]
+    first = np.r_[True, (bi[1:] != bi[:-1]) | (sj[1:] != sj[:-1])]
+    bi, bj = bi[first], bj[first]  # sorted by leaf
+    n_leaves = seg_of_leaf.size
+    deg = np.bincount(bi, minlength=n_leaves)
+    ptr = np.cumsum(deg) - deg
+    leaf_count = lv["count"]
+    cand = np.flatnonzero(~inlier & np.repeat(deg > 0, leaf_count))
+    if cand.size == 0:
+        return
+    cl = np.searchsorted(lv["start"], cand, side="right") - 1
+    cnt = deg[cl]
+    rep = np.repeat(np.arange(cand.size), cnt)  # candidate of each pair; pairs grouped by it
+    rank = np.arange(rep.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    j = bj[np.repeat(ptr[cl], cnt) + rank]
+    pos = cand[rep]
+    dist = np.abs(
+        ps[pos, 0] * nrm[j, 0]
+        + ps[pos, 1] * nrm[j, 1]
+        + ps[pos, 2] * nrm[j, 2]
+        - np.einsum("ij,ij->i", cen, nrm)[j]
+    )
+    dist[dist > threshold] = np.inf
+    group = np.cumsum(cnt) - cnt
+    best = np.minimum.reduceat(dist, group)  # nearest plane of each candidate
+    hit = np.isfinite(best)
+    is_best = (dist == best[rep]) & hit[rep]
+    k = np.flatnonzero(is_best)
+    if k.size == 0:
+        return
+    k = k[np.r_[True, rep[k][1:] != rep[k][:-1]]]  # first nearest (lowest segment on ties)
+    lab[cand[rep[k]]] = seg_of_leaf[j[k]]
 
 
 def _fit_planes(ps: np.ndarray, lab: np.ndarray, nplanes: int, centre: np.ndarray) -> dict:
