@@ -182,21 +182,18 @@ class NumpyKernels:
         ``threshold`` of their node's plane; within : (n,) bool per point.
         """
         m = starts.size
-        cols = (sub[:, 0], sub[:, 1], sub[:, 2])
-        inv = 1.0 / counts
-        mean = np.empty((m, 3))
-        for a in range(3):
-            mean[:, a] = np.add.reduceat(cols[a], starts) * inv
-        # single pass: E[ab] - E[a]E[b]; callers centre the coordinates (bounding-box centre)
-        # so the cancellation stays far below the noise (see node_fit_reference)
+        node_of = np.repeat(np.arange(m), counts)
+        mean = np.add.reduceat(sub, starts, axis=0) / counts[:, None]
+        d = sub - mean[node_of]  # two-pass: centred on each node's centroid
         cov = np.empty((m, 3, 3))
         for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
-            c = np.add.reduceat(cols[a] * cols[b], starts) * inv - mean[:, a] * mean[:, b]
+            c = np.add.reduceat(d[:, a] * d[:, b], starts) / counts
             cov[:, a, b] = c
             cov[:, b, a] = c
         evals, evecs = np.linalg.eigh(cov)
         normal = np.ascontiguousarray(evecs[:, :, 0])
-        n_within, within = self.plane_within(sub, starts, counts, mean, normal, threshold)
+        within = np.abs(np.einsum("ij,ij->i", d, normal[node_of])) <= threshold
+        n_within = np.add.reduceat(within.view(np.uint8), starts, dtype=np.int64)
         return mean, evals, normal, n_within, within
 
     def plane_within(
@@ -254,6 +251,9 @@ class NumpyKernels:
             nb = np.minimum.reduceat(lab[indices], starts)
             new = lab.copy()
             new[nodes] = np.minimum(lab[nodes], nb)
+            # hooking: a node's current label (a root) also takes the smaller neighbour label,
+            # so long chains collapse in a few rounds instead of one round per link
+            np.minimum.at(new, lab[nodes], nb)
             # pointer jumping: follow labels to their own label until stable
             while True:
                 jumped = new[new]
