@@ -32,7 +32,7 @@ from typing import Dict, List, Optional, Tuple
 import numpy as np
 
 from .errors import InputDataError, InvalidParameterError
-from .octree import Octree, build_octree, leaf_neighbours, run_boundaries
+from .octree import Octree, bounds, build_octree, leaf_neighbours, run_boundaries
 from .progress import ProgressCallback, report
 
 log = logging.getLogger(__name__)
@@ -184,7 +184,7 @@ class NumpyKernels:
         m = starts.size
         node_of = np.repeat(np.arange(m), counts)
         mean = np.add.reduceat(sub, starts, axis=0) / counts[:, None]
-        d = sub - mean[node_of]  # two-pass: centred on each node's centroid
+        d = sub - np.take(mean, node_of, axis=0)  # two-pass: centred on each node's centroid
         cov = np.empty((m, 3, 3))
         for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
             c = np.add.reduceat(d[:, a] * d[:, b], starts) / counts
@@ -192,7 +192,7 @@ class NumpyKernels:
             cov[:, b, a] = c
         evals, evecs = np.linalg.eigh(cov)
         normal = np.ascontiguousarray(evecs[:, :, 0])
-        within = np.abs(np.einsum("ij,ij->i", d, normal[node_of])) <= threshold
+        within = np.abs(np.einsum("ij,ij->i", d, np.take(normal, node_of, axis=0))) <= threshold
         n_within = np.add.reduceat(within.view(np.uint8), starts, dtype=np.int64)
         return mean, evals, normal, n_within, within
 
@@ -307,7 +307,7 @@ def get_kernels(backend: str):
 # --------------------------------------------------------------------------- helpers
 
 
-def _validate_points(points: np.ndarray) -> np.ndarray:
+def _validate_points(points: np.ndarray) -> Tuple[np.ndarray, Tuple[np.ndarray, np.ndarray]]:
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InvalidParameterError(f"points must have shape (N, 3), got {pts.shape}")
@@ -322,9 +322,10 @@ def _validate_points(points: np.ndarray) -> np.ndarray:
         raise InputDataError(
             f"points contain {bad} point(s) with NaN or infinite coordinates; remove them first"
         )
-    if np.all(pts.max(axis=0) - pts.min(axis=0) == 0):
+    lo, hi = bounds(pts)
+    if np.all(hi - lo == 0):
         raise InputDataError("all points are identical; there is no surface to segment")
-    return pts
+    return pts, (lo, hi)
 
 
 def _orient(normals: np.ndarray) -> np.ndarray:
@@ -482,7 +483,7 @@ def segment_planes(
     """
     t_start = time.perf_counter()
     timings: Dict[str, float] = {}
-    pts_in = _validate_points(points)
+    pts_in, box = _validate_points(points)
     kernels = get_kernels(backend)
     automatic: List[str] = []
 
@@ -513,12 +514,14 @@ def segment_planes(
         )
 
     # Centre (order-independent: bounding-box centre) for precision at UTM offsets.
-    centre = 0.5 * (pts_in.min(axis=0) + pts_in.max(axis=0))
+    centre = 0.5 * (box[0] + box[1])
     report(progress, 0.02, "octree")
 
     t0 = time.perf_counter()
-    tree = build_octree(pts_in, min_node_size_m=min_node_size_m, encoder=kernels.encode)
-    ps = pts_in[tree.order]
+    tree = build_octree(
+        pts_in, min_node_size_m=min_node_size_m, encoder=kernels.encode, point_bounds=box
+    )
+    ps = np.take(pts_in, tree.order, axis=0)
     ps -= centre
     timings["octree"] = time.perf_counter() - t0
     report(progress, 0.2, "parameters")
@@ -597,7 +600,7 @@ def segment_planes(
             sub = ps
         else:
             nkeys, starts, counts = run_boundaries(keys_l[active])
-            sub = ps[active]
+            sub = np.take(ps, active, axis=0)
         if starts.size == 0:
             break
         mean, evals, normal, n_within, within = kernels.node_fit(sub, starts, counts, thr)
@@ -612,9 +615,13 @@ def segment_planes(
             pts_pl = _ranges_to_index(starts[pl], counts[pl])
             inl = pts_pl[within[pts_pl]]
             in_starts = np.cumsum(n_within[pl]) - n_within[pl]
-            m2, e2, n2, _, _ = kernels.node_fit(sub[inl], in_starts, n_within[pl], thr)
+            m2, e2, n2, _, _ = kernels.node_fit(
+                np.take(sub, inl, axis=0), in_starts, n_within[pl], thr
+            )
             pl_starts = np.cumsum(counts[pl]) - counts[pl]
-            nw2, w2 = kernels.plane_within(sub[pts_pl], pl_starts, counts[pl], m2, n2, thr)
+            nw2, w2 = kernels.plane_within(
+                np.take(sub, pts_pl, axis=0), pl_starts, counts[pl], m2, n2, thr
+            )
             mean[pl], evals[pl], normal[pl], n_within[pl] = m2, e2, n2, nw2
             within[pts_pl] = w2
             planar[pl] = (nw2 >= planarity_ratio * counts[pl]) & (
@@ -772,7 +779,11 @@ def _assign_boundaries(
 
 
 def _fit_planes(ps: np.ndarray, lab: np.ndarray, nplanes: int, centre: np.ndarray) -> dict:
-    """Least-squares planes of the labelled points (two-pass centred moments)."""
+    """Least-squares planes of the labelled points (two-pass centred moments).
+
+    ``lab`` is in Morton order, where labels come in long runs: sums are taken per run
+    (``reduceat``) and then per plane (``bincount``), so no sort of the points is needed.
+    """
     if nplanes == 0:
         z3 = np.empty((0, 3))
         return dict(
@@ -785,20 +796,31 @@ def _fit_planes(ps: np.ndarray, lab: np.ndarray, nplanes: int, centre: np.ndarra
             extent_min=z3,
             extent_max=z3,
         )
-    idx = np.flatnonzero(lab >= 0)
-    o = idx[np.argsort(lab[idx], kind="stable")]
-    sub = ps[o]
-    ids, starts, counts = run_boundaries(lab[o])
-    mean = np.add.reduceat(sub, starts, axis=0) / counts[:, None]
-    d = sub - mean[np.repeat(np.arange(ids.size), counts)]
-    cov = np.empty((ids.size, 3, 3))
+    run_lab, starts, run_n = run_boundaries(lab)
+    ok = run_lab >= 0
+    rl = run_lab[ok]
+
+    def per_plane(values: np.ndarray) -> np.ndarray:
+        return np.bincount(rl, weights=np.add.reduceat(values, starts)[ok], minlength=nplanes)
+
+    counts = np.bincount(rl, weights=run_n[ok], minlength=nplanes)
+    cols = [np.ascontiguousarray(ps[:, a]) for a in range(3)]
+    mean = np.stack([per_plane(c) for c in cols], axis=1) / counts[:, None]
+    table = np.vstack([mean, np.zeros((1, 3))])  # label -1 -> row nplanes (ignored)
+    d = [cols[a] - table[lab, a] for a in range(3)]
+    cov = np.empty((nplanes, 3, 3))
     for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
-        s = np.add.reduceat(d[:, a] * d[:, b], starts) / counts
-        cov[:, a, b] = s
-        cov[:, b, a] = s
+        c = per_plane(d[a] * d[b]) / counts
+        cov[:, a, b] = c
+        cov[:, b, a] = c
     evals, evecs = np.linalg.eigh(cov)
     normals = _orient(evecs[:, :, 0])
     centroids = mean + centre
+    ext_min = np.full((nplanes, 3), np.inf)
+    ext_max = np.full((nplanes, 3), -np.inf)
+    for a in range(3):
+        np.minimum.at(ext_min[:, a], rl, np.minimum.reduceat(cols[a], starts)[ok])
+        np.maximum.at(ext_max[:, a], rl, np.maximum.reduceat(cols[a], starts)[ok])
     return dict(
         normals=normals,
         offsets=-np.einsum("ij,ij->i", normals, centroids),
@@ -806,6 +828,6 @@ def _fit_planes(ps: np.ndarray, lab: np.ndarray, nplanes: int, centre: np.ndarra
         n_points=counts.astype(np.int64),
         rms=np.sqrt(np.maximum(evals[:, 0], 0.0)),
         covariances=cov,
-        extent_min=np.minimum.reduceat(sub, starts, axis=0) + centre,
-        extent_max=np.maximum.reduceat(sub, starts, axis=0) + centre,
+        extent_min=ext_min + centre,
+        extent_max=ext_max + centre,
     )
