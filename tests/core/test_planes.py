@@ -327,3 +327,21 @@ def test_any_rigid_motion_transforms_planes(small_scene, small_result, angles, s
         assert abs(res.normals[k2] @ (rot @ small_result.normals[k])) > math.cos(math.radians(0.5))
         dist = res.normals[k2] @ (rot @ small_result.centroids[k] + t) + res.offsets[k2]
         assert abs(dist) < 0.01
+
+
+def test_progress_is_reported_and_cancellation_stops():
+    from slipmap.core.errors import CancelledError
+
+    rng = np.random.default_rng(9)
+    pts = _plane(rng, 5000, 10.0, 0.01)
+    seen = []
+    segment_planes(pts, progress=lambda f, m: seen.append(f))
+    assert seen[-1] == 1.0 and all(0 <= f <= 1 for f in seen)
+    assert all(b >= a for a, b in zip(seen, seen[1:]))
+
+    def cancel(fraction, message):
+        if fraction > 0.25:
+            raise CancelledError("stop")
+
+    with pytest.raises(CancelledError):
+        segment_planes(pts, progress=cancel)
