@@ -523,6 +523,8 @@ def _roughness_one_size(grid, plane, cloud, args, out_dir: Path, files: dict) ->
 
 @command("roughness", "surface roughness by ODR on a 3D grid, with the OLS comparison")
 def _run_roughness(args: argparse.Namespace) -> int:
+    import math
+
     from .core import roughness as rg
     from .core.io.atomic import ensure_output_dir
     from .core.io.las import read_las
@@ -536,12 +538,10 @@ def _run_roughness(args: argparse.Namespace) -> int:
     cloud = read_las(args.input)
     if len(cloud) == 0:
         raise SlipMapError(f"{args.input}: the file has no points")
-    args.figures = not args.no_figures and _have_matplotlib()
     t0 = time.perf_counter()
     frame = rg.principal_frame(cloud.xyz)
     ols_axis = rg.resolve_ols_axis(frame, args.ols_axis)
     plane = rg.choose_map_plane(frame, args.map_plane)
-    log.info("OLS axis %s, map plane %s", ols_axis, plane.name)
     with _ProgressBar("roughness", enabled=not args.quiet) as bar:
         grids = rg.grid_roughness_multi(
             cloud.xyz,
@@ -552,6 +552,14 @@ def _run_roughness(args: argparse.Namespace) -> int:
             progress=bar,
         )
     ensure_output_dir(out)
+    args.figures = not args.no_figures and _have_matplotlib()
+    angle = math.degrees(math.acos(min(1.0, abs(float(frame.normal @ plane.normal)))))
+    log.info(
+        "OLS axis %s; map plane %s (%.1f deg from the cloud's principal plane)",
+        ols_axis,
+        plane.name,
+        angle,
+    )
     records = []
     panels = []
     for grid in grids:

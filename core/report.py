@@ -1,0 +1,209 @@
+"""Figures (matplotlib, Agg backend, no pyplot state): roughness maps, histograms, semivariograms.
+
+Every function takes plain arrays, writes one PNG atomically and returns its path. matplotlib is
+imported inside the functions; without it they raise
+:class:`~slipmap.core.errors.DependencyError`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping, Sequence, Tuple
+
+import numpy as np
+
+from .errors import DependencyError, InvalidParameterError
+from .io.atomic import PathLike, atomic_path
+
+__all__ = ["plot_roughness_histograms", "plot_roughness_map", "plot_semivariograms"]
+
+#: marker per series, in the order given (the study's Fig. 4: ODR circles, OLS triangles,
+#: E_OLS plus signs)
+_MARKERS = ("o", "^", "+", "s", "x", "D")
+
+
+def _figure(width_in: float, height_in: float):
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise DependencyError(
+            "figures need matplotlib: pip install matplotlib (or apt install python3-matplotlib)"
+        ) from exc
+    fig = Figure(figsize=(width_in, height_in), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig, path: PathLike, dpi: int) -> Path:
+    with atomic_path(path) as tmp:
+        fig.savefig(str(tmp), format="png", dpi=dpi)
+    return Path(path)
+
+
+def plot_roughness_map(
+    path: PathLike,
+    panels: Mapping[str, np.ndarray],
+    *,
+    extent: Tuple[float, float, float, float],
+    cutoff: float | None = None,
+    axis_labels: Tuple[str, str] = ("x (m)", "y (m)"),
+    title: str | None = None,
+    colorbar_label: str = "roughness (m)",
+    dpi: int = 150,
+) -> Path:
+    """Maps of roughness, one panel per entry (the study's Fig. 2 when ``cutoff`` is given).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output PNG.
+    panels : mapping of str to numpy.ndarray, shape (rows, cols)
+        Panel title -> raster (row 0 at the top); NaN is drawn white.
+    extent : (left, right, bottom, top)
+        Map coordinates of the raster edges.
+    cutoff : float, optional
+        Binary transform: values >= cutoff black, below light grey (values are usually the
+        normalised roughness). None: a continuous colour scale per panel.
+    axis_labels : (str, str)
+    title : str, optional
+    colorbar_label : str
+    dpi : int
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    if not panels:
+        raise InvalidParameterError("plot_roughness_map: give at least one panel")
+    from matplotlib.colors import ListedColormap
+
+    left, right, bottom, top = extent
+    width, height = max(right - left, 1e-9), max(top - bottom, 1e-9)
+    n = len(panels)
+    stacked = width / height > 2.0
+    if stacked:
+        fig = _figure(9.0, min(12.0, 0.8 + n * (9.0 * height / width + 0.7)))
+        axes = [fig.add_subplot(n, 1, i + 1) for i in range(n)]
+    else:
+        fig = _figure(min(16.0, 1.0 + n * 5.0), 5.0)
+        axes = [fig.add_subplot(1, n, i + 1) for i in range(n)]
+    for ax, (name, raster) in zip(axes, panels.items()):
+        data = np.ma.masked_invalid(np.asarray(raster, dtype=np.float64))
+        if cutoff is not None:
+            binary = np.ma.where(data >= cutoff, 1.0, 0.0)
+            cmap = ListedColormap(["0.75", "black"])
+            cmap.set_bad("white")
+            ax.imshow(binary, extent=extent, cmap=cmap, vmin=0, vmax=1, interpolation="nearest")
+            frac = float(np.ma.mean(binary)) if binary.count() else float("nan")
+            ax.set_title(f"{name}: {100 * frac:.1f} % of pixels >= {cutoff:g}", fontsize=10)
+        else:
+            im = ax.imshow(data, extent=extent, cmap="viridis", interpolation="nearest")
+            fig.colorbar(im, ax=ax, label=colorbar_label, shrink=0.8)
+            ax.set_title(name, fontsize=10)
+        ax.set_xlabel(axis_labels[0])
+        ax.set_ylabel(axis_labels[1])
+        ax.set_aspect("equal")
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path, dpi)
+
+
+def plot_roughness_histograms(
+    path: PathLike,
+    panels: Mapping[str, np.ndarray],
+    *,
+    bin_width: float = 0.05,
+    title: str | None = None,
+    dpi: int = 150,
+) -> Path:
+    """Histograms of normalised roughness on [0, 1] (the study's Fig. 3), one panel per entry.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    panels : mapping of str to numpy.ndarray
+        Panel title -> normalised values (NaN ignored).
+    bin_width : float, default 0.05
+    title : str, optional
+    dpi : int
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    if not panels:
+        raise InvalidParameterError("plot_roughness_histograms: give at least one panel")
+    k = int(round(1.0 / bin_width))
+    edges = np.linspace(0.0, 1.0, k + 1)
+    n = len(panels)
+    fig = _figure(min(16.0, 1.0 + 4.5 * n), 3.8)
+    for i, (name, values) in enumerate(panels.items()):
+        ax = fig.add_subplot(1, n, i + 1)
+        v = np.asarray(values, dtype=np.float64).ravel()
+        v = v[np.isfinite(v)]
+        counts, _ = np.histogram(v, bins=edges)
+        pct = 100.0 * counts / max(1, v.size)
+        ax.bar(edges[:-1], pct, width=bin_width, align="edge", color="0.35", edgecolor="black")
+        ax.set_xlim(0, 1)
+        ax.set_xlabel("normalised roughness")
+        ax.set_ylabel("cells (%)")
+        ax.set_title(f"{chr(65 + i)}: {name} ({pct[0]:.0f} % in the first bin)", fontsize=10)
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path, dpi)
+
+
+def plot_semivariograms(
+    path: PathLike,
+    panels: Sequence[Tuple[str, Mapping[str, Tuple[np.ndarray, np.ndarray]]]],
+    *,
+    ylabel: str = "normalised semivariance  γ(h) / σ²",
+    xlabel: str = "lag h (m)",
+    title: str | None = None,
+    dpi: int = 150,
+) -> Path:
+    """Experimental semivariograms, one panel per entry (the study's Fig. 4).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+    panels : sequence of (str, mapping of str to (lag, gamma))
+        Panel title and its series: name -> (lag (K,), gamma (K,)). Series are drawn with
+        circles, triangles, plus signs, ... in the order given.
+    ylabel, xlabel, title : str
+    dpi : int
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    if not panels:
+        raise InvalidParameterError("plot_semivariograms: give at least one panel")
+    n = len(panels)
+    ncols = min(n, 2)
+    nrows = (n + ncols - 1) // ncols
+    fig = _figure(5.0 * ncols + 0.5, 3.8 * nrows + 0.3)
+    for i, (name, series) in enumerate(panels):
+        ax = fig.add_subplot(nrows, ncols, i + 1)
+        for j, (label, (lag, gamma)) in enumerate(series.items()):
+            marker = _MARKERS[j % len(_MARKERS)]
+            face = "none" if marker in ("o", "^", "s", "D") else None
+            ax.plot(
+                np.asarray(lag),
+                np.asarray(gamma),
+                linestyle="none",
+                marker=marker,
+                markerfacecolor=face,
+                color="black" if j == 0 else f"C{j}",
+                label=label,
+            )
+        ax.axhline(1.0, color="0.6", linewidth=0.8, linestyle="--")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.set_title(f"{chr(65 + i)}: {name}", fontsize=10)
+        ax.set_ylim(bottom=0)
+        ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path, dpi)
