@@ -34,10 +34,11 @@ Conventions
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -1222,3 +1223,138 @@ def _solve_increasing(func: Any, target: float, lo: float) -> float:
         if hi - lo < 1e-6 * hi:
             break
     return hi
+
+
+# --------------------------------------------------------------------------- fault pairs
+
+
+@dataclass(frozen=True)
+class FaultPair:
+    """Two epochs of the same scene with a known rigid offset on each side of a fault.
+
+    Attributes
+    ----------
+    before, after : Scene
+        The epochs; ``after`` is sampled independently (other points, other noise) from the
+        same buildings, then each side is moved by its offset (``after.surfaces`` still
+        describe the unmoved geometry).
+    trace_xy : (2, 2) float64
+        The fault trace (two vertices, map coordinates incl. ``origin``), digitised from the
+        first to the second vertex.
+    left_offset_m, right_offset_m : (3,) float64
+        Displacement of the material left and right of the digitised trace (metres).
+    side_before, side_after : (N,) int8
+        -1 left, +1 right of each point (buildings move whole, by the side of their centre).
+    moved_buildings : tuple of int
+        Buildings given an extra ``blunder_offset_m`` (renovated / rebuilt: not the signal).
+    """
+
+    before: Scene
+    after: Scene
+    trace_xy: np.ndarray
+    left_offset_m: np.ndarray
+    right_offset_m: np.ndarray
+    side_before: np.ndarray
+    side_after: np.ndarray
+    moved_buildings: tuple = ()
+
+    @property
+    def relative_offset_m(self) -> np.ndarray:
+        """Right minus left (3,), metres."""
+        return self.right_offset_m - self.left_offset_m
+
+
+def _side_of_line(xy: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    d = b - a
+    cross = d[0] * (xy[:, 1] - a[1]) - d[1] * (xy[:, 0] - a[0])
+    return np.where(cross > 0, -1, 1).astype(np.int8)  # positive cross = left
+
+
+def make_fault_pair(
+    profile: str = "mls",
+    *,
+    seed: int = 0,
+    right_offset_m: Sequence[float] = (0.0, -0.0181, 0.0),
+    left_offset_m: Sequence[float] = (0.0, 0.0, 0.0),
+    fault_azimuth_deg: float = 0.0,
+    reverse_trace: bool = False,
+    blunder_fraction: float = 0.0,
+    blunder_offset_m: Sequence[float] = (0.5, 0.0, 0.0),
+    after_seed: Optional[int] = None,
+    **scene_options: Any,
+) -> FaultPair:
+    """Two epochs of a synthetic scene cut by a straight fault through its centre.
+
+    Parameters
+    ----------
+    profile : str
+        As :func:`make_scene`.
+    seed : int
+        Seed of the first epoch (the buildings); the second epoch samples the same buildings
+        with ``after_seed`` (default ``seed + 1_000_003``): no point is shared.
+    right_offset_m, left_offset_m : (3,) array-like
+        Rigid displacement of each side, metres (default: 18.1 mm of dextral slip on a
+        north-striking fault — the study's NLOD value — as the right (east) side moving south).
+    fault_azimuth_deg : float
+        Strike of the trace, degrees clockwise from north (+y).
+    reverse_trace : bool
+        Digitise the trace the other way (left and right swap; offsets follow the sides).
+    blunder_fraction : float
+        Share of buildings (at least one when > 0) moved by ``blunder_offset_m`` on top of
+        their side's offset.
+    **scene_options
+        Passed to :func:`make_scene` (``n_buildings``, ``extent_m``, ``density_pts_m2``,
+        ``noise_m``, ``origin``, ``ground``, ``vegetation``, ...).
+
+    Returns
+    -------
+    FaultPair
+    """
+    before = make_scene(profile, seed=seed, **scene_options)
+    opts = dict(scene_options)
+    opts.pop("n_buildings", None)
+    opts.pop("buildings", None)
+    after_seed = seed + 1_000_003 if after_seed is None else int(after_seed)
+    after = make_scene(profile, seed=after_seed, buildings=before.buildings, **opts)
+    origin = np.asarray(before.origin, dtype=np.float64)
+    half = 0.5 * before.extent_m
+    az = math.radians(fault_azimuth_deg)
+    direction = np.array([math.sin(az), math.cos(az)])
+    centre = origin[:2] + half
+    a, b = centre - 2 * half * direction, centre + 2 * half * direction
+    if reverse_trace:
+        a, b = b, a
+    right = np.asarray(right_offset_m, dtype=np.float64)
+    left = np.asarray(left_offset_m, dtype=np.float64)
+    if reverse_trace:  # the same ground motion, seen with the sides swapped
+        right, left = left, right
+    bcentre = np.array([blg.center_xy_m for blg in before.buildings]).reshape(-1, 2) + origin[:2]
+    bside = _side_of_line(bcentre, a, b) if bcentre.size else np.empty(0, np.int8)
+    n_blunder = 0
+    if blunder_fraction > 0 and len(before.buildings):
+        n_blunder = max(1, int(round(blunder_fraction * len(before.buildings))))
+    moved = tuple(int(k) for k in _rng(seed, 9_999).permutation(len(before.buildings))[:n_blunder])
+
+    def sides(scene: Scene) -> np.ndarray:
+        s = _side_of_line(scene.points[:, :2], a, b)
+        inb = scene.building_ids >= 0
+        s[inb] = bside[scene.building_ids[inb]]
+        return s
+
+    side_b, side_a = sides(before), sides(after)
+    pts = after.points.copy()
+    pts[side_a < 0] += left
+    pts[side_a > 0] += right
+    if moved:
+        pts[np.isin(after.building_ids, moved)] += np.asarray(blunder_offset_m, dtype=np.float64)
+    after = dataclasses.replace(after, points=pts)
+    return FaultPair(
+        before=before,
+        after=after,
+        trace_xy=np.array([a, b]),
+        left_offset_m=left,
+        right_offset_m=right,
+        side_before=side_b,
+        side_after=side_a,
+        moved_buildings=moved,
+    )
