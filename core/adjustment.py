@@ -1,0 +1,816 @@
+"""Gauss-Helmert adjustment of a rigid motion from point-on-plane conditions (block-reduced).
+
+Kusari et al. (2019), section II.D (Eq. 9-11) and Appendix (Eq. 14-17), with these choices:
+
+* Model. Before-epoch points ``p`` and after-epoch points ``q`` of plane ``i`` lie on the same
+  plane ``n_i . x + d_i = 0`` once the motion ``q = R p + t`` is undone. Conditions (one per
+  point, coordinates centred on ``centre``)::
+
+      before:  f = n_i . p + d_i                       = 0     B = n_i
+      after:   f = (R n_i) . (q - t) + d_i             = 0     B = m_i = R n_i
+
+  plus one hard constraint per plane ``|n_i|^2 - 1 = 0`` (Eq. 15-16).
+* Unknowns. ``x1 = (alpha, beta, gamma, tx, ty, tz)`` and ``x2_i = (a, b, c, d)``. The rotation
+  is kept as a proper rotation matrix ``R0``; each iteration linearises the small-angle form
+  ``R = (I + [dw]x) R0`` (Eq. 9's matrix applied to the increment) and updates
+  ``R0 <- exp([dw]x) R0`` (Rodrigues). The reported angles are the rotation vector of ``R0``,
+  equal to Eq. 9's ``alpha, beta, gamma`` to first order.
+* Linearisation (after point, ``x = q - t0``, ``m = R0 n``)::
+
+      A1 = [ m x x ,  -m ]   (1x6)     A2 = [ R0^T x , 1 ]   (1x4)     w = m . x + d
+
+  (before point: ``A1 = 0``, ``A2 = [p, 1]``, ``w = n . p + d``). The condition is linear in the
+  observations, so the misclosure at the observed coordinates is exact; ``A`` is evaluated at
+  the observed coordinates (for isotropic covariances this has the same fixed point as the
+  rigorous Gauss-Helmert iteration: orthogonal regression).
+* Weights. Each condition has variance ``B C B^T`` (scalar), weight ``1 / (B C B^T)``.
+* Normal equations (Eq. 17 with a hard constraint):
+  ``[[N11, N12, 0], [N12^T, N22, G^T], [0, G, 0]] [d1; d2; k] = -[u1; u2; wc]``,
+  ``G_i = [2 n_i, 0]``, ``wc_i = |n_i|^2 - 1``. Every plane's 4x4 ``N22_i`` is bordered by its
+  constraint into a 5x5 block, solved for all planes at once (stacked ``np.linalg.solve``) and
+  Schur-complemented into the 6x6 reduced system
+  ``Nred = N11 - sum_i N12_i K_i^-1 N12_i^T``; plane corrections are back-substituted.
+* Linear cost. All rows of one plane and epoch are affine in the point's offset ``u`` from the
+  plane's centroid, so every block follows from the weighted moments ``sum w``, ``sum w u``,
+  ``sum w u u^T`` per plane and epoch (``np.bincount``). With a scalar or per-axis sigma the
+  weights are constant per plane and epoch, so the moments are computed once and an iteration
+  costs O(planes); with per-point covariances each iteration recomputes them in O(points).
+* Robustness: after convergence each plane's difference of weighted mean misclosures (after -
+  before) is tested against a Bonferroni-corrected normal quantile (``alpha / planes``,
+  two-sided), scaled by the a-posteriori variance factor; the worst significant plane is
+  removed and the adjustment repeated (data snooping).
+* Observation strength: the 3x3 translation block of the reduced normal matrix is
+  eigen-decomposed; directions with eigenvalue below ``WEAK_RATIO`` x the largest are reported.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from statistics import NormalDist
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from .errors import InputDataError, InvalidParameterError
+from .progress import ProgressCallback, report
+
+log = logging.getLogger(__name__)
+
+__all__ = ["RigidResult", "adjust_rigid", "adjust_rigid_dense"]
+
+WEAK_RATIO = 1e-3  # translation eigenvalue ratio below which a direction is weakly constrained
+SINGULAR_RATIO = 1e-6  # ... and below which it is unconstrained (singular system)
+DENSE_MAX_UNKNOWNS = 2000  # adjust_rigid_dense refuses bigger problems
+MAX_REJECTED_SHARE = 0.5  # data snooping stops before rejecting more than this share of planes
+
+
+@dataclass(frozen=True)
+class RigidResult:
+    """Result of :func:`adjust_rigid`.
+
+    Attributes
+    ----------
+    params : (6,) float64
+        ``alpha, beta, gamma`` (radians, rotation vector of the before->after rotation about the
+        x, y, z axes through ``centre``) and ``tx, ty, tz`` (metres, displacement of the
+        material at ``centre``): ``after = R (before - centre) + centre + t``.
+    covariance : (6, 6) float64
+        A-posteriori covariance ``variance_factor * cofactor`` (rad², rad·m, m²).
+    cofactor : (6, 6) float64
+        ``Qxx``: inverse of the reduced normal matrix (a-priori covariance of ``params``).
+    sigma : (6,) float64
+        Square roots of the diagonal of ``covariance``.
+    variance_factor : float
+        ``sigma0² = v^T P v / redundancy`` (NaN if the redundancy is 0).
+    redundancy : int
+        Conditions + constraints - unknowns.
+    iterations : int
+        Gauss-Helmert iterations of the final adjustment.
+    converged : bool
+        Whether the last increment was below the tolerance.
+    centre : (3,) float64
+        Centre of the coordinates (metres, input frame).
+    n_planes : int
+        Planes used in the final adjustment.
+    n_points : int
+        Points (both epochs) used in the final adjustment.
+    plane_params : (b, 4) float64
+        ``a, b, c, d`` of every plane in the input (uncentred) frame of the before epoch:
+        ``a x + b y + c z + d = 0``. Rejected planes hold their before-epoch fit; planes without
+        points hold NaN.
+    residuals_before, residuals_after : (N1,), (N2,) float64
+        Signed orthogonal point-to-plane misclosures after the adjustment (metres; after points
+        are first moved back by the motion). NaN for ignored points (plane index < 0).
+    rejected_planes : tuple of (int, str)
+        Planes left out, with the reason (and the test statistic for outliers).
+    translation_eigenvalues : (3,) float64
+        Ascending eigenvalues of the translation block of the reduced normal matrix (1/m²).
+    translation_eigenvectors : (3, 3) float64
+        The corresponding unit eigenvectors, as columns.
+    weak_directions : tuple of str
+        Warnings about weakly constrained translation directions.
+    """
+
+    params: np.ndarray
+    covariance: np.ndarray
+    cofactor: np.ndarray
+    sigma: np.ndarray
+    variance_factor: float
+    redundancy: int
+    iterations: int
+    converged: bool
+    centre: np.ndarray
+    n_planes: int
+    n_points: int
+    plane_params: np.ndarray
+    residuals_before: np.ndarray
+    residuals_after: np.ndarray
+    rejected_planes: Tuple[Tuple[int, str], ...]
+    translation_eigenvalues: np.ndarray
+    translation_eigenvectors: np.ndarray
+    weak_directions: Tuple[str, ...]
+
+    @property
+    def displacement(self) -> np.ndarray:
+        """(3,) translation ``tx, ty, tz`` in metres."""
+        return self.params[3:].copy()
+
+    @property
+    def displacement_covariance(self) -> np.ndarray:
+        """(3, 3) covariance of :attr:`displacement`, m²."""
+        return self.covariance[3:, 3:].copy()
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices ``[v]x`` of (..., 3) vectors: ``[v]x @ u == v x u``."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def _expm_so3(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w`` (3,) (Rodrigues)."""
+    theta = float(np.linalg.norm(w))
+    k = _skew(w)
+    if theta < 1e-8:
+        return np.eye(3) + k + 0.5 * (k @ k)
+    return np.eye(3) + math.sin(theta) / theta * k + (1 - math.cos(theta)) / theta**2 * (k @ k)
+
+
+def _logm_so3(r: np.ndarray) -> np.ndarray:
+    """Rotation vector (3,) of a rotation matrix (angles below pi)."""
+    c = min(1.0, max(-1.0, (np.trace(r) - 1.0) / 2.0))
+    theta = math.acos(c)
+    v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0
+    if theta < 1e-8:
+        return v
+    return v * theta / math.sin(theta)
+
+
+def _orient(n: np.ndarray) -> np.ndarray:
+    """Flip (b, 3) normals to PlaneSet's convention: nz > 0; vertical ones +y, then +x."""
+    tol = 1e-12
+    key = np.where(
+        np.abs(n[:, 2]) > tol, n[:, 2], np.where(np.abs(n[:, 1]) > tol, n[:, 1], n[:, 0])
+    )
+    return np.where((key < 0)[:, None], -n, n)
+
+
+def _describe_direction(v: np.ndarray) -> str:
+    """'azimuth 37° (horizontal)' for a unit vector (azimuth clockwise from +y = north)."""
+    v = v if (v[2] > 0 or (v[2] == 0 and v[1] >= 0)) else -v
+    elev = math.degrees(math.asin(min(1.0, abs(float(v[2])))))
+    if elev > 80:
+        return "the vertical"
+    az = math.degrees(math.atan2(float(v[0]), float(v[1]))) % 180.0
+    kind = "horizontal" if elev < 10 else f"inclined {elev:.0f}° from the horizontal"
+    return f"azimuth {az:.0f}° ({kind})"
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+class _Epoch:
+    """One epoch's valid points, grouped by plane through moments.
+
+    idx : (n,) int64 plane of each valid point; u : (n, 3) offset from its plane's centroid
+    (centred frame); g : (b, 3) plane centroids (centred frame); count : (b,) points per plane;
+    var : (3,) per-axis variance (uniform mode) or None; cov : per-point (n, 3) variances or
+    (n, 3, 3) covariances, or None; U1, U2 : unweighted moments (uniform mode).
+    """
+
+    def __init__(self, pts, labels, sigma, b, centre, name):
+        valid = labels >= 0
+        self.valid = valid
+        self.all_valid = bool(valid.all())
+        self.idx = labels[valid].astype(np.int64) if not self.all_valid else labels.astype(np.int64)
+        x = pts[valid] if not self.all_valid else pts
+        x = x - centre  # new array: inputs are never modified
+        self.count = np.bincount(self.idx, minlength=b).astype(np.float64)
+        safe = np.maximum(self.count, 1.0)
+        self.g = np.stack([np.bincount(self.idx, x[:, k], b) / safe for k in range(3)], axis=1)
+        x -= self.g[self.idx]
+        self.u = x
+        self.var, self.cov = _parse_sigma(sigma, pts.shape[0], valid, self.all_valid, name)
+        self.U1 = self.U2 = None
+        if self.var is not None:
+            self.U1, self.U2 = _moments(self.idx, self.u, None, b)
+
+    def weighted(self, bvec: np.ndarray, b: int):
+        """Weighted moments S0 (b,), S1 (b, 3), S2 (b, 3, 3) for condition directions bvec."""
+        if self.var is not None:
+            w = 1.0 / ((bvec * bvec) @ self.var)
+            return self.count * w, self.U1 * w[:, None], self.U2 * w[:, None, None]
+        bj = bvec[self.idx]
+        if self.cov.ndim == 2:
+            s = np.einsum("ij,ij->i", bj * bj, self.cov)
+        else:
+            s = np.einsum("ij,ijk,ik->i", bj, self.cov, bj)
+        w = 1.0 / s
+        s1, s2 = _moments(self.idx, self.u, w, b)
+        return np.bincount(self.idx, w, b), s1, s2
+
+
+def _moments(idx, u, w, b):
+    """Per-plane sum(w u) (b, 3) and sum(w u u^T) (b, 3, 3) (w=None: unit weights)."""
+    s1 = np.empty((b, 3))
+    s2 = np.empty((b, 3, 3))
+    wu = [u[:, k] if w is None else u[:, k] * w for k in range(3)]
+    for k in range(3):
+        s1[:, k] = np.bincount(idx, wu[k], b)
+        for j in range(k, 3):
+            s2[:, k, j] = s2[:, j, k] = np.bincount(idx, wu[k] * u[:, j], b)
+    return s1, s2
+
+
+def _parse_sigma(sigma, n, valid, all_valid, name):
+    """(var (3,), None) for scalar / per-axis sigma, (None, per-point array) otherwise."""
+    s = np.asarray(sigma, dtype=np.float64)
+    label = f"sigma_{name}"
+    if not np.all(np.isfinite(s)):
+        raise InvalidParameterError(f"{label} contains NaN or infinite values")
+    if s.ndim == 0 or s.shape == (3,):
+        if np.any(s <= 0):
+            raise InvalidParameterError(f"{label} must be > 0 (metres), got {sigma!r}")
+        return np.broadcast_to(s * s, (3,)).astype(np.float64), None
+    if s.shape == (n, 3):
+        if np.any(s <= 0):
+            raise InvalidParameterError(f"{label}: per-point sigmas must be > 0 (metres)")
+        v = s * s
+        return None, (v if all_valid else v[valid])
+    if s.shape == (n, 3, 3):
+        if np.any(np.abs(s - np.swapaxes(s, 1, 2)) > 1e-12 * np.abs(s).max()):
+            raise InvalidParameterError(f"{label}: covariance matrices must be symmetric")
+        if np.any(np.diagonal(s, axis1=1, axis2=2) <= 0):
+            raise InvalidParameterError(f"{label}: covariance diagonals must be > 0 (m²)")
+        return None, (s if all_valid else s[valid])
+    raise InvalidParameterError(
+        f"{label} must be a scalar, a (3,) per-axis sigma, an (N, 3) per-point sigma or an "
+        f"(N, 3, 3) covariance array with N = {n}; got shape {s.shape}"
+    )
+
+
+def _check_points(pts, labels, name):
+    pts = np.asarray(pts)
+    labels = np.asarray(labels)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputDataError(f"{name} must be an (N, 3) array of points, got shape {pts.shape}")
+    if labels.shape != (pts.shape[0],):
+        raise InputDataError(
+            f"{name}_plane must have shape ({pts.shape[0]},) (one plane index per point), "
+            f"got {labels.shape}"
+        )
+    if labels.size and not np.issubdtype(labels.dtype, np.integer):
+        raise InputDataError(f"{name}_plane must hold integer plane indices, got {labels.dtype}")
+    pts = pts.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(pts)):
+        raise InputDataError(f"{name} contains NaN or infinite coordinates; remove those points")
+    return pts, labels
+
+
+# --------------------------------------------------------------------------- blocks
+
+
+class _State:
+    """Current estimate: rotation matrix R (3, 3), translation t (3,), planes n (b, 3), d (b,)."""
+
+    def __init__(self, r, t, n, d):
+        self.r, self.t, self.n, self.d = r, t, n, d
+
+    def copy(self):
+        return _State(self.r.copy(), self.t.copy(), self.n.copy(), self.d.copy())
+
+
+def _epoch_rows(state: _State, g: np.ndarray, after: bool):
+    """Affine row model per plane: rows ``a0 + M u`` (b, 10) / (b, 10, 3), misclosure
+    ``f0 + bvec . u`` (b,) / (b, 3)."""
+    b = g.shape[0]
+    a0 = np.zeros((b, 10))
+    mm = np.zeros((b, 10, 3))
+    a0[:, 9] = 1.0
+    if after:
+        bvec = state.n @ state.r.T  # m = R n
+        e = g - state.t
+        a0[:, 0:3] = np.cross(bvec, e)
+        a0[:, 3:6] = -bvec
+        a0[:, 6:9] = e @ state.r  # R^T e
+        mm[:, 0:3, :] = _skew(bvec)
+        mm[:, 6:9, :] = state.r.T
+    else:
+        bvec = state.n
+        e = g
+        a0[:, 6:9] = e
+        mm[:, 6:9, :] = np.eye(3)
+    f0 = np.einsum("ij,ij->i", bvec, e) + state.d
+    return a0, mm, f0, bvec
+
+
+def _blocks(state: _State, epochs, b: int):
+    """Per-plane normal blocks N (b, 10, 10), right-hand sides A^T W w (b, 10), v^T P v (b,),
+    and per-epoch (sum w, weighted mean misclosure) for the outlier test."""
+    nn = np.zeros((b, 10, 10))
+    rhs = np.zeros((b, 10))
+    vpv = np.zeros(b)
+    stats = []
+    for ep, after in zip(epochs, (False, True)):
+        a0, mm, f0, bvec = _epoch_rows(state, ep.g, after)
+        s0, s1, s2 = ep.weighted(bvec, b)
+        ms1 = np.einsum("bkj,bj->bk", mm, s1)
+        nn += s0[:, None, None] * a0[:, :, None] * a0[:, None, :]
+        nn += a0[:, :, None] * ms1[:, None, :] + ms1[:, :, None] * a0[:, None, :]
+        nn += np.einsum("bkj,bjl,bml->bkm", mm, s2, mm)
+        s1m = np.einsum("bj,bj->b", s1, bvec)
+        s2m = np.einsum("bjl,bl->bj", s2, bvec)
+        rhs += a0 * (s0 * f0 + s1m)[:, None]
+        rhs += np.einsum("bkj,bj->bk", mm, s1 * f0[:, None] + s2m)
+        vpv += s0 * f0 * f0 + 2.0 * f0 * s1m + np.einsum("bj,bj->b", bvec, s2m)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            stats.append((s0, (s0 * f0 + s1m) / s0))
+    return nn, rhs, vpv, stats
+
+
+def _step_block(state: _State, epochs, active: np.ndarray, b: int):
+    """One Gauss-Helmert step by plane-block elimination. Returns (d1 (6,), d2 (k, 4), Nred,
+    Qxx) for the active planes."""
+    nn, rhs, _, _ = _blocks(state, epochs, b)
+    nn, rhs = nn[active], rhs[active]
+    n = state.n[active]
+    k = n.shape[0]
+    kk = np.zeros((k, 5, 5))
+    kk[:, :4, :4] = nn[:, 6:, 6:]
+    kk[:, 4, :3] = kk[:, :3, 4] = 2.0 * n
+    cols = np.zeros((k, 5, 7))
+    cols[:, :4, :6] = nn[:, 6:, :6]  # N21 = N12^T
+    cols[:, :4, 6] = -rhs[:, 6:]
+    cols[:, 4, 6] = -(np.einsum("ij,ij->i", n, n) - 1.0)
+    try:
+        x = np.linalg.solve(kk, cols)
+    except np.linalg.LinAlgError as exc:
+        raise InputDataError(
+            "a plane's points are degenerate (collinear or too few): its 4x4 block is singular"
+        ) from exc
+    n12 = np.swapaxes(nn[:, 6:, :6], 1, 2)  # (k, 6, 4)
+    nred = nn[:, :6, :6].sum(axis=0) - np.einsum("kij,kjl->il", n12, x[:, :4, :6])
+    rred = -rhs[:, :6].sum(axis=0) - np.einsum("kij,kj->i", n12, x[:, :4, 6])
+    nred = 0.5 * (nred + nred.T)
+    _check_singular(nred)
+    qxx = np.linalg.inv(nred)
+    d1 = qxx @ rred
+    d2 = x[:, :4, 6] - np.einsum("kij,j->ki", x[:, :4, :6], d1)
+    return d1, d2, nred, 0.5 * (qxx + qxx.T)
+
+
+def _step_dense(state: _State, epochs, active: np.ndarray, b: int):
+    """The same step from the full Gauss-Helmert matrices (A, B, W, G) of every point."""
+    act = np.flatnonzero(active)
+    col = np.full(b, -1)
+    col[act] = np.arange(act.size)
+    k = act.size
+    nu = 6 + 4 * k
+    rows_a, ws, wv = [], [], []
+    r, t = state.r, state.t
+    for ep, after in zip(epochs, (False, True)):
+        keep = active[ep.idx]
+        idx = ep.idx[keep]
+        x = ep.g[idx] + ep.u[keep]  # centred observed coordinates
+        n = state.n[idx]
+        a = np.zeros((idx.size, nu))
+        c = col[idx]
+        if after:
+            m = n @ r.T
+            x = x - t
+            a[:, 0:3] = np.cross(m, x)
+            a[:, 3:6] = -m
+            bmat = m
+            xa = x @ r
+        else:
+            bmat = n
+            xa = x
+        for j in range(3):
+            a[np.arange(idx.size), 6 + 4 * c + j] = xa[:, j]
+        a[np.arange(idx.size), 6 + 4 * c + 3] = 1.0
+        w = np.einsum("ij,ij->i", bmat, xa if not after else x) + state.d[idx]
+        if ep.var is not None:
+            cov = np.broadcast_to(np.diag(ep.var), (idx.size, 3, 3))
+        elif ep.cov.ndim == 2:
+            cov = np.einsum("ij,jk->ijk", ep.cov[keep], np.eye(3))
+        else:
+            cov = ep.cov[keep]
+        bcb = np.einsum("ij,ijk,ik->i", bmat, cov, bmat)  # B C B^T, one scalar per condition
+        rows_a.append(a)
+        ws.append(w)
+        wv.append(1.0 / bcb)
+    a = np.concatenate(rows_a)
+    w = np.concatenate(ws)
+    weight = np.concatenate(wv)
+    gmat = np.zeros((k, nu))
+    wc = np.zeros(k)
+    for i, p in enumerate(act):
+        gmat[i, 6 + 4 * i : 9 + 4 * i] = 2.0 * state.n[p]
+        wc[i] = state.n[p] @ state.n[p] - 1.0
+    big = np.zeros((nu + k, nu + k))
+    big[:nu, :nu] = a.T @ (weight[:, None] * a)
+    big[:nu, nu:] = gmat.T
+    big[nu:, :nu] = gmat
+    rhs = np.concatenate([-(a.T @ (weight * w)), -wc])
+    try:
+        inv = np.linalg.inv(big)
+        ok = bool(np.linalg.cond(big) < 1e15)
+    except np.linalg.LinAlgError:
+        ok = False
+    if not ok:
+        _step_block(state, epochs, active, b)  # raises the error naming the direction
+        raise InputDataError("the Gauss-Helmert normal system is singular")
+    q = 0.5 * (inv[:6, :6] + inv[:6, :6].T)
+    _check_singular(np.linalg.inv(q))
+    sol = np.linalg.solve(big, rhs)
+    return sol[:6], sol[6:nu].reshape(k, 4), np.linalg.inv(q), q
+
+
+def _check_singular(nred: np.ndarray) -> None:
+    """Raise InputDataError naming the unconstrained directions of a singular reduced system."""
+    tt = nred[3:, 3:]
+    ev, evec = np.linalg.eigh(tt)
+    top = max(float(ev[-1]), 0.0)
+    bad = [evec[:, j] for j in range(3) if not top > 0 or ev[j] < SINGULAR_RATIO * top]
+    if bad:
+        names = ", ".join(f"translation along {_describe_direction(v)}" for v in bad)
+        raise InputDataError(
+            f"the reduced normal system is singular: {names} unconstrained; all matched plane "
+            "normals are (nearly) parallel or lie in one plane - need planes with several "
+            "orientations (e.g. roofs, walls of different directions and ground)"
+        )
+    dsc = 1.0 / np.sqrt(np.abs(np.diag(nred)))
+    ev_s, evec_s = np.linalg.eigh(nred * dsc[:, None] * dsc[None, :])
+    if not ev_s[0] > SINGULAR_RATIO * ev_s[-1]:
+        v = evec_s[:3, 0]
+        axis = v / (np.linalg.norm(v) or 1.0)
+        raise InputDataError(
+            "the reduced normal system is singular: rotation about the axis "
+            f"{_describe_direction(axis)} through the centre is unconstrained; need planes "
+            "with several orientations spread around the centre"
+        )
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def _initial_planes(epochs, b):
+    """Plane (n, d) per plane (centred frame) from the before points (both epochs if fewer
+    than 3 before points), smallest-eigenvalue normal of the scatter."""
+    e0, e1 = epochs
+    c0 = e0.count
+    u1, u2 = _moments(e0.idx, e0.u, None, b) if e0.U1 is None else (e0.U1, e0.U2)
+    scat = u2 - (u1[:, :, None] * u1[:, None, :]) / np.maximum(c0, 1)[:, None, None]
+    g = e0.g.copy()
+    few = c0 < 3
+    if np.any(few):
+        v1, v2 = _moments(e1.idx, e1.u, None, b) if e1.U1 is None else (e1.U1, e1.U2)
+        tot = c0 + e1.count
+        gc = (e0.g * c0[:, None] + e1.g * e1.count[:, None]) / np.maximum(tot, 1)[:, None]
+        both = np.zeros((b, 3, 3))
+        for ep, m1, m2 in ((e0, u1, u2), (e1, v1, v2)):
+            dg = ep.g - gc
+            both += (
+                m2
+                + m1[:, :, None] * dg[:, None, :]
+                + dg[:, :, None] * m1[:, None, :]
+                + ep.count[:, None, None] * dg[:, :, None] * dg[:, None, :]
+            )
+        scat = np.where(few[:, None, None], both, scat)
+        g = np.where(few[:, None], gc, g)
+    _, vec = np.linalg.eigh(scat)
+    n = _orient(np.ascontiguousarray(vec[:, :, 0]))
+    d = -np.einsum("ij,ij->i", n, g)
+    return n, d
+
+
+def _iterate(state, epochs, active, b, step, max_iterations, tolerance, progress, base):
+    converged = False
+    it = 0
+    nred = qxx = None
+    for it in range(1, max_iterations + 1):
+        d1, d2, nred, qxx = step(state, epochs, active, b)
+        state.r = _expm_so3(d1[:3]) @ state.r
+        state.t = state.t + d1[3:]
+        state.n[active] += d2[:, :3]
+        state.d[active] += d2[:, 3]
+        inc = max(float(np.abs(d1).max()), float(np.abs(d2).max()) if d2.size else 0.0)
+        log.debug("adjustment iteration %d: max increment %.3g", it, inc)
+        report(progress, min(0.95, base + 0.9 * it / max_iterations), f"iteration {it}")
+        if inc < tolerance:
+            converged = True
+            break
+    return it, converged, nred, qxx
+
+
+def _run(
+    before,
+    before_plane,
+    after,
+    after_plane,
+    *,
+    sigma_before,
+    sigma_after,
+    centre,
+    max_iterations,
+    tolerance,
+    reject_outlier_planes,
+    alpha,
+    min_planes,
+    progress,
+    dense,
+):
+    before, before_plane = _check_points(before, before_plane, "before")
+    after, after_plane = _check_points(after, after_plane, "after")
+    if int(max_iterations) < 1:
+        raise InvalidParameterError(f"max_iterations must be >= 1, got {max_iterations}")
+    if not (tolerance > 0):
+        raise InvalidParameterError(f"tolerance must be > 0, got {tolerance}")
+    if not (0 < alpha < 1):
+        raise InvalidParameterError(f"alpha must be in (0, 1), got {alpha}")
+    if int(min_planes) < 1:
+        raise InvalidParameterError(f"min_planes must be >= 1, got {min_planes}")
+    b = int(max(before_plane.max(initial=-1), after_plane.max(initial=-1))) + 1
+    if centre is None:
+        pts = [p[lab >= 0] for p, lab in ((before, before_plane), (after, after_plane))]
+        allp = np.concatenate(pts)
+        if allp.shape[0] == 0:
+            raise InputDataError("no points with a plane index >= 0 in either epoch")
+        centre = allp.mean(axis=0)
+        del allp, pts
+    else:
+        centre = np.asarray(centre, dtype=np.float64)
+        if centre.shape != (3,) or not np.all(np.isfinite(centre)):
+            raise InvalidParameterError(f"centre must be 3 finite coordinates, got {centre!r}")
+    report(progress, 0.0, "plane moments")
+    epochs = (
+        _Epoch(before, before_plane, sigma_before, b, centre, "before"),
+        _Epoch(after, after_plane, sigma_after, b, centre, "after"),
+    )
+    if dense and 6 + 4 * b > DENSE_MAX_UNKNOWNS:
+        raise InvalidParameterError(
+            f"adjust_rigid_dense is a reference for small problems ({6 + 4 * b} unknowns); "
+            "use adjust_rigid"
+        )
+    c0, c1 = epochs[0].count, epochs[1].count
+    rejected: List[Tuple[int, str]] = []
+    for p in np.flatnonzero((c0 == 0) | (c1 == 0) | (c0 + c1 < 4)):
+        if c0[p] == 0 and c1[p] == 0:
+            continue  # no points: not a plane of this problem
+        why = (
+            "no points in the before epoch"
+            if c0[p] == 0
+            else "no points in the after epoch"
+            if c1[p] == 0
+            else f"too few points ({int(c0[p] + c1[p])} < 4)"
+        )
+        rejected.append((int(p), why))
+    active = (c0 > 0) & (c1 > 0) & (c0 + c1 >= 4)
+    if int(active.sum()) < min_planes:
+        raise InputDataError(
+            f"fewer than {min_planes} matched planes with points in both epochs "
+            f"({int(active.sum())} found); need planes with several orientations"
+        )
+    n0, d0 = _initial_planes(epochs, b)
+    state = _State(np.eye(3), np.zeros(3), n0.copy(), d0.copy())
+    step = _step_dense if dense else _step_block
+    z_crit = NormalDist().inv_cdf(1.0 - alpha / (2.0 * max(int(active.sum()), 1)))
+    n_start = int(active.sum())
+    while True:
+        it, converged, nred, qxx = _iterate(
+            state, epochs, active, b, step, int(max_iterations), tolerance, progress, 0.05
+        )
+        _, _, vpv_b, stats = _blocks(state, epochs, b)
+        n_cond = int(c0[active].sum() + c1[active].sum())
+        k = int(active.sum())
+        redundancy = n_cond + k - (6 + 4 * k)
+        vpv = float(vpv_b[active].sum())
+        s0 = vpv / redundancy if redundancy > 0 else float("nan")
+        if not reject_outlier_planes or k <= min_planes:
+            break
+        n_out = sum(1 for r in rejected if r[1].startswith("outlier"))
+        if n_out >= MAX_REJECTED_SHARE * n_start:
+            log.warning("data snooping stopped after %d rejected planes", n_out)
+            break
+        (w0, f0), (w1, f1) = stats
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = (f1 - f0) / np.sqrt((s0 if s0 == s0 else 1.0) * (1.0 / w0 + 1.0 / w1))
+        z = np.where(active, np.abs(z), 0.0)
+        worst = int(np.argmax(z))
+        if not z[worst] > z_crit:
+            break
+        trial = active.copy()
+        trial[worst] = False
+        reason = (
+            f"outlier: after-before mean misclosure {f1[worst] - f0[worst]:+.4f} m, "
+            f"|w| = {z[worst]:.1f} > {z_crit:.2f} (alpha={alpha:g}, Bonferroni, "
+            f"sigma0²={s0:.3g})"
+        )
+        log.info("rejecting plane %d: %s", worst, reason)
+        saved = state.copy()
+        try:
+            _check_singular(_step_block(state, epochs, trial, b)[2])
+        except InputDataError:
+            log.warning("plane %d not rejected: without it the system is singular", worst)
+            state = saved
+            break
+        state = saved
+        active = trial
+        rejected.append((worst, reason))
+    report(progress, 0.97, "residuals")
+    return _finish(
+        state, epochs, active, b, centre, it, converged, nred, qxx, s0, redundancy, n_cond,
+        rejected, n0, d0, before_plane, after_plane, progress,
+    )  # fmt: skip
+
+
+def _finish(
+    state, epochs, active, b, centre, it, converged, nred, qxx, s0, redundancy, n_cond,
+    rejected, n0, d0, before_plane, after_plane, progress,
+):  # fmt: skip
+    n = np.where(active[:, None], state.n, n0)
+    d = np.where(active, state.d, d0)
+    norm = np.linalg.norm(n, axis=1)
+    n = n / norm[:, None]
+    d = d / norm
+    resid = []
+    for ep, lab, after in zip(epochs, (before_plane, after_plane), (False, True)):
+        st = _State(state.r, state.t, n, d)
+        _, _, f0, bvec = _epoch_rows(st, ep.g, after)
+        f = f0[ep.idx] + np.einsum("ij,ij->i", bvec[ep.idx], ep.u)
+        if ep.all_valid:
+            resid.append(f)
+        else:
+            out = np.full(lab.shape[0], np.nan)
+            out[ep.valid] = f
+            resid.append(out)
+    has = (epochs[0].count + epochs[1].count) > 0
+    plane_params = np.full((b, 4), np.nan)
+    plane_params[has, :3] = n[has]
+    plane_params[has, 3] = d[has] - n[has] @ centre
+    params = np.concatenate([_logm_so3(state.r), state.t])
+    cov = (s0 if s0 == s0 else 1.0) * qxx
+    ev, evec = np.linalg.eigh(nred[3:, 3:])
+    weak = []
+    for j in range(3):
+        if ev[j] < WEAK_RATIO * ev[-1]:
+            msg = (
+                f"translation along {_describe_direction(evec[:, j])} is weakly constrained "
+                f"(normal-matrix eigenvalue ratio {ev[j] / ev[-1]:.1e}): all matched normals "
+                "are nearly perpendicular to it"
+            )
+            log.warning(msg)
+            weak.append(msg)
+    report(progress, 1.0, "done")
+    return RigidResult(
+        params=params,
+        covariance=cov,
+        cofactor=qxx,
+        sigma=np.sqrt(np.diag(cov)),
+        variance_factor=float(s0),
+        redundancy=int(redundancy),
+        iterations=int(it),
+        converged=bool(converged),
+        centre=np.array(centre, dtype=np.float64),
+        n_planes=int(active.sum()),
+        n_points=int(n_cond),
+        plane_params=plane_params,
+        residuals_before=resid[0],
+        residuals_after=resid[1],
+        rejected_planes=tuple(sorted(rejected)),
+        translation_eigenvalues=ev,
+        translation_eigenvectors=evec,
+        weak_directions=tuple(weak),
+    )
+
+
+def adjust_rigid(
+    before: np.ndarray,
+    before_plane: np.ndarray,
+    after: np.ndarray,
+    after_plane: np.ndarray,
+    *,
+    sigma_before=0.05,
+    sigma_after=0.05,
+    centre: Optional[np.ndarray] = None,
+    max_iterations: int = 20,
+    tolerance: float = 1e-10,
+    reject_outlier_planes: bool = True,
+    alpha: float = 0.001,
+    min_planes: int = 3,
+    progress: Optional[ProgressCallback] = None,
+) -> RigidResult:
+    """Estimate the rigid motion before -> after from points on matched planes.
+
+    Gauss-Helmert adjustment with plane blocks eliminated (cost linear in points and planes);
+    see the module docstring for the equations.
+
+    Parameters
+    ----------
+    before : (N1, 3) float64
+        Before-epoch points, metres.
+    before_plane : (N1,) int
+        Plane index ``0 .. b-1`` of each before point; negative = ignored.
+    after : (N2, 3) float64
+        After-epoch points, metres.
+    after_plane : (N2,) int
+        Plane index of each after point (same numbering as ``before_plane``).
+    sigma_before, sigma_after : float, (3,), (N, 3) or (N, 3, 3)
+        Point precision per epoch: a scalar sigma (m), a per-axis sigma (m), per-point
+        per-axis sigmas (m) or per-point covariance matrices (m²).
+    centre : (3,) float64, optional
+        Centre of the coordinates (default: centroid of all used points of both epochs). The
+        translation is the displacement of the material at the centre.
+    max_iterations : int
+        Gauss-Helmert iterations per adjustment.
+    tolerance : float
+        Convergence when every parameter increment is below it (rad, m).
+    reject_outlier_planes : bool
+        Remove planes that moved differently (data snooping, see module docstring).
+    alpha : float
+        Significance level of the outlier test (over all planes, Bonferroni).
+    min_planes : int
+        Fewest planes with points in both epochs.
+    progress : callable, optional
+        ``progress(fraction, message)``.
+
+    Returns
+    -------
+    RigidResult
+
+    Raises
+    ------
+    InputDataError
+        Too few matched planes, NaN/inf coordinates, or a singular system (names the
+        unconstrained direction).
+    InvalidParameterError
+        Bad sigma shapes or values, or bad options.
+    """
+    return _run(
+        before, before_plane, after, after_plane, sigma_before=sigma_before,
+        sigma_after=sigma_after, centre=centre, max_iterations=max_iterations,
+        tolerance=tolerance, reject_outlier_planes=reject_outlier_planes, alpha=alpha,
+        min_planes=min_planes, progress=progress, dense=False,
+    )  # fmt: skip
+
+
+def adjust_rigid_dense(
+    before: np.ndarray,
+    before_plane: np.ndarray,
+    after: np.ndarray,
+    after_plane: np.ndarray,
+    *,
+    sigma_before=0.05,
+    sigma_after=0.05,
+    centre: Optional[np.ndarray] = None,
+    max_iterations: int = 20,
+    tolerance: float = 1e-10,
+    reject_outlier_planes: bool = True,
+    alpha: float = 0.001,
+    min_planes: int = 3,
+    progress: Optional[ProgressCallback] = None,
+) -> RigidResult:
+    """Reference solver: :func:`adjust_rigid` with the full Gauss-Helmert matrices.
+
+    Forms ``A`` (conditions x (6 + 4b)), ``B C B^T`` per condition, ``G`` and the full bordered
+    normal matrix of Eq. 17 from every point, and solves it densely. Small problems only
+    (at most ``DENSE_MAX_UNKNOWNS`` unknowns). Same parameters, result and errors as
+    :func:`adjust_rigid`.
+    """
+    return _run(
+        before, before_plane, after, after_plane, sigma_before=sigma_before,
+        sigma_after=sigma_after, centre=centre, max_iterations=max_iterations,
+        tolerance=tolerance, reject_outlier_planes=reject_outlier_planes, alpha=alpha,
+        min_planes=min_planes, progress=progress, dense=True,
+    )  # fmt: skip
