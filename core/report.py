@@ -15,7 +15,14 @@ import numpy as np
 from .errors import DependencyError, InvalidParameterError
 from .io.atomic import PathLike, atomic_path
 
-__all__ = ["plot_roughness_histograms", "plot_roughness_map", "plot_semivariograms"]
+__all__ = [
+    "plot_normals_polar",
+    "plot_residual_histograms",
+    "plot_roughness_histograms",
+    "plot_roughness_map",
+    "plot_semivariograms",
+    "write_html_report",
+]
 
 #: marker per series, in the order given (the study's Fig. 4: ODR circles, OLS triangles,
 #: E_OLS plus signs)
@@ -207,3 +214,82 @@ def plot_semivariograms(
     if title:
         fig.suptitle(title)
     return _save(fig, path, dpi)
+
+
+def plot_residual_histograms(
+    path: PathLike, residuals: Mapping[str, np.ndarray], *, title: str | None = None, dpi: int = 150
+) -> Path:
+    """Histograms of point-to-plane residuals with a Gaussian fit, one panel per entry
+    (the study's Fig. 6 / Fig. 10). Residuals in metres, shown in millimetres."""
+    if not residuals:
+        raise InvalidParameterError("residuals: give at least one series")
+    fig = _figure(4.2 * len(residuals), 3.4)
+    axes = fig.subplots(1, len(residuals), squeeze=False)[0]
+    for ax, (name, r) in zip(axes, residuals.items()):
+        mm = 1000.0 * np.asarray(r, dtype=np.float64)
+        mm = mm[np.isfinite(mm)]
+        if mm.size == 0:
+            ax.set_title(f"{name}: no residuals")
+            continue
+        mu, sd = float(mm.mean()), float(mm.std())
+        lim = max(4 * sd, 1e-6)
+        ax.hist(mm, bins=80, range=(mu - lim, mu + lim), density=True, color="0.7")
+        x = np.linspace(mu - lim, mu + lim, 200)
+        if sd > 0:
+            ax.plot(x, np.exp(-0.5 * ((x - mu) / sd) ** 2) / (sd * np.sqrt(2 * np.pi)), "k-")
+        ax.set_title(f"{name}: mean {mu:.2f} mm, sd {sd:.2f} mm")
+        ax.set_xlabel("residual along the plane normal (mm)")
+        ax.set_ylabel("density")
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path, dpi)
+
+
+def plot_normals_polar(
+    path: PathLike, normals: Mapping[str, np.ndarray], *, title: str | None = None, dpi: int = 150
+) -> Path:
+    """Polar plot of plane-normal azimuth (clockwise from north) against elevation (the
+    study's Fig. 4): which directions the matched planes constrain."""
+    fig = _figure(4.2 * max(1, len(normals)), 4.2)
+    for k, (name, n) in enumerate(normals.items()):
+        ax = fig.add_subplot(1, max(1, len(normals)), k + 1, projection="polar")
+        n = np.asarray(n, dtype=np.float64).reshape(-1, 3)
+        az = np.arctan2(n[:, 0], n[:, 1])
+        elev = np.degrees(np.arcsin(np.clip(np.abs(n[:, 2]), 0, 1)))
+        ax.set_theta_zero_location("N")
+        ax.set_theta_direction(-1)
+        ax.scatter(az, 90 - elev, s=10, c="k")
+        ax.set_rlim(0, 90)
+        ax.set_title(f"{name}: {n.shape[0]} planes (radius = 90° − elevation)")
+    if title:
+        fig.suptitle(title)
+    return _save(fig, path, dpi)
+
+
+def write_html_report(
+    path: PathLike, title: str, tables: Mapping[str, Mapping[str, object]], images: Sequence[str]
+) -> Path:
+    """A self-contained HTML summary: one table per entry of ``tables`` and the given image
+    files (relative paths beside the report)."""
+    import html
+
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>{html.escape(title)}</title>",
+        "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;"
+        "margin-bottom:1.5em}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}"
+        "th{background:#eee}img{max-width:100%;margin:1em 0}</style></head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+    ]
+    for name, rows in tables.items():
+        parts.append(f"<h2>{html.escape(name)}</h2><table>")
+        for key, value in rows.items():
+            text = f"{value:.6g}" if isinstance(value, float) else str(value)
+            parts.append(f"<tr><th>{html.escape(str(key))}</th><td>{html.escape(text)}</td></tr>")
+        parts.append("</table>")
+    for img in images:
+        parts.append(f"<div><img src='{html.escape(img)}' alt='{html.escape(img)}'></div>")
+    parts.append("</body></html>")
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(parts), encoding="utf-8")
+    return Path(path)

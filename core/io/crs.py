@@ -212,3 +212,22 @@ def crs_to_wkt(crs: Any, *, version: str = "WKT2_2019", pretty: bool = False) ->
     if wkt is None:
         raise InvalidParameterError(f"the CRS {c.name!r} cannot be written as {version} WKT")
     return wkt
+
+
+def reproject_points(xyz: Any, source: Any, target: Any) -> Any:
+    """Coordinates (N, 3) float64 transformed from CRS ``source`` to ``target`` (pyproj,
+    traditional GIS axis order: x = easting/longitude). Heights pass through unchanged unless
+    both CRSs are 3D. Returns a new array; the input is not modified."""
+    src, dst = parse_crs(source), parse_crs(target)
+    if src is None or dst is None:
+        raise InvalidParameterError("reproject_points needs both a source and a target CRS")
+    tr = pyproj.Transformer.from_crs(src, dst, always_xy=True)
+    a = np.asarray(xyz, dtype=np.float64)
+    x, y, z = tr.transform(a[:, 0], a[:, 1], a[:, 2])
+    out = np.column_stack([x, y, z])
+    if not np.all(np.isfinite(out)):
+        raise InvalidParameterError(
+            f"points cannot be reprojected from {src.name!r} to {dst.name!r} (outside the "
+            "target CRS's area); give both epochs in one CRS"
+        )
+    return out

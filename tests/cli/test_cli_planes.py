@@ -192,9 +192,9 @@ def test_debug_shows_traceback(tmp_path, capsys):
     assert "Traceback" in capsys.readouterr().err
 
 
-def test_demo(tmp_path, capsys):
+def test_demo_planes(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out)]) == 0
+    assert main(["demo", "--job", "planes", "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert "true surfaces recovered 100.0%" in err or "true surfaces recovered 9" in err
     assert (out / "planes.json").is_file() and (out / "demo_scene_planes.laz").is_file()
