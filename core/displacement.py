@@ -5,8 +5,10 @@ it excluded), planes are extracted in both epochs, matched, and a Gauss-Helmert 
 gives the rigid motion of that side at its centroid; the relative displacement is right minus
 left, with propagated covariance, resolved along and across the fault's strike.
 
-This module is the joint (one adjustment per side) workflow; tiles, strips and moving windows
-build on it.
+This module holds the joint (one adjustment per side) workflow and the study's refinements
+(section IV): square tiles for plane extraction (``estimate_slip(tile_size_m=...)``), strips
+along the trace (:func:`strip_profile`, the slip profile of Fig. 5) and moving windows
+(:func:`window_field`, the local displacement maps of Fig. 11).
 """
 
 from __future__ import annotations
@@ -14,12 +16,12 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Dict, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from .adjustment import RigidResult, adjust_rigid
-from .errors import InputDataError
+from .errors import InputDataError, InvalidParameterError
 from .fault import FaultTrace, fault_geometry, mean_strike_rad, side_masks, trace_in_data_check
 from .matching import PlaneMatches, match_planes
 from .planes import PlaneSet, segment_planes
@@ -28,6 +30,51 @@ from .progress import ProgressCallback, report, scaled
 log = logging.getLogger(__name__)
 
 SIDES = ("left", "right")
+COMBINE_MODES = ("joint", "tiles")
+
+
+@dataclass(frozen=True)
+class TileResult:
+    """Registration of one square tile of one side (``estimate_slip(tile_size_m=...)``).
+
+    Attributes
+    ----------
+    side : str
+        "left" or "right".
+    ix, iy : int
+        Tile indices: the tile covers ``[ix * size, (ix + 1) * size)`` in map x and
+        ``[iy * size, (iy + 1) * size)`` in map y (metres, the points' CRS).
+    bounds : tuple of 4 float
+        ``(xmin, ymin, xmax, ymax)`` of the tile, metres.
+    n_planes : int
+        Matched planes in the tile.
+    displacement : (3,) float64
+        Motion of the material at the tile's centroid of used points, metres (NaN when the
+        tile was not adjusted).
+    covariance : (3, 3) float64
+        Covariance of ``displacement``, m² (NaN when not adjusted).
+    status : str
+        "ok", or "skipped: <reason>".
+    """
+
+    side: str
+    ix: int
+    iy: int
+    bounds: Tuple[float, float, float, float]
+    n_planes: int
+    displacement: np.ndarray
+    covariance: np.ndarray
+    status: str
+
+    @property
+    def adjusted(self) -> bool:
+        return self.status == "ok"
+
+
+#: points enter the adjustment only from octree leaves with at least this share of points on
+#: their plane: leaves at edges and corners hold points of the adjoining surface, whose
+#: one-sided offsets would bias the plane (a 3-sigma band holds 99.7 % of Gaussian noise)
+CLEAN_LEAF_RATIO = 0.97
 
 
 @dataclass(frozen=True)
@@ -43,6 +90,10 @@ class SideResult:
     planes_before, planes_after : PlaneSet
         Planes of the side's points in each epoch (labels index the side's points).
     matches : PlaneMatches
+    combined_displacement, combined_covariance : (3,), (3, 3) float64 or None
+        With ``combine="tiles"``: the information-weighted mean of the tile displacements and
+        its covariance (metres, m²); None otherwise. :attr:`displacement` returns it when set,
+        else ``rigid.displacement``.
     """
 
     side: str
@@ -50,10 +101,26 @@ class SideResult:
     planes_before: PlaneSet
     planes_after: PlaneSet
     matches: PlaneMatches
+    combined_displacement: Optional[np.ndarray] = None
+    combined_covariance: Optional[np.ndarray] = None
+
+    @property
+    def displacement(self) -> np.ndarray:
+        """(3,) displacement of the side used for the slip, metres."""
+        if self.combined_displacement is not None:
+            return np.array(self.combined_displacement, dtype=np.float64)
+        return self.rigid.displacement
+
+    @property
+    def displacement_covariance(self) -> np.ndarray:
+        """(3, 3) covariance of :attr:`displacement`, m²."""
+        if self.combined_covariance is not None:
+            return np.array(self.combined_covariance, dtype=np.float64)
+        return self.rigid.displacement_covariance
 
     def to_dict(self) -> Dict[str, object]:
         r = self.rigid
-        d, s = r.displacement, np.sqrt(np.diag(r.displacement_covariance))
+        d, s = self.displacement, np.sqrt(np.diag(self.displacement_covariance))
         return {
             "dx": float(d[0]),
             "dy": float(d[1]),
@@ -84,6 +151,7 @@ class SlipResult:
     ``(sin strike, cos strike)``), ``fault_normal`` along the direction 90° clockwise from it
     (towards the right side); ``right_lateral_slip = -fault_parallel`` is positive for dextral
     motion. Sigmas are 1σ from the adjustments' a-posteriori covariances (sides independent).
+    ``tiles`` holds the per-tile registrations when ``tile_size_m`` was given (else empty).
     """
 
     left: SideResult
@@ -93,6 +161,7 @@ class SlipResult:
     strike_rad: float
     buffer_m: float
     parameters: Dict[str, object] = field(default_factory=dict)
+    tiles: Tuple[TileResult, ...] = ()
 
     @property
     def horizontal(self) -> float:
@@ -138,9 +207,29 @@ class SlipResult:
                 "buffer_m": float(self.buffer_m),
             },
             "parameters": dict(self.parameters),
+            **({"tiles": [_tile_dict(t) for t in self.tiles]} if self.tiles else {}),
             "note": "displacements in metres, rotations in radians; each side's displacement "
             "is the motion of the material at that side's centroid (first to second epoch)",
         }
+
+
+def _tile_dict(t: TileResult) -> Dict[str, object]:
+    adjusted = t.status == "ok"
+    sig = np.sqrt(np.diag(t.covariance)) if adjusted else np.full(3, np.nan)
+    return {
+        "side": t.side,
+        "ix": int(t.ix),
+        "iy": int(t.iy),
+        "bounds": [float(v) for v in t.bounds],
+        "n_planes": int(t.n_planes),
+        "dx": float(t.displacement[0]) if adjusted else None,
+        "dy": float(t.displacement[1]) if adjusted else None,
+        "dz": float(t.displacement[2]) if adjusted else None,
+        "sigma_dx": float(sig[0]) if adjusted else None,
+        "sigma_dy": float(sig[1]) if adjusted else None,
+        "sigma_dz": float(sig[2]) if adjusted else None,
+        "status": t.status,
+    }
 
 
 def _labels_for_matches(labels: np.ndarray, plane_ids: np.ndarray) -> np.ndarray:
@@ -188,7 +277,9 @@ def register_side(
         a = np.asarray(sig, dtype=np.float64)
         return a[mask] if a.ndim == 3 else a
 
-    kb, ka = lb >= 0, la >= 0
+    # Only points of clean planar leaves (see CLEAN_LEAF_RATIO).
+    kb = (lb >= 0) & (pb.planarity >= CLEAN_LEAF_RATIO)
+    ka = (la >= 0) & (pa.planarity >= CLEAN_LEAF_RATIO)
     rigid = adjust_rigid(
         before[kb],
         lb[kb],
@@ -201,6 +292,284 @@ def register_side(
     return SideResult(side=side, rigid=rigid, planes_before=pb, planes_after=pa, matches=m)
 
 
+def _per_point(sig, mask: np.ndarray):
+    """Subset per-point sigmas ((N, 3) or (N, 3, 3)) with ``mask``; scalars / (3,) pass."""
+    a = np.asarray(sig, dtype=np.float64)
+    if a.ndim == 3 or (a.ndim == 2 and a.shape[0] == mask.shape[0]):
+        return a[mask]
+    return a
+
+
+def _check_epochs(before: np.ndarray, after: np.ndarray) -> None:
+    for name, arr in (("before", before), ("after", after)):
+        a = np.asarray(arr)
+        if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
+            raise InputDataError(f"{name} must be a non-empty (N, 3) point array, got {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise InputDataError(f"{name} contains NaN or infinite coordinates; remove them")
+    lo = np.maximum(before[:, :2].min(axis=0), after[:, :2].min(axis=0))
+    hi = np.minimum(before[:, :2].max(axis=0), after[:, :2].max(axis=0))
+    if np.any(lo >= hi):
+        raise InputDataError("the two epochs do not overlap in plan; check their CRSs and extents")
+
+
+def _positive(name: str, value) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InvalidParameterError(
+            f"{name} must be a positive number (metres), got {value!r}"
+        ) from None
+    if not (math.isfinite(v) and v > 0):
+        raise InvalidParameterError(f"{name} must be a positive number (metres), got {value!r}")
+    return v
+
+
+def _adjust_labelled(before, lb, after, la, sigma_before, sigma_after) -> RigidResult:
+    """adjust_rigid on the points with label >= 0 (labels are match indices)."""
+    kb, ka = lb >= 0, la >= 0
+    return adjust_rigid(
+        before[kb],
+        lb[kb],
+        after[ka],
+        la[ka],
+        sigma_before=_per_point(sigma_before, kb),
+        sigma_after=_per_point(sigma_after, ka),
+    )
+
+
+def _compact(labels: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Renumber the labels in ``keep`` (sorted unique match ids) to 0..k-1, others -1."""
+    lut = np.full(int(labels.max(initial=-1)) + 2, -1, dtype=np.int64)
+    lut[keep] = np.arange(keep.size)
+    return lut[labels]
+
+
+def _merge_planesets(parts, n_points: int) -> PlaneSet:
+    """One PlaneSet for a side from per-tile PlaneSets ``[(point_index, PlaneSet), ...]``."""
+    labels = np.full(n_points, -1, dtype=np.int32)
+    planarity = np.full(n_points, np.nan, dtype=np.float32)
+    off = 0
+    arrays: Dict[str, List[np.ndarray]] = {
+        k: []
+        for k in (
+            "normals",
+            "offsets",
+            "centroids",
+            "n_points",
+            "rms",
+            "covariances",
+            "extent_min",
+            "extent_max",
+        )
+    }
+    params = None
+    n_leaves = n_planar = 0
+    for idx, ps in parts:
+        lab = ps.labels.astype(np.int64)
+        labels[idx] = np.where(lab >= 0, lab + off, -1)
+        planarity[idx] = ps.planarity
+        for k in arrays:
+            arrays[k].append(np.asarray(getattr(ps, k)))
+        params = params or ps.parameters
+        n_leaves += ps.n_leaves
+        n_planar += ps.n_planar_leaves
+        off += len(ps)
+    empty = {
+        "normals": (0, 3),
+        "offsets": (0,),
+        "centroids": (0, 3),
+        "n_points": (0,),
+        "rms": (0,),
+        "covariances": (0, 3, 3),
+        "extent_min": (0, 3),
+        "extent_max": (0, 3),
+    }
+    cat = {
+        k: (np.concatenate(v) if v else np.zeros(empty[k], dtype=np.float64))
+        for k, v in arrays.items()
+    }
+    if params is None:
+        raise InputDataError("no tile had enough points to extract planes")
+    return PlaneSet(
+        **cat,
+        labels=labels,
+        planarity=planarity,
+        parameters=params,
+        n_leaves=n_leaves,
+        n_planar_leaves=n_planar,
+    )
+
+
+def _register_side_tiled(
+    before: np.ndarray,
+    after: np.ndarray,
+    *,
+    side: str,
+    tile_size_m: float,
+    combine: str,
+    sigma_before,
+    sigma_after,
+    plane_options: Optional[dict],
+    match_options: Optional[dict],
+    progress: Optional[ProgressCallback],
+) -> Tuple[SideResult, Tuple[TileResult, ...]]:
+    """Tiled plane extraction and matching; joint or per-tile-combined adjustment."""
+    opts = dict(plane_options or {})
+    t = tile_size_m
+    kb = np.floor(before[:, :2] / t).astype(np.int64)
+    ka = np.floor(after[:, :2] / t).astype(np.int64)
+    keys = np.unique(np.concatenate([kb, ka]), axis=0)
+    lb = np.full(before.shape[0], -1, dtype=np.int64)  # global match index per point
+    la = np.full(after.shape[0], -1, dtype=np.int64)
+    parts_b, parts_a = [], []
+    mb_ids, ma_ids, m_ang, m_dist = [], [], [], []
+    off_b = off_a = 0
+    n_matched = 0
+    tile_info = []  # (ix, iy, first match id, n matches, status)
+    for n, (ix, iy) in enumerate(keys):
+        ib = np.flatnonzero((kb[:, 0] == ix) & (kb[:, 1] == iy))
+        ia = np.flatnonzero((ka[:, 0] == ix) & (ka[:, 1] == iy))
+        status = "ok"
+        k = 0
+        try:
+            if ib.size < 3 or ia.size < 3:
+                raise InputDataError(f"{ib.size} / {ia.size} points in the two epochs")
+            pb = segment_planes(before[ib], **opts)
+            pa = segment_planes(after[ia], **opts)
+        except InputDataError as exc:
+            status = f"skipped: no planes ({exc})"
+        else:
+            m = match_planes(pb, pa, **(match_options or {}))
+            k = len(m)
+            parts_b.append((ib, pb))
+            parts_a.append((ia, pa))
+            lbt = _labels_for_matches(pb.labels, m.before)
+            lat = _labels_for_matches(pa.labels, m.after)
+            lb[ib] = np.where(lbt >= 0, lbt + n_matched, -1)
+            la[ia] = np.where(lat >= 0, lat + n_matched, -1)
+            mb_ids.append(m.before + off_b)
+            ma_ids.append(m.after + off_a)
+            m_ang.append(m.angle_rad)
+            m_dist.append(m.distance_m)
+            off_b += len(pb)
+            off_a += len(pa)
+        tile_info.append((int(ix), int(iy), n_matched, k, status))
+        n_matched += k
+        report(progress, 0.7 * (n + 1) / len(keys), f"{side} side: tile {n + 1}/{len(keys)}")
+    pb_all = _merge_planesets(parts_b, before.shape[0])
+    pa_all = _merge_planesets(parts_a, after.shape[0])
+
+    def cat(v, dt):
+        return np.concatenate(v).astype(dt) if v else np.zeros(0, dtype=dt)
+
+    matches = PlaneMatches(
+        before=cat(mb_ids, np.int64),
+        after=cat(ma_ids, np.int64),
+        angle_rad=cat(m_ang, np.float64),
+        distance_m=cat(m_dist, np.float64),
+    )
+    log.info(
+        "%s side: %d tiles of %g m, %d / %d planes, %d matched",
+        side,
+        len(keys),
+        t,
+        len(pb_all),
+        len(pa_all),
+        len(matches),
+    )
+
+    # per-tile adjustments (reporting for "joint", the estimate for "tiles")
+    tiles: List[TileResult] = []
+    nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
+    n_skipped = 0
+    for ix, iy, first, k, status in tile_info:
+        d, c = nan3, nan33
+        if status == "ok":
+            if k < 3:
+                status = f"skipped: {k} matched planes (need 3)"
+            else:
+                sb = (lb >= first) & (lb < first + k)
+                sa = (la >= first) & (la < first + k)
+                try:
+                    r = adjust_rigid(
+                        before[sb],
+                        lb[sb] - first,
+                        after[sa],
+                        la[sa] - first,
+                        sigma_before=_per_point(sigma_before, sb),
+                        sigma_after=_per_point(sigma_after, sa),
+                    )
+                    d, c = r.displacement, r.displacement_covariance
+                    if not np.all(np.isfinite(c)) or np.linalg.matrix_rank(c) < 3:
+                        raise InputDataError("singular displacement covariance")
+                except InputDataError as exc:
+                    d, c = nan3, nan33
+                    status = f"skipped: {exc}"
+        if status != "ok":
+            n_skipped += 1
+        tiles.append(
+            TileResult(
+                side=side,
+                ix=ix,
+                iy=iy,
+                bounds=(ix * t, iy * t, (ix + 1) * t, (iy + 1) * t),
+                n_planes=int(k),
+                displacement=np.asarray(d, dtype=np.float64),
+                covariance=np.asarray(c, dtype=np.float64),
+                status=status,
+            )
+        )
+    if n_skipped:
+        log.info("%s side: %d of %d tiles not adjusted", side, n_skipped, len(tiles))
+    if len(matches) < 3:
+        raise InputDataError(
+            f"{side} side: only {len(matches)} matched planes over all tiles of {t:g} m "
+            "(need at least 3); use bigger tiles or relax the matching thresholds"
+        )
+    rigid = _adjust_labelled(before, lb, after, la, sigma_before, sigma_after)
+    comb_d = comb_c = None
+    if combine == "tiles":
+        ok = [x for x in tiles if x.status == "ok"]
+        if not ok:
+            raise InputDataError(
+                f"{side} side: no tile of {t:g} m has 3 matched planes and a regular "
+                'adjustment; use bigger tiles or combine="joint"'
+            )
+        info = np.zeros((3, 3))
+        vec = np.zeros(3)
+        for x in ok:
+            w = np.linalg.inv(x.covariance)
+            info += w
+            vec += w @ x.displacement
+        comb_c = np.linalg.inv(info)
+        comb_c = 0.5 * (comb_c + comb_c.T)
+        comb_d = comb_c @ vec
+        log.info("%s side: %d tiles combined", side, len(ok))
+    report(progress, 1.0, f"{side} side done")
+    res = SideResult(
+        side=side,
+        rigid=rigid,
+        planes_before=pb_all,
+        planes_after=pa_all,
+        matches=matches,
+        combined_displacement=comb_d,
+        combined_covariance=comb_c,
+    )
+    return res, tuple(tiles)
+
+
+def _side_points(before, after, trace, buffer_m):
+    """Geometry and side masks of both epochs (validated)."""
+    _check_epochs(before, after)
+    trace_in_data_check(trace, before[:, :2], buffer_m=buffer_m)
+    gb = fault_geometry(before[:, :2], trace)
+    ga = fault_geometry(after[:, :2], trace)
+    lb, rb = side_masks(gb, buffer_m=buffer_m)
+    la, ra = side_masks(ga, buffer_m=buffer_m)
+    return gb, ga, {"left": (lb, la), "right": (rb, ra)}
+
+
 def estimate_slip(
     before: np.ndarray,
     after: np.ndarray,
@@ -211,9 +580,11 @@ def estimate_slip(
     sigma_after=0.05,
     plane_options: Optional[dict] = None,
     match_options: Optional[dict] = None,
+    tile_size_m: Optional[float] = None,
+    combine: str = "joint",
     progress: Optional[ProgressCallback] = None,
 ) -> SlipResult:
-    """Relative displacement across ``trace`` between two epochs (joint adjustment per side).
+    """Relative displacement across ``trace`` between two epochs.
 
     Parameters
     ----------
@@ -225,46 +596,57 @@ def estimate_slip(
         Points closer than this to the trace are left out (default 10 m, as the study).
     sigma_before, sigma_after
         Point accuracy of each epoch: scalar (isotropic), (3,) per axis, or (N, 3, 3).
+    tile_size_m : float, optional
+        When given, each side's points are cut into square tiles of this size (metres; grid
+        aligned to multiples of ``tile_size_m`` in map x / y) and planes are extracted and
+        matched per tile and epoch: no plane spans two tiles (the study used 20-100 m).
+    combine : {"joint", "tiles"}
+        With tiles: "joint" (default, the study's main approach) adjusts all matched planes of
+        a side at once; "tiles" adjusts each tile with at least 3 matched planes and takes the
+        information-weighted mean ``(Σ Cᵢ⁻¹)⁻¹ Σ Cᵢ⁻¹ dᵢ`` of the tile displacements (with
+        covariance ``(Σ Cᵢ⁻¹)⁻¹``); tiles that are skipped are counted in the log. Per-tile
+        results are in :attr:`SlipResult.tiles` for both modes. Ignored without tiles.
 
     Returns
     -------
     SlipResult
-    """
-    for name, arr in (("before", before), ("after", after)):
-        a = np.asarray(arr)
-        if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] == 0:
-            raise InputDataError(f"{name} must be a non-empty (N, 3) point array, got {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise InputDataError(f"{name} contains NaN or infinite coordinates; remove them")
-    lo = np.maximum(before[:, :2].min(axis=0), after[:, :2].min(axis=0))
-    hi = np.minimum(before[:, :2].max(axis=0), after[:, :2].max(axis=0))
-    if np.any(lo >= hi):
-        raise InputDataError("the two epochs do not overlap in plan; check their CRSs and extents")
-    trace_in_data_check(trace, before[:, :2], buffer_m=buffer_m)
-    gb = fault_geometry(before[:, :2], trace)
-    ga = fault_geometry(after[:, :2], trace)
-    lb, rb = side_masks(gb, buffer_m=buffer_m)
-    la, ra = side_masks(ga, buffer_m=buffer_m)
 
-    def per_point(sig, mask):
-        a = np.asarray(sig, dtype=np.float64)
-        return a[mask] if a.ndim == 3 else a
+    Raises
+    ------
+    InputDataError
+        Bad or non-overlapping epochs, a trace outside the data, too few matched planes.
+    InvalidParameterError
+        ``tile_size_m <= 0`` or an unknown ``combine``.
+    """
+    if combine not in COMBINE_MODES:
+        raise InvalidParameterError(f"combine must be one of {COMBINE_MODES}, got {combine!r}")
+    if tile_size_m is not None:
+        tile_size_m = _positive("tile_size_m", tile_size_m)
+    _, _, masks = _side_points(before, after, trace, buffer_m)
 
     results = {}
-    for k, (side, mb, ma) in enumerate((("left", lb, la), ("right", rb, ra))):
-        results[side] = register_side(
-            before[mb],
-            after[ma],
+    tiles: List[TileResult] = []
+    for k, side in enumerate(SIDES):
+        mb, ma = masks[side]
+        sub = scaled(progress, 0.5 * k, 0.5 * (k + 1))
+        kw = dict(
             side=side,
-            sigma_before=per_point(sigma_before, mb),
-            sigma_after=per_point(sigma_after, ma),
+            sigma_before=_per_point(sigma_before, mb),
+            sigma_after=_per_point(sigma_after, ma),
             plane_options=plane_options,
             match_options=match_options,
-            progress=scaled(progress, 0.5 * k, 0.5 * (k + 1)),
+            progress=sub,
         )
+        if tile_size_m is None:
+            results[side] = register_side(before[mb], after[ma], **kw)
+        else:
+            results[side], tl = _register_side_tiled(
+                before[mb], after[ma], tile_size_m=tile_size_m, combine=combine, **kw
+            )
+            tiles.extend(tl)
     left, right = results["left"], results["right"]
-    rel = right.rigid.displacement - left.rigid.displacement
-    cov = right.rigid.displacement_covariance + left.rigid.displacement_covariance
+    rel = right.displacement - left.displacement
+    cov = right.displacement_covariance + left.displacement_covariance
     return SlipResult(
         left=left,
         right=right,
@@ -274,8 +656,376 @@ def estimate_slip(
         buffer_m=float(buffer_m),
         parameters={
             "buffer_m": float(buffer_m),
-            "combine": "joint",
+            "combine": combine if tile_size_m is not None else "joint",
+            **({"tile_size_m": tile_size_m} if tile_size_m is not None else {}),
             "plane_options": dict(plane_options or {}),
             "match_options": dict(match_options or {}),
         },
+        tiles=tuple(tiles),
+    )
+
+
+# --------------------------------------------------------------------------- strips
+
+
+@dataclass(frozen=True)
+class StripResult:
+    """Registration of one strip of one side along the trace (:func:`strip_profile`).
+
+    Attributes
+    ----------
+    side : str
+        "left" or "right".
+    along_start_m, along_end_m, along_centre_m : float
+        Chainage range of the strip along the trace from its first vertex, metres.
+    n_planes : int
+        Matched planes in the strip (planes were extracted from the strip's points only).
+    displacement : (3,) float64
+        Motion of the material at the strip's centroid, metres (NaN when skipped).
+    covariance : (3, 3) float64
+        Covariance of ``displacement``, m² (NaN when skipped).
+    fault_parallel : float
+        Component along the trace's mean strike of ``displacement`` minus the LEFT side's
+        global displacement (``slip.left.displacement``), metres; negative = dextral for
+        the right side. NaN when skipped.
+    sigma_fault_parallel : float
+        1σ of ``fault_parallel`` (strip and global left covariances added, i.e. treated as
+        independent), metres.
+    status : str
+        "ok" or "skipped: <reason>".
+    """
+
+    side: str
+    along_start_m: float
+    along_end_m: float
+    along_centre_m: float
+    n_planes: int
+    displacement: np.ndarray
+    covariance: np.ndarray
+    fault_parallel: float
+    sigma_fault_parallel: float
+    status: str
+
+
+def _strike_vector(slip: SlipResult) -> np.ndarray:
+    return np.array([math.sin(slip.strike_rad), math.cos(slip.strike_rad), 0.0])
+
+
+def strip_profile(
+    before: np.ndarray,
+    after: np.ndarray,
+    trace: FaultTrace,
+    slip: SlipResult,
+    *,
+    strip_width_m: float,
+    buffer_m: float = 10.0,
+    sigma_before=0.05,
+    sigma_after=0.05,
+    plane_options: Optional[dict] = None,
+    match_options: Optional[dict] = None,
+    progress: Optional[ProgressCallback] = None,
+) -> Tuple[StripResult, ...]:
+    """Slip profile along the trace from strips of each side (Kusari et al. 2019, Fig. 5).
+
+    Each side's points (outside ``buffer_m``) are cut into strips by their chainage along the
+    trace (``fault_geometry(...).along_strike_m``): strip ``k`` holds chainages in
+    ``[k w, (k + 1) w)``. Per strip and side, planes are extracted and matched from the
+    strip's points only and the rigid motion is adjusted (as :func:`register_side`); strips
+    with fewer than 3 matched planes or a singular system are kept with a "skipped" status.
+
+    Parameters
+    ----------
+    before, after : (N1, 3), (N2, 3) float64
+        The two epochs, metres (same CRS as ``trace``).
+    trace : FaultTrace
+    slip : SlipResult
+        The global result; its left side's displacement and covariance are subtracted.
+    strip_width_m : float
+        Strip width along the trace, metres (> 0; the study used 50 and 100 m).
+    buffer_m, sigma_before, sigma_after, plane_options, match_options
+        As :func:`estimate_slip`.
+    progress : callable, optional
+
+    Returns
+    -------
+    tuple of StripResult
+        Ordered by side (left, right), then chainage.
+    """
+    w = _positive("strip_width_m", strip_width_m)
+    gb, ga, masks = _side_points(before, after, trace, buffer_m)
+    ref_d, ref_c = slip.left.displacement, slip.left.displacement_covariance
+    j = _strike_vector(slip)
+    jobs = []
+    for side in SIDES:
+        mb, ma = masks[side]
+        sb = np.floor(gb.along_strike_m[mb] / w).astype(np.int64)
+        sa = np.floor(ga.along_strike_m[ma] / w).astype(np.int64)
+        for k in np.unique(np.concatenate([sb, sa])):
+            jobs.append((side, int(k), np.flatnonzero(mb)[sb == k], np.flatnonzero(ma)[sa == k]))
+    out: List[StripResult] = []
+    nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
+    for n, (side, k, ib, ia) in enumerate(jobs):
+        d, c, npl, status = nan3, nan33, 0, "ok"
+        try:
+            if ib.size < 3 or ia.size < 3:
+                raise InputDataError(f"{ib.size} / {ia.size} points in the two epochs")
+            r = register_side(
+                before[ib],
+                after[ia],
+                side=side,
+                sigma_before=_per_point(sigma_before, _mask(ib, before.shape[0])),
+                sigma_after=_per_point(sigma_after, _mask(ia, after.shape[0])),
+                plane_options=plane_options,
+                match_options=match_options,
+            )
+            npl = len(r.matches)
+            d, c = r.rigid.displacement, r.rigid.displacement_covariance
+            if not np.all(np.isfinite(c)):
+                raise InputDataError("non-finite covariance")
+        except InputDataError as exc:
+            d, c, status = nan3, nan33, f"skipped: {exc}"
+        if status == "ok":
+            fp = float(j @ (d - ref_d))
+            sfp = float(math.sqrt(max(j @ (c + ref_c) @ j, 0.0)))
+        else:
+            fp = sfp = float("nan")
+        out.append(
+            StripResult(
+                side=side,
+                along_start_m=k * w,
+                along_end_m=(k + 1) * w,
+                along_centre_m=(k + 0.5) * w,
+                n_planes=int(npl),
+                displacement=np.asarray(d, dtype=np.float64),
+                covariance=np.asarray(c, dtype=np.float64),
+                fault_parallel=fp,
+                sigma_fault_parallel=sfp,
+                status=status,
+            )
+        )
+        report(progress, (n + 1) / len(jobs), f"strip {n + 1}/{len(jobs)}")
+    skipped = sum(s.status != "ok" for s in out)
+    log.info("strip profile: %d strips of %g m, %d skipped", len(out), w, skipped)
+    return tuple(out)
+
+
+def _mask(idx: np.ndarray, n: int) -> np.ndarray:
+    m = np.zeros(n, dtype=bool)
+    m[idx] = True
+    return m
+
+
+# --------------------------------------------------------------------------- moving windows
+
+
+@dataclass(frozen=True)
+class WindowField:
+    """Local displacement maps from moving windows (:func:`window_field`, Fig. 11).
+
+    Grids are (ny, nx). Row ``r``, column ``c`` is the window centred at
+    ``(x0 + c * step_m, y0 - r * step_m)``: row 0 is the NORTHERNMOST row (rows run north to
+    south, columns west to east), as a north-up raster; a GeoTIFF's top-left corner is
+    ``(x0 - step_m / 2, y0 + step_m / 2)`` with pixel size ``step_m`` (pixels centred on the
+    window centres; the windows themselves are ``window_size_m`` wide and overlap).
+
+    Attributes
+    ----------
+    x0, y0 : float
+        Centre of the first (north-west) window, metres.
+    step_m : float
+        Window step = grid spacing, metres.
+    window_size_m : float
+        Window side, metres.
+    dx, dy, dz : (ny, nx) float64
+        Displacement of the window's side at the window's centroid minus the left side's global
+        displacement, metres; NaN where the window has fewer than ``min_planes`` matched
+        planes, lies on the trace, or its adjustment is singular.
+    sigma_dx, sigma_dy : (ny, nx) float64
+        1σ of ``dx``, ``dy`` (window and global-left covariances added), metres.
+    n_planes : (ny, nx) int64
+        Matched planes whose before-epoch centroid lies in the window (of the centre's side).
+    side : (ny, nx) int8
+        Side of the window centre: -1 left, +1 right, 0 on the trace.
+    """
+
+    x0: float
+    y0: float
+    step_m: float
+    window_size_m: float
+    dx: np.ndarray
+    dy: np.ndarray
+    dz: np.ndarray
+    sigma_dx: np.ndarray
+    sigma_dy: np.ndarray
+    n_planes: np.ndarray
+    side: np.ndarray
+
+    @property
+    def shape(self) -> Tuple[int, int]:
+        return tuple(self.dx.shape)
+
+    def centres(self) -> Tuple[np.ndarray, np.ndarray]:
+        """(ny, nx) x and y of the window centres, metres."""
+        ny, nx = self.dx.shape
+        xs = self.x0 + self.step_m * np.arange(nx)
+        ys = self.y0 - self.step_m * np.arange(ny)
+        return np.meshgrid(xs, ys)
+
+
+def window_field(
+    before: np.ndarray,
+    after: np.ndarray,
+    trace: FaultTrace,
+    slip: SlipResult,
+    *,
+    window_size_m: float,
+    window_step_m: float,
+    buffer_m: float = 10.0,
+    sigma_before=0.05,
+    sigma_after=0.05,
+    plane_options: Optional[dict] = None,
+    match_options: Optional[dict] = None,
+    min_planes: int = 3,
+    progress: Optional[ProgressCallback] = None,
+) -> WindowField:
+    """Moving-window displacement maps relative to the left side's global motion.
+
+    Planes are extracted ONCE per epoch and side (on the whole side outside ``buffer_m``) and
+    matched once; each window then uses the matched planes of the side of its centre whose
+    before-epoch centroid lies in the window (half-open ``[c - s/2, c + s/2)`` in x and y), and
+    adjusts the rigid motion on those planes' points. A window thus holds points of ONE side
+    only (the buffer is excluded), but a plane near the window edge keeps all its points.
+    The grid covers the bounding box of both sides' points: the first window's south-west
+    corner is at the box's (xmin, ymax - s) and windows are added every ``window_step_m`` until
+    the box is covered.
+
+    Parameters
+    ----------
+    before, after : (N1, 3), (N2, 3) float64
+        The two epochs, metres.
+    trace : FaultTrace
+    slip : SlipResult
+        The global result: ``slip.left.displacement`` (and its covariance) is subtracted.
+    window_size_m, window_step_m : float
+        Window side and step, metres (> 0; the study used 400 m stepped by 20 m).
+    buffer_m, sigma_before, sigma_after, plane_options, match_options
+        As :func:`estimate_slip`.
+    min_planes : int
+        Fewest matched planes for a window to be adjusted (>= 3).
+    progress : callable, optional
+
+    Returns
+    -------
+    WindowField
+    """
+    size = _positive("window_size_m", window_size_m)
+    step = _positive("window_step_m", window_step_m)
+    if int(min_planes) != min_planes or min_planes < 3:
+        raise InvalidParameterError(f"min_planes must be an integer >= 3, got {min_planes!r}")
+    min_planes = int(min_planes)
+    _, _, masks = _side_points(before, after, trace, buffer_m)
+    opts = dict(plane_options or {})
+
+    # planes once per side and epoch
+    sides = {}
+    for k, side in enumerate(SIDES):
+        mb, ma = masks[side]
+        sub = scaled(progress, 0.3 * k, 0.3 * (k + 1))
+        bp, ap = before[mb], after[ma]
+        try:
+            pb = segment_planes(bp, progress=scaled(sub, 0.0, 0.5), **opts)
+            pa = segment_planes(ap, progress=scaled(sub, 0.5, 1.0), **opts)
+        except InputDataError as exc:
+            log.info("%s side: no planes (%s)", side, exc)
+            continue
+        m = match_planes(pb, pa, **(match_options or {}))
+        lb = _labels_for_matches(pb.labels, m.before)
+        la = _labels_for_matches(pa.labels, m.after)
+        kb, ka = lb >= 0, la >= 0
+        sides[side] = dict(
+            xy=pb.centroids[m.before, :2],
+            before=bp[kb],
+            lb=lb[kb],
+            after=ap[ka],
+            la=la[ka],
+            sb=_per_point(_per_point(sigma_before, mb), kb),
+            sa=_per_point(_per_point(sigma_after, ma), ka),
+        )
+        log.info("%s side: %d matched planes for the windows", side, len(m))
+
+    pts = np.concatenate([before[masks[s][0], :2] for s in SIDES])
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    nx = max(1, int(math.ceil((hi[0] - lo[0] - size) / step - 1e-9)) + 1)
+    ny = max(1, int(math.ceil((hi[1] - lo[1] - size) / step - 1e-9)) + 1)
+    x0, y0 = lo[0] + size / 2, hi[1] - size / 2
+    xs = x0 + step * np.arange(nx)
+    ys = y0 - step * np.arange(ny)
+    cx, cy = np.meshgrid(xs, ys)
+    cside = fault_geometry(np.column_stack([cx.ravel(), cy.ravel()]), trace).side.reshape(ny, nx)
+
+    shape = (ny, nx)
+    out = {k: np.full(shape, np.nan) for k in ("dx", "dy", "dz", "sigma_dx", "sigma_dy")}
+    nplanes = np.zeros(shape, dtype=np.int64)
+    ref_d, ref_c = slip.left.displacement, slip.left.displacement_covariance
+    half = size / 2
+    n_done = 0
+    for r in range(ny):
+        for c in range(nx):
+            n_done += 1
+            report(progress, 0.6 + 0.4 * n_done / (nx * ny), f"window {n_done}/{nx * ny}")
+            s = int(cside[r, c])
+            if s == 0 or SIDES[(s + 1) // 2] not in sides:
+                continue
+            d = sides[SIDES[(s + 1) // 2]]
+            xy = d["xy"]
+            inside = (
+                (xy[:, 0] >= cx[r, c] - half)
+                & (xy[:, 0] < cx[r, c] + half)
+                & (xy[:, 1] >= cy[r, c] - half)
+                & (xy[:, 1] < cy[r, c] + half)
+            )
+            ids = np.flatnonzero(inside)
+            nplanes[r, c] = ids.size
+            if ids.size < min_planes:
+                continue
+            kb = np.isin(d["lb"], ids)
+            ka = np.isin(d["la"], ids)
+            lut = np.full(xy.shape[0], -1, dtype=np.int64)
+            lut[ids] = np.arange(ids.size)
+            try:
+                res = adjust_rigid(
+                    d["before"][kb],
+                    lut[d["lb"][kb]],
+                    d["after"][ka],
+                    lut[d["la"][ka]],
+                    sigma_before=_per_point(d["sb"], kb),
+                    sigma_after=_per_point(d["sa"], ka),
+                    min_planes=min_planes,
+                )
+            except InputDataError as exc:
+                log.debug("window (%d, %d) not adjusted: %s", r, c, exc)
+                continue
+            disp = res.displacement - ref_d
+            cov = res.displacement_covariance + ref_c
+            if not np.all(np.isfinite(cov)):
+                continue
+            out["dx"][r, c], out["dy"][r, c], out["dz"][r, c] = disp
+            out["sigma_dx"][r, c] = math.sqrt(max(cov[0, 0], 0.0))
+            out["sigma_dy"][r, c] = math.sqrt(max(cov[1, 1], 0.0))
+    log.info(
+        "window field: %d x %d windows of %g m stepped %g m, %d adjusted",
+        ny,
+        nx,
+        size,
+        step,
+        int(np.count_nonzero(np.isfinite(out["dx"]))),
+    )
+    return WindowField(
+        x0=float(x0),
+        y0=float(y0),
+        step_m=step,
+        window_size_m=size,
+        n_planes=nplanes,
+        side=cside.astype(np.int8),
+        **out,
     )

@@ -1244,7 +1244,7 @@ class FaultPair:
     left_offset_m, right_offset_m : (3,) float64
         Displacement of the material left and right of the digitised trace (metres).
     side_before, side_after : (N,) int8
-        -1 left, +1 right of each point (buildings move whole, by the side of their centre).
+        -1 left, +1 right of each point; every point moves with its side.
     moved_buildings : tuple of int
         Buildings given an extra ``blunder_offset_m`` (renovated / rebuilt: not the signal).
     """
@@ -1328,18 +1328,15 @@ def make_fault_pair(
     left = np.asarray(left_offset_m, dtype=np.float64)
     if reverse_trace:  # the same ground motion, seen with the sides swapped
         right, left = left, right
-    bcentre = np.array([blg.center_xy_m for blg in before.buildings]).reshape(-1, 2) + origin[:2]
-    bside = _side_of_line(bcentre, a, b) if bcentre.size else np.empty(0, np.int8)
     n_blunder = 0
     if blunder_fraction > 0 and len(before.buildings):
         n_blunder = max(1, int(round(blunder_fraction * len(before.buildings))))
     moved = tuple(int(k) for k in _rng(seed, 9_999).permutation(len(before.buildings))[:n_blunder])
 
     def sides(scene: Scene) -> np.ndarray:
-        s = _side_of_line(scene.points[:, :2], a, b)
-        inb = scene.building_ids >= 0
-        s[inb] = bside[scene.building_ids[inb]]
-        return s
+        # every point moves with its own side: a building across the trace is torn, as the
+        # ground is (the slip workflow leaves out a buffer around the trace)
+        return _side_of_line(scene.points[:, :2], a, b)
 
     side_b, side_a = sides(before), sides(after)
     pts = after.points.copy()

@@ -118,3 +118,21 @@ def test_no_overlap_and_nan_are_refused(mls_pair):
     bad[3, 1] = np.nan
     with pytest.raises(InputDataError, match="NaN"):
         estimate_slip(mls_pair.before.points, bad, tr)
+
+
+def test_uncertainty_is_honest_over_seeds():
+    """A few seeds of the calibration study in benchmarks/accuracy_slip.py (docs/accuracy.md
+    holds the 50-seed figures): error/sigma has unit spread and sigma0^2 is 1 when the assumed
+    sigma is the true white noise."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "accuracy_slip.py"
+    spec = importlib.util.spec_from_file_location("accuracy_slip", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = mod.run(8, "mls", 0.02, first_seed=1000, n_buildings=5)
+    assert out["seeds"] >= 6
+    assert 0.5 <= out["std_error_over_sigma_all"] <= 1.6, out
+    assert abs(out["mean_variance_factor"] - 1.0) < 0.1, out
+    assert out["max_abs_error_parallel_mm"] < 1.0, out
