@@ -749,7 +749,40 @@ def _sigma_option(args):
     return float(args.sigma)
 
 
-def _displacement_outputs(result, trace, crs, out_dir: Path) -> List[str]:
+def _finite(v):
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def _window_rasters(windows, crs, out_dir: Path) -> List[str]:
+    """windows_dx.tif and windows_dy.tif (north-up, one pixel per window centre)."""
+    from .core.errors import DependencyError
+    from .core.io.raster import write_geotiff
+
+    half = 0.5 * windows.step_m
+    files = []
+    for name, band, sig in (
+        ("dx", windows.dx, windows.sigma_dx),
+        ("dy", windows.dy, windows.sigma_dy),
+    ):
+        try:
+            write_geotiff(
+                out_dir / f"windows_{name}.tif",
+                np.stack([band, sig]).astype(np.float64),
+                origin_xy=(windows.x0 - half, windows.y0 + half),
+                pixel_size_m=windows.step_m,
+                crs_wkt=crs.to_wkt() if crs is not None else None,
+                band_names=[f"{name}_m (relative to the left side)", f"sigma_{name}_m"],
+                metadata={"SLIPMAP_WINDOW_SIZE_M": f"{windows.window_size_m:g}"},
+            )
+            files.append(f"windows_{name}.tif")
+        except DependencyError as exc:
+            log.warning("no window GeoTIFF written: %s", exc)
+            break
+    return files
+
+
+def _displacement_outputs(result, trace, crs, out_dir: Path, *, strips=None) -> List[str]:
     """Matched-plane GeoPackage, residual and normal plots, HTML page; returns file names."""
     from .core.errors import DependencyError
 
@@ -774,6 +807,55 @@ def _displacement_outputs(result, trace, crs, out_dir: Path) -> List[str]:
                         "normal_z": pb.normals[m.before, 2],
                         "angle_deg": np.degrees(m.angle_rad),
                         "distance_m": m.distance_m,
+                    },
+                )
+            )
+        if result.tiles:
+            tiles = result.tiles
+            layers.append(
+                VectorLayer(
+                    name="tiles",
+                    geometry_type="Polygon",
+                    geometries=[
+                        np.array(
+                            [
+                                [t.bounds[0], t.bounds[1]],
+                                [t.bounds[2], t.bounds[1]],
+                                [t.bounds[2], t.bounds[3]],
+                                [t.bounds[0], t.bounds[3]],
+                            ]
+                        )
+                        for t in tiles
+                    ],
+                    fields={
+                        "side": np.array([t.side for t in tiles], dtype=object),
+                        "n_planes": np.array([t.n_planes for t in tiles], dtype=np.int64),
+                        "dx": np.array([t.displacement[0] for t in tiles]),
+                        "dy": np.array([t.displacement[1] for t in tiles]),
+                        "dz": np.array([t.displacement[2] for t in tiles]),
+                        "sigma_dx": np.array([np.sqrt(t.covariance[0, 0]) for t in tiles]),
+                        "sigma_dy": np.array([np.sqrt(t.covariance[1, 1]) for t in tiles]),
+                        "sigma_dz": np.array([np.sqrt(t.covariance[2, 2]) for t in tiles]),
+                        "status": np.array([t.status for t in tiles], dtype=object),
+                    },
+                )
+            )
+        if strips:
+            from .core.fault import point_at_chainage
+
+            layers.append(
+                VectorLayer(
+                    name="strips",
+                    geometry_type="Point",
+                    geometries=[point_at_chainage(trace, st.along_centre_m) for st in strips],
+                    fields={
+                        "side": np.array([st.side for st in strips], dtype=object),
+                        "along_start_m": np.array([st.along_start_m for st in strips]),
+                        "along_end_m": np.array([st.along_end_m for st in strips]),
+                        "fault_parallel": np.array([st.fault_parallel for st in strips]),
+                        "sigma_fp": np.array([st.sigma_fault_parallel for st in strips]),
+                        "n_planes": np.array([st.n_planes for st in strips], dtype=np.int64),
+                        "status": np.array([st.status for st in strips], dtype=object),
                     },
                 )
             )
@@ -806,13 +888,25 @@ def _displacement_outputs(result, trace, crs, out_dir: Path) -> List[str]:
             title="Matched plane normals",
         )
         files += ["residuals.png", "normals.png"]
+        if strips:
+            from .core.report import plot_strip_profile
+
+            plot_strip_profile(
+                out_dir / "strips.png",
+                [st.along_centre_m for st in strips],
+                [st.fault_parallel for st in strips],
+                [st.sigma_fault_parallel for st in strips],
+                [st.side for st in strips],
+            )
+            files.append("strips.png")
         summary = result.to_dict()
         tables = {"relative (right - left), m": summary["relative"]}
         for side in ("left", "right"):
             tables[f"{side} side"] = {
                 k: v for k, v in summary[side].items() if not isinstance(v, (list, dict))
             }
-        write_html_report(out_dir / "report.html", "SlipMap displacement", tables, files[-2:])
+        images = [f for f in files if f.endswith(".png")]
+        write_html_report(out_dir / "report.html", "SlipMap displacement", tables, images)
         files.append("report.html")
     except DependencyError as exc:
         log.warning("no figures written: %s", exc)
@@ -831,6 +925,10 @@ def _run_displacement(args: argparse.Namespace) -> int:
     trace = read_fault_trace(args.fault, target_crs=first.crs)
     t0 = time.perf_counter()
     plane_opts = {k: v for k, v in _plane_options(args).items() if v is not None}
+    match_opts = {
+        "angle_threshold_deg": args.match_angle,
+        "distance_threshold_m": args.match_distance,
+    }
     with _ProgressBar("displacement", enabled=not args.quiet) as bar:
         result = estimate_slip(
             before,
@@ -840,12 +938,37 @@ def _run_displacement(args: argparse.Namespace) -> int:
             sigma_before=_sigma_option(args),
             sigma_after=_sigma_option(args),
             plane_options=plane_opts,
-            match_options={
-                "angle_threshold_deg": args.match_angle,
-                "distance_threshold_m": args.match_distance,
-            },
+            match_options=match_opts,
+            tile_size_m=args.tile_size,
+            combine=args.combine,
             progress=bar,
         )
+        common = dict(
+            buffer_m=args.buffer,
+            sigma_before=_sigma_option(args),
+            sigma_after=_sigma_option(args),
+            plane_options=plane_opts,
+            match_options=match_opts,
+        )
+        strips = windows = None
+        if args.strip_width:
+            from .core.displacement import strip_profile
+
+            strips = strip_profile(
+                before, after, trace, result, strip_width_m=args.strip_width, **common
+            )
+        if args.window_size:
+            from .core.displacement import window_field
+
+            windows = window_field(
+                before,
+                after,
+                trace,
+                result,
+                window_size_m=args.window_size,
+                window_step_m=args.window_step or args.window_size / 4,
+                **common,
+            )
     runtime = time.perf_counter() - t0
     payload = result.to_dict()
     payload["parameters"].update(
@@ -860,8 +983,23 @@ def _run_displacement(args: argparse.Namespace) -> int:
     payload["runtime_s"] = round(runtime, 3)
     payload["slipmap_version"] = __version__
     ensure_output_dir(out)
+    if strips is not None:
+        payload["strips"] = [
+            {
+                "side": st.side,
+                "along_start_m": st.along_start_m,
+                "along_end_m": st.along_end_m,
+                "n_planes": int(st.n_planes),
+                "fault_parallel": _finite(st.fault_parallel),
+                "sigma_fault_parallel": _finite(st.sigma_fault_parallel),
+                "status": st.status,
+            }
+            for st in strips
+        ]
     _write_json(out / "displacement.json", payload)
-    files = _displacement_outputs(result, trace, first.crs, out)
+    files = _displacement_outputs(result, trace, first.crs, out, strips=strips)
+    if windows is not None:
+        files += _window_rasters(windows, first.crs, out)
     rel = payload["relative"]
     log.info(
         "relative displacement (right - left): fault-parallel %.4f ± %.4f m, fault-normal "
@@ -890,6 +1028,38 @@ def _displacement_arguments(p: argparse.ArgumentParser) -> None:
         default=10.0,
         metavar="M",
         help="points closer than this to the trace are left out (default 10 m)",
+    )
+    g = p.add_argument_group("tiles, strips and windows")
+    g.add_argument(
+        "--tile-size",
+        type=_positive(float, "--tile-size"),
+        metavar="M",
+        help="extract planes in square tiles of this size (the study: 20-100 m)",
+    )
+    g.add_argument(
+        "--combine",
+        choices=("joint", "tiles"),
+        default="joint",
+        help="joint: one adjustment per side (default); tiles: covariance-weighted "
+        "mean of per-tile adjustments",
+    )
+    g.add_argument(
+        "--strip-width",
+        type=_positive(float, "--strip-width"),
+        metavar="M",
+        help="profile of fault-parallel displacement in strips along the trace",
+    )
+    g.add_argument(
+        "--window-size",
+        type=_positive(float, "--window-size"),
+        metavar="M",
+        help="moving windows of this size: windows_dx.tif, windows_dy.tif",
+    )
+    g.add_argument(
+        "--window-step",
+        type=_positive(float, "--window-step"),
+        metavar="M",
+        help="step of the moving windows (default a quarter of the size)",
     )
     g = p.add_argument_group("point accuracy")
     g.add_argument(

@@ -75,7 +75,7 @@ _PAIRS_PER_BLOCK = 1 << 21
 _TWO_PI = 2.0 * math.pi
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FaultTrace:
     """A fault trace: one or more polylines in map coordinates (metres).
 
@@ -165,7 +165,7 @@ def fault_trace(parts: Iterable[np.ndarray] | np.ndarray) -> FaultTrace:
     return FaultTrace(tuple(out))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FaultGeometry:
     """Per-point geometry relative to a fault trace (see the module docstring).
 
@@ -307,23 +307,11 @@ def _nearest_kdtree(p: np.ndarray, seg: _Segments, st: _SampleTree) -> np.ndarra
     Any segment at the minimum distance ``d*`` has a sample within ``h/2`` of its nearest
     point, so all such segments have a sample within ``d_best + h/2`` of the point, where
     ``d_best >= d*`` is the best exact distance among the candidates. When the k-th nearest
-    sample is farther than that, the candidates are complete; otherwise k grows (points far
-    from the trace need more samples), and the last few points query the whole ball.
+    sample is farther than that, the candidates are complete; otherwise (mostly points far
+    from the trace) all samples in that ball are taken as candidates.
     """
     best, radius, complete = _kdtree_pass(p, seg, st, st.k)
     incomplete = np.flatnonzero(~complete)
-    for k in ():  # (tried 256, 2048: slower than the ball query below)
-        if len(incomplete) == 0:
-            break
-        k = min(k, st.tree.n)
-        block = max(1, _PAIRS_PER_BLOCK // k)
-        still = []
-        for i in range(0, len(incomplete), block):
-            sub = incomplete[i : i + block]
-            b, r, c = _kdtree_pass(p[sub], seg, st, k)
-            best[sub], radius[sub] = b, r
-            still.append(sub[~c])
-        incomplete = np.concatenate(still)
     if len(incomplete):
         balls = st.tree.query_ball_point(p[incomplete], radius[incomplete])
         lens = np.fromiter((len(b) for b in balls), dtype=np.int64, count=len(balls))
@@ -630,3 +618,19 @@ def trace_in_data_check(
             f"buffer) on its {which} side; check the trace or its CRS"
         )
     return geom
+
+
+def point_at_chainage(trace: FaultTrace, along_m: float) -> np.ndarray:
+    """Map position (2,) at chainage ``along_m`` (metres from the first vertex, parts in
+    order, gaps between parts not counted; clamped to the trace's ends)."""
+    done = 0.0
+    last = trace.parts[-1][-1]
+    for part in trace.parts:
+        seg = np.diff(part, axis=0)
+        lengths = np.hypot(seg[:, 0], seg[:, 1])
+        for k, length in enumerate(lengths):
+            if along_m <= done + length and length > 0:
+                f = max(0.0, (along_m - done) / length)
+                return part[k] + f * seg[k]
+            done += length
+    return np.array(last, dtype=np.float64)

@@ -137,3 +137,29 @@ def test_default_demo_recovers_the_slip(tmp_path, capsys):
     js = json.loads((out / "displacement.json").read_text())
     assert abs(js["relative"]["right_lateral_slip"] - 0.0181) < 0.001
     assert "recovered right-lateral slip" in capsys.readouterr().err
+
+
+def test_tiles_strips_and_windows_outputs(files, tmp_path):
+    from osgeo import gdal
+
+    from slipmap.core.io.vector import read_gpkg_layer
+
+    _, (before, after), fault = files
+    out = tmp_path / "tsw"
+    argv = ["-q", "displacement", str(before), str(after), "--fault", str(fault), "--out", str(out)]
+    argv += ["--sigma", "0.02", "--tile-size", "50", "--strip-width", "50"]
+    argv += ["--window-size", "40", "--window-step", "20"]
+    assert main(argv) == 0
+    js = json.loads((out / "displacement.json").read_text())
+    assert abs(js["relative"]["right_lateral_slip"] - 0.0181) < 0.001
+    right = [s for s in js["strips"] if s["side"] == "right" and s["status"] == "ok"]
+    assert right and all(abs(s["fault_parallel"] + 0.0181) < 0.002 for s in right)
+    geoms, fields = read_gpkg_layer(out / "displacement.gpkg", "tiles")
+    assert len(geoms) >= 4 and {"dx", "sigma_dx", "side", "n_planes"} <= set(fields)
+    assert len(read_gpkg_layer(out / "displacement.gpkg", "strips")[0]) == len(js["strips"])
+    ds = gdal.Open(str(out / "windows_dy.tif"))
+    assert ds.GetGeoTransform()[1] == 20.0 and ds.GetGeoTransform()[5] == -20.0
+    assert "UTM zone 10N" in ds.GetProjection()
+    dy = ds.GetRasterBand(1).ReadAsArray()
+    assert np.nanmin(dy) == pytest.approx(-0.0181, abs=0.002)
+    assert (out / "strips.png").is_file()
