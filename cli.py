@@ -887,7 +887,16 @@ def _displacement_outputs(result, trace, crs, out_dir: Path, *, strips=None) -> 
             },
             title="Matched plane normals",
         )
-        files += ["residuals.png", "normals.png"]
+        from .core.report import plot_plane_residual_polar
+
+        plot_plane_residual_polar(
+            out_dir / "plane_residuals.png",
+            {
+                s.side: (s.planes_before.normals[s.matches.before], s.plane_mean_residual_m)
+                for s in (result.left, result.right)
+            },
+        )
+        files += ["residuals.png", "normals.png", "plane_residuals.png"]
         if strips:
             from .core.report import plot_strip_profile
 
@@ -983,6 +992,16 @@ def _run_displacement(args: argparse.Namespace) -> int:
     payload["runtime_s"] = round(runtime, 3)
     payload["slipmap_version"] = __version__
     ensure_output_dir(out)
+    if args.reference_slip is not None:
+        payload["reference"] = result.reference_comparison(args.reference_slip)
+        ref = payload["reference"]
+        log.info(
+            "against the reference slip %.4f m: ΔD %+.4f m, scale %.3f, relative scale %.3f",
+            ref["reference_slip"],
+            ref["delta_displacement"],
+            ref["scale"],
+            ref["relative_scale"],
+        )
     if strips is not None:
         payload["strips"] = [
             {
@@ -1060,6 +1079,13 @@ def _displacement_arguments(p: argparse.ArgumentParser) -> None:
         type=_positive(float, "--window-step"),
         metavar="M",
         help="step of the moving windows (default a quarter of the size)",
+    )
+    g.add_argument(
+        "--reference-slip",
+        type=float,
+        metavar="M",
+        help="independent right-lateral slip (e.g. an alinement array), metres: "
+        "adds the study's Table X figures (scale, relative scale) to the summary",
     )
     g = p.add_argument_group("point accuracy")
     g.add_argument(

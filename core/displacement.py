@@ -103,6 +103,7 @@ class SideResult:
     matches: PlaneMatches
     combined_displacement: Optional[np.ndarray] = None
     combined_covariance: Optional[np.ndarray] = None
+    plane_mean_residual_m: Optional[np.ndarray] = None
 
     @property
     def displacement(self) -> np.ndarray:
@@ -197,6 +198,33 @@ class SlipResult:
             "right_lateral_slip": -par,
         }
 
+    def reference_comparison(self, reference_slip_m: float) -> Dict[str, float]:
+        """The study's Table X figures against an independent slip (e.g. an alinement array).
+
+        ``reference_slip_m`` is right-lateral slip (positive dextral), metres. Returns
+        ``delta_displacement`` ΔD = right_lateral_slip − reference, the relative displacement's
+        ``sigma_x, sigma_y, sigma_z``, ``scale`` = (|ΔD|/√2) / √(σx² + σy² + σz²),
+        ``variance_left``/``variance_right`` (σ0² of each side) and ``relative_scale`` =
+        (|ΔD|/2) / (σ0² √(σx² + σy² + σz²)) with σ0² the mean of the two sides' — as in Table
+        X, where a reasonable accuracy estimate gives a scale near 0.68.
+        """
+        comp = self.components()
+        delta = comp["right_lateral_slip"] - float(reference_slip_m)
+        norm = math.sqrt(comp["sigma_dx"] ** 2 + comp["sigma_dy"] ** 2 + comp["sigma_dz"] ** 2)
+        vl, vr = self.left.rigid.variance_factor, self.right.rigid.variance_factor
+        s0 = 0.5 * (vl + vr)
+        return {
+            "reference_slip": float(reference_slip_m),
+            "delta_displacement": delta,
+            "sigma_x": comp["sigma_dx"],
+            "sigma_y": comp["sigma_dy"],
+            "sigma_z": comp["sigma_dz"],
+            "scale": abs(delta) / math.sqrt(2.0) / norm if norm > 0 else float("inf"),
+            "variance_left": float(vl),
+            "variance_right": float(vr),
+            "relative_scale": abs(delta) / 2.0 / (s0 * norm) if norm > 0 else float("inf"),
+        }
+
     def to_dict(self) -> Dict[str, object]:
         return {
             "left": self.left.to_dict(),
@@ -273,23 +301,18 @@ def register_side(
     lb = _labels_for_matches(pb.labels, m.before)
     la = _labels_for_matches(pa.labels, m.after)
 
-    def pick(sig, mask):
-        a = np.asarray(sig, dtype=np.float64)
-        return a[mask] if a.ndim == 3 else a
-
-    # Only points of clean planar leaves (see CLEAN_LEAF_RATIO).
-    kb = (lb >= 0) & (pb.planarity >= CLEAN_LEAF_RATIO)
-    ka = (la >= 0) & (pa.planarity >= CLEAN_LEAF_RATIO)
-    rigid = adjust_rigid(
-        before[kb],
-        lb[kb],
-        after[ka],
-        la[ka],
-        sigma_before=pick(sigma_before, kb),
-        sigma_after=pick(sigma_after, ka),
+    rigid, mean_res = _adjust_labelled(
+        before, lb, after, la, sigma_before, sigma_after, pb.planarity, pa.planarity
     )
     report(progress, 1.0, f"{side} side done")
-    return SideResult(side=side, rigid=rigid, planes_before=pb, planes_after=pa, matches=m)
+    return SideResult(
+        side=side,
+        rigid=rigid,
+        planes_before=pb,
+        planes_after=pa,
+        matches=m,
+        plane_mean_residual_m=mean_res,
+    )
 
 
 def _per_point(sig, mask: np.ndarray):
@@ -325,10 +348,14 @@ def _positive(name: str, value) -> float:
     return v
 
 
-def _adjust_labelled(before, lb, after, la, sigma_before, sigma_after) -> RigidResult:
-    """adjust_rigid on the points with label >= 0 (labels are match indices)."""
-    kb, ka = lb >= 0, la >= 0
-    return adjust_rigid(
+def _adjust_labelled(
+    before, lb, after, la, sigma_before, sigma_after, planarity_before, planarity_after
+) -> Tuple[RigidResult, np.ndarray]:
+    """adjust_rigid on the labelled points (labels = match indices) of clean planar leaves
+    (see CLEAN_LEAF_RATIO); also returns the mean after-epoch misclosure per match (metres)."""
+    kb = (lb >= 0) & (planarity_before >= CLEAN_LEAF_RATIO)
+    ka = (la >= 0) & (planarity_after >= CLEAN_LEAF_RATIO)
+    rigid = adjust_rigid(
         before[kb],
         lb[kb],
         after[ka],
@@ -336,6 +363,14 @@ def _adjust_labelled(before, lb, after, la, sigma_before, sigma_after) -> RigidR
         sigma_before=_per_point(sigma_before, kb),
         sigma_after=_per_point(sigma_after, ka),
     )
+    r = rigid.residuals_after
+    ok = np.isfinite(r)
+    idx = la[ka][ok]
+    size = int(max(lb.max(initial=-1), la.max(initial=-1))) + 1
+    n = np.bincount(idx, minlength=size).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_res = np.bincount(idx, weights=r[ok], minlength=size) / n
+    return rigid, mean_res
 
 
 def _compact(labels: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -479,6 +514,10 @@ def _register_side_tiled(
         len(matches),
     )
 
+    # only points of clean planar leaves enter the adjustments (see CLEAN_LEAF_RATIO)
+    lb = np.where(pb_all.planarity >= CLEAN_LEAF_RATIO, lb, -1)
+    la = np.where(pa_all.planarity >= CLEAN_LEAF_RATIO, la, -1)
+
     # per-tile adjustments (reporting for "joint", the estimate for "tiles")
     tiles: List[TileResult] = []
     nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
@@ -527,7 +566,9 @@ def _register_side_tiled(
             f"{side} side: only {len(matches)} matched planes over all tiles of {t:g} m "
             "(need at least 3); use bigger tiles or relax the matching thresholds"
         )
-    rigid = _adjust_labelled(before, lb, after, la, sigma_before, sigma_after)
+    rigid, mean_res = _adjust_labelled(
+        before, lb, after, la, sigma_before, sigma_after, pb_all.planarity, pa_all.planarity
+    )
     comb_d = comb_c = None
     if combine == "tiles":
         ok = [x for x in tiles if x.status == "ok"]
@@ -555,6 +596,7 @@ def _register_side_tiled(
         matches=matches,
         combined_displacement=comb_d,
         combined_covariance=comb_c,
+        plane_mean_residual_m=mean_res,
     )
     return res, tuple(tiles)
 
@@ -941,7 +983,8 @@ def window_field(
         m = match_planes(pb, pa, **(match_options or {}))
         lb = _labels_for_matches(pb.labels, m.before)
         la = _labels_for_matches(pa.labels, m.after)
-        kb, ka = lb >= 0, la >= 0
+        kb = (lb >= 0) & (pb.planarity >= CLEAN_LEAF_RATIO)
+        ka = (la >= 0) & (pa.planarity >= CLEAN_LEAF_RATIO)
         sides[side] = dict(
             xy=pb.centroids[m.before, :2],
             before=bp[kb],

@@ -17,10 +17,12 @@ from .io.atomic import PathLike, atomic_path
 
 __all__ = [
     "plot_normals_polar",
+    "plot_plane_residual_polar",
     "plot_residual_histograms",
     "plot_roughness_histograms",
     "plot_roughness_map",
     "plot_semivariograms",
+    "plot_strip_profile",
     "write_html_report",
 ]
 
@@ -326,4 +328,40 @@ def plot_strip_profile(
     ax.set_ylabel("fault-parallel displacement (mm)")
     ax.set_title(title, fontsize=9)
     ax.legend()
+    return _save(fig, path, dpi)
+
+
+def plot_plane_residual_polar(
+    path: PathLike,
+    series: Mapping[str, Tuple[np.ndarray, np.ndarray]],
+    *,
+    title: str = "Mean residual of each matched plane against its normal azimuth",
+    dpi: int = 150,
+) -> Path:
+    """Per-plane mean residual (mm, radius) against the normal's azimuth (clockwise from
+    north), one panel per side (the study's Fig. 10 polar plots). ``series[name]`` is
+    ``(normals (K, 3), mean_residual_m (K,))``; planes with |nz| > 0.9 (roofs facing up) are
+    drawn at their azimuth all the same, in grey."""
+    fig = _figure(4.2 * max(1, len(series)), 4.4)
+    for k, (name, (normals, res)) in enumerate(series.items()):
+        ax = fig.add_subplot(1, max(1, len(series)), k + 1, projection="polar")
+        n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        r = 1000.0 * np.asarray(res, dtype=np.float64)
+        ok = np.isfinite(r)
+        az = np.arctan2(n[:, 0], n[:, 1])
+        flat = np.abs(n[:, 2]) > 0.9
+        ax.set_theta_zero_location("N")
+        ax.set_theta_direction(-1)
+        ax.scatter(
+            az[ok & ~flat],
+            np.abs(r[ok & ~flat]),
+            c=np.sign(r[ok & ~flat]),
+            cmap="coolwarm",
+            vmin=-1,
+            vmax=1,
+            s=14,
+        )
+        ax.scatter(az[ok & flat], np.abs(r[ok & flat]), c="0.6", s=14)
+        ax.set_title(f"{name}: |mean residual| (mm); red > 0, blue < 0", fontsize=8)
+    fig.suptitle(title, fontsize=9)
     return _save(fig, path, dpi)

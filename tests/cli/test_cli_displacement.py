@@ -108,7 +108,7 @@ def test_displacement_outputs_match_core(files, tmp_path):
     )
     assert abs(js["relative"]["right_lateral_slip"] - 0.0181) < 0.001
     assert (out / "displacement.gpkg").is_file() and (out / "report.html").is_file()
-    assert (out / "residuals.png").is_file()
+    assert (out / "residuals.png").is_file() and (out / "plane_residuals.png").is_file()
 
 
 def test_polygon_fault_is_exit_2(files, tmp_path, capsys):
@@ -148,6 +148,7 @@ def test_tiles_strips_and_windows_outputs(files, tmp_path):
     out = tmp_path / "tsw"
     argv = ["-q", "displacement", str(before), str(after), "--fault", str(fault), "--out", str(out)]
     argv += ["--sigma", "0.02", "--tile-size", "50", "--strip-width", "50"]
+    argv += ["--reference-slip", "0.0181"]
     argv += ["--window-size", "40", "--window-step", "20"]
     assert main(argv) == 0
     js = json.loads((out / "displacement.json").read_text())
@@ -163,3 +164,8 @@ def test_tiles_strips_and_windows_outputs(files, tmp_path):
     dy = ds.GetRasterBand(1).ReadAsArray()
     assert np.nanmin(dy) == pytest.approx(-0.0181, abs=0.002)
     assert (out / "strips.png").is_file()
+    ref = js["reference"]
+    assert ref["delta_displacement"] == pytest.approx(
+        js["relative"]["right_lateral_slip"] - 0.0181, abs=1e-12
+    )
+    assert {"scale", "relative_scale", "variance_left", "variance_right"} <= set(ref)

@@ -136,3 +136,14 @@ def test_uncertainty_is_honest_over_seeds():
     assert 0.5 <= out["std_error_over_sigma_all"] <= 1.6, out
     assert abs(out["mean_variance_factor"] - 1.0) < 0.1, out
     assert out["max_abs_error_parallel_mm"] < 1.0, out
+
+
+def test_reference_comparison_table_x(mls_result):
+    c = mls_result.components()
+    ref = mls_result.reference_comparison(0.0181)
+    norm = np.sqrt(c["sigma_dx"] ** 2 + c["sigma_dy"] ** 2 + c["sigma_dz"] ** 2)
+    delta = c["right_lateral_slip"] - 0.0181
+    assert ref["delta_displacement"] == pytest.approx(delta)
+    assert ref["scale"] == pytest.approx(abs(delta) / np.sqrt(2) / norm)
+    s0 = 0.5 * (ref["variance_left"] + ref["variance_right"])
+    assert ref["relative_scale"] == pytest.approx(abs(delta) / 2 / (s0 * norm))
