@@ -330,8 +330,8 @@ def _check_epochs(before: np.ndarray, after: np.ndarray) -> None:
             raise InputDataError(f"{name} must be a non-empty (N, 3) point array, got {a.shape}")
         if not np.all(np.isfinite(a)):
             raise InputDataError(f"{name} contains NaN or infinite coordinates; remove them")
-    lo = np.maximum(before[:, :2].min(axis=0), after[:, :2].min(axis=0))
-    hi = np.minimum(before[:, :2].max(axis=0), after[:, :2].max(axis=0))
+    lo = np.array([max(before[:, a].min(), after[:, a].min()) for a in range(2)])
+    hi = np.array([min(before[:, a].max(), after[:, a].max()) for a in range(2)])
     if np.any(lo >= hi):
         raise InputDataError("the two epochs do not overlap in plan; check their CRSs and extents")
 
@@ -604,8 +604,7 @@ def _register_side_tiled(
 def _side_points(before, after, trace, buffer_m):
     """Geometry and side masks of both epochs (validated)."""
     _check_epochs(before, after)
-    trace_in_data_check(trace, before[:, :2], buffer_m=buffer_m)
-    gb = fault_geometry(before[:, :2], trace)
+    gb = trace_in_data_check(trace, before[:, :2], buffer_m=buffer_m)
     ga = fault_geometry(after[:, :2], trace)
     lb, rb = side_masks(gb, buffer_m=buffer_m)
     la, ra = side_masks(ga, buffer_m=buffer_m)

@@ -232,15 +232,24 @@ def _azimuth(v: np.ndarray) -> np.ndarray:
     return np.where(az >= _TWO_PI, 0.0, az)
 
 
+def _take(arr: np.ndarray, idx: np.ndarray, single: bool):
+    """``arr[idx]`` (a gather), or the scalar ``arr[0]`` when the trace has one segment."""
+    return arr[0] if single else arr[idx]
+
+
 def _project(p: np.ndarray, seg: _Segments, idx: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """Clamped parameter ``t`` and squared distance of points ``p`` (n, 2) to segments idx."""
-    a = seg.a[idx]
-    d = seg.d[idx]
-    rel = p - a
-    t = np.einsum("ij,ij->i", rel, d) / seg.len2[idx]
+    """Clamped parameter ``t`` and squared distance of points ``p`` (n, 2) to segments idx.
+
+    Column arithmetic (no (n, 2) temporaries); a one-segment trace needs no gathers."""
+    one = seg.n == 1
+    dx, dy = _take(seg.d[:, 0], idx, one), _take(seg.d[:, 1], idx, one)
+    rx = p[:, 0] - _take(seg.a[:, 0], idx, one)
+    ry = p[:, 1] - _take(seg.a[:, 1], idx, one)
+    t = (rx * dx + ry * dy) / _take(seg.len2, idx, one)
     np.clip(t, 0.0, 1.0, out=t)
-    diff = rel - t[:, None] * d
-    return t, np.einsum("ij,ij->i", diff, diff)
+    rx -= t * dx
+    ry -= t * dy
+    return t, rx * rx + ry * ry
 
 
 def _nearest_brute(p: np.ndarray, seg: _Segments) -> np.ndarray:
@@ -329,27 +338,37 @@ def _nearest_kdtree(p: np.ndarray, seg: _Segments, st: _SampleTree) -> np.ndarra
 
 def _finish(p: np.ndarray, seg: _Segments, idx: np.ndarray) -> Tuple[np.ndarray, ...]:
     """Side, distance, chainage and strike of points p (n, 2) given their nearest segment."""
+    one = seg.n == 1
     t, d2 = _project(p, seg, idx)
-    q = seg.a[idx] + t[:, None] * seg.d[idx]
-    tangent = seg.u[idx].copy()
+    # offset of the point from its nearest point on the trace
+    ox = p[:, 0] - (_take(seg.a[:, 0], idx, one) + t * _take(seg.d[:, 0], idx, one))
+    oy = p[:, 1] - (_take(seg.a[:, 1], idx, one) + t * _take(seg.d[:, 1], idx, one))
+    tx = np.broadcast_to(_take(seg.u[:, 0], idx, one), t.shape).copy()
+    ty = np.broadcast_to(_take(seg.u[:, 1], idx, one), t.shape).copy()
     # at an interior vertex of a part, use the bisector of the two segments' directions
     at_end = (t >= 1.0) & ~seg.is_last[idx]
     at_start = (t <= 0.0) & ~seg.is_first[idx]
     if np.any(at_end):
         k = idx[at_end]
-        tangent[at_end] = seg.u[k] + seg.u[k + 1]
+        tx[at_end] = seg.u[k, 0] + seg.u[k + 1, 0]
+        ty[at_end] = seg.u[k, 1] + seg.u[k + 1, 1]
     if np.any(at_start):
         k = idx[at_start]
-        tangent[at_start] = seg.u[k - 1] + seg.u[k]
-    norm = np.hypot(tangent[:, 0], tangent[:, 1])
-    degenerate = norm < 1e-12  # the trace turns back by 180°: keep the segment's direction
-    if np.any(degenerate):
-        tangent[degenerate] = seg.u[idx[degenerate]]
-        norm[degenerate] = 1.0
-    tangent /= norm[:, None]
-    side = np.sign(np.einsum("ij,ij->i", _right_normal(tangent), p - q)).astype(np.int8)
-    chain = seg.chain0[idx] + t * seg.len[idx]
-    return side, np.sqrt(d2), chain, _azimuth(tangent)
+        tx[at_start] = seg.u[k - 1, 0] + seg.u[k, 0]
+        ty[at_start] = seg.u[k - 1, 1] + seg.u[k, 1]
+    if np.any(at_end) or np.any(at_start):
+        norm = np.hypot(tx, ty)
+        degenerate = norm < 1e-12  # the trace turns back by 180°: keep the segment's direction
+        if np.any(degenerate):
+            tx[degenerate] = seg.u[idx[degenerate], 0]
+            ty[degenerate] = seg.u[idx[degenerate], 1]
+            norm[degenerate] = 1.0
+        tx /= norm
+        ty /= norm
+    # right normal of the tangent is (ty, -tx)
+    side = np.sign(ty * ox - tx * oy).astype(np.int8)
+    chain = _take(seg.chain0, idx, one) + t * _take(seg.len, idx, one)
+    return side, np.sqrt(d2), chain, _azimuth(np.stack([tx, ty], axis=-1))
 
 
 def fault_geometry(
@@ -418,7 +437,12 @@ def fault_geometry(
     chunk = int(chunk_points)
     for i in range(0, n, chunk):
         p = pts[i : i + chunk] - seg.origin
-        idx = _nearest_kdtree(p, seg, tree) if tree is not None else _nearest_brute(p, seg)
+        if seg.n == 1:
+            idx = np.zeros(len(p), dtype=np.int64)
+        elif tree is not None:
+            idx = _nearest_kdtree(p, seg, tree)
+        else:
+            idx = _nearest_brute(p, seg)
         sl = slice(i, i + len(p))
         side[sl], dist[sl], chain[sl], strike[sl] = _finish(p, seg, idx)
         segment[sl] = idx
