@@ -740,13 +740,93 @@ def _read_epochs(args):
         log.warning("only one epoch declares a CRS; both are taken to be in the same CRS")
     sel1 = _select_points(first, args.classes, args.exclude_classes)
     sel2 = _select_points(second, args.classes, args.exclude_classes)
-    return first, first.xyz[sel1], xyz2[sel2]
+    return first, second, sel1, sel2, first.xyz[sel1], xyz2[sel2]
 
 
-def _sigma_option(args):
-    if args.sigma_xyz is not None:
-        return np.asarray(args.sigma_xyz, dtype=float)
-    return float(args.sigma)
+def _pa_settings(args) -> dict:
+    """Point-accuracy settings of both epochs from the flags, or from --pa-config."""
+    from .pointaccuracy import check_settings, load_config
+
+    if getattr(args, "pa_config", None):
+        return load_config(args.pa_config)
+    model = args.pa or ("axis" if args.sigma_xyz is not None else "constant")
+    s = {
+        "model": model,
+        "sigma": args.sigma,
+        "sigma_xyz": args.sigma_xyz,
+        "columns": args.sigma_columns,
+        "trajectory": args.trajectory,
+        "trajectory_accuracy": args.trajectory_accuracy,
+        "scanner": args.scanner_spec,
+        "scanner_position": args.scanner_position,
+        "footprint": not args.no_footprint,
+    }
+    s = check_settings({k: v for k, v in s.items() if v is not None})
+    return {"before": s, "after": s}
+
+
+def _add_pa_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("point accuracy (Kusari et al. 2019, section II.E)")
+    g.add_argument(
+        "--pa",
+        choices=("constant", "axis", "columns", "propagated"),
+        help="model: constant (--sigma), axis (--sigma-xyz), columns (per-point "
+        "SigmaX/Y/Z dimensions), propagated (trajectory + scanner, or TLS position)",
+    )
+    g.add_argument(
+        "--sigma",
+        type=_positive(float, "--sigma"),
+        default=0.05,
+        metavar="M",
+        help="isotropic point accuracy, metres (default 0.05, as the study)",
+    )
+    g.add_argument(
+        "--sigma-xyz",
+        type=_positive(float, "--sigma-xyz"),
+        nargs=3,
+        metavar=("SX", "SY", "SZ"),
+        help="per-axis point accuracy, metres",
+    )
+    g.add_argument(
+        "--sigma-columns",
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        help="dimension names of per-point sigmas (default SigmaX SigmaY SigmaZ)",
+    )
+    g.add_argument(
+        "--trajectory",
+        metavar="FILE",
+        help="platform trajectory: SBET (.sbet/.out) or CSV with named columns",
+    )
+    g.add_argument(
+        "--trajectory-accuracy",
+        metavar="FILE",
+        help="trajectory accuracy: SMRMSG (.smrmsg) or CSV (attitude in arc-minutes)",
+    )
+    g.add_argument(
+        "--scanner-spec",
+        metavar="NAME|FILE",
+        help="riegl-vz400, leica-als60, optech-orion, or a JSON specification",
+    )
+    g.add_argument(
+        "--scanner-position",
+        type=float,
+        nargs=3,
+        metavar=("X", "Y", "Z"),
+        help="position of a static (TLS) scanner, map coordinates",
+    )
+    g.add_argument(
+        "--no-footprint",
+        action="store_true",
+        help="leave out the beam-footprint (incidence) term of the propagated model",
+    )
+    g.add_argument(
+        "--pa-config",
+        metavar="FILE",
+        help='JSON {"before": {...}, "after": {...}} with the keys model, sigma, '
+        "sigma_xyz, columns, trajectory, trajectory_accuracy, scanner, "
+        "scanner_position, footprint: one model per epoch (e.g. ALS then MLS)",
+    )
 
 
 def _finite(v):
@@ -930,7 +1010,12 @@ def _run_displacement(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     _check_output_dir(out)
-    first, before, after = _read_epochs(args)
+    from .pointaccuracy import covariances
+
+    first, second, sel1, sel2, before, after = _read_epochs(args)
+    pa = _pa_settings(args)
+    sigma_b = covariances(first, sel1, pa["before"])
+    sigma_a = covariances(second, sel2, pa["after"])
     trace = read_fault_trace(args.fault, target_crs=first.crs)
     t0 = time.perf_counter()
     plane_opts = {k: v for k, v in _plane_options(args).items() if v is not None}
@@ -944,8 +1029,8 @@ def _run_displacement(args: argparse.Namespace) -> int:
             after,
             trace,
             buffer_m=args.buffer,
-            sigma_before=_sigma_option(args),
-            sigma_after=_sigma_option(args),
+            sigma_before=sigma_b,
+            sigma_after=sigma_a,
             plane_options=plane_opts,
             match_options=match_opts,
             tile_size_m=args.tile_size,
@@ -954,8 +1039,8 @@ def _run_displacement(args: argparse.Namespace) -> int:
         )
         common = dict(
             buffer_m=args.buffer,
-            sigma_before=_sigma_option(args),
-            sigma_after=_sigma_option(args),
+            sigma_before=sigma_b,
+            sigma_after=sigma_a,
             plane_options=plane_opts,
             match_options=match_opts,
         )
@@ -982,8 +1067,7 @@ def _run_displacement(args: argparse.Namespace) -> int:
     payload = result.to_dict()
     payload["parameters"].update(
         {
-            "sigma": args.sigma,
-            "sigma_xyz": args.sigma_xyz,
+            "point_accuracy": pa,
             "before": str(args.before),
             "after": str(args.after),
             "fault": str(args.fault),
@@ -1087,21 +1171,7 @@ def _displacement_arguments(p: argparse.ArgumentParser) -> None:
         help="independent right-lateral slip (e.g. an alinement array), metres: "
         "adds the study's Table X figures (scale, relative scale) to the summary",
     )
-    g = p.add_argument_group("point accuracy")
-    g.add_argument(
-        "--sigma",
-        type=_positive(float, "--sigma"),
-        default=0.05,
-        metavar="M",
-        help="isotropic point accuracy, metres (default 0.05, as the study)",
-    )
-    g.add_argument(
-        "--sigma-xyz",
-        type=_positive(float, "--sigma-xyz"),
-        nargs=3,
-        metavar=("SX", "SY", "SZ"),
-        help="per-axis point accuracy, metres",
-    )
+    _add_pa_arguments(p)
     g = p.add_argument_group("plane matching")
     g.add_argument(
         "--match-angle",
@@ -1120,6 +1190,56 @@ def _displacement_arguments(p: argparse.ArgumentParser) -> None:
     )
     _add_selection_arguments(p)
     _add_plane_arguments(p)
+
+
+# --------------------------------------------------------------------------- accuracy
+
+
+@command("accuracy", "per-point accuracy (SigmaX/Y/Z, optionally full covariance) into a LAS copy")
+def _run_accuracy(args: argparse.Namespace) -> int:
+    from .core.accuracy import covariance_to_sigmas, covariance_to_six
+    from .core.io.atomic import check_not_input
+    from .core.io.las import read_las, write_las
+    from .pointaccuracy import covariances
+
+    check_not_input(args.out, [args.input])
+    cloud = read_las(args.input)
+    if len(cloud) == 0:
+        raise SlipMapError(f"{cloud.source}: the file has no points")
+    settings = _pa_settings(args)["before"]
+    cov = covariances(cloud, None, settings)
+    n = len(cloud)
+    cov = np.asarray(cov, dtype=np.float64)
+    if cov.ndim == 0:
+        cov = np.broadcast_to(np.eye(3) * float(cov) ** 2, (n, 3, 3))
+    elif cov.ndim == 1:
+        cov = np.broadcast_to(np.diag(cov**2), (n, 3, 3))
+    sig = covariance_to_sigmas(cov)
+    extra = {"SigmaX": sig[:, 0], "SigmaY": sig[:, 1], "SigmaZ": sig[:, 2]}
+    if args.full_covariance:
+        six = covariance_to_six(cov)
+        for k, name in enumerate(("CovXX", "CovYY", "CovZZ", "CovXY", "CovXZ", "CovYZ")):
+            extra[name] = six[:, k]
+    write_las(args.out, cloud, extra_dims=extra, inputs=[args.input])
+    log.info(
+        "point accuracy (%s): median sigma x %.4f, y %.4f, z %.4f m; wrote %s",
+        settings["model"],
+        *np.median(sig, axis=0),
+        args.out,
+    )
+    return 0
+
+
+@_run_accuracy.arguments
+def _accuracy_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", help="LAS/LAZ point cloud")
+    p.add_argument("--out", required=True, help="output LAS/LAZ with SigmaX/SigmaY/SigmaZ")
+    p.add_argument(
+        "--full-covariance",
+        action="store_true",
+        help="also write CovXX CovYY CovZZ CovXY CovXZ CovYZ (m²)",
+    )
+    _add_pa_arguments(p)
 
 
 # --------------------------------------------------------------------------- main

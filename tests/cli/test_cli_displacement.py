@@ -194,3 +194,53 @@ def test_second_epoch_in_another_crs_is_reprojected(files, tmp_path):
     js = json.loads((out / "displacement.json").read_text())
     # the LAS scale (1 mm) rounds the reprojected coordinates: a little extra noise only
     assert abs(js["relative"]["right_lateral_slip"] - 0.0181) < 0.0015
+
+
+def test_point_accuracy_per_epoch(files, tmp_path):
+    """--pa columns reads SigmaX/Y/Z written by `slipmap accuracy`; --pa-config sets a model
+    per epoch; both give the slip, with the sigma scaled by the variance factor."""
+    _, (before, after), fault = files
+    with_sigma = []
+    for name, path, s in (("b", before, "0.02"), ("a", after, "0.03")):
+        out = tmp_path / f"{name}.laz"
+        assert (
+            main(
+                [
+                    "-q",
+                    "accuracy",
+                    str(path),
+                    "--out",
+                    str(out),
+                    "--pa",
+                    "axis",
+                    "--sigma-xyz",
+                    s,
+                    s,
+                    s,
+                ]
+            )
+            == 0
+        )
+        with_sigma.append(out)
+    out = tmp_path / "cols"
+    argv = ["-q", "displacement", str(with_sigma[0]), str(with_sigma[1]), "--fault", str(fault)]
+    assert main(argv + ["--out", str(out), "--pa", "columns"]) == 0
+    cols = json.loads((out / "displacement.json").read_text())
+    cfg = tmp_path / "pa.json"
+    cfg.write_text(
+        json.dumps(
+            {
+                "before": {"model": "constant", "sigma": 0.02},
+                "after": {"model": "axis", "sigma_xyz": [0.03, 0.03, 0.03]},
+            }
+        )
+    )
+    out2 = tmp_path / "cfg"
+    assert main(argv + ["--out", str(out2), "--pa-config", str(cfg)]) == 0
+    conf = json.loads((out2 / "displacement.json").read_text())
+    for js in (cols, conf):
+        assert abs(js["relative"]["right_lateral_slip"] - 0.0181) < 0.001
+    assert cols["relative"]["right_lateral_slip"] == pytest.approx(
+        conf["relative"]["right_lateral_slip"], abs=1e-9
+    )
+    assert conf["parameters"]["point_accuracy"]["after"]["model"] == "axis"

@@ -1,0 +1,342 @@
+"""Shared plumbing of SlipMap's PDAL ``filters.python`` stages.
+
+PDAL compiles each stage script on its own (not as part of this package), so the scripts first
+make ``slipmap`` importable (see :func:`add_slipmap_path`, which each script repeats in a few
+lines because it cannot import this module before) and then import this module as
+``slipmap.pdal_filters._stage``.
+
+What lives here:
+
+* :class:`Option` / :class:`OptionTable`: each stage's options (name, type, default, help) in
+  one table; ``pdalargs`` (a dict, or the JSON text PDAL may pass) is parsed once against it
+  and cached by its raw value; unknown or invalid options raise :class:`StageError` naming them.
+* :func:`points_from`, :func:`set_output`, :func:`metadata_node`: input and output shaping.
+
+No science here: the stages call ``slipmap.core``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import os
+import sys
+from dataclasses import dataclass
+from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+
+TYPES = ("float", "int", "bool", "str", "choice", "object")
+
+
+class StageError(RuntimeError):
+    """A SlipMap PDAL stage cannot run; the message names the option or dimension at fault."""
+
+
+# --------------------------------------------------------------------------- sys.path
+
+
+def add_slipmap_path(path: Any) -> None:
+    """Make ``slipmap`` importable from ``path`` (the ``slipmap_path`` option).
+
+    ``path`` is either the directory that *contains* the ``slipmap`` package (it is put first
+    on ``sys.path``) or the package's own root (a directory with ``__init__.py`` and ``core/``,
+    whatever its name, e.g. a git checkout), which is then loaded under the name ``slipmap``.
+    Does nothing when ``path`` is empty or ``slipmap`` is already imported.
+    """
+    if not path or "slipmap" in sys.modules:
+        return
+    p = os.path.abspath(os.path.expanduser(str(path)))
+    if not os.path.isdir(p):
+        raise StageError(f"option 'slipmap_path': {p!r} is not a directory")
+    init = os.path.join(p, "__init__.py")
+    if os.path.isfile(init) and os.path.isdir(os.path.join(p, "core")):
+        spec = importlib.util.spec_from_file_location(
+            "slipmap", init, submodule_search_locations=[p]
+        )
+        module = importlib.util.module_from_spec(spec)
+        sys.modules["slipmap"] = module
+        spec.loader.exec_module(module)
+    elif p not in sys.path:
+        sys.path.insert(0, p)
+
+
+# --------------------------------------------------------------------------- options
+
+
+@dataclass(frozen=True)
+class Option:
+    """One stage option.
+
+    ``type`` is one of :data:`TYPES`; ``choices`` for "choice"; ``minimum`` (with
+    ``exclusive`` for a strict bound) for numbers; ``default=None`` means "not set" (the core
+    function's own default or automatic estimate is used); ``required`` options have no default.
+    """
+
+    name: str
+    type: str
+    default: Any
+    help: str
+    choices: Tuple[str, ...] = ()
+    minimum: Optional[float] = None
+    exclusive: bool = False
+    required: bool = False
+    unset_text: str = "automatic"  # how docs show a numeric default of None
+
+    def convert(self, stage: str, value: Any) -> Any:
+        where = f"{stage}: option {self.name!r}"
+        if value is None:
+            if self.required:
+                raise StageError(f"{where} is required")
+            return None
+        t = self.type
+        if t == "bool":
+            if isinstance(value, bool):
+                return value
+            if isinstance(value, str) and value.strip().lower() in ("true", "false", "1", "0"):
+                return value.strip().lower() in ("true", "1")
+            if isinstance(value, int) and value in (0, 1):
+                return bool(value)
+            raise StageError(f"{where} must be true or false, got {value!r}")
+        if t in ("float", "int"):
+            if isinstance(value, bool):
+                raise StageError(f"{where} must be a number, got {value!r}")
+            try:
+                num = float(value)
+            except (TypeError, ValueError):
+                raise StageError(f"{where} must be a number, got {value!r}") from None
+            if not math.isfinite(num):
+                raise StageError(f"{where} must be finite, got {value!r}")
+            if t == "int":
+                if num != int(num):
+                    raise StageError(f"{where} must be an integer, got {value!r}")
+                num = int(num)
+            if self.minimum is not None:
+                bad = num <= self.minimum if self.exclusive else num < self.minimum
+                if bad:
+                    op = ">" if self.exclusive else ">="
+                    raise StageError(f"{where} must be {op} {self.minimum:g}, got {value!r}")
+            return num
+        if t == "choice":
+            v = str(value).strip().lower() if isinstance(value, str) else value
+            if v not in self.choices:
+                raise StageError(f"{where} must be one of {list(self.choices)}, got {value!r}")
+            return v
+        if t == "str":
+            if not isinstance(value, str) or not value.strip():
+                raise StageError(f"{where} must be a non-empty string, got {value!r}")
+            return value.strip()
+        if t == "object":
+            if isinstance(value, str):
+                try:
+                    value = json.loads(value)
+                except ValueError:
+                    raise StageError(f"{where} must be a JSON object, got {value!r}") from None
+            if not isinstance(value, dict):
+                raise StageError(f"{where} must be a JSON object, got {value!r}")
+            return dict(value)
+        raise StageError(f"{where} has an unknown type {t!r}")  # pragma: no cover
+
+    def default_text(self) -> str:
+        if self.required:
+            return "(required)"
+        if self.default is None:
+            return self.unset_text if self.type in ("float", "int") else "none"
+        if isinstance(self.default, bool):
+            return "true" if self.default else "false"
+        if isinstance(self.default, dict):
+            return json.dumps(self.default)
+        return str(self.default)
+
+    def type_text(self) -> str:
+        if self.type == "choice":
+            return " \\| ".join(self.choices)
+        return self.type
+
+
+SLIPMAP_PATH = Option(
+    "slipmap_path",
+    "str",
+    None,
+    "Directory holding the `slipmap` package, or the package root itself (a checkout); "
+    "added to `sys.path` when `slipmap` is not installed.",
+)
+
+
+class OptionTable:
+    """A stage's options; :meth:`parse` checks ``pdalargs`` against them (cached by raw value)."""
+
+    def __init__(self, stage: str, options: Sequence[Option]):
+        self.stage = stage
+        self.options: Tuple[Option, ...] = tuple(options) + (SLIPMAP_PATH,)
+        self.by_name: Dict[str, Option] = {o.name: o for o in self.options}
+        if len(self.by_name) != len(self.options):
+            raise ValueError(f"{stage}: duplicate option names")  # programming error
+        self._cache: Dict[str, Dict[str, Any]] = {}
+
+    def defaults(self) -> Dict[str, Any]:
+        return {o.name: o.default for o in self.options}
+
+    def parse(self, raw: Any) -> Dict[str, Any]:
+        """Options from ``pdalargs`` (dict, JSON text, or None), defaults filled in.
+
+        Raises :class:`StageError` naming unknown options and invalid values.
+        """
+        key = raw if isinstance(raw, str) else _canonical(raw)
+        hit = self._cache.get(key)
+        if hit is not None:
+            return dict(hit)
+        args = load_pdalargs(raw, self.stage)
+        unknown = sorted(set(args) - set(self.by_name))
+        if unknown:
+            raise StageError(
+                f"{self.stage}: unknown option(s) {', '.join(repr(u) for u in unknown)} in "
+                f"pdalargs; known options: {', '.join(sorted(self.by_name))}"
+            )
+        out = {}
+        for o in self.options:
+            out[o.name] = o.convert(self.stage, args.get(o.name, o.default))
+        self._cache[key] = out
+        return dict(out)
+
+    def markdown(self) -> str:
+        """The option table as Markdown (the tables of docs/pdal.md)."""
+        rows = ["| Option | Type | Default | Description |", "|---|---|---|---|"]
+        for o in self.options:
+            rows.append(f"| `{o.name}` | {o.type_text()} | {o.default_text()} | {o.help} |")
+        return "\n".join(rows)
+
+
+def _canonical(raw: Any) -> str:
+    try:
+        return "\0" + json.dumps(raw, sort_keys=True, default=repr)
+    except (TypeError, ValueError):  # pragma: no cover - exotic keys
+        return "\0" + repr(raw)
+
+
+def load_pdalargs(raw: Any, stage: str = "stage") -> Dict[str, Any]:
+    """``pdalargs`` as a dict: None/"" -> {}, JSON text -> its object, a mapping as is."""
+    if raw is None or (isinstance(raw, str) and not raw.strip()):
+        return {}
+    if isinstance(raw, str):
+        try:
+            raw = json.loads(raw)
+        except ValueError as e:
+            raise StageError(f"{stage}: pdalargs is not valid JSON ({e}): {raw!r}") from None
+    if not isinstance(raw, Mapping):
+        raise StageError(f"{stage}: pdalargs must be a JSON object, got {type(raw).__name__}")
+    return dict(raw)
+
+
+# --------------------------------------------------------------------------- arrays
+
+
+def n_points(ins: Mapping[str, np.ndarray]) -> int:
+    """Number of points of the view (0 for an empty view or no dimensions)."""
+    for v in ins.values():
+        return int(np.asarray(v).shape[0])
+    return 0
+
+
+def points_from(ins: Mapping[str, np.ndarray], stage: str) -> np.ndarray:
+    """``(N, 3)`` float64 X, Y, Z of the view."""
+    missing = [d for d in ("X", "Y", "Z") if d not in ins]
+    if missing:
+        raise StageError(
+            f"{stage}: the point view has no {', '.join(missing)} dimension(s); "
+            f"it has {', '.join(sorted(ins)) or 'none'}"
+        )
+    return np.column_stack([np.asarray(ins[d], dtype=np.float64) for d in ("X", "Y", "Z")])
+
+
+def set_output(
+    outs: Dict[str, np.ndarray], name: str, values: Any, dtype: Any, n: int, stage: str
+) -> None:
+    """Put ``values`` into ``outs[name]`` as a contiguous ``(n,)`` array of ``dtype``."""
+    arr = np.ascontiguousarray(np.asarray(values).astype(dtype, copy=False))
+    if arr.shape != (n,):
+        raise StageError(f"{stage}: output {name!r} has shape {arr.shape}, expected ({n},)")
+    outs[name] = arr
+
+
+def metadata_node(name: str, value: Any, description: str = "", children=()) -> Dict[str, Any]:
+    """One node of ``out_metadata`` (the dict form filters.python reads back)."""
+    if isinstance(value, bool):
+        typ, val = "boolean", value
+    elif isinstance(value, (int, np.integer)):
+        typ, val = "integer", int(value)
+    elif isinstance(value, (float, np.floating)):
+        typ, val = "double", float(value)
+    elif isinstance(value, str):
+        typ, val = "string", value
+    else:
+        typ, val = "string", json.dumps(value, default=_json_default)
+    return {
+        "name": name,
+        "value": val,
+        "type": typ,
+        "description": description,
+        "children": list(children),
+    }
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    return str(o)
+
+
+def wrap_errors(stage: str, exc: BaseException) -> StageError:
+    """A :class:`StageError` carrying a core error's message, prefixed by the stage name."""
+    if isinstance(exc, StageError):
+        return exc
+    return StageError(f"{stage}: {exc}")
+
+
+# --------------------------------------------------------------------------- fault trace
+
+
+_WKT_KINDS = ("LINESTRING", "MULTILINESTRING")
+
+
+def is_wkt_line(text: str) -> bool:
+    """Whether ``text`` looks like a WKT (MULTI)LINESTRING."""
+    head = text.lstrip().upper()
+    return any(head.startswith(k) for k in _WKT_KINDS)
+
+
+def parse_wkt_lines(text: str, option: str = "trace") -> list:
+    """Vertex arrays ``[(M, 2|3) float64, ...]`` of a WKT LINESTRING or MULTILINESTRING.
+
+    Z / M variants (``LINESTRING Z (...)``) are accepted; only x and y are kept downstream.
+    """
+    s = text.strip()
+    upper = s.upper()
+    kind = "MULTILINESTRING" if upper.startswith("MULTILINESTRING") else "LINESTRING"
+    body = s[len(kind) :].strip()
+    while body[:1].isalpha():  # Z, M or ZM tag
+        body = body[1:].lstrip()
+    where = f"option {option!r}"
+    if not (body.startswith("(") and body.endswith(")")):
+        raise StageError(f"{where}: not a WKT {kind}: {text!r}")
+    inner = body[1:-1].strip()
+    if kind == "MULTILINESTRING":
+        if not (inner.startswith("(") and inner.endswith(")")):
+            raise StageError(f"{where}: not a WKT MULTILINESTRING: {text!r}")
+        groups = [g.strip(" ()") for g in inner[1:-1].split("),")]
+    else:
+        groups = [inner]
+    parts = []
+    for g in groups:
+        try:
+            rows = [[float(v) for v in pt.split()] for pt in g.split(",")]
+            arr = np.array(rows, dtype=np.float64)
+        except ValueError:
+            raise StageError(f"{where}: bad coordinates in WKT: {g!r}") from None
+        if arr.ndim != 2 or arr.shape[1] < 2:
+            raise StageError(f"{where}: each WKT vertex needs x and y: {g!r}")
+        parts.append(arr[:, :2])
+    return parts

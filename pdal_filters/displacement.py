@@ -1,0 +1,240 @@
+"""PDAL ``filters.python`` stage: fault slip between two merged epochs.
+
+The two epochs arrive as one point view, tagged by an epoch dimension (``Epoch``: 1 = before,
+2 = after, e.g. from ``filters.assign`` on each reader followed by ``filters.merge``).
+:func:`slipmap.core.displacement.estimate_slip` registers each side of the fault trace between
+the epochs; the summary (``SlipResult.to_dict()``) goes to ``out_metadata`` and every point gets
+
+* ``PlaneId`` (int32): its plane in its own epoch's segmentation of its own side (ids are per
+  side and epoch, so the left and right sides both start at 0); -1 for points in no plane,
+  inside the buffer, or with another epoch value;
+* ``Residual`` (double, metres): signed orthogonal distance of the point to that plane
+  (``n . p + d``); NaN where ``PlaneId`` is -1.
+
+Pipeline stage::
+
+    {"type": "filters.python", "script": "pdal_filters/displacement.py",
+     "module": "slipmap_displacement", "function": "run",
+     "add_dimension": ["PlaneId=int32", "Residual"],
+     "pdalargs": {"trace": "LINESTRING (500 0, 500 1000)", "buffer_m": 10}}
+
+Options: :func:`options_table`, docs/pdal.md.
+"""
+
+import json
+import os
+import sys
+
+STAGE = "slipmap displacement"
+OUTPUTS = {"PlaneId": "int32", "Residual": "float64"}
+out_metadata = {}
+
+
+def _bootstrap():
+    """Make ``slipmap`` importable: PDAL compiles this file standalone (cf. _stage)."""
+    if "slipmap" in sys.modules:
+        return
+    args = globals().get("pdalargs")
+    if isinstance(args, str):
+        try:
+            args = json.loads(args) if args.strip() else {}
+        except ValueError:
+            args = {}
+    path = args.get("slipmap_path") if isinstance(args, dict) else None
+    if path:
+        p = os.path.abspath(os.path.expanduser(str(path)))
+        init = os.path.join(p, "__init__.py")
+        if os.path.isfile(init) and os.path.isdir(os.path.join(p, "core")):
+            import importlib.util
+
+            spec = importlib.util.spec_from_file_location(
+                "slipmap", init, submodule_search_locations=[p]
+            )
+            module = importlib.util.module_from_spec(spec)
+            sys.modules["slipmap"] = module
+            spec.loader.exec_module(module)
+        elif p not in sys.path:
+            sys.path.insert(0, p)
+    try:
+        import slipmap  # noqa: F401
+    except ImportError as e:
+        raise RuntimeError(
+            f"{STAGE}: cannot import slipmap ({e}); install it in PDAL's Python "
+            '(pip install slipmap) or pass pdalargs {"slipmap_path": "/dir/containing/slipmap"}'
+        ) from None
+
+
+def options_table():
+    from slipmap.pdal_filters._stage import Option, OptionTable
+
+    return OptionTable(
+        STAGE,
+        [
+            Option(
+                "trace",
+                "str",
+                None,
+                "Fault trace in the points' CRS: WKT `LINESTRING`/`MULTILINESTRING`, or the path "
+                "of an OGR vector file (reprojected to the view's spatial reference; needs GDAL).",
+                required=True,
+            ),
+            Option("trace_layer", "str", None, "Layer of the trace file (default: first line)."),
+            Option("epoch_dimension", "str", "Epoch", "Dimension tagging each point's epoch."),
+            Option("before", "int", 1, "Epoch value of the first (before) epoch."),
+            Option("after", "int", 2, "Epoch value of the second (after) epoch."),
+            Option(
+                "buffer_m",
+                "float",
+                10.0,
+                "Points this close to the trace are left out (m).",
+                minimum=0,
+            ),
+            Option(
+                "sigma_before",
+                "float",
+                0.05,
+                "Point accuracy of the first epoch, 1 sigma (m).",
+                minimum=0,
+                exclusive=True,
+            ),
+            Option(
+                "sigma_after",
+                "float",
+                0.05,
+                "Point accuracy of the second epoch, 1 sigma (m).",
+                minimum=0,
+                exclusive=True,
+            ),
+            Option(
+                "tile_size_m",
+                "float",
+                None,
+                "Square tiles (m) for per-tile planes and matching; none: whole sides.",
+                minimum=0,
+                exclusive=True,
+                unset_text="none",
+            ),
+            Option(
+                "combine",
+                "choice",
+                "joint",
+                "With tiles: one adjustment per side, or the weighted mean of tile results.",
+                choices=("joint", "tiles"),
+            ),
+            Option("plane_options", "object", {}, "Keyword options of `segment_planes`."),
+            Option("match_options", "object", {}, "Keyword options of the plane matching."),
+        ],
+    )
+
+
+_TABLE = []
+
+
+def _trace(opts, _stage):
+    from slipmap.core.fault import fault_trace
+
+    text = opts["trace"]
+    if _stage.is_wkt_line(text):
+        return fault_trace(_stage.parse_wkt_lines(text, "trace"))
+    path = os.path.expanduser(text)
+    if not os.path.isfile(path):
+        raise _stage.StageError(
+            f"{STAGE}: option 'trace' is neither a WKT LINESTRING nor an existing file: {text!r}"
+        )
+    from slipmap.core.io.vector import read_fault_trace
+
+    srs = globals().get("spatialreference") or None
+    return read_fault_trace(path, target_crs=srs, layer=opts["trace_layer"])
+
+
+def run(ins, outs):
+    """filters.python entry point: slip summary to out_metadata, PlaneId and Residual."""
+    global out_metadata
+    _bootstrap()
+    import numpy as np
+
+    from slipmap.pdal_filters import _stage
+
+    if not _TABLE:
+        _TABLE.append(options_table())
+    opts = _TABLE[0].parse(globals().get("pdalargs"))
+    if opts["before"] == opts["after"]:
+        raise _stage.StageError(f"{STAGE}: options 'before' and 'after' must differ")
+    n = _stage.n_points(ins)
+    labels = np.full(n, -1, dtype=np.int32)
+    residual = np.full(n, np.nan)
+    if n == 0:
+        _stage.set_output(outs, "PlaneId", labels, np.int32, n, STAGE)
+        _stage.set_output(outs, "Residual", residual, np.float64, n, STAGE)
+        out_metadata = _stage.metadata_node("slipmap_displacement", "", "empty point view")
+        return True
+
+    from slipmap.core.displacement import estimate_slip
+    from slipmap.core.errors import SlipMapError
+    from slipmap.core.fault import fault_geometry, side_masks
+
+    dim = opts["epoch_dimension"]
+    if dim not in ins:
+        raise _stage.StageError(
+            f"{STAGE}: option 'epoch_dimension': the view has no {dim!r} dimension (tag the "
+            f"epochs with filters.assign before filters.merge); it has {', '.join(sorted(ins))}"
+        )
+    pts = _stage.points_from(ins, STAGE)
+    epoch = np.asarray(ins[dim])
+    idx = {
+        "before": np.flatnonzero(epoch == opts["before"]),
+        "after": np.flatnonzero(epoch == opts["after"]),
+    }
+    for key, ix in idx.items():
+        if ix.size == 0:
+            raise _stage.StageError(
+                f"{STAGE}: no point has {dim} == {opts[key]} (option {key!r}); "
+                f"values present: {np.unique(epoch)[:10].tolist()}"
+            )
+    try:
+        trace = _trace(opts, _stage)
+        before, after = pts[idx["before"]], pts[idx["after"]]
+        res = estimate_slip(
+            before,
+            after,
+            trace,
+            buffer_m=opts["buffer_m"],
+            sigma_before=opts["sigma_before"],
+            sigma_after=opts["sigma_after"],
+            plane_options=opts["plane_options"] or None,
+            match_options=opts["match_options"] or None,
+            tile_size_m=opts["tile_size_m"],
+            combine=opts["combine"],
+        )
+        for key, cloud in (("before", before), ("after", after)):
+            left, right = side_masks(fault_geometry(cloud[:, :2], trace), buffer_m=opts["buffer_m"])
+            for side, mask in (("left", left), ("right", right)):
+                ps = getattr(getattr(res, side), "planes_" + key)
+                ix = idx[key][mask]
+                lab = np.asarray(ps.labels, dtype=np.int32)
+                if lab.shape != ix.shape:
+                    raise _stage.StageError(
+                        f"{STAGE}: internal: {side}/{key} has {lab.size} labels for {ix.size} "
+                        "points"
+                    )
+                labels[ix] = lab
+                on = lab >= 0
+                k = lab[on]
+                p = cloud[mask][on]
+                residual[ix[on]] = np.einsum("ij,ij->i", p, ps.normals[k]) + ps.offsets[k]
+    except SlipMapError as e:
+        raise _stage.wrap_errors(STAGE, e) from e
+    _stage.set_output(outs, "PlaneId", labels, np.int32, n, STAGE)
+    _stage.set_output(outs, "Residual", residual, np.float64, n, STAGE)
+    summary = res.to_dict()
+    rel = summary["relative"]
+    out_metadata = _stage.metadata_node(
+        "slipmap_displacement",
+        "",
+        "SlipMap relative displacement across the fault (right minus left), metres",
+        [
+            _stage.metadata_node("summary", summary, "SlipResult.to_dict() as JSON"),
+            *(_stage.metadata_node(k, float(v)) for k, v in rel.items()),
+        ],
+    )
+    return True

@@ -1,0 +1,243 @@
+"""filters.python contract of the SlipMap stages, run without PDAL (see pdal_harness)."""
+
+import json
+
+import numpy as np
+import pytest
+from pdal_harness import STAGE_DIR, call, load_stage, make_ins, parse_add_dimension
+
+from slipmap.core.displacement import estimate_slip
+from slipmap.core.fault import fault_trace
+from slipmap.core.planes import segment_planes
+from slipmap.core.roughness import grid_roughness, roughness_per_point
+from slipmap.core.synthetic import make_fault_pair, make_scene
+from slipmap.pdal_filters._stage import StageError
+
+PLANES = parse_add_dimension(["PlaneId=int32", "Planarity"])
+ROUGH = parse_add_dimension("Roughness")
+DISP = parse_add_dimension(["PlaneId=int32", "Residual"])
+ORIGIN = (500000.0, 4200000.0, 10.0)
+
+
+def stage(name, pdalargs=None, **kw):
+    return load_stage(STAGE_DIR / f"{name}.py", f"slipmap_{name}", pdalargs, **kw)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene("als", seed=3, n_buildings=3, extent_m=60.0, origin=ORIGIN)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return make_fault_pair("mls", seed=7, origin=ORIGIN, vegetation=False, density_pts_m2=30.0)
+
+
+def _trace_wkt(fp):
+    (x0, y0), (x1, y1) = fp.trace_xy
+    return f"LINESTRING ({float(x0)!r} {float(y0)!r}, {float(x1)!r} {float(y1)!r})"
+
+
+def _epochs(fp):
+    pts = np.vstack([fp.before.points, fp.after.points])
+    tag = np.r_[np.ones(len(fp.before.points)), np.full(len(fp.after.points), 2.0)]
+    return pts, tag
+
+
+# --------------------------------------------------------------------------- planes
+
+
+@pytest.mark.parametrize("as_json", [False, True])
+def test_planes_equal_core(scene, as_json):
+    args = {"min_plane_points": 40, "backend": "numpy"}
+    mod = stage("planes", json.dumps(args) if as_json else args)
+    outs = call(mod, make_ins(scene.points), PLANES)
+    core = segment_planes(scene.points, min_plane_points=40)
+    assert set(outs) == {"PlaneId", "Planarity"}
+    np.testing.assert_array_equal(outs["PlaneId"], core.labels)
+    np.testing.assert_array_equal(outs["Planarity"], core.planarity.astype(np.float64))
+    md = mod.out_metadata
+    assert md["children"][1]["value"] == len(core) > 0
+
+
+def test_planes_no_pdalargs_and_empty_view():
+    mod = stage("planes", None)
+    outs = call(mod, make_ins(np.empty((0, 3))), PLANES)
+    assert outs["PlaneId"].shape == (0,) and outs["Planarity"].dtype == np.float64
+
+
+def test_planes_several_views(scene):
+    mod = stage("planes", {})
+    a = call(mod, make_ins(scene.points[:5000]), PLANES)
+    b = call(mod, make_ins(scene.points), PLANES)
+    assert a["PlaneId"].shape == (5000,) and b["PlaneId"].shape == (len(scene.points),)
+
+
+# --------------------------------------------------------------------------- roughness
+
+
+@pytest.mark.parametrize("method", ["odr", "ols"])
+def test_roughness_equal_core(scene, method):
+    args = {"cell": 2.0, "method": method, "signed": True}
+    mod = stage("roughness", json.dumps(args))
+    outs = call(mod, make_ins(scene.points), ROUGH)
+    grid = grid_roughness(scene.points, cell_size_m=2.0, signed=True)
+    want = roughness_per_point(scene.points, grid, value="theta_" + method)
+    np.testing.assert_array_equal(outs["Roughness"], want)
+    assert np.isfinite(outs["Roughness"]).any()
+
+
+def test_roughness_defaults_and_empty(scene):
+    mod = stage("roughness", "")
+    outs = call(mod, make_ins(scene.points[:2000]), ROUGH)
+    grid = grid_roughness(scene.points[:2000], cell_size_m=0.5)
+    np.testing.assert_array_equal(outs["Roughness"], roughness_per_point(scene.points[:2000], grid))
+    assert call(mod, make_ins(np.empty((0, 3))), ROUGH)["Roughness"].shape == (0,)
+
+
+# --------------------------------------------------------------------------- displacement
+
+
+@pytest.fixture(scope="module")
+def slip_run(pair):
+    pts, tag = _epochs(pair)
+    mod = stage(
+        "displacement", {"trace": _trace_wkt(pair), "sigma_before": 0.02, "sigma_after": 0.02}
+    )
+    outs = call(mod, make_ins(pts, Epoch=tag), DISP)
+    core = estimate_slip(
+        pair.before.points,
+        pair.after.points,
+        fault_trace([pair.trace_xy]),
+        sigma_before=0.02,
+        sigma_after=0.02,
+    )
+    return mod, outs, core
+
+
+def test_displacement_summary_equals_core(slip_run):
+    mod, outs, core = slip_run
+    md = mod.out_metadata
+    summary = json.loads(md["children"][0]["value"])
+    assert summary == json.loads(json.dumps(core.to_dict()))
+    rls = {c["name"]: c["value"] for c in md["children"]}["right_lateral_slip"]
+    assert rls == pytest.approx(0.0181, abs=0.002)
+
+
+def test_displacement_per_point_dims(pair, slip_run):
+    _, outs, core = slip_run
+    from slipmap.core.fault import fault_geometry, side_masks
+
+    trace = fault_trace([pair.trace_xy])
+    nb = len(pair.before.points)
+    for key, cloud, off in (("before", pair.before.points, 0), ("after", pair.after.points, nb)):
+        left, right = side_masks(fault_geometry(cloud[:, :2], trace), buffer_m=10.0)
+        for side, mask in (("left", left), ("right", right)):
+            ps = getattr(getattr(core, side), "planes_" + key)
+            ix = off + np.flatnonzero(mask)
+            np.testing.assert_array_equal(outs["PlaneId"][ix], ps.labels)
+        buffer = off + np.flatnonzero(~(left | right))
+        assert (outs["PlaneId"][buffer] == -1).all()
+    on = outs["PlaneId"] >= 0
+    assert on.any()
+    assert np.isfinite(outs["Residual"][on]).all() and np.isnan(outs["Residual"][~on]).all()
+    assert np.abs(outs["Residual"][on]).max() < 0.5  # points lie near their planes
+    assert np.sqrt(np.mean(outs["Residual"][on] ** 2)) < 0.05
+
+
+def test_displacement_empty_view_and_other_epoch_name(pair):
+    mod = stage("displacement", {"trace": _trace_wkt(pair), "epoch_dimension": "Survey"})
+    outs = call(mod, make_ins(np.empty((0, 3)), Survey=[]), DISP)
+    assert outs["PlaneId"].dtype == np.int32 and outs["Residual"].shape == (0,)
+
+
+def test_displacement_multilinestring_wkt():
+    from slipmap.pdal_filters._stage import parse_wkt_lines
+
+    parts = parse_wkt_lines("MULTILINESTRING Z ((0 0 1, 0 10 1), (0 10 0, 5 20 0))")
+    assert [p.shape for p in parts] == [(2, 2), (2, 2)]
+    assert parse_wkt_lines("LINESTRING(1 2,3 4)")[0].tolist() == [[1, 2], [3, 4]]
+
+
+# --------------------------------------------------------------------------- bad options
+
+
+@pytest.mark.parametrize(
+    "name, args, match",
+    [
+        ("planes", {"min_plane_points": -3}, "min_plane_points"),
+        ("planes", {"bogus": 1}, "bogus"),
+        ("planes", {"backend": "cuda"}, "backend"),
+        ("planes", "{not json", "pdalargs"),
+        ("roughness", {"cell": 0}, "cell"),
+        ("roughness", {"cell": "abc"}, "cell"),
+        ("roughness", {"method": "lsq"}, "method"),
+        ("roughness", {"signed": "maybe"}, "signed"),
+        ("roughness", '{"cel": 1}', "cel"),
+        ("displacement", {}, "trace"),
+        ("displacement", {"trace": "LINESTRING (0 0, 1 1)", "buffer_m": -1}, "buffer_m"),
+        ("displacement", {"trace": "LINESTRING (0 0, 1 1)", "combine": "x"}, "combine"),
+        ("displacement", {"trace": "/no/such/file.gpkg"}, "trace"),
+        ("displacement", {"trace": "LINESTRING (0 0, 1 1)", "epoch_dimension": "E"}, "E"),
+    ],
+)
+def test_bad_options_name_the_option(name, args, match):
+    mod = stage(name, args)
+    pts = np.random.default_rng(0).uniform(0, 20, (500, 3))
+    with pytest.raises(StageError, match=match):
+        call(mod, make_ins(pts, Epoch=np.r_[np.ones(250), np.full(250, 2.0)]), {})
+
+
+def test_core_errors_become_stage_errors():
+    mod = stage("displacement", {"trace": "LINESTRING (1000 0, 1000 10)"})
+    pts = np.random.default_rng(0).uniform(0, 20, (500, 3))
+    with pytest.raises(StageError, match="slipmap displacement"):
+        call(mod, make_ins(pts, Epoch=np.r_[np.ones(250), np.full(250, 2.0)]), DISP)
+
+
+def test_options_parsed_once_per_raw_value(monkeypatch):
+    mod = stage("roughness", {"cell": 1.0})
+    table = mod.options_table()
+    a = table.parse('{"cell": 1}')
+    calls = []
+    monkeypatch.setattr(
+        "slipmap.pdal_filters._stage.load_pdalargs", lambda *a: calls.append(a) or {}
+    )
+    assert table.parse('{"cell": 1}') == a and not calls
+    table.parse({"cell": 2.0})  # another raw value: parsed again
+    assert len(calls) == 1
+
+
+def test_slipmap_path_makes_a_checkout_importable(tmp_path):
+    """Without slipmap installed, pdalargs slipmap_path (the package root) is enough."""
+    import subprocess
+    import sys
+    import textwrap
+
+    from pdal_harness import ROOT
+
+    code = textwrap.dedent(
+        f"""
+        import sys
+        sys.path[:] = [p for p in sys.path if 'site-packages' not in p and p not in ('', '.')]
+        sys.meta_path[:] = [f for f in sys.meta_path if 'editable' not in repr(f).lower()
+                            and 'editable' not in getattr(f, '__module__', '')]
+        import numpy  # noqa: F401  (found in the dist-packages of the system)
+        try:
+            import slipmap  # noqa: F401
+            raise SystemExit('slipmap still importable')
+        except ImportError:
+            pass
+        sys.path.insert(0, {str(ROOT / "tests" / "pdal_stages")!r})
+        from pdal_harness import load_stage, make_ins, call, STAGE_DIR
+        import numpy as np
+        mod = load_stage(STAGE_DIR / 'roughness.py', 'r', {{"slipmap_path": {str(ROOT)!r}}})
+        pts = np.random.default_rng(0).uniform(0, 5, (300, 3))
+        out = call(mod, make_ins(pts), {{"Roughness": np.dtype(np.float64)}})
+        print('ok', out['Roughness'].shape)
+        """
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    if "No module named 'numpy'" in r.stderr:
+        pytest.skip("numpy only in site-packages of this venv")
+    assert r.returncode == 0 and "ok (300,)" in r.stdout, r.stderr[-2000:]
