@@ -174,7 +174,8 @@ def _propagated_mobile(cloud, idx, pts, s, spec):
         scan = np.radians(np.asarray(cloud.attributes["ScanAngle"], dtype=np.float64)[idx])
     else:
         raise InputDataError(f"{cloud.source}: no ScanAngle dimension for the propagated model")
-    sig_pos = np.column_stack([acc["north_m"], acc["east_m"], acc["down_m"]])
+    # core.accuracy takes map-frame (x = east, y = north, z = up) position sigmas
+    sig_pos = np.column_stack([acc["east_m"], acc["north_m"], acc["down_m"]])
     sig_att = np.column_stack([acc["roll_rad"], acc["pitch_rad"], acc["heading_rad"]])
     cov = pa.georeferencing_covariance(
         platform_xyz=platform,

@@ -76,7 +76,9 @@ def effect(seeds: int) -> dict:
         north = after[:, 1] > ORIGIN[1] + 0.5 * fp.after.extent_m
         extra = np.where(north, 0.025, 0.005)
         after += rng.normal(size=after.shape) * extra[:, None] / np.sqrt(3)
-        true_sigma = np.sqrt(0.004**2 / 3 + (extra / np.sqrt(3)) ** 2)  # per axis, approx.
+        # the condition variance B C B^T is the variance along the normal: 4 mm (synthetic
+        # noise along the normal) plus one axis-share of the isotropic extra noise
+        true_sigma = np.sqrt(0.004**2 + extra**2 / 3)
         tr = fault_trace([fp.trace_xy])
         runs = {
             "constant": float(np.sqrt(np.mean(true_sigma**2))),
