@@ -43,8 +43,8 @@ def cost(n: int) -> dict:
     t0 = time.perf_counter()
     estimate_slip(fp.before.points, fp.after.points, tr, sigma_before=0.02, sigma_after=0.02)
     t_const = time.perf_counter() - t0
-    cb = np.broadcast_to(np.eye(3) * 0.02**2, (fp.before.points.shape[0], 3, 3))
-    ca = np.broadcast_to(np.eye(3) * 0.02**2, (fp.after.points.shape[0], 3, 3))
+    cb = np.tile(np.eye(3) * 0.02**2, (fp.before.points.shape[0], 1, 1))
+    ca = np.tile(np.eye(3) * 0.02**2, (fp.after.points.shape[0], 1, 1))
     t0 = time.perf_counter()
     estimate_slip(fp.before.points, fp.after.points, tr, sigma_before=cb, sigma_after=ca)
     t_pa = time.perf_counter() - t0

@@ -315,11 +315,33 @@ def register_side(
     )
 
 
+class _Rows:
+    """Rows of a per-point sigma array, selected lazily: masks compose on the index and the
+    one gather happens when the adjustment converts it with ``np.asarray``."""
+
+    def __init__(self, base: np.ndarray, idx: np.ndarray):
+        self.base, self.idx = base, idx
+
+    @property
+    def shape(self):
+        return (self.idx.size,) + self.base.shape[1:]
+
+    @property
+    def ndim(self):
+        return self.base.ndim
+
+    def __array__(self, dtype=None, copy=None):
+        out = np.take(self.base, self.idx, axis=0)
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+
 def _per_point(sig, mask: np.ndarray):
     """Subset per-point sigmas ((N, 3) or (N, 3, 3)) with ``mask``; scalars / (3,) pass."""
+    if isinstance(sig, _Rows):
+        return _Rows(sig.base, sig.idx[mask])
     a = np.asarray(sig, dtype=np.float64)
     if a.ndim == 3 or (a.ndim == 2 and a.shape[0] == mask.shape[0]):
-        return a[mask]
+        return _Rows(a, np.flatnonzero(mask) if mask.dtype == bool else np.asarray(mask))
     return a
 
 

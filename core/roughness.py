@@ -445,8 +445,18 @@ def _grid_geometry(
 
 
 def _cell_index(points: np.ndarray, origin: np.ndarray, c: float) -> np.ndarray:
-    """``floor((p - origin) / c)`` as int64, shape (n, 3)."""
-    return np.floor((points - origin) / c).astype(np.int64)
+    """``floor((p - origin) / c)`` as int64, shape (n, 3).
+
+    Column by column: long 1-D loops instead of a broadcast over rows of 3 (same values).
+    """
+    out = np.empty((points.shape[0], 3), dtype=np.int64)
+    q = np.empty(points.shape[0])
+    for k in range(3):
+        np.subtract(points[:, k], origin[k], out=q)
+        q /= c
+        np.floor(q, out=q)
+        out[:, k] = q
+    return out
 
 
 def _pack_index(ijk: np.ndarray, shape: Tuple[int, int, int]) -> np.ndarray:
@@ -506,6 +516,9 @@ def _ols_coefficients(cov: np.ndarray, a: int) -> np.ndarray:
 # --------------------------------------------------------------------------- the fast kernel
 
 
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
 class _Accumulator:
     def __init__(self) -> None:
         self.parts: Dict[str, list] = {
@@ -563,10 +576,17 @@ def _process_cells(
     r = np.take(points, idx, axis=0)
     r -= np.repeat(centre, counts, axis=0)
     s1 = np.add.reduceat(r, starts, axis=0)
-    s2 = np.add.reduceat((r[:, :, None] * r[:, None, :]).reshape(-1, 9), starts, axis=0)
+    prod = np.empty((r.shape[0], 6))  # the 6 distinct second moments, column by column
+    for j, (k, k2) in enumerate(_PAIRS):
+        np.multiply(r[:, k], r[:, k2], out=prod[:, j])
+    s2 = np.add.reduceat(prod, starts, axis=0)
+    del prod
     cnt = counts.astype(np.float64)
     mean = s1 / cnt[:, None]
-    cov = s2.reshape(m, 3, 3) / cnt[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    cov = np.empty((m, 3, 3))
+    for j, (k, k2) in enumerate(_PAIRS):
+        cov[:, k, k2] = s2[:, j] / cnt - mean[:, k] * mean[:, k2]
+        cov[:, k2, k] = cov[:, k, k2]
     evals, evecs = np.linalg.eigh(cov)
     normal = _orient(evecs[:, :, 0])
     degenerate = ~((evals[:, 1] > DEGENERATE_EIGEN_RATIO * evals[:, 2]) & (evals[:, 2] > 0))
