@@ -21,5 +21,17 @@ class SlipMapProvider(QgsProcessingProvider):
         return __version__
 
     def loadAlgorithms(self):  # noqa: N802 (QGIS API name)
-        # Filled by the QGIS Processing issue (#8).
-        return
+        # The algorithm modules import only qgis at load time: the provider loads without
+        # laspy/lazrs, and each algorithm's canExecute() then says how to install them.
+        from .algorithms.accuracy import PointAccuracyAlgorithm
+        from .algorithms.displacement import DisplacementAlgorithm
+        from .algorithms.planes import PlanesAlgorithm
+        from .algorithms.roughness import RoughnessAlgorithm
+
+        for cls in (
+            PlanesAlgorithm,
+            DisplacementAlgorithm,
+            RoughnessAlgorithm,
+            PointAccuracyAlgorithm,
+        ):
+            self.addAlgorithm(cls())

@@ -1,0 +1,115 @@
+"""Helpers shared by the SlipMap algorithms: base class, progress adapter, error wrapping."""
+
+from __future__ import annotations
+
+import contextlib
+
+from qgis.core import QgsProcessingAlgorithm, QgsProcessingException
+
+from ..compat import can_execute
+
+LAS_FILTER = "LAS/LAZ (*.las *.laz)"
+LAS_OUTPUT_FILTER = "LAS (*.las);;LAZ (*.laz)"
+PLANES_CITATION = (
+    "Method: octree subdivision and region growing of planar leaves "
+    "(Kusari, Glennie, Brooks and Ericksen 2019, Precise registration of laser mapping data "
+    "by planar feature extraction for deformation monitoring, IEEE TGRS 57(6), section II)."
+)
+
+
+def progress_callback(feedback):
+    """A SlipMap ``callback(fraction, message)`` that drives ``feedback`` and cancels.
+
+    Raises :class:`~slipmap.core.errors.CancelledError` as soon as ``feedback.isCanceled()``.
+    """
+    from ...core.errors import CancelledError
+
+    def callback(fraction, message=""):
+        if feedback is None:
+            return
+        if feedback.isCanceled():
+            raise CancelledError("cancelled by the user")
+        feedback.setProgress(100.0 * float(fraction))
+        if message:
+            feedback.setProgressText(str(message))
+
+    return callback
+
+
+@contextlib.contextmanager
+def slipmap_errors():
+    """Turn SlipMap errors into ``QgsProcessingException`` with the same message."""
+    from ...core.errors import CancelledError, SlipMapError
+
+    try:
+        yield
+    except CancelledError as exc:
+        raise QgsProcessingException(f"cancelled: {exc}") from exc
+    except SlipMapError as exc:
+        raise QgsProcessingException(str(exc)) from exc
+
+
+def optional_number(alg, parameters, name, context, integer=False):
+    """An optional numeric parameter, ``None`` when it is not set."""
+    value = parameters.get(name)
+    if value is None or value == "":
+        return None
+    if integer:
+        return alg.parameterAsInt(parameters, name, context)
+    return alg.parameterAsDouble(parameters, name, context)
+
+
+def select_points(cloud, exclude_ground):
+    """Indices of the points used, as the CLI's default: ground (class 2) left out."""
+    import numpy as np
+
+    cls = cloud.attributes.get("Classification")
+    if not exclude_ground or cls is None:
+        return np.arange(len(cloud))
+    return np.flatnonzero(np.asarray(cls) != 2)
+
+
+def read_cloud(path):
+    """``read_las`` with an empty file an error."""
+    from ...core.errors import InputDataError
+    from ...core.io.las import read_las
+
+    cloud = read_las(path)
+    if len(cloud) == 0:
+        raise InputDataError(f"{path}: the file has no points")
+    return cloud
+
+
+def write_json(path, payload):
+    import json
+
+    from ...core.io.atomic import write_text_atomic
+
+    write_text_atomic(path, json.dumps(payload, indent=2, default=str))
+
+
+class SlipMapAlgorithm(QgsProcessingAlgorithm):
+    """Base of the SlipMap algorithms: no state is kept on ``self`` between runs."""
+
+    _id = ""
+    _name = ""
+    _group = ""
+    _group_id = ""
+
+    def name(self):
+        return self._id
+
+    def displayName(self):  # noqa: N802 (QGIS API name)
+        return self._name
+
+    def group(self):
+        return self._group
+
+    def groupId(self):  # noqa: N802 (QGIS API name)
+        return self._group_id
+
+    def createInstance(self):  # noqa: N802 (QGIS API name)
+        return type(self)()
+
+    def canExecute(self):  # noqa: N802 (QGIS API name)
+        return can_execute()
