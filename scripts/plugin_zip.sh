@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Build an installable QGIS plugin zip: slipmap-<version>.zip holding the folder slipmap/ with
+# the tracked files of the plugin and package (no .git, __pycache__, tests, benchmarks, CI).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+version=$(sed -n 's/^version = "\(.*\)"/\1/p' pyproject.toml | head -1)
+out="slipmap-${version}.zip"
+stage=$(mktemp -d)
+trap 'rm -rf "$stage"' EXIT
+mkdir -p "$stage/slipmap"
+git ls-files | grep -vE '^(tests/|benchmarks/|\.ci/|\.gitignore$|Makefile$|scripts/|constraints.txt$)' \
+  | while read -r f; do mkdir -p "$stage/slipmap/$(dirname "$f")"; cp "$f" "$stage/slipmap/$f"; done
+rm -f "$out"
+python3 - "$stage" "$out" <<'PY'
+import os, sys, zipfile
+stage, out = sys.argv[1], sys.argv[2]
+with zipfile.ZipFile(out + ".tmp", "w", zipfile.ZIP_DEFLATED) as z:
+    for root, _, files in os.walk(stage):
+        for f in sorted(files):
+            p = os.path.join(root, f)
+            z.write(p, os.path.relpath(p, stage))
+os.replace(out + ".tmp", out)
+PY
+echo "wrote $out"
