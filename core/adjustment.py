@@ -54,6 +54,7 @@ from typing import List, Optional, Tuple
 import numpy as np
 
 from .errors import InputDataError, InvalidParameterError
+from .planes import orient_normals
 from .progress import ProgressCallback, report
 
 log = logging.getLogger(__name__)
@@ -175,15 +176,6 @@ def _logm_so3(r: np.ndarray) -> np.ndarray:
     if theta < 1e-8:
         return v
     return v * theta / math.sin(theta)
-
-
-def _orient(n: np.ndarray) -> np.ndarray:
-    """Flip (b, 3) normals to PlaneSet's convention: nz > 0; vertical ones +y, then +x."""
-    tol = 1e-12
-    key = np.where(
-        np.abs(n[:, 2]) > tol, n[:, 2], np.where(np.abs(n[:, 1]) > tol, n[:, 1], n[:, 0])
-    )
-    return np.where((key < 0)[:, None], -n, n)
 
 
 def _describe_direction(v: np.ndarray) -> str:
@@ -543,7 +535,7 @@ def _initial_planes(epochs, b):
         scat = np.where(few[:, None, None], both, scat)
         g = np.where(few[:, None], gc, g)
     _, vec = np.linalg.eigh(scat)
-    n = _orient(np.ascontiguousarray(vec[:, :, 0]))
+    n = orient_normals(np.ascontiguousarray(vec[:, :, 0]))
     d = -np.einsum("ij,ij->i", n, g)
     return n, d
 

@@ -395,13 +395,6 @@ def _adjust_labelled(
     return rigid, mean_res
 
 
-def _compact(labels: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """Renumber the labels in ``keep`` (sorted unique match ids) to 0..k-1, others -1."""
-    lut = np.full(int(labels.max(initial=-1)) + 2, -1, dtype=np.int64)
-    lut[keep] = np.arange(keep.size)
-    return lut[labels]
-
-
 def _merge_planesets(parts, n_points: int) -> PlaneSet:
     """One PlaneSet for a side from per-tile PlaneSets ``[(point_index, PlaneSet), ...]``."""
     labels = np.full(n_points, -1, dtype=np.int32)

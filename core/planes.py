@@ -328,7 +328,7 @@ def _validate_points(points: np.ndarray) -> Tuple[np.ndarray, Tuple[np.ndarray, 
     return pts, (lo, hi)
 
 
-def _orient(normals: np.ndarray) -> np.ndarray:
+def orient_normals(normals: np.ndarray) -> np.ndarray:
     """Flip normals to the convention: nz > 0; vertical ones towards +y, then +x."""
     n = normals.copy()
     tol = 1e-12
@@ -814,7 +814,7 @@ def _fit_planes(ps: np.ndarray, lab: np.ndarray, nplanes: int, centre: np.ndarra
         cov[:, a, b] = c
         cov[:, b, a] = c
     evals, evecs = np.linalg.eigh(cov)
-    normals = _orient(evecs[:, :, 0])
+    normals = orient_normals(evecs[:, :, 0])
     centroids = mean + centre
     ext_min = np.full((nplanes, 3), np.inf)
     ext_max = np.full((nplanes, 3), -np.inf)
