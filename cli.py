@@ -1200,20 +1200,14 @@ def _run_accuracy(args: argparse.Namespace) -> int:
     from .core.accuracy import covariance_to_sigmas, covariance_to_six
     from .core.io.atomic import check_not_input
     from .core.io.las import read_las, write_las
-    from .pointaccuracy import covariances
+    from .pointaccuracy import covariance_matrices
 
     check_not_input(args.out, [args.input])
     cloud = read_las(args.input)
     if len(cloud) == 0:
         raise SlipMapError(f"{cloud.source}: the file has no points")
     settings = _pa_settings(args)["before"]
-    cov = covariances(cloud, None, settings)
-    n = len(cloud)
-    cov = np.asarray(cov, dtype=np.float64)
-    if cov.ndim == 0:
-        cov = np.broadcast_to(np.eye(3) * float(cov) ** 2, (n, 3, 3))
-    elif cov.ndim == 1:
-        cov = np.broadcast_to(np.diag(cov**2), (n, 3, 3))
+    cov = covariance_matrices(cloud, None, settings)
     sig = covariance_to_sigmas(cov)
     extra = {"SigmaX": sig[:, 0], "SigmaY": sig[:, 1], "SigmaZ": sig[:, 2]}
     if args.full_covariance:

@@ -99,8 +99,9 @@ def _scanner(value):
 def covariances(cloud, index: Optional[np.ndarray], settings: Mapping[str, Any]):
     """Point accuracy of ``cloud.xyz[index]`` under ``settings``.
 
-    Returns a scalar σ (constant), a (3,) σ (axis) or an (n, 3, 3) covariance array, in the
-    forms ``core.adjustment.adjust_rigid`` accepts.
+    Returns a scalar σ (constant), a (3,) σ (axis), (n, 3) per-point σ (columns) or an
+    (n, 3, 3) covariance array (propagated), in the forms ``core.adjustment.adjust_rigid``
+    accepts.
     """
     from .core import accuracy as pa
 
@@ -121,8 +122,14 @@ def covariances(cloud, index: Optional[np.ndarray], settings: Mapping[str, Any])
                 f"{cloud.source}: no dimension(s) {missing} for --pa columns; write them with "
                 "`slipmap accuracy` or name the right ones with --sigma-columns"
             )
-        sx, sy, sz = (np.asarray(cloud.attributes[c], dtype=np.float64)[idx] for c in names)
-        return pa.columns_covariance(sx, sy, sz)
+        cols = [np.asarray(cloud.attributes[c], dtype=np.float64)[idx] for c in names]
+        for name, col in zip(names, cols):
+            if not np.all(np.isfinite(col) & (col > 0)):
+                raise InputDataError(
+                    f"{cloud.source}: dimension {name} (--pa columns) must hold sigmas > 0 "
+                    "in metres; it has zero, negative or NaN values"
+                )
+        return np.column_stack(cols)  # (n, 3) per-point sigmas: no (n, 3, 3) needed
     # propagated
     spec = _scanner(s.get("scanner"))
     pts = cloud.xyz[idx]
@@ -134,6 +141,20 @@ def covariances(cloud, index: Optional[np.ndarray], settings: Mapping[str, Any])
         cov, sensors = _propagated_mobile(cloud, idx, pts, s, spec)
     if s.get("footprint", True):
         cov = pa.total_covariance(cov, pa.footprint_covariance(pts, sensors, spec))
+    return cov
+
+
+def covariance_matrices(cloud, index: Optional[np.ndarray], settings: Mapping[str, Any]):
+    """:func:`covariances` as an (n, 3, 3) array (m²) whatever the model, for writing
+    SigmaX/Y/Z or the six covariance entries (CLI ``accuracy``, PDAL and QGIS stages)."""
+    cov = np.asarray(covariances(cloud, index, settings), dtype=np.float64)
+    n = len(cloud) if index is None else int(np.asarray(index).size)
+    if cov.ndim == 0:
+        return np.broadcast_to(np.eye(3) * float(cov) ** 2, (n, 3, 3))
+    if cov.ndim == 1:
+        return np.broadcast_to(np.diag(cov**2), (n, 3, 3))
+    if cov.ndim == 2:  # (n, 3) per-point sigmas
+        return cov[:, :, None] ** 2 * np.eye(3)
     return cov
 
 

@@ -59,7 +59,7 @@ from .progress import ProgressCallback, report
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RigidResult", "adjust_rigid", "adjust_rigid_dense"]
+__all__ = ["PackedCovariance", "RigidResult", "adjust_rigid", "adjust_rigid_dense"]
 
 WEAK_RATIO = 1e-3  # translation eigenvalue ratio below which a direction is weakly constrained
 SINGULAR_RATIO = 1e-6  # ... and below which it is unconstrained (singular system)
@@ -222,7 +222,9 @@ class _Epoch:
         self.g = np.stack([np.bincount(self.idx, x[:, k], b) / safe for k in range(3)], axis=1)
         x -= self.g[self.idx]
         self.u = x
-        self.var, self.cov = _parse_sigma(sigma, pts.shape[0], valid, self.all_valid, name)
+        self.var, self.cov, self.packed = _parse_sigma(
+            sigma, pts.shape[0], valid, self.all_valid, name
+        )
         self.U1 = self.U2 = None
         if self.var is not None:
             self.U1, self.U2 = _moments(self.idx, self.u, None, b)
@@ -249,14 +251,16 @@ class _Epoch:
         self.stale = False
 
     def _weighted_points(self, bvec: np.ndarray, b: int):
-        bj = bvec[self.idx]
-        if self.cov.ndim == 2:
-            s = np.einsum("ij,ij->i", bj * bj, self.cov)
+        if not self.packed:
+            s = np.einsum("ij,ij->i", bvec[self.idx] ** 2, self.cov)
         else:
-            c, b0, b1, b2 = self.cov, bj[:, 0], bj[:, 1], bj[:, 2]
-            # b C b^T of a symmetric C, term by term (a 3-operand einsum is much slower)
-            s = b0 * b0 * c[:, 0, 0] + b1 * b1 * c[:, 1, 1] + b2 * b2 * c[:, 2, 2]
-            s += 2.0 * (b0 * b1 * c[:, 0, 1] + b0 * b2 * c[:, 0, 2] + b1 * b2 * c[:, 1, 2])
+            # b C b^T of a symmetric C from its six packed rows, per plane first: the products
+            # of the plane's direction components are (b,) arrays, gathered once per term
+            b0, b1, b2 = bvec[:, 0], bvec[:, 1], bvec[:, 2]
+            terms = (b0 * b0, b1 * b1, b2 * b2, 2.0 * b0 * b1, 2.0 * b0 * b2, 2.0 * b1 * b2)
+            s = terms[0][self.idx] * self.cov[0]
+            for k in range(1, 6):
+                s += terms[k][self.idx] * self.cov[k]
         w = 1.0 / s
         s1, s2 = _moments(self.idx, self.u, w, b)
         return np.bincount(self.idx, w, b), s1, s2
@@ -274,34 +278,116 @@ def _moments(idx, u, w, b):
     return s1, s2
 
 
+_PACK_CHUNK = 1 << 15  # rows per validation chunk of PackedCovariance.from_array
+
+
+class PackedCovariance:
+    """Per-point 3x3 covariances packed as six contiguous rows, validated once.
+
+    ``rows`` is a C-contiguous (6, N) float64 array ``xx, yy, zz, xy, xz, yz`` (m²); row
+    selections (:meth:`take`) compose lazily and gather once, when the adjustment reads them.
+    The adjustment only needs ``b C b^T`` per condition, which six rows give with contiguous
+    reads, so per-point accuracy costs little more than a constant sigma.
+
+    Build one with :meth:`from_array` from an (N, 3, 3) covariance array or an (N, 6) array
+    of the six entries (SlipMap's ``CovXX .. CovYZ`` LAS dimensions in that order).
+    """
+
+    __slots__ = ("_rows", "_idx")
+
+    def __init__(self, rows: np.ndarray, idx: Optional[np.ndarray] = None):
+        self._rows = rows
+        self._idx = idx
+
+    @classmethod
+    def from_array(cls, cov, *, name: str = "sigma") -> PackedCovariance:
+        """Validate and pack ``cov``: (N, 3, 3) symmetric, or (N, 6) ``xx yy zz xy xz yz``."""
+        c = np.asarray(cov, dtype=np.float64)
+        if c.ndim == 3 and c.shape[1:] == (3, 3):
+            flat = c.reshape(c.shape[0], 9)
+            cols, lower_cols = [0, 4, 8, 1, 2, 5], [3, 6, 7]
+        elif c.ndim == 2 and c.shape[1] == 6:
+            flat, cols, lower_cols = c, list(range(6)), None
+        else:
+            raise InvalidParameterError(
+                f"{name} must be an (N, 3, 3) covariance array or (N, 6) packed covariances "
+                f"(xx, yy, zz, xy, xz, yz; m²); got shape {c.shape}"
+            )
+        n = flat.shape[0]
+        rows = np.empty((6, n))
+        # validate and transpose in cache-sized chunks: no full-size temporaries
+        for lo in range(0, n, _PACK_CHUNK):
+            six = np.take(flat[lo : lo + _PACK_CHUNK], cols, axis=1)
+            if not np.isfinite(six).all():
+                raise InvalidParameterError(f"{name} contains NaN or infinite values")
+            if np.any(six[:, :3] <= 0):
+                raise InvalidParameterError(f"{name}: covariance diagonals must be > 0 (m²)")
+            if lower_cols is not None:
+                lower = np.take(flat[lo : lo + _PACK_CHUNK], lower_cols, axis=1)
+                tol = 1e-12 * float(six[:, :3].max(initial=0.0))
+                if not np.all(np.abs(six[:, 3:] - lower) <= tol):
+                    raise InvalidParameterError(
+                        f"{name}: covariance matrices must be symmetric (and finite)"
+                    )
+            rows[:, lo : lo + _PACK_CHUNK] = six.T
+        return cls(rows)
+
+    def __len__(self) -> int:
+        return int(self._rows.shape[1] if self._idx is None else self._idx.size)
+
+    @property
+    def shape(self) -> Tuple[int, int]:
+        """``(N, 6)``, the number of points and packed entries."""
+        return (len(self), 6)
+
+    def take(self, rows) -> PackedCovariance:
+        """The covariances of points ``rows`` (int indices or a boolean mask), lazily."""
+        r = np.asarray(rows)
+        r = np.flatnonzero(r) if r.dtype == bool else r.astype(np.int64, copy=False)
+        return PackedCovariance(self._rows, r if self._idx is None else self._idx[r])
+
+    @property
+    def rows(self) -> np.ndarray:
+        """(6, N) contiguous rows ``xx, yy, zz, xy, xz, yz`` (gathered on first access)."""
+        if self._idx is not None:
+            self._rows, self._idx = np.take(self._rows, self._idx, axis=1), None
+        return self._rows
+
+    def matrices(self) -> np.ndarray:
+        """(N, 3, 3) covariance matrices."""
+        xx, yy, zz, xy, xz, yz = self.rows
+        return np.stack(
+            [np.stack([xx, xy, xz], 1), np.stack([xy, yy, yz], 1), np.stack([xz, yz, zz], 1)], 1
+        )
+
+
 def _parse_sigma(sigma, n, valid, all_valid, name):
-    """(var (3,), None) for scalar / per-axis sigma, (None, per-point array) otherwise."""
-    s = np.asarray(sigma, dtype=np.float64)
+    """``(var (3,), None, False)`` for a scalar / per-axis sigma, ``(None, (n, 3) variances,
+    False)`` for per-point sigmas, ``(None, (6, n) packed covariance rows, True)`` for
+    per-point covariances."""
     label = f"sigma_{name}"
-    if s.shape == (n, 3, 3):
-        flat = s.reshape(n, 9)
-        if not np.isfinite(flat).all():
-            raise InvalidParameterError(f"{label} contains NaN or infinite values")
-        diag = flat[:, [0, 4, 8]]
-        if np.any(diag <= 0):
-            raise InvalidParameterError(f"{label}: covariance diagonals must be > 0 (m²)")
-        if np.any(np.abs(flat[:, [1, 2, 5]] - flat[:, [3, 6, 7]]) > 1e-12 * float(diag.max())):
-            raise InvalidParameterError(f"{label}: covariance matrices must be symmetric")
-        return None, (s if all_valid else s[valid])
+    if isinstance(sigma, PackedCovariance):
+        if len(sigma) != n:
+            raise InvalidParameterError(f"{label} has {len(sigma)} covariances for {n} points")
+        return None, (sigma if all_valid else sigma.take(valid)).rows, True
+    s = np.asarray(sigma, dtype=np.float64)
+    if s.shape in ((n, 3, 3), (n, 6)):
+        return _parse_sigma(PackedCovariance.from_array(s, name=label), n, valid, all_valid, name)
     if not np.all(np.isfinite(s)):
         raise InvalidParameterError(f"{label} contains NaN or infinite values")
     if s.ndim == 0 or s.shape == (3,):
         if np.any(s <= 0):
             raise InvalidParameterError(f"{label} must be > 0 (metres), got {sigma!r}")
-        return np.broadcast_to(s * s, (3,)).astype(np.float64), None
+        return np.broadcast_to(s * s, (3,)).astype(np.float64), None, False
     if s.shape == (n, 3):
         if np.any(s <= 0):
             raise InvalidParameterError(f"{label}: per-point sigmas must be > 0 (metres)")
         v = s * s
-        return None, (v if all_valid else v[valid])
+        return None, (v if all_valid else v[valid]), False
     raise InvalidParameterError(
-        f"{label} must be a scalar, a (3,) per-axis sigma, an (N, 3) per-point sigma or an "
-        f"(N, 3, 3) covariance array with N = {n}; got shape {s.shape}"
+        f"{label} must be a scalar, a (3,) per-axis sigma, an (N, 3) per-point sigma, an "
+        f"(N, 3, 3) covariance array or (N, 6) packed covariances with N = {n}; got shape "
+        f"{s.shape}"
     )
 
 
@@ -447,10 +533,10 @@ def _step_dense(state: _State, epochs, active: np.ndarray, b: int):
         w = np.einsum("ij,ij->i", bmat, xa if not after else x) + state.d[idx]
         if ep.var is not None:
             cov = np.broadcast_to(np.diag(ep.var), (idx.size, 3, 3))
-        elif ep.cov.ndim == 2:
+        elif not ep.packed:
             cov = np.einsum("ij,jk->ijk", ep.cov[keep], np.eye(3))
         else:
-            cov = ep.cov[keep]
+            cov = PackedCovariance(ep.cov).take(keep).matrices()
         bcb = np.einsum("ij,ijk,ik->i", bmat, cov, bmat)  # B C B^T, one scalar per condition
         rows_a.append(a)
         ws.append(w)

@@ -20,7 +20,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from .adjustment import RigidResult, adjust_rigid
+from .adjustment import PackedCovariance, RigidResult, adjust_rigid
 from .errors import InputDataError, InvalidParameterError
 from .fault import FaultTrace, fault_geometry, mean_strike_rad, side_masks, trace_in_data_check
 from .matching import PlaneMatches, match_planes
@@ -335,12 +335,27 @@ class _Rows:
         return out if dtype is None else out.astype(dtype, copy=False)
 
 
+def _packed(sig, name: str):
+    """Per-point covariances ((N, 3, 3) or (N, 6)) validated and packed once; others pass."""
+    if isinstance(sig, (PackedCovariance, _Rows)):
+        return sig
+    a = np.asarray(sig)
+    if a.ndim == 3 or (a.ndim == 2 and a.shape[1] == 6):
+        return PackedCovariance.from_array(a, name=name)
+    return sig
+
+
 def _per_point(sig, mask: np.ndarray):
-    """Subset per-point sigmas ((N, 3) or (N, 3, 3)) with ``mask``; scalars / (3,) pass."""
+    """Subset per-point sigmas ((N, 3), (N, 3, 3), (N, 6) or packed) with ``mask``; scalars
+    and (3,) per-axis sigmas pass."""
+    if isinstance(sig, PackedCovariance):
+        return sig.take(mask)
     if isinstance(sig, _Rows):
         return _Rows(sig.base, sig.idx[mask])
     a = np.asarray(sig, dtype=np.float64)
-    if a.ndim == 3 or (a.ndim == 2 and a.shape[0] == mask.shape[0]):
+    if a.ndim == 3 or (a.ndim == 2 and a.shape[1] == 6):
+        return PackedCovariance.from_array(a).take(mask)
+    if a.ndim == 2 and a.shape[0] == mask.shape[0]:
         return _Rows(a, np.flatnonzero(mask) if mask.dtype == bool else np.asarray(mask))
     return a
 
@@ -679,6 +694,8 @@ def estimate_slip(
     if tile_size_m is not None:
         tile_size_m = _positive("tile_size_m", tile_size_m)
     _, _, masks = _side_points(before, after, trace, buffer_m)
+    sigma_before = _packed(sigma_before, "sigma_before")
+    sigma_after = _packed(sigma_after, "sigma_after")
 
     results = {}
     tiles: List[TileResult] = []
@@ -809,6 +826,8 @@ def strip_profile(
     """
     w = _positive("strip_width_m", strip_width_m)
     gb, ga, masks = _side_points(before, after, trace, buffer_m)
+    sigma_before = _packed(sigma_before, "sigma_before")
+    sigma_after = _packed(sigma_after, "sigma_after")
     ref_d, ref_c = slip.left.displacement, slip.left.displacement_covariance
     j = _strike_vector(slip)
     jobs = []
@@ -980,6 +999,8 @@ def window_field(
         raise InvalidParameterError(f"min_planes must be an integer >= 3, got {min_planes!r}")
     min_planes = int(min_planes)
     _, _, masks = _side_points(before, after, trace, buffer_m)
+    sigma_before = _packed(sigma_before, "sigma_before")
+    sigma_after = _packed(sigma_after, "sigma_after")
     opts = dict(plane_options or {})
 
     # planes once per side and epoch

@@ -76,22 +76,15 @@ class PointAccuracyAlgorithm(SlipMapAlgorithm):
             ]
         progress = progress_callback(feedback)
         with slipmap_errors():
-            import numpy as np
-
             from ...core.accuracy import covariance_to_sigmas
             from ...core.io.atomic import check_not_input
             from ...core.io.las import write_las
-            from ...pointaccuracy import covariances
+            from ...pointaccuracy import covariance_matrices
 
             check_not_input(out, [path])
             cloud = read_cloud(path)
             progress(0.2, "point accuracy")
-            cov = np.asarray(covariances(cloud, None, settings), dtype=np.float64)
-            n = len(cloud)
-            if cov.ndim == 0:
-                cov = np.broadcast_to(np.eye(3) * float(cov) ** 2, (n, 3, 3))
-            elif cov.ndim == 1:
-                cov = np.broadcast_to(np.diag(cov**2), (n, 3, 3))
+            cov = covariance_matrices(cloud, None, settings)
             sig = covariance_to_sigmas(cov)
             progress(0.5, "writing")
             extra = {"SigmaX": sig[:, 0], "SigmaY": sig[:, 1], "SigmaZ": sig[:, 2]}

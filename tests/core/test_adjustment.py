@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from slipmap.core.adjustment import adjust_rigid, adjust_rigid_dense
+from slipmap.core.adjustment import PackedCovariance, adjust_rigid, adjust_rigid_dense
 from slipmap.core.errors import InputDataError, InvalidParameterError
 
 OFFSET = np.array([500000.0, 4200000.0, 100.0])
@@ -242,3 +242,57 @@ def test_anisotropic_per_point_covariance_recovers_motion():
     err = res.displacement - _truth_at(res.centre, t)
     assert np.all(np.abs(err) < 4 * res.sigma[3:])
     assert res.variance_factor == pytest.approx(1.0, abs=0.15)
+
+
+def _random_spd(n, rng):
+    """(n, 3, 3) random symmetric positive-definite covariances (m²), full off-diagonals."""
+    g = rng.normal(size=(n, 3, 3)) * 0.01
+    return g @ g.transpose(0, 2, 1) + np.eye(3) * 1e-5
+
+
+def test_packed_covariance_forms_agree_with_matrices_and_dense():
+    rng = np.random.default_rng(21)
+    b, bl, a, al, *_ = make_problem(n_planes=6, n_per=80, seed=21)
+    bl = bl.copy()
+    bl[::17] = -1  # unused points: the packed rows must be subset like the points
+    cb, ca = _random_spd(b.shape[0], rng), _random_spd(a.shape[0], rng)
+    six = lambda c: c.reshape(-1, 9)[:, [0, 4, 8, 1, 2, 5]]  # noqa: E731
+    r_mat = adjust_rigid(b, bl, a, al, sigma_before=cb, sigma_after=ca)
+    r_six = adjust_rigid(b, bl, a, al, sigma_before=six(cb), sigma_after=six(ca))
+    r_pk = adjust_rigid(
+        b,
+        bl,
+        a,
+        al,
+        sigma_before=PackedCovariance.from_array(cb),
+        sigma_after=PackedCovariance.from_array(six(ca)),
+    )
+    r_dense = adjust_rigid_dense(b, bl, a, al, sigma_before=cb, sigma_after=ca)
+    for r in (r_six, r_pk, r_dense):
+        np.testing.assert_allclose(r.params, r_mat.params, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(r.covariance, r_mat.covariance, rtol=1e-6)
+
+
+def test_packed_covariance_take_matrices_and_errors():
+    rng = np.random.default_rng(3)
+    c = _random_spd(50, rng)
+    pk = PackedCovariance.from_array(c, name="sigma_after")
+    assert pk.shape == (50, 6) and len(pk) == 50
+    np.testing.assert_array_equal(pk.matrices(), c)
+    sub = pk.take(np.arange(50) % 3 == 0).take([1, 4])  # masks compose
+    np.testing.assert_array_equal(sub.matrices(), c[np.flatnonzero(np.arange(50) % 3 == 0)[[1, 4]]])
+    bad = c.copy()
+    bad[7, 0, 1] += 1e-3
+    with pytest.raises(InvalidParameterError, match="sigma_after.*symmetric"):
+        PackedCovariance.from_array(bad, name="sigma_after")
+    bad = c.copy()
+    bad[9, 2, 1] = np.nan
+    with pytest.raises(InvalidParameterError, match="sigma_after"):
+        PackedCovariance.from_array(bad, name="sigma_after")
+    bad = c.copy()
+    bad[3, 1, 1] = 0.0
+    with pytest.raises(InvalidParameterError, match="diagonals must be > 0"):
+        PackedCovariance.from_array(bad, name="sigma_after")
+    with pytest.raises(InvalidParameterError, match=r"\(N, 6\)"):
+        PackedCovariance.from_array(np.ones((5, 4)), name="sigma_after")
+    assert np.all(c[7] == pk.matrices()[7])  # the input was not modified
