@@ -27,7 +27,7 @@ from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-TYPES = ("float", "int", "bool", "str", "choice", "object")
+TYPES = ("float", "int", "bool", "str", "choice", "object", "vector3", "names")
 
 
 class StageError(RuntimeError):
@@ -136,6 +136,30 @@ class Option:
             if not isinstance(value, dict):
                 raise StageError(f"{where} must be a JSON object, got {value!r}")
             return dict(value)
+        if t == "vector3":
+            if isinstance(value, str):
+                text = value.strip()
+                try:
+                    value = json.loads(text) if text.startswith("[") else text.split(",")
+                except ValueError:
+                    raise StageError(f"{where} must be [x, y, z] numbers, got {value!r}") from None
+            try:
+                vec = [float(v) for v in value]
+            except (TypeError, ValueError):
+                raise StageError(f"{where} must be [x, y, z] numbers, got {value!r}") from None
+            if len(vec) != 3 or not all(math.isfinite(v) for v in vec):
+                raise StageError(f"{where} must be three finite numbers, got {value!r}")
+            if self.minimum is not None and min(vec) <= self.minimum:
+                raise StageError(f"{where} must all be > {self.minimum:g}, got {value!r}")
+            return vec
+        if t == "names":
+            items = value.split(",") if isinstance(value, str) else value
+            if not isinstance(items, (list, tuple)):
+                raise StageError(f"{where} must be a list of dimension names, got {value!r}")
+            names = [str(v).strip() for v in items]
+            if len(names) != 3 or not all(names):
+                raise StageError(f"{where} must name three dimensions, got {value!r}")
+            return names
         raise StageError(f"{where} has an unknown type {t!r}")  # pragma: no cover
 
     def default_text(self) -> str:
@@ -147,11 +171,17 @@ class Option:
             return "true" if self.default else "false"
         if isinstance(self.default, dict):
             return json.dumps(self.default)
+        if isinstance(self.default, (list, tuple)):
+            return ", ".join(str(v) for v in self.default)
         return str(self.default)
 
     def type_text(self) -> str:
         if self.type == "choice":
             return " \\| ".join(self.choices)
+        if self.type == "vector3":
+            return "[x, y, z]"
+        if self.type == "names":
+            return "3 names"
         return self.type
 
 

@@ -106,6 +106,13 @@ def options_table():
                 exclusive=True,
             ),
             Option(
+                "sigma_dimensions",
+                "names",
+                None,
+                "Per-point σ dimensions (m), e.g. `SigmaX,SigmaY,SigmaZ` from the accuracy "
+                "stage; when set they replace `sigma_before`/`sigma_after`.",
+            ),
+            Option(
                 "tile_size_m",
                 "float",
                 None,
@@ -194,13 +201,24 @@ def run(ins, outs):
     try:
         trace = _trace(opts, _stage)
         before, after = pts[idx["before"]], pts[idx["after"]]
+        sigma = {"before": opts["sigma_before"], "after": opts["sigma_after"]}
+        names = opts["sigma_dimensions"]
+        if names is not None:
+            missing = [d for d in names if d not in ins]
+            if missing:
+                raise _stage.StageError(
+                    f"{STAGE}: option 'sigma_dimensions': the view has no {missing} "
+                    "dimension(s); add them with the slipmap accuracy stage before this one"
+                )
+            per_point = np.column_stack([np.asarray(ins[d], dtype=np.float64) for d in names])
+            sigma = {key: per_point[ix] for key, ix in idx.items()}
         res = estimate_slip(
             before,
             after,
             trace,
             buffer_m=opts["buffer_m"],
-            sigma_before=opts["sigma_before"],
-            sigma_after=opts["sigma_after"],
+            sigma_before=sigma["before"],
+            sigma_after=sigma["after"],
             plane_options=opts["plane_options"] or None,
             match_options=opts["match_options"] or None,
             tile_size_m=opts["tile_size_m"],

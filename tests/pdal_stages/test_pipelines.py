@@ -42,9 +42,14 @@ PDAL_STAGES = {
 PIPELINES = sorted(PIPELINE_DIR.glob("*.json"))
 
 
-def test_three_pipelines_exist():
+def test_four_pipelines_exist():
     names = {p.stem for p in PIPELINES}
-    assert {"planes_buildings", "roughness_outcrop", "displacement_fault"} <= names
+    assert {
+        "planes_buildings",
+        "roughness_outcrop",
+        "accuracy_propagation",
+        "displacement_fault",
+    } <= names
 
 
 @pytest.mark.parametrize("path", PIPELINES, ids=lambda p: p.stem)
@@ -66,9 +71,10 @@ def test_pipeline_is_consistent(path):
         mod = load_stage(script, s["module"], s.get("pdalargs"))
         assert callable(getattr(mod, s["function"]))
         declared = parse_add_dimension(s.get("add_dimension"))
-        written = {k: np.dtype(v) for k, v in mod.OUTPUTS.items()}
+        opts = mod.options_table().parse(s.get("pdalargs"))  # the example options are valid
+        outputs = mod.outputs(opts) if hasattr(mod, "outputs") else mod.OUTPUTS
+        written = {k: np.dtype(v) for k, v in outputs.items()}
         assert declared == written
-        mod.options_table().parse(s.get("pdalargs"))  # the example options are valid
     for s in stages:
         if s["type"] == "writers.las":
             assert s.get("extra_dims") == "all" and s.get("forward") == "all"
@@ -133,6 +139,7 @@ def test_pipelines_with_real_pdal(tmp_path, monkeypatch):
     files = {
         "INPUT_buildings.laz": tmp_path / "b.las",
         "INPUT_outcrop.laz": tmp_path / "b.las",
+        "INPUT_mls_epoch.laz": tmp_path / "b.las",
         "INPUT_epoch1.laz": tmp_path / "e1.las",
         "INPUT_epoch2.laz": tmp_path / "e2.las",
     }
@@ -146,6 +153,14 @@ def test_pipelines_with_real_pdal(tmp_path, monkeypatch):
                 s["filename"] = str(tmp_path / s["filename"])
             if s["type"] == "filters.python":
                 s["pdalargs"]["slipmap_path"] = str(ROOT)
+                if s["module"] == "slipmap_accuracy":  # no GpsTime here: the static model
+                    s["pdalargs"] = {
+                        "model": "propagated",
+                        "scanner": "riegl-vz400",
+                        "scanner_position": [origin[0] + 30.0, origin[1] - 20.0, 15.0],
+                        "full_covariance": True,
+                        "slipmap_path": str(ROOT),
+                    }
                 if "trace" in s["pdalargs"]:
                     s["pdalargs"]["trace"] = f"LINESTRING ({x0:.6f} {y0:.6f}, {x1:.6f} {y1:.6f})"
             if s["type"] == "filters.smrf":  # synthetic scene: ground is class 1, keep all
@@ -153,12 +168,12 @@ def test_pipelines_with_real_pdal(tmp_path, monkeypatch):
         pipeline = pdal.Pipeline(json.dumps(doc))
         assert pipeline.execute() > 0, path.name
         arr = pipeline.arrays[0]
-        for name in ("PlaneId", "Planarity", "Roughness", "Residual"):
+        for name in ("PlaneId", "Planarity", "Roughness", "Residual", "SigmaX", "CovYZ"):
             if name in arr.dtype.names:
                 assert arr[name].shape == (len(arr),)
 
 
-@pytest.mark.parametrize("name", ["planes", "roughness", "displacement"])
+@pytest.mark.parametrize("name", ["planes", "roughness", "accuracy", "displacement"])
 def test_docs_tables_match_option_tables(name):
     doc = (ROOT / "docs" / "pdal.md").read_text()
     mod = load_stage(ROOT / "pdal_filters" / f"{name}.py", f"slipmap_{name}", {})
