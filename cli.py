@@ -1240,6 +1240,8 @@ def _accuracy_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import cli_fields  # noqa: F401  (registers piv, icp, dem-diff, strain, synth-lobe)
+
     parser = argparse.ArgumentParser(
         prog="slipmap",
         description="Fault slip, displacement fields and roughness from repeat LiDAR surveys.",

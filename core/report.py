@@ -17,7 +17,10 @@ from .io.atomic import PathLike, atomic_path
 
 __all__ = [
     "plot_normals_polar",
+    "hillshade",
     "plot_plane_residual_polar",
+    "plot_raster_panels",
+    "plot_vector_field",
     "plot_residual_histograms",
     "plot_roughness_histograms",
     "plot_roughness_map",
@@ -364,4 +367,137 @@ def plot_plane_residual_polar(
         ax.scatter(az[ok & flat], np.abs(r[ok & flat]), c="0.6", s=14)
         ax.set_title(f"{name}: |mean residual| (mm); red > 0, blue < 0", fontsize=8)
     fig.suptitle(title, fontsize=9)
+    return _save(fig, path, dpi)
+
+
+def hillshade(
+    z: np.ndarray, *, cell_m: float, azimuth_deg: float = 315.0, altitude_deg: float = 45.0
+):
+    """Hillshade in [0, 1] of a north-up elevation grid (row 0 = north); NaN stays NaN.
+
+    Parameters
+    ----------
+    z : (rows, cols) float64
+        Elevations, metres.
+    cell_m : float
+        Cell size, metres.
+    azimuth_deg, altitude_deg : float
+        Sun azimuth (clockwise from north) and altitude, degrees.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    if z.ndim != 2 or min(z.shape) < 2:
+        return np.full(z.shape, np.nan)
+    dzdy_rows, dzdx = np.gradient(z, cell_m)
+    dzdy = -dzdy_rows  # rows run south
+    az, alt = np.radians(azimuth_deg), np.radians(altitude_deg)
+    # surface normal (-dz/dx, -dz/dy, 1) against the sun direction (east, north, up)
+    sun = np.array([np.sin(az) * np.cos(alt), np.cos(az) * np.cos(alt), np.sin(alt)])
+    norm = np.sqrt(dzdx**2 + dzdy**2 + 1.0)
+    return np.clip((-dzdx * sun[0] - dzdy * sun[1] + sun[2]) / norm, 0.0, 1.0)
+
+
+def plot_vector_field(
+    path: PathLike,
+    *,
+    x: np.ndarray,
+    y: np.ndarray,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    valid: np.ndarray | None = None,
+    background: np.ndarray | None = None,
+    extent: Tuple[float, float, float, float] | None = None,
+    colour: np.ndarray | None = None,
+    colour_label: str = "dz (m)",
+    title: str | None = None,
+    dpi: int = 150,
+) -> Path:
+    """Quiver plot of horizontal displacements over a grey background (e.g. a hillshade).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output PNG.
+    x, y, dx, dy : (M,) float64
+        Vector positions and components (metres, map coordinates); NaN vectors are skipped.
+    valid : (M,) bool, optional
+        False vectors (replaced / interpolated) are drawn in orange.
+    background : (rows, cols) float64, optional
+        Raster drawn in grey under the vectors (row 0 at the top), with ``extent``.
+    extent : (left, right, bottom, top), optional
+    colour : (M,) float64, optional
+        Colours valid vectors by this value (e.g. dz) with a diverging ramp.
+    """
+    x, y, dx, dy = (np.asarray(a, dtype=np.float64).ravel() for a in (x, y, dx, dy))
+    ok = np.isfinite(dx) & np.isfinite(dy) & np.isfinite(x) & np.isfinite(y)
+    v = np.ones_like(ok) if valid is None else np.asarray(valid, dtype=bool).ravel()
+    fig = _figure(8.0, 7.0)
+    ax = fig.add_subplot(1, 1, 1)
+    if background is not None and extent is not None:
+        ax.imshow(np.ma.masked_invalid(background), extent=extent, cmap="gray", vmin=0, vmax=1)
+    mag = np.hypot(dx[ok], dy[ok])
+    scale = None
+    if mag.size and np.nanmax(mag) > 0:
+        # the longest arrow spans about two vector spacings
+        span = max(np.ptp(x[ok]) if ok.any() else 1.0, np.ptp(y[ok]) if ok.any() else 1.0, 1e-9)
+        spacing = span / max(np.sqrt(ok.sum()), 1.0)
+        scale = float(np.nanpercentile(mag, 99)) / (2.0 * spacing) or None
+    good, bad = ok & v, ok & ~v
+    kw = dict(angles="xy", scale_units="xy", scale=scale, width=0.003)
+    if colour is not None and good.any():
+        c = np.asarray(colour, dtype=np.float64).ravel()[good]
+        lim = float(np.nanmax(np.abs(c))) if np.isfinite(c).any() else 1.0
+        q = ax.quiver(
+            x[good], y[good], dx[good], dy[good], c, cmap="RdBu_r", clim=(-lim, lim), **kw
+        )
+        fig.colorbar(q, ax=ax, label=colour_label, shrink=0.8)
+    elif good.any():
+        ax.quiver(x[good], y[good], dx[good], dy[good], color="tab:blue", **kw)
+    if bad.any():
+        ax.quiver(x[bad], y[bad], dx[bad], dy[bad], color="tab:orange", label="replaced", **kw)
+        ax.legend(loc="upper right", fontsize=8)
+    if mag.size:
+        ax.set_xlabel(f"x (m) - median |d| {np.median(mag):.3f} m, max {np.max(mag):.3f} m")
+    else:
+        ax.set_xlabel("x (m) - no vectors")
+    ax.set_ylabel("y (m)")
+    ax.set_aspect("equal")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    if title:
+        ax.set_title(title)
+    return _save(fig, path, dpi)
+
+
+def plot_raster_panels(
+    path: PathLike,
+    panels: Mapping[str, np.ndarray],
+    *,
+    extent: Tuple[float, float, float, float],
+    diverging: Sequence[str] = (),
+    title: str | None = None,
+    columns: int = 3,
+    dpi: int = 130,
+) -> Path:
+    """A grid of raster maps (e.g. strain bands); ``diverging`` panels use a symmetric
+    blue-red ramp centred on 0, the others viridis. NaN is drawn white."""
+    if not panels:
+        raise InvalidParameterError("plot_raster_panels: give at least one panel")
+    n = len(panels)
+    cols = min(columns, n)
+    rows = int(np.ceil(n / cols))
+    fig = _figure(4.2 * cols, 3.8 * rows)
+    for i, (name, raster) in enumerate(panels.items()):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        data = np.ma.masked_invalid(np.asarray(raster, dtype=np.float64))
+        if name in diverging:
+            lim = float(np.ma.max(np.abs(data))) if data.count() else 1.0
+            im = ax.imshow(data, extent=extent, cmap="RdBu_r", vmin=-lim, vmax=lim)
+        else:
+            im = ax.imshow(data, extent=extent, cmap="viridis")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+        ax.set_title(name, fontsize=10)
+        ax.set_aspect("equal")
+        ax.ticklabel_format(useOffset=False, style="plain")
+        ax.tick_params(labelsize=7)
+    if title:
+        fig.suptitle(title)
     return _save(fig, path, dpi)

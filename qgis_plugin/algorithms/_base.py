@@ -113,3 +113,40 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
 
     def canExecute(self):  # noqa: N802 (QGIS API name)
         return can_execute()
+
+
+# --------------------------------------------------------------------------- styles
+
+#: post-processors must outlive processAlgorithm (QGIS keeps only a C++ pointer)
+_POST_PROCESSORS = []
+
+
+def style_path(name):
+    """Path of a bundled QML style ``qgis_plugin/styles/<name>.qml`` (None when missing)."""
+    from pathlib import Path
+
+    p = Path(__file__).resolve().parents[1] / "styles" / f"{name}.qml"
+    return str(p) if p.is_file() else None
+
+
+def apply_style_on_load(context, output, style_name):
+    """Style ``output`` (an output layer path or id) with a bundled QML when QGIS loads it.
+
+    Does nothing when the output is not loaded on completion (e.g. ``processing.run`` from a
+    script) or the style is missing; never fails the algorithm.
+    """
+    from qgis.core import QgsProcessingLayerPostProcessorInterface
+
+    qml = style_path(style_name)
+    if qml is None or not context.willLoadLayerOnCompletion(output):
+        return
+
+    class _Style(QgsProcessingLayerPostProcessorInterface):
+        def postProcessLayer(self, layer, context, feedback):  # noqa: N802 (QGIS API name)
+            if layer is not None and layer.isValid():
+                layer.loadNamedStyle(qml)
+                layer.triggerRepaint()
+
+    post = _Style()
+    _POST_PROCESSORS.append(post)
+    context.layerToLoadOnCompletionDetails(output).setPostProcessor(post)

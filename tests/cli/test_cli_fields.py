@@ -1,0 +1,141 @@
+"""``slipmap synth-lobe``, ``dem-diff``, ``strain``, ``piv``, ``icp``: outputs against the core."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slipmap.cli import main
+from slipmap.core.io.las import read_las
+from slipmap.core.io.table import read_csv_columns, write_csv_columns
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+LONE = DATA / "lone-star.laz"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _module_logging():
+    logging.getLogger("slipmap").handlers.clear()
+    yield
+    logging.getLogger("slipmap").handlers.clear()
+
+
+@pytest.fixture(scope="module")
+def lobe(tmp_path_factory):
+    """lone-star with the study's lobe (-1 m north, -0.4 m up) injected, via the CLI."""
+    out = tmp_path_factory.mktemp("lobe")
+    assert main(["-q", "synth-lobe", str(LONE), "--out", str(out), "--seed", "3"]) == 0
+    return out
+
+
+def test_synth_lobe_outputs_match_the_field(lobe):
+    from slipmap.core.synthetic import LobeField
+
+    src = read_las(LONE)
+    b, a = read_las(lobe / "before.laz"), read_las(lobe / "after.laz")
+    assert len(b) + len(a) == len(src) and abs(len(b) - len(a)) <= 1
+    info = json.loads((lobe / "lobe.json").read_text())
+    field = LobeField(
+        centre_xy=tuple(info["centre_xy"]),
+        radius_x_m=info["radius_x_m"],
+        radius_y_m=info["radius_y_m"],
+        azimuth_deg=info["azimuth_deg"],
+        max_d_m=tuple(info["max_d_m"]),
+    )
+    # before points are original points; each after point is an original point + field(xy)
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(src.xyz).query(b.xyz)
+    assert dist.max() < 1e-6
+    moved_back = a.xyz - field(a.xyz[:, :2])  # field at the displaced xy ~ at the original
+    dist, idx = cKDTree(src.xyz).query(moved_back)
+    assert np.median(dist) < 1e-3  # LAS quantisation (0.25 mm) + field gradient x |d|
+    truth = read_csv_columns(lobe / "truth.csv", required=("x", "y", "dx", "dy", "dz"))
+    d = field(np.column_stack([truth["x"], truth["y"]]))
+    np.testing.assert_allclose(np.column_stack([truth["dx"], truth["dy"], truth["dz"]]), d)
+    assert truth["dy"].min() == pytest.approx(-1.0, abs=0.02)
+
+
+def test_dem_diff_equals_core(lobe, tmp_path):
+    from slipmap.core.dem import dem_difference
+    from slipmap.core.io.raster import read_geotiff
+
+    rc = main(
+        [
+            "-q",
+            "dem-diff",
+            str(lobe / "before.laz"),
+            str(lobe / "after.laz"),
+            "--grid",
+            "0.5",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    assert rc == 0
+    arr, gt, _ = read_geotiff(tmp_path / "dem_diff.tif")
+    core = dem_difference(
+        read_las(lobe / "before.laz").xyz, read_las(lobe / "after.laz").xyz, cell_m=0.5
+    )
+    np.testing.assert_array_equal(arr[0], core.dz)
+    assert gt == (core.grid.x_min, 0.5, 0.0, core.grid.y_max, 0.0, -0.5)
+    summary = json.loads((tmp_path / "dem_diff.json").read_text())
+    assert summary["dz_m"]["n"] == core.n_valid
+    assert (tmp_path / "dem_diff.png").stat().st_size > 1000
+
+
+def test_strain_of_a_uniform_shear_csv_is_analytic(tmp_path):
+    gamma = 2e-3
+    x, y = np.meshgrid(500000.0 + np.arange(12) * 2.0, 4200000.0 + np.arange(9) * 2.0)
+    dx = gamma * (y - 4200000.0)
+    keep = np.ones(x.shape, bool)
+    keep[4, 5] = keep[0, 0] = False  # gaps
+    write_csv_columns(
+        tmp_path / "field.csv",
+        {"x": x[keep], "y": y[keep], "dx": dx[keep], "dy": np.zeros(keep.sum())},
+    )
+    out = tmp_path / "s"
+    assert (
+        main(
+            ["-q", "strain", str(tmp_path / "field.csv"), "--out", str(out), "--crs", "EPSG:32612"]
+        )
+        == 0
+    )
+    from slipmap.core.io.raster import band_names, read_geotiff
+
+    arr, gt, wkt = read_geotiff(out / "strain.tif")
+    names = band_names(out / "strain.tif")
+    bands = dict(zip(names, arr))
+    ok = np.isfinite(bands["exy"])
+    assert ok.sum() == keep.sum()
+    np.testing.assert_allclose(bands["exy"][ok], gamma / 2, rtol=1e-9)
+    np.testing.assert_allclose(bands["rotation_rad"][ok], -gamma / 2, rtol=1e-9)
+    np.testing.assert_allclose(bands["max_shear"][ok], gamma / 2, rtol=1e-9)
+    np.testing.assert_allclose(bands["dilatation"][ok], 0, atol=1e-12)
+    assert gt[1] == 2.0 and gt[5] == -2.0 and "32612" in wkt
+
+
+def test_strain_from_two_band_geotiff_and_bad_inputs(tmp_path, capsys):
+    from slipmap.core.io.raster import write_geotiff
+
+    yy, xx = np.mgrid[0:6, 0:7].astype(float)
+    # north-up: row 0 is north, so y = -row * 1 m; u = 1e-3 x -> exx = 1e-3
+    write_geotiff(
+        tmp_path / "d.tif", np.stack([1e-3 * xx, 0 * xx]), origin_xy=(0.0, 6.0), pixel_size_m=1.0
+    )
+    assert main(["-q", "strain", str(tmp_path / "d.tif"), "--out", str(tmp_path / "o")]) == 0
+    from slipmap.core.io.raster import band_names, read_geotiff
+
+    arr, _, _ = read_geotiff(tmp_path / "o" / "strain.tif")
+    bands = dict(zip(band_names(tmp_path / "o" / "strain.tif"), arr))
+    np.testing.assert_allclose(bands["exx"], 1e-3, rtol=1e-9)
+    write_geotiff(tmp_path / "one.tif", xx, origin_xy=(0.0, 6.0), pixel_size_m=1.0)
+    assert main(["strain", str(tmp_path / "one.tif"), "--out", str(tmp_path / "p")]) == 2
+    assert "--dy" in capsys.readouterr().err
+    (tmp_path / "f.csv").write_text("x,y,dx\n1,2,3\n")
+    assert main(["strain", str(tmp_path / "f.csv"), "--out", str(tmp_path / "q")]) == 2
+    assert "dy" in capsys.readouterr().err
