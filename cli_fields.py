@@ -295,6 +295,162 @@ def _windows(args) -> list:
     return w
 
 
+# --------------------------------------------------------------------------- icp
+
+
+def _cell_polygons(res) -> list:
+    x0, y0 = res.origin_xy
+    s = res.cell_m
+    out = []
+    for r, c in zip(res.row.tolist(), res.col.tolist()):
+        left, top = x0 + c * s, y0 - r * s
+        out.append(np.array([[left, top], [left + s, top], [left + s, top - s], [left, top - s]]))
+    return out
+
+
+@command("icp", "3D displacement field by windowed point-to-plane ICP (Aryal et al., 3.2.2)")
+def _run_icp(args: argparse.Namespace) -> int:
+    from .core.icp import windowed_icp
+    from .core.io.table import write_csv_columns
+    from .core.io.vector import VectorLayer, read_polygons, write_gpkg_layers
+
+    out = Path(args.out)
+    _check_output_dir(out)
+    before, after, crs = _read_pair(args)
+    exclude = None
+    if args.stable_mask:
+        exclude = read_polygons(args.stable_mask, target_crs=crs)
+    with _ProgressBar("icp", enabled=not args.no_progress) as bar:
+        res = windowed_icp(
+            before,
+            after,
+            cell_m=args.cell,
+            buffer_m=args.buffer,
+            min_points=args.min_points,
+            prealign=bool(exclude) or args.prealign,
+            exclude_polygons=exclude,
+            progress=bar,
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    cols = res.to_columns()
+    files = [write_csv_columns(out / "icp.csv", cols).name]
+    mag = np.hypot(res.dx, res.dy)
+    az = np.degrees(np.arctan2(res.dx, res.dy)) % 360.0
+    fields = {k: np.asarray(v) for k, v in cols.items() if k not in ("row", "col")}
+    fields.update({"magnitude": mag, "azimuth_deg": az})
+    write_gpkg_layers(
+        out / "icp.gpkg",
+        [
+            VectorLayer("cells", "Polygon", _cell_polygons(res), fields),
+            VectorLayer(
+                "vectors",
+                "LineString",
+                [
+                    np.array([[x, y], [x + dx, y + dy]])
+                    for x, y, dx, dy in zip(res.x, res.y, res.dx, res.dy)
+                ],
+                fields,
+            ),
+        ],
+        crs=crs,
+    )
+    files.append("icp.gpkg")
+    bands = ["dx", "dy", "dz", "sigma_dx", "sigma_dy", "sigma_dz", "rmse", "n"]
+    files.append(
+        _tif(
+            out / "icp.tif",
+            np.stack([res.to_grid(b) for b in bands]),
+            origin_xy=res.origin_xy,
+            pixel_m=res.cell_m,
+            crs=crs,
+            names=bands,
+            metadata={"method": "windowed point-to-plane ICP", "cell_m": f"{res.cell_m:g}"},
+        )
+    )
+    if _have_matplotlib():
+        from .core.dem import common_grid, grid_elevation
+        from .core.report import hillshade, plot_vector_field
+
+        cell = max(res.cell_m / 20.0, 0.05)
+        grid = common_grid(before, cell_m=cell, overlap="union")
+        x0, y0 = grid.origin_xy
+        extent = (x0, x0 + grid.n_cols * cell, y0 - grid.n_rows * cell, y0)
+        plot_vector_field(
+            out / "icp.png",
+            x=res.x,
+            y=res.y,
+            dx=res.dx,
+            dy=res.dy,
+            colour=res.dz,
+            background=hillshade(grid_elevation(before, grid=grid), cell_m=cell),
+            extent=extent,
+            title=f"windowed ICP, {res.cell_m:g} m cells",
+        )
+        files.append("icp.png")
+    summary = {
+        "command": "icp",
+        "before": str(args.before),
+        "after": str(args.after),
+        "cell_m": res.cell_m,
+        "n_cells": len(res),
+        "skipped": dict(res.skipped),
+        "converged": int(np.count_nonzero(res.converged)),
+        "horizontal_m": _finite_stats(mag),
+        "dz_m": _finite_stats(res.dz),
+        "sigma_horizontal_m": _finite_stats(np.hypot(res.sigma_dx, res.sigma_dy)),
+        "rmse_m": _finite_stats(res.rmse),
+        "prealignment": None
+        if res.prealignment is None
+        else {
+            "translation_m": np.asarray(res.prealignment.translation).tolist(),
+            "rmse_m": float(res.prealignment.rmse_m),
+        },
+        "control": _control(args, res.x, res.y, res.dx, res.dy, res.dz, spacing_m=res.cell_m),
+        "seconds": res.seconds,
+        "files": files,
+    }
+    _write_json(out / "icp.json", _json_safe(summary))
+    log.info(
+        "ICP: %d cells (%s skipped), median horizontal %.4f m, median sigma %.4f m; wrote %s",
+        len(res),
+        sum(res.skipped.values()),
+        summary["horizontal_m"].get("median", float("nan")),
+        summary["sigma_horizontal_m"].get("median", float("nan")),
+        out,
+    )
+    return 0
+
+
+@_run_icp.arguments
+def _icp_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("before", help="first-epoch LAS/LAZ")
+    p.add_argument("after", help="second-epoch LAS/LAZ")
+    p.add_argument(
+        "--cell", type=_positive(float, "--cell"), default=5.0, help="cell size (m; default 5)"
+    )
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument(
+        "--buffer",
+        type=float,
+        default=None,
+        help="epoch-1 points this far around each cell are used (m; default half a cell)",
+    )
+    p.add_argument(
+        "--min-points", type=int, default=100, help="cells with fewer points are skipped"
+    )
+    p.add_argument(
+        "--stable-mask",
+        help="polygon file of the MOVING area: epoch 2 is first aligned on the points "
+        "outside it (the study's masked global alignment)",
+    )
+    p.add_argument(
+        "--prealign", action="store_true", help="global ICP pre-alignment on all points first"
+    )
+    p.add_argument("--control", help="CSV of control points x,y,dx,dy[,dz] to compare with")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_field_selection(p)
+
+
 # --------------------------------------------------------------------------- dem-diff
 
 

@@ -30,7 +30,13 @@ from .crs import parse_crs
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["VectorLayer", "read_fault_trace", "read_gpkg_layer", "write_gpkg_layers"]
+__all__ = [
+    "VectorLayer",
+    "read_fault_trace",
+    "read_gpkg_layer",
+    "read_polygons",
+    "write_gpkg_layers",
+]
 
 _INSTALL_HINT = (
     "install python3-gdal (Debian/Ubuntu) or 'gdal' from conda-forge (GDAL's Python bindings, "
@@ -87,22 +93,25 @@ def _line_parts(geom, ogr) -> Optional[List[np.ndarray]]:
     return None
 
 
-def _pick_layer(ds, layer: Union[str, int, None], ogr, path: Path):
+def _pick_layer(ds, layer: Union[str, int, None], ogr, path: Path, polygons: bool = False):
     count = ds.GetLayerCount()
     if count == 0:
         raise InputDataError(f"vector file {str(path)!r} has no layers")
     if layer is None:
         if count == 1:
             return ds.GetLayer(0)
-        line_types = (ogr.wkbLineString, ogr.wkbMultiLineString)
+        if polygons:
+            types, kind = (ogr.wkbPolygon, ogr.wkbMultiPolygon), "polygon"
+        else:
+            types, kind = (ogr.wkbLineString, ogr.wkbMultiLineString), "line"
         for i in range(count):
             lyr = ds.GetLayer(i)
-            if ogr.GT_Flatten(lyr.GetGeomType()) in line_types:
+            if ogr.GT_Flatten(lyr.GetGeomType()) in types:
                 return lyr
         names = [ds.GetLayer(i).GetName() for i in range(count)]
         raise InputDataError(
             f"vector file {str(path)!r} has {count} layers ({', '.join(names)}) and none is a "
-            "line layer; name the fault-trace layer"
+            f"{kind} layer; name the layer to use"
         )
     lyr = ds.GetLayer(layer) if isinstance(layer, int) else ds.GetLayerByName(str(layer))
     if lyr is None:
@@ -111,6 +120,89 @@ def _pick_layer(ds, layer: Union[str, int, None], ogr, path: Path):
             f"vector file {str(path)!r} has no layer {layer!r}; its layers: {', '.join(names)}"
         )
     return lyr
+
+
+def _read_parts(path, target_crs, layer, what, extract, expected):
+    """Geometry parts of a vector layer, reprojected to ``target_crs`` (shared reader).
+
+    ``extract(geom)`` returns a list of vertex arrays or None for a wrong geometry type (then
+    the error says ``expected``). Returns ``(parts, n_features, layer_name)``.
+    """
+    ogr, osr = _ogr()
+    p = Path(path)
+    if not p.exists():
+        raise SlipMapFileError(f"{what} {str(p)!r} does not exist")
+    try:
+        ds = ogr.Open(str(p), 0)
+    except RuntimeError as exc:
+        raise SlipMapFileError(f"cannot read {what} {str(p)!r}: {exc}") from exc
+    if ds is None:
+        raise SlipMapFileError(f"cannot read {what} {str(p)!r}: not a vector file")
+    try:
+        lyr = _pick_layer(ds, layer, ogr, p, polygons=(what == "polygon file"))
+        dst = _srs_from(target_crs, osr)
+        src = lyr.GetSpatialRef()
+        if src is not None and src.GetName() in _UNDEFINED_SRS_NAMES:
+            src = None  # GeoPackage's placeholders for "no CRS" (srs_id 0 and -1)
+        transform = None
+        if src is None:
+            if dst is not None:
+                logger.warning(
+                    what + " %r has no CRS; assuming it is in the target CRS %r",
+                    str(p),
+                    dst.GetName(),
+                )
+        else:
+            src = src.Clone()
+            src.SetAxisMappingStrategy(osr.OAMS_TRADITIONAL_GIS_ORDER)
+            if dst is None:
+                if src.IsGeographic():
+                    raise InputDataError(
+                        f"{what} {str(p)!r} is in the geographic CRS "
+                        f"{src.GetName()!r} (degrees); give the point clouds' projected CRS "
+                        "as target_crs so it is reprojected"
+                    )
+            elif not src.IsSame(dst):
+                try:
+                    transform = osr.CoordinateTransformation(src, dst)
+                except RuntimeError as exc:
+                    raise InputDataError(
+                        f"cannot reproject fault-trace file {str(p)!r} from "
+                        f"{src.GetName()!r} to {dst.GetName()!r}: {exc}"
+                    ) from exc
+        parts: List[np.ndarray] = []
+        n_features = 0
+        lyr.ResetReading()
+        for feat in lyr:
+            n_features += 1
+            geom = feat.GetGeometryRef()
+            if geom is None or geom.IsEmpty():
+                logger.warning(
+                    what + " %r: feature %d has no geometry; skipped",
+                    str(p),
+                    feat.GetFID(),
+                )
+                continue
+            geom = geom.Clone()
+            if transform is not None:
+                try:
+                    geom.Transform(transform)
+                except RuntimeError as exc:
+                    raise InputDataError(
+                        f"cannot reproject fault-trace file {str(p)!r} (feature "
+                        f"{feat.GetFID()}): {exc}"
+                    ) from exc
+            got = extract(geom)
+            if got is None:
+                raise InputDataError(
+                    f"{what} {str(p)!r} holds a {geom.GetGeometryName()} geometry "
+                    f"(feature {feat.GetFID()}); {expected}"
+                )
+            parts.extend(got)
+        lyr_name = lyr.GetName()
+    finally:
+        ds = None  # noqa: F841 - closes the dataset
+    return parts, n_features, lyr_name
 
 
 def read_fault_trace(
@@ -155,81 +247,16 @@ def read_fault_trace(
     -----
     A file without a CRS is assumed to be in ``target_crs`` (with a logged warning).
     """
-    ogr, osr = _ogr()
+    ogr, _ = _ogr()
+    parts, n_features, lyr_name = _read_parts(
+        path,
+        target_crs,
+        layer,
+        "fault-trace file",
+        lambda g: _line_parts(g, ogr),
+        "a fault trace must be LineString or MultiLineString",
+    )
     p = Path(path)
-    if not p.exists():
-        raise SlipMapFileError(f"fault-trace file {str(p)!r} does not exist")
-    try:
-        ds = ogr.Open(str(p), 0)
-    except RuntimeError as exc:
-        raise SlipMapFileError(f"cannot read fault-trace file {str(p)!r}: {exc}") from exc
-    if ds is None:
-        raise SlipMapFileError(f"cannot read fault-trace file {str(p)!r}: not a vector file")
-    try:
-        lyr = _pick_layer(ds, layer, ogr, p)
-        dst = _srs_from(target_crs, osr)
-        src = lyr.GetSpatialRef()
-        if src is not None and src.GetName() in _UNDEFINED_SRS_NAMES:
-            src = None  # GeoPackage's placeholders for "no CRS" (srs_id 0 and -1)
-        transform = None
-        if src is None:
-            if dst is not None:
-                logger.warning(
-                    "fault-trace file %r has no CRS; assuming it is in the target CRS %r",
-                    str(p),
-                    dst.GetName(),
-                )
-        else:
-            src = src.Clone()
-            src.SetAxisMappingStrategy(osr.OAMS_TRADITIONAL_GIS_ORDER)
-            if dst is None:
-                if src.IsGeographic():
-                    raise InputDataError(
-                        f"fault-trace file {str(p)!r} is in the geographic CRS "
-                        f"{src.GetName()!r} (degrees); give the point clouds' projected CRS "
-                        "as target_crs so the trace is reprojected"
-                    )
-            elif not src.IsSame(dst):
-                try:
-                    transform = osr.CoordinateTransformation(src, dst)
-                except RuntimeError as exc:
-                    raise InputDataError(
-                        f"cannot reproject fault-trace file {str(p)!r} from "
-                        f"{src.GetName()!r} to {dst.GetName()!r}: {exc}"
-                    ) from exc
-        parts: List[np.ndarray] = []
-        n_features = 0
-        lyr.ResetReading()
-        for feat in lyr:
-            n_features += 1
-            geom = feat.GetGeometryRef()
-            if geom is None or geom.IsEmpty():
-                logger.warning(
-                    "fault-trace file %r: feature %d has no geometry; skipped",
-                    str(p),
-                    feat.GetFID(),
-                )
-                continue
-            geom = geom.Clone()
-            if transform is not None:
-                try:
-                    geom.Transform(transform)
-                except RuntimeError as exc:
-                    raise InputDataError(
-                        f"cannot reproject fault-trace file {str(p)!r} (feature "
-                        f"{feat.GetFID()}): {exc}"
-                    ) from exc
-            got = _line_parts(geom, ogr)
-            if got is None:
-                raise InputDataError(
-                    f"fault-trace file {str(p)!r} holds a {geom.GetGeometryName()} geometry "
-                    f"(feature {feat.GetFID()}); a fault trace must be LineString or "
-                    "MultiLineString"
-                )
-            parts.extend(got)
-        lyr_name = lyr.GetName()
-    finally:
-        ds = None  # noqa: F841 - closes the dataset
     if not parts:
         raise InputDataError(
             f"fault-trace file {str(p)!r} (layer {lyr_name!r}) has no line geometries "
@@ -247,6 +274,65 @@ def read_fault_trace(
         trace.length_m(),
     )
     return trace
+
+
+def _polygon_rings(geom, ogr) -> Optional[List[np.ndarray]]:
+    """Exterior rings of a (multi)polygon geometry (holes ignored), or None otherwise."""
+    flat = ogr.GT_Flatten(geom.GetGeometryType())
+    if flat in (ogr.wkbCurvePolygon, ogr.wkbMultiSurface):
+        geom = geom.GetLinearGeometry()
+        flat = ogr.GT_Flatten(geom.GetGeometryType())
+    if flat == ogr.wkbPolygon:
+        ring = geom.GetGeometryRef(0)
+        if ring is None or ring.GetPointCount() < 3:
+            return []
+        return [np.array([ring.GetPoint_2D(i) for i in range(ring.GetPointCount())])]
+    if flat == ogr.wkbMultiPolygon:
+        out = []
+        for i in range(geom.GetGeometryCount()):
+            out.extend(_polygon_rings(geom.GetGeometryRef(i), ogr) or [])
+        return out
+    return None
+
+
+def read_polygons(
+    path: PathLike, *, target_crs: Any = None, layer: Union[str, int, None] = None
+) -> List[np.ndarray]:
+    """Exterior rings of the polygons of a vector file (e.g. a stable-area / moving-area mask).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Any OGR vector file with Polygon / MultiPolygon features.
+    target_crs : pyproj.CRS, str or int, optional
+        CRS of the point clouds: the polygons are reprojected into it (None keeps the file's).
+    layer : str or int, optional
+        Layer name or index (default: the first).
+
+    Returns
+    -------
+    list of (M, 2) float64
+        One ring per polygon part (holes are ignored), map units.
+
+    Raises
+    ------
+    SlipMapFileError, InputDataError, InvalidParameterError, DependencyError
+        As :func:`read_fault_trace` (non-polygon geometries are refused).
+    """
+    ogr, _ = _ogr()
+    parts, n_features, name = _read_parts(
+        path,
+        target_crs,
+        layer,
+        "polygon file",
+        lambda g: _polygon_rings(g, ogr),
+        "a mask must hold Polygon or MultiPolygon features",
+    )
+    if not parts:
+        raise InputDataError(
+            f"polygon file {str(path)!r} (layer {name!r}) has no polygons ({n_features} features)"
+        )
+    return parts
 
 
 # ---------------------------------------------------------------------------------------------

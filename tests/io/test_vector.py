@@ -18,6 +18,7 @@ from slipmap.core.io.vector import (  # noqa: E402
     VectorLayer,
     read_fault_trace,
     read_gpkg_layer,
+    read_polygons,
     write_gpkg_layers,
 )
 
@@ -201,3 +202,24 @@ def test_failed_write_leaves_no_file(tmp_path):
     with pytest.raises(Exception, match="field 'a'"):
         write_gpkg_layers(tmp_path / "o.gpkg", [bad])
     assert list(tmp_path.iterdir()) == []
+
+
+def test_read_polygons_reprojects_rings_and_refuses_lines(tmp_path):
+    utm = pyproj.CRS.from_epsg(32610)
+    to_geo = pyproj.Transformer.from_crs(utm, "EPSG:4326", always_xy=True)
+    ring = np.array([[550000.0, 4180000.0], [550100.0, 4180000.0], [550100.0, 4180080.0]])
+    lon, lat = to_geo.transform(ring[:, 0], ring[:, 1])
+    poly = "POLYGON ((" + ", ".join(f"{a!r} {b!r}" for a, b in zip(lon, lat))
+    poly += f", {lon[0]!r} {lat[0]!r}))"
+    multi = "MULTIPOLYGON (((0 0, 1 0, 1 1, 0 0)), ((5 5, 6 5, 6 6, 5 5)))"
+    _write(tmp_path / "m.gpkg", "GPKG", [poly])
+    rings = read_polygons(tmp_path / "m.gpkg", target_crs=utm)
+    assert len(rings) == 1
+    np.testing.assert_allclose(rings[0][:3], ring, atol=1e-4)
+    _write(tmp_path / "mm.gpkg", "GPKG", [multi], epsg=32610)
+    assert len(read_polygons(tmp_path / "mm.gpkg")) == 2
+    _write(tmp_path / "l.geojson", "GeoJSON", [_linestring_wkt(LONLAT)])
+    with pytest.raises(InputDataError, match="Polygon"):
+        read_polygons(tmp_path / "l.geojson", target_crs=utm)
+    with pytest.raises(SlipMapFileError, match="polygon file"):
+        read_polygons(tmp_path / "none.gpkg")
