@@ -50,9 +50,12 @@ __all__ = [
     "ASPRS_HIGH_VEGETATION",
     "PROFILES",
     "Building",
+    "LobeField",
+    "LobePair",
     "ProfileSpec",
     "Scene",
     "Surface",
+    "make_lobe_pair",
     "make_scene",
     "make_scene_n_points",
     "plane_distances",
@@ -1354,4 +1357,291 @@ def make_fault_pair(
         side_before=side_b,
         side_after=side_a,
         moved_buildings=moved,
+    )
+
+
+# --------------------------------------------------------------------------- landslide lobe
+
+_KEY_LOBE_SPLIT = 11  # SeedSequence spawn key of the lobe pair's random split
+
+
+@dataclass(frozen=True, eq=False)
+class LobeField:
+    """A smooth landslide-like displacement bump on an ellipse (study section 3.2.3).
+
+    The displacement is ``max_d_m * w(r)`` with ``w = (1 - r**2)**2`` for ``r < 1`` and 0
+    outside, where ``r`` is the normalised elliptical radius
+
+        r**2 = (s / radius_x_m)**2 + (t / radius_y_m)**2,
+
+    ``(s, t)`` being the offset from ``centre_xy`` along the ellipse's x and y axes. ``w`` is
+    1 at the centre, falls monotonically to exactly 0 on the ellipse, stays 0 outside, and is
+    continuously differentiable everywhere (its gradient also vanishes on the edge); inside
+    it is a polynomial in x and y, so :meth:`gradient` is exact.
+
+    Attributes
+    ----------
+    centre_xy : tuple of float
+        (2,) centre of the lobe (metres, map coordinates, e.g. UTM).
+    radius_x_m, radius_y_m : float
+        Semi-axes of the ellipse (metres, > 0).
+    azimuth_deg : float
+        Azimuth of the ``radius_y_m`` axis, degrees clockwise from north; 0 (default) puts
+        ``radius_y_m`` along north and ``radius_x_m`` along east.
+    max_d_m : tuple of float
+        (3,) displacement ``(dx, dy, dz)`` at the centre (metres); the study used
+        ``(0, -1.0, -0.4)``.
+    """
+
+    centre_xy: tuple[float, float]
+    radius_x_m: float
+    radius_y_m: float
+    azimuth_deg: float = 0.0
+    max_d_m: tuple[float, float, float] = (0.0, -1.0, -0.4)
+
+    def __post_init__(self) -> None:
+        c = tuple(float(v) for v in np.asarray(self.centre_xy, dtype=np.float64).ravel())
+        d = tuple(float(v) for v in np.asarray(self.max_d_m, dtype=np.float64).ravel())
+        if len(c) != 2 or not all(math.isfinite(v) for v in c):
+            raise InvalidParameterError(
+                f"centre_xy must be two finite numbers (metres), got {self.centre_xy!r}."
+            )
+        if len(d) != 3 or not all(math.isfinite(v) for v in d):
+            raise InvalidParameterError(
+                "max_d_m must be three finite displacements (dx, dy, dz) in metres, "
+                f"got {self.max_d_m!r}."
+            )
+        for name in ("radius_x_m", "radius_y_m"):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value > 0):
+                raise InvalidParameterError(
+                    f"{name} must be a finite radius > 0 (metres), got {value!r}."
+                )
+            object.__setattr__(self, name, value)
+        if not math.isfinite(float(self.azimuth_deg)):
+            raise InvalidParameterError(f"azimuth_deg must be finite, got {self.azimuth_deg!r}.")
+        object.__setattr__(self, "azimuth_deg", float(self.azimuth_deg))
+        object.__setattr__(self, "centre_xy", c)
+        object.__setattr__(self, "max_d_m", d)
+
+    def _axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Unit vectors (2,) of the ellipse's x and y axes in map coordinates."""
+        a = math.radians(self.azimuth_deg)
+        return np.array([math.cos(a), -math.sin(a)]), np.array([math.sin(a), math.cos(a)])
+
+    def _local(self, xy: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(s, t, r**2) of (M, 2) points; coordinates are centred before anything else."""
+        pts = np.asarray(xy, dtype=np.float64)
+        if pts.ndim == 1 and pts.size in (2, 3):
+            pts = pts[None, :]
+        if pts.ndim != 2 or pts.shape[1] < 2:
+            raise InvalidParameterError(
+                f"xy must be an (M, 2) array of x, y (metres), got shape {pts.shape}."
+            )
+        off = pts[:, :2] - np.asarray(self.centre_xy)
+        ax, ay = self._axes()
+        s, t = off @ ax, off @ ay
+        return s, t, (s / self.radius_x_m) ** 2 + (t / self.radius_y_m) ** 2
+
+    def weight(self, xy: Any) -> np.ndarray:
+        """(M,) bump ``(1 - r**2)**2`` inside the ellipse, 0 outside (dimensionless)."""
+        _, _, q = self._local(xy)
+        return np.where(q < 1.0, (1.0 - np.minimum(q, 1.0)) ** 2, 0.0)
+
+    def __call__(self, xy: Any) -> np.ndarray:
+        """(M, 3) displacement ``(dx, dy, dz)`` (metres) at (M, 2) points (x, y; more ignored)."""
+        return self.weight(xy)[:, None] * np.asarray(self.max_d_m)[None, :]
+
+    def gradient(self, xy: Any) -> np.ndarray:
+        """Exact spatial gradient (M, 3, 2): ``[k, i, j] = d(d_i)/d(x_j)`` with x_j = (x, y).
+
+        E.g. ``[:, 0, 1]`` is d(dx)/dy; use it as the true horizontal displacement gradient
+        when validating strain maps.
+        """
+        s, t, q = self._local(xy)
+        ax, ay = self._axes()
+        inside = q < 1.0
+        # w = (1 - q)^2, dw/dq = -2 (1 - q); dq/dxy = 2 s/rx^2 ax + 2 t/ry^2 ay
+        dwdq = np.where(inside, -2.0 * (1.0 - np.minimum(q, 1.0)), 0.0)
+        dq = (
+            2.0 * (s / self.radius_x_m**2)[:, None] * ax
+            + 2.0 * (t / self.radius_y_m**2)[:, None] * ay
+        )
+        dw = dwdq[:, None] * dq  # (M, 2)
+        return np.asarray(self.max_d_m)[None, :, None] * dw[:, None, :]
+
+    def interior_mask(self, xy: Any, fraction: float = 0.5) -> np.ndarray:
+        """(M,) bool: points with normalised elliptical radius ``r <= fraction``.
+
+        ``fraction=0.5`` keeps the core of the lobe, where the displacement is at least
+        ``(1 - 0.25)**2 = 56 %`` of the maximum.
+        """
+        if not (math.isfinite(float(fraction)) and float(fraction) > 0):
+            raise InvalidParameterError(f"fraction must be > 0, got {fraction!r}.")
+        _, _, q = self._local(xy)
+        return q <= float(fraction) ** 2
+
+
+@dataclass(frozen=True, eq=False)
+class LobePair:
+    """Two epochs of a real cloud with a synthetic lobe in the second (study Fig. 3.2 style).
+
+    The epochs share no point: the input points are split at random into two disjoint sets.
+
+    Attributes
+    ----------
+    before : numpy.ndarray
+        (N1, 3) float64 unmoved points ``points[before_index]``.
+    after : numpy.ndarray
+        (N2, 3) float64 moved points ``points[after_index] + after_truth``.
+    field : LobeField
+        The displacement field applied.
+    after_truth : numpy.ndarray
+        (N2, 3) displacement actually applied to each after point, stored as
+        ``after - points[after_index]`` (so that identity is exact); it equals
+        ``field(points[after_index])`` up to the rounding of the coordinates (about 1e-10 m
+        at UTM magnitudes).
+    before_index, after_index : numpy.ndarray
+        (N1,) and (N2,) int64 indices into the input points, each increasing (input order
+        kept); disjoint and together covering all points.
+    """
+
+    before: np.ndarray
+    after: np.ndarray
+    field: LobeField
+    after_truth: np.ndarray
+    before_index: np.ndarray
+    after_index: np.ndarray
+
+
+def make_lobe_pair(
+    points: Any,
+    *,
+    max_dy_m: float = -1.0,
+    max_dz_m: float = -0.4,
+    max_dx_m: float = 0.0,
+    centre_xy: Optional[Sequence[float]] = None,
+    radius_m: Optional[Any] = None,
+    azimuth_deg: float = 0.0,
+    split: str = "half",
+    after_fraction: float = 0.5,
+    seed: int = 0,
+) -> LobePair:
+    """Inject a synthetic landslide lobe into a real point cloud (study section 3.2.3).
+
+    The study added a smooth displacement of at most -1 m in y and -0.4 m in z to one TLS
+    epoch and recovered it with PIV and ICP. Re-using the very same points in both epochs
+    would make matching trivially exact, so here the cloud is split at random (seeded) into
+    two disjoint sets, as two real scans never hit the same spots (study Fig. 3.2): the
+    first set is the "before" epoch, unchanged; the second is the "after" epoch, each point
+    moved by the lobe's displacement at its original position.
+
+    Parameters
+    ----------
+    points : array-like
+        (N, 3) float64 points (metres; UTM coordinates are fine), N >= 2; not modified.
+    max_dx_m, max_dy_m, max_dz_m : float
+        Displacement at the lobe's centre (metres); defaults are the study's (0, -1, -0.4).
+    centre_xy : (2,) array-like, optional
+        Lobe centre (metres); default the centre of the points' bounding box.
+    radius_m : float or (2,) array-like, optional
+        Semi-axis, or ``(radius_x_m, radius_y_m)`` (metres, > 0); default one third of the
+        smaller side of the bounding box.
+    azimuth_deg : float
+        Azimuth of the ``radius_y_m`` axis (degrees clockwise from north), see
+        :class:`LobeField`.
+    split : str
+        How the epochs are re-sampled; only ``"half"`` (a random split into two disjoint
+        sets, see Notes for why there is no ``"jitter"``).
+    after_fraction : float
+        Share of the points that go to the after epoch, in (0, 1); default a half.
+    seed : int
+        Seed of the random split (same seed, same split).
+
+    Returns
+    -------
+    LobePair
+
+    Raises
+    ------
+    InvalidParameterError
+        Radius <= 0, ``after_fraction`` outside (0, 1), ``split`` not "half", non-finite
+        options.
+    InputDataError
+        Fewer than 2 points, points not (N, 3), non-finite coordinates, a zero-size bounding
+        box when a default radius is needed, or a lobe that covers none of the after points.
+
+    Notes
+    -----
+    Only a split is offered, no "jitter" of shared points: moving a point sideways on a
+    rough surface without changing its z creates a false vertical signal of about
+    slope × jitter, which would pollute the truth. If the input has duplicate points (some
+    scanners emit them), identical coordinates can land in both epochs outside the lobe.
+    """
+    from .errors import InputDataError
+
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputDataError(
+            f"points must be an (N, 3) array of x, y, z (metres), got shape {pts.shape}."
+        )
+    n = pts.shape[0]
+    if n < 2:
+        raise InputDataError(
+            f"make_lobe_pair needs at least 2 points to split into two epochs, got {n}."
+        )
+    if not np.all(np.isfinite(pts)):
+        raise InputDataError("points contain NaN or infinite coordinates; drop them first.")
+    if split != "half":
+        raise InvalidParameterError(
+            f"split must be 'half' (a random split into two disjoint epochs), got {split!r}; "
+            "jittering shared points is not offered (see make_lobe_pair's notes)."
+        )
+    frac = float(after_fraction)
+    if not (0.0 < frac < 1.0):
+        raise InvalidParameterError(f"after_fraction must be in (0, 1), got {after_fraction!r}.")
+    lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
+    centre = 0.5 * (lo + hi) if centre_xy is None else np.asarray(centre_xy, dtype=np.float64)
+    if radius_m is None:
+        side = float(np.min(hi - lo))
+        if not side > 0:
+            raise InputDataError(
+                "The points' bounding box has zero width or height, so there is no default lobe "
+                "radius; give radius_m."
+            )
+        rx = ry = side / 3.0
+    else:
+        r = np.atleast_1d(np.asarray(radius_m, dtype=np.float64)).ravel()
+        if r.size not in (1, 2):
+            raise InvalidParameterError(
+                f"radius_m must be a radius or (radius_x_m, radius_y_m), got {radius_m!r}."
+            )
+        rx, ry = float(r[0]), float(r[-1])
+    lobe = LobeField(
+        centre_xy=tuple(centre),
+        radius_x_m=rx,
+        radius_y_m=ry,
+        azimuth_deg=azimuth_deg,
+        max_d_m=(max_dx_m, max_dy_m, max_dz_m),
+    )
+    rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(_KEY_LOBE_SPLIT,)))
+    order = rng.permutation(n)
+    n_after = min(n - 1, max(1, int(round(frac * n))))
+    after_index = np.sort(order[:n_after]).astype(np.int64)
+    before_index = np.sort(order[n_after:]).astype(np.int64)
+    original = pts[after_index]
+    disp = lobe(original[:, :2])
+    if not np.any(disp != 0.0) and any(v != 0.0 for v in lobe.max_d_m):
+        raise InputDataError(
+            f"The lobe (centre {lobe.centre_xy}, radii {rx:g} x {ry:g} m) covers none of the "
+            "points; move centre_xy or enlarge radius_m."
+        )
+    after = original + disp
+    return LobePair(
+        before=pts[before_index].copy(),
+        after=after,
+        field=lobe,
+        after_truth=after - original,
+        before_index=before_index,
+        after_index=after_index,
     )

@@ -139,3 +139,155 @@ def test_strain_from_two_band_geotiff_and_bad_inputs(tmp_path, capsys):
     (tmp_path / "f.csv").write_text("x,y,dx\n1,2,3\n")
     assert main(["strain", str(tmp_path / "f.csv"), "--out", str(tmp_path / "q")]) == 2
     assert "dy" in capsys.readouterr().err
+
+
+def _rough(n, seed, side=20.0):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, side, (n, 2))
+    x, y = xy[:, 0], xy[:, 1]
+    z = (
+        0.5 * np.sin(x / 2.7) * np.cos(y / 3.1)
+        + 0.2 * np.sin((x + y) / 1.3)
+        + 0.06 * np.sin(x / 0.21 + 1.3 * np.sin(y / 0.37))  # metre-scale texture, as rough
+        + 0.05 * np.cos(y / 0.17 + 0.8 * np.sin(x / 0.29))  # ground has (PIV needs it)
+    )
+    return np.column_stack([xy + [512000.0, 4780000.0], z + 1500.0])
+
+
+@pytest.fixture(scope="module")
+def shifted_pair(tmp_path_factory):
+    """A rough 20 m patch sampled twice (no shared points), the second shifted."""
+    import pyproj
+
+    from slipmap.core.io.las import PointCloud, write_las
+
+    d = tmp_path_factory.mktemp("pair")
+    crs = pyproj.CRS.from_epsg(32612)
+    shift = np.array([0.12, -0.2, 0.05])
+    b, a = _rough(40000, 1), _rough(40000, 2) + shift
+    write_las(d / "b.las", PointCloud(xyz=b, crs=crs))
+    write_las(d / "a.las", PointCloud(xyz=a, crs=crs))
+    return d, shift
+
+
+def test_icp_cli_equals_core_and_writes_layers(shifted_pair, tmp_path):
+    from slipmap.core.icp import windowed_icp
+    from slipmap.core.io.raster import read_geotiff
+    from slipmap.core.io.vector import read_gpkg_layer
+
+    d, shift = shifted_pair
+    ctrl = tmp_path / "ctrl.csv"
+    write_csv_columns(
+        ctrl,
+        {"x": [512005.0], "y": [4780005.0], "dx": [shift[0]], "dy": [shift[1]], "dz": [shift[2]]},
+    )
+    out = tmp_path / "icp"
+    rc = main(
+        [
+            "-q",
+            "icp",
+            str(d / "b.las"),
+            str(d / "a.las"),
+            "--cell",
+            "5",
+            "--out",
+            str(out),
+            "--no-progress",
+            "--control",
+            str(ctrl),
+        ]
+    )
+    assert rc == 0
+    core = windowed_icp(read_las(d / "b.las").xyz, read_las(d / "a.las").xyz, cell_m=5.0)
+    cols = read_csv_columns(
+        out / "icp.csv",
+        required=("x", "y", "z", "dx", "dy", "dz", "sigma_dx", "sigma_dy", "sigma_dz", "rmse", "n"),
+    )
+    np.testing.assert_array_equal(cols["dx"], core.dx)
+    np.testing.assert_array_equal(cols["sigma_dz"], core.sigma_dz)
+    inner = cols["n"] >= 500
+    assert np.abs(cols["dx"][inner] - shift[0]).max() < 0.01
+    geoms, fields = read_gpkg_layer(out / "icp.gpkg", "cells")
+    assert len(geoms) == len(core) and {"dx", "sigma_dy", "magnitude", "azimuth_deg"} <= set(fields)
+    arr, gt, wkt = read_geotiff(out / "icp.tif")
+    assert arr.shape[0] == 8 and gt[1] == 5.0 and "32612" in wkt or "UTM zone 12N" in wkt
+    summary = json.loads((out / "icp.json").read_text())
+    assert summary["control"]["n_compared"] == 1
+    assert summary["control"]["rmse_horizontal_m"] < 0.01
+
+
+def test_piv_cli_equals_core(shifted_pair, tmp_path):
+    from slipmap.core.dem import common_grid, grid_elevation
+    from slipmap.core.io.raster import read_geotiff
+    from slipmap.core.piv import piv
+
+    d, shift = shifted_pair
+    out = tmp_path / "piv"
+    rc = main(
+        [
+            "-q",
+            "piv",
+            str(d / "b.las"),
+            str(d / "a.las"),
+            "--grid",
+            "0.2",
+            "--window",
+            "32",
+            "16",
+            "--out",
+            str(out),
+            "--no-progress",
+            "--max-displacement",
+            "0.5",
+        ]
+    )
+    assert rc == 0
+    b, a = read_las(d / "b.las").xyz, read_las(d / "a.las").xyz
+    grid = common_grid(b, a, cell_m=0.2)
+    core = piv(
+        grid_elevation(b, grid=grid),
+        grid_elevation(a, grid=grid),
+        grid=grid,
+        windows_px=(32, 16),
+        expected_max_displacement_m=0.5,
+    )
+    cols = read_csv_columns(out / "piv.csv", required=("x", "y", "dx", "dy", "dz", "snr", "valid"))
+    np.testing.assert_array_equal(cols["dx"], core.dx.ravel())
+    np.testing.assert_array_equal(cols["valid"], core.valid.ravel().astype(float))
+    ok = cols["valid"] > 0
+    assert ok.mean() > 0.5
+    assert np.median(np.abs(cols["dx"][ok] - shift[0])) < 0.02
+    assert np.median(np.abs(cols["dy"][ok] - shift[1])) < 0.02
+    dz, gt, _ = read_geotiff(out / "piv_dz.tif")
+    np.testing.assert_array_equal(dz, core.dz)
+    assert gt[0] == core.origin_xy[0] and gt[1] == core.spacing_m
+    assert (out / "piv.png").stat().st_size > 1000
+
+
+def test_field_commands_refuse_bad_input(shifted_pair, tmp_path, capsys):
+    d, _ = shifted_pair
+    with pytest.raises(SystemExit):  # argparse refuses --grid 0
+        main(["piv", str(d / "b.las"), str(d / "a.las"), "--grid", "0", "--out", str(tmp_path)])
+    assert "--grid must be > 0" in capsys.readouterr().err
+    rc = main(
+        [
+            "piv",
+            str(d / "b.las"),
+            str(d / "a.las"),
+            "--grid",
+            "0.5",
+            "--window",
+            "128",
+            "--out",
+            str(tmp_path / "p"),
+        ]
+    )
+    assert rc == 2 and "window" in capsys.readouterr().err
+    far = tmp_path / "far.las"
+    from slipmap.core.io.las import PointCloud, write_las
+
+    write_las(far, PointCloud(xyz=_rough(1000, 3) + [1000.0, 0.0, 0.0]))
+    for cmd in ("piv", "icp", "dem-diff"):
+        opt = ["--cell", "5"] if cmd == "icp" else ["--grid", "0.5"]
+        rc = main([cmd, str(d / "b.las"), str(far), *opt, "--out", str(tmp_path / cmd)])
+        assert rc == 2 and "overlap" in capsys.readouterr().err, cmd

@@ -1,0 +1,315 @@
+"""Tests of gridded displacement fields (slipmap.core.fields)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from slipmap.core.errors import InputDataError, InvalidParameterError
+from slipmap.core.fields import (
+    FieldComparison,
+    GriddedField,
+    compare_with_control,
+    compare_with_truth,
+    field_from_columns,
+    sample_field,
+)
+
+UTM = (515369.0, 4918340.0)
+
+
+def _linear(xy, a=(0.01, -0.02, 0.3), b=(0.005, 0.015, -0.2), c=(0.002, 0.001, 0.05)):
+    """(M, 3) displacement linear in x, y (relative to UTM): exact under bilinear sampling."""
+    x = xy[:, 0] - UTM[0]
+    y = xy[:, 1] - UTM[1]
+    return np.column_stack([a[k] * x + b[k] * y + c[k] for k in range(3)])
+
+
+def _grid(n_rows=6, n_cols=8, spacing=(2.0, 1.5), origin=(UTM[0] - 3.0, UTM[1] + 20.0), fn=_linear):
+    sx, sy = spacing
+    xc = origin[0] + (np.arange(n_cols) + 0.5) * sx
+    yc = origin[1] - (np.arange(n_rows) + 0.5) * sy
+    X, Y = np.meshgrid(xc, yc)
+    d = fn(np.column_stack([X.ravel(), Y.ravel()])).reshape(n_rows, n_cols, 3)
+    return GriddedField(origin, spacing, d[..., 0], d[..., 1], d[..., 2])
+
+
+# --- GriddedField ------------------------------------------------------------------------
+
+
+def test_cell_centres_follow_the_geotiff_convention():
+    f = GriddedField((100.0, 200.0), (2.0, 3.0), np.zeros((2, 3)), np.zeros((2, 3)))
+    assert f.shape == (2, 3)
+    np.testing.assert_array_equal(f.x[0], [101.0, 103.0, 105.0])
+    np.testing.assert_array_equal(f.y[:, 0], [198.5, 195.5])  # row 0 = north
+    assert f.dz is None
+
+
+def test_gridded_field_copies_and_freezes_inputs():
+    dx = np.zeros((2, 2))
+    f = GriddedField((0.0, 0.0), (1.0, 1.0), dx, dx)
+    dx[0, 0] = 5.0
+    assert f.dx[0, 0] == 0.0
+    with pytest.raises(ValueError):
+        f.dx[0, 0] = 1.0
+
+
+@pytest.mark.parametrize("spacing", [(0.0, 1.0), (1.0, -1.0), (math.nan, 1.0)])
+def test_gridded_field_rejects_bad_spacing(spacing):
+    with pytest.raises(InvalidParameterError, match="spacing_m"):
+        GriddedField((0.0, 0.0), spacing, np.zeros((2, 2)), np.zeros((2, 2)))
+
+
+def test_gridded_field_rejects_mismatched_shapes():
+    with pytest.raises(InputDataError, match="dy"):
+        GriddedField((0.0, 0.0), (1.0, 1.0), np.zeros((2, 2)), np.zeros((2, 3)))
+
+
+# --- field_from_columns -------------------------------------------------------------------
+
+
+def test_round_trip_with_missing_rows_shuffled_order():
+    f = _grid()
+    cols = f.to_columns(valid_only=False)
+    rng = np.random.default_rng(3)
+    keep = rng.random(cols["x"].size) > 0.3
+    # keep the four corners so the bounding box (and thus the grid) is the same
+    n_rows, n_cols = f.shape
+    for r, c in [(0, 0), (0, n_cols - 1), (n_rows - 1, 0), (n_rows - 1, n_cols - 1)]:
+        keep[r * n_cols + c] = True
+    order = rng.permutation(np.flatnonzero(keep))
+    g = field_from_columns(
+        cols["x"][order], cols["y"][order], cols["dx"][order], cols["dy"][order], cols["dz"][order]
+    )
+    assert g.shape == f.shape
+    np.testing.assert_allclose(g.spacing_m, f.spacing_m, rtol=1e-12)
+    np.testing.assert_allclose(g.origin_xy, f.origin_xy, rtol=0, atol=1e-8)
+    kept = keep.reshape(f.shape)
+    np.testing.assert_array_equal(g.valid, kept)
+    np.testing.assert_array_equal(g.dx[kept], f.dx[kept])
+    np.testing.assert_array_equal(g.dz[kept], f.dz[kept])
+    assert np.all(np.isnan(g.dx[~kept]))
+
+
+def test_whole_missing_columns_do_not_fool_spacing_inference():
+    f = _grid(n_rows=4, n_cols=7, spacing=(0.5, 0.5))
+    cols = f.to_columns()
+    c_index = np.tile(np.arange(7), 4)
+    keep = ~np.isin(c_index, [1, 2, 4])  # columns 0, 3, 5, 6 remain: gaps of 3, 2, 1 cells
+    g = field_from_columns(*(cols[k][keep] for k in ("x", "y", "dx", "dy")))
+    assert g.shape == (4, 7)
+    assert g.spacing_m == pytest.approx((0.5, 0.5), rel=1e-12)
+    assert g.dz is None
+
+
+def test_rounded_csv_coordinates_are_accepted():
+    f = _grid(spacing=(0.25, 0.25), origin=(UTM[0] + 0.0004, UTM[1] + 0.0007))
+    cols = f.to_columns()
+    g = field_from_columns(np.round(cols["x"], 3), np.round(cols["y"], 3), cols["dx"], cols["dy"])
+    assert g.shape == f.shape
+    assert g.spacing_m == pytest.approx((0.25, 0.25), abs=1e-4)
+
+
+def test_single_column_takes_the_other_axis_spacing():
+    x = np.full(4, 10.5)
+    y = np.array([3.5, 2.5, 1.5, 0.5])
+    g = field_from_columns(x, y, np.ones(4), np.ones(4))
+    assert g.shape == (4, 1)
+    assert g.spacing_m == (1.0, 1.0)
+    assert g.origin_xy == pytest.approx((10.0, 4.0))
+
+
+def test_given_spacing_is_used_and_checked():
+    x = np.array([0.5, 1.5, 3.5])
+    y = np.zeros(3)
+    g = field_from_columns(x, y, np.ones(3), np.ones(3), spacing_m=1.0)
+    assert g.shape == (1, 4)
+    with pytest.raises(InputDataError, match="x coordinates are not on a regular lattice"):
+        field_from_columns(x, y, np.ones(3), np.ones(3), spacing_m=0.8)
+
+
+def test_off_lattice_points_are_named():
+    x = np.array([0.0, 1.0, 2.0, 2.3, 4.0])
+    with pytest.raises(InputDataError, match="not on a regular lattice"):
+        field_from_columns(x, np.zeros(5), np.ones(5), np.ones(5))
+    y = np.array([0.0, 1.0, 2.37, 3.0])
+    with pytest.raises(InputDataError, match="y coordinates"):
+        field_from_columns(np.zeros(4), y, np.ones(4), np.ones(4))
+
+
+def test_duplicate_cells_and_bad_columns_are_refused():
+    with pytest.raises(InputDataError, match="already used grid cell"):
+        field_from_columns([0.0, 1.0, 1.0], [0.0, 0.0, 0.0], [1, 2, 3], [1, 2, 3])
+    with pytest.raises(InputDataError, match="dy has 2 values"):
+        field_from_columns([0.0, 1.0, 2.0], [0.0, 0.0, 0.0], [1, 2, 3], [1, 2])
+    with pytest.raises(InputDataError, match="non-finite x or y"):
+        field_from_columns([0.0, np.nan], [0.0, 0.0], [1, 2], [1, 2])
+    with pytest.raises(InputDataError, match="empty"):
+        field_from_columns([], [], [], [])
+    with pytest.raises(InputDataError, match="spacing_m"):
+        field_from_columns([5.0], [5.0], [1.0], [1.0])
+    with pytest.raises(InvalidParameterError, match="spacing_m"):
+        field_from_columns([0.0, 1.0], [0.0, 0.0], [1, 2], [1, 2], spacing_m=-1.0)
+    with pytest.raises(InputDataError, match="stray coordinates"):
+        field_from_columns([0.0, 1.0, 1e6], [0.0, 1.0, 1e6], [1, 2, 3], [1, 2, 3])
+
+
+def test_valid_mask_blanks_rows_but_keeps_their_cells():
+    g = field_from_columns(
+        [0.5, 1.5, 2.5], [0.5, 0.5, 0.5], [1.0, 2.0, 3.0], [1.0, 2.0, 3.0], valid=[1, 1, 0]
+    )
+    assert g.shape == (1, 3)
+    np.testing.assert_array_equal(g.valid, [[True, True, False]])
+
+
+@given(
+    st.floats(-1e3, 1e3),
+    st.floats(-1e3, 1e3),
+    st.sampled_from([0.1, 0.25, 1.0, 5.0]),
+    st.integers(0, 2**31 - 1),
+)
+def test_translation_of_coordinates_translates_origin(tx, ty, spacing, seed):
+    """Property: shifting the centres shifts the origin, nothing else."""
+    f = _grid(n_rows=5, n_cols=6, spacing=(spacing, spacing))
+    cols = f.to_columns()
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(cols["x"].size)
+    a = field_from_columns(*(cols[k][order] for k in ("x", "y", "dx", "dy")))
+    b = field_from_columns(
+        cols["x"][order] + tx, cols["y"][order] + ty, cols["dx"][order], cols["dy"][order]
+    )
+    assert b.shape == a.shape
+    np.testing.assert_allclose(b.spacing_m, a.spacing_m, rtol=1e-9)
+    np.testing.assert_allclose(np.subtract(b.origin_xy, a.origin_xy), [tx, ty], atol=1e-6)
+    np.testing.assert_array_equal(b.dx, a.dx)
+
+
+# --- sample_field -----------------------------------------------------------------------
+
+
+def test_bilinear_is_exact_for_linear_fields_and_hits_centres():
+    f = _grid()
+    rng = np.random.default_rng(0)
+    x0, y0 = f.x[0, 0], f.y[-1, 0]
+    x1, y1 = f.x[0, -1], f.y[0, 0]
+    xy = np.column_stack([rng.uniform(x0, x1, 200), rng.uniform(y0, y1, 200)])
+    np.testing.assert_allclose(sample_field(f, xy), _linear(xy), rtol=0, atol=1e-10)
+    centres = np.column_stack([f.x.ravel(), f.y.ravel()])
+    got = sample_field(f, centres)
+    np.testing.assert_allclose(got[:, 0], f.dx.ravel(), atol=1e-12)
+    np.testing.assert_allclose(got[:, 2], f.dz.ravel(), atol=1e-12)
+
+
+def test_bilinear_edges_gaps_and_outside():
+    f = _grid(n_rows=3, n_cols=3, spacing=(1.0, 1.0), origin=(0.0, 3.0))
+    dx = f.dx.copy()
+    dx[1, 1] = np.nan
+    g = dataclasses.replace(f, dx=dx)
+    pts = np.array(
+        [
+            [0.5, 2.5],  # a centre next to the gap: gap has weight 0 -> value
+            [1.0, 2.0],  # between four centres incl. the gap -> NaN
+            [0.2, 2.9],  # outer half cell: clamped to the corner value
+            [-0.1, 1.0],  # outside the grid
+            [3.2, 1.0],
+        ]
+    )
+    got = sample_field(g, pts)
+    assert got[0, 0] == pytest.approx(f.dx[0, 0])
+    assert math.isnan(got[1, 0]) and not math.isnan(got[1, 1])  # dy has no gap
+    assert got[2, 0] == pytest.approx(f.dx[0, 0])
+    assert np.all(np.isnan(got[3:])), got[3:]
+
+
+def test_nearest_valid():
+    f = _grid(n_rows=3, n_cols=3, spacing=(1.0, 1.0), origin=(0.0, 3.0))
+    dx = f.dx.copy()
+    dx[0, 0] = np.nan
+    g = dataclasses.replace(f, dx=dx)
+    got = sample_field(g, [[0.4, 2.6], [10.0, 10.0]], method="nearest_valid")
+    assert got[0, 0] in (f.dx[0, 1], f.dx[1, 0])
+    assert got[1, 0] == pytest.approx(f.dx[2, 2])
+    got = sample_field(g, [[10.0, 10.0]], method="nearest_valid", max_distance_m=1.0)
+    assert np.all(np.isnan(got))
+    with pytest.raises(InvalidParameterError, match="method"):
+        sample_field(g, [[0.0, 0.0]], method="cubic")
+
+
+def test_sample_without_dz_gives_nan_dz():
+    f = _grid()
+    g = GriddedField(f.origin_xy, f.spacing_m, f.dx, f.dy)
+    assert np.all(np.isnan(sample_field(g, [[f.x[1, 1], f.y[1, 1]]])[:, 2]))
+
+
+# --- comparisons ---------------------------------------------------------------------------
+
+
+def test_compare_with_control_known_errors():
+    f = _grid()
+    cols = f.to_columns()
+    rng = np.random.default_rng(1)
+    ctrl = np.column_stack(
+        [rng.uniform(f.x[0, 0], f.x[0, -1], 50), rng.uniform(f.y[-1, 0], f.y[0, 0], 50)]
+    )
+    truth = _linear(ctrl)
+    offset = np.array([0.03, -0.04, 0.02])
+    res = compare_with_control(
+        cols["x"], cols["y"], cols["dx"], cols["dy"], cols["dz"], ctrl, truth - offset
+    )
+    assert isinstance(res, FieldComparison)
+    assert res.n_compared == 50 and res.n_missing == 0 and res.valid_fraction == 1.0
+    assert res.rmse_horizontal_m == pytest.approx(0.05, abs=1e-9)
+    assert res.rmse_dx_m == pytest.approx(0.03, abs=1e-9)
+    assert res.bias_dy_m == pytest.approx(-0.04, abs=1e-9)
+    assert res.bias_dz_m == pytest.approx(0.02, abs=1e-9)
+    assert res.max_abs_horizontal_m == pytest.approx(0.05, abs=1e-9)
+    d = res.to_dict()
+    assert d["n_compared"] == 50 and set(d) >= {"rmse_dz_m", "valid_fraction"}
+
+
+def test_compare_with_control_counts_missing_and_outside():
+    f = _grid(n_rows=3, n_cols=3, spacing=(1.0, 1.0), origin=(0.0, 3.0))
+    ctrl = np.array([[1.5, 1.5], [100.0, 100.0]])
+    ref = np.array([[f.dx[1, 1], f.dy[1, 1], np.nan], [0.0, 0.0, 0.0]])
+    res = compare_with_control(None, None, None, None, None, ctrl, ref, field=f)
+    assert res.n_compared == 1 and res.n_missing == 1 and res.valid_fraction == 0.5
+    assert res.rmse_horizontal_m == pytest.approx(0.0, abs=1e-12)
+    assert res.n_compared_dz == 0 and math.isnan(res.rmse_dz_m)
+
+
+def test_compare_with_truth_exact_and_masked():
+    rng = np.random.default_rng(2)
+    xy = np.column_stack([rng.uniform(0, 10, 30) + UTM[0], rng.uniform(0, 10, 30) + UTM[1]])
+    est = _linear(xy)
+    res = compare_with_truth(xy, est, _linear)
+    assert res.n_compared == 30 and res.rmse_horizontal_m == 0.0 and res.rmse_dz_m == 0.0
+    est[:5] = np.nan
+    est[5:, 1] += 0.1
+    res = compare_with_truth(xy, est, _linear)
+    assert res.n_missing == 5 and res.n_compared == 25
+    assert res.rmse_dy_m == pytest.approx(0.1) and res.bias_dy_m == pytest.approx(0.1)
+    mask = np.zeros(30, dtype=bool)
+    mask[5:10] = True
+    res = compare_with_truth(xy, est, _linear, mask=mask)
+    assert res.n_compared == 5 and res.n_missing == 0
+    with pytest.raises(InputDataError, match="mask"):
+        compare_with_truth(xy, est, _linear, mask=mask[:3])
+    with pytest.raises(InputDataError, match="est_d"):
+        compare_with_truth(xy, est[:3], _linear)
+
+
+def test_jittered_centres_need_the_spacing_and_a_tolerance():
+    """Centres off the lattice by ~2 cm (e.g. window centroids) cannot infer the spacing."""
+    rng = np.random.default_rng(0)
+    X, Y = np.meshgrid(np.arange(10) + UTM[0] + 0.5, np.arange(8) + UTM[1] + 0.5)
+    x = X.ravel() + rng.uniform(-0.02, 0.02, 80)
+    y = Y.ravel() + rng.uniform(-0.02, 0.02, 80)
+    with pytest.raises(InputDataError, match="not on a regular lattice"):
+        field_from_columns(x, y, np.zeros(80), np.zeros(80))
+    g = field_from_columns(x, y, np.zeros(80), np.zeros(80), spacing_m=1.0, lattice_tolerance=0.1)
+    assert g.shape == (8, 10) and np.all(g.valid)
