@@ -329,6 +329,7 @@ def _run_icp(args: argparse.Namespace) -> int:
             min_points=args.min_points,
             prealign=bool(exclude) or args.prealign,
             exclude_polygons=exclude,
+            coarse_to_fine=args.coarse_to_fine,
             progress=bar,
         )
     out.mkdir(parents=True, exist_ok=True)
@@ -445,6 +446,14 @@ def _icp_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--prealign", action="store_true", help="global ICP pre-alignment on all points first"
+    )
+    p.add_argument(
+        "--coarse-to-fine",
+        type=int,
+        default=1,
+        metavar="LEVELS",
+        help="coarser passes (cells 2x, 4x, ...) that start each cell from the coarser motion; "
+        "needed when the motion is not small against the cell (default 1; 0 to disable)",
     )
     p.add_argument("--control", help="CSV of control points x,y,dx,dy[,dz] to compare with")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -444,10 +444,15 @@ def _icp_engine(
     opts: _Options,
     centre: np.ndarray,
     progress: Optional[ProgressCallback] = None,
+    t_init: Optional[np.ndarray] = None,
 ) -> Optional[ICPFit]:
-    """Point-to-plane ICP of centred source points; ``None`` when too few correspondences."""
+    """Point-to-plane ICP of centred source points; ``None`` when too few correspondences.
+
+    ``t_init`` (3,) is the starting translation of the transform (epoch 2 -> epoch 1), i.e.
+    minus the expected ground motion.
+    """
     R = np.eye(3)
-    t = np.zeros(3)
+    t = np.zeros(3) if t_init is None else np.asarray(t_init, dtype=np.float64).copy()
     converged = False
     it = 0
     for it in range(1, opts.max_iterations + 1):
@@ -1046,6 +1051,31 @@ def _cell_index(xy: np.ndarray, x0, y0, cell) -> Tuple[np.ndarray, np.ndarray]:
     return row, col
 
 
+def _interpolator(res: WindowedICPResult) -> Callable[[np.ndarray], np.ndarray]:
+    """Ground motion of a windowed-ICP result at any xy: bilinear between cell centres, the
+    nearest fitted cell where a neighbour is missing, zero when no cell was fitted."""
+    from .fields import GriddedField, sample_field
+
+    if len(res) == 0:
+        return lambda xy: np.zeros((len(xy), 3))
+    field = GriddedField(
+        origin_xy=res.origin_xy,
+        spacing_m=(res.cell_m, res.cell_m),
+        dx=res.to_grid("dx"),
+        dy=res.to_grid("dy"),
+        dz=res.to_grid("dz"),
+    )
+
+    def f(xy: np.ndarray) -> np.ndarray:
+        out = sample_field(field, xy)
+        bad = ~np.all(np.isfinite(out), axis=1)
+        if bad.any():
+            out[bad] = sample_field(field, xy[bad], method="nearest_valid")
+        return out
+
+    return f
+
+
 def windowed_icp(
     before: np.ndarray,
     after: np.ndarray,
@@ -1059,6 +1089,8 @@ def windowed_icp(
     include_polygons: Optional[Sequence[np.ndarray]] = None,
     prealign_max_points: int = PREALIGN_MAX_POINTS,
     max_points_per_cell: Optional[int] = None,
+    coarse_to_fine: int = 0,
+    initial_displacement: Optional[Callable[[np.ndarray], np.ndarray]] = None,
     seed: int = 0,
     progress: Optional[ProgressCallback] = None,
     **icp_options,
@@ -1101,6 +1133,15 @@ def windowed_icp(
     max_points_per_cell : int, optional
         Register at most this many after-points per cell (seeded random sample); all by
         default.
+    coarse_to_fine : int
+        Number of coarser passes run first, with cells of ``2**k * cell_m`` (k = levels .. 1);
+        each pass starts every cell from the motion of the coarser pass interpolated at the
+        cell centre, and moves the cell's target box by it. Needed when the motion is not small
+        against the cell (e.g. 1 m of motion in 2 m cells): ICP from zero then stops in a
+        local minimum. 0 (default) starts every cell from zero motion.
+    initial_displacement : callable, optional
+        ``f(xy (K, 2)) -> (K, 3)`` starting ground motion at cell centres (e.g. from PIV);
+        used by the finest pass (or the coarsest, with ``coarse_to_fine``).
     seed : int
         Seed of the samples.
     progress : callable, optional
@@ -1139,7 +1180,33 @@ def windowed_icp(
         raise InvalidParameterError(
             f"prealign must be True, False or an ICPFit, got {type(prealign).__name__}"
         )
+    levels = _int_at_least("coarse_to_fine", coarse_to_fine, 0)
+    if initial_displacement is not None and not callable(initial_displacement):
+        raise InvalidParameterError("initial_displacement must be a function xy -> (K, 3)")
     _check_overlap(b, a)
+    if levels > 0:
+        coarse = windowed_icp(
+            b,
+            a,
+            cell_m=2.0 * cell,
+            buffer_m=None if buffer_m is None else 2.0 * buf,
+            min_points=minp,
+            origin_xy=origin_xy,
+            prealign=prealign,
+            exclude_polygons=exclude_polygons,
+            include_polygons=include_polygons,
+            prealign_max_points=prealign_max_points,
+            max_points_per_cell=max_points_per_cell,
+            coarse_to_fine=levels - 1,
+            initial_displacement=initial_displacement,
+            seed=seed,
+            progress=scaled(progress, 0.0, 0.4),
+            **icp_options,
+        )
+        initial_displacement = _interpolator(coarse)
+        if coarse.prealignment is not None:
+            prealign = coarse.prealignment  # the same stable frame, not fitted again
+        progress = scaled(progress, 0.4, 1.0)
 
     report(progress, 0.0, "building the epoch-1 KD-tree")
     off = b.mean(axis=0)
@@ -1210,8 +1277,13 @@ def windowed_icp(
         pts = a[idx]
         cx, cy = x0 + (c + 0.5) * cell, y0 - (r + 0.5) * cell
         centre = np.array([cx, cy, float(pts[:, 2].mean())])
-        bx0, bx1 = x0 + c * cell - buf, x0 + (c + 1) * cell + buf
-        by1, by0 = y0 - r * cell + buf, y0 - (r + 1) * cell - buf
+        d0 = np.zeros(3)
+        if initial_displacement is not None:
+            d0 = np.asarray(initial_displacement(centre[None, :2]), dtype=np.float64).reshape(3)
+            d0 = np.where(np.isfinite(d0), d0, 0.0)
+        # the cell's material came from (cell - d0): its target box moves with it
+        bx0, bx1 = x0 + c * cell - buf - d0[0], x0 + (c + 1) * cell + buf - d0[0]
+        by1, by0 = y0 - r * cell + buf - d0[1], y0 - (r + 1) * cell - buf - d0[1]
 
         def match(q, centre=centre, bx0=bx0, bx1=bx1, by0=by0, by1=by1):
             _, j = tree.query(q + centre, distance_upper_bound=gate, workers=-1)
@@ -1223,7 +1295,7 @@ def windowed_icp(
             jj = jj[inbox]
             return ok, tp[inbox] - centre, normals(jj), jj
 
-        fit = _icp_engine(pts - centre, match, opts, centre)
+        fit = _icp_engine(pts - centre, match, opts, centre, t_init=-d0)
         if fit is None:
             skipped["icp_failed"] += 1
             continue
