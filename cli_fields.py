@@ -403,7 +403,11 @@ def _run_icp(args: argparse.Namespace) -> int:
         "prealignment": None
         if res.prealignment is None
         else {
-            "translation_m": np.asarray(res.prealignment.translation).tolist(),
+            # T(p) = R (p - c) + c + t maps epoch 2 onto epoch 1: the epochs' offset at the
+            # centre c is -t (a translation "about the origin" would be mostly lever arm)
+            "centre_m": np.asarray(res.prealignment.centre).tolist(),
+            "offset_at_centre_m": (-np.asarray(res.prealignment.params[3:])).tolist(),
+            "rotation_rad": np.asarray(res.prealignment.params[:3]).tolist(),
             "rmse_m": float(res.prealignment.rmse_m),
         },
         "control": _control(args, res.x, res.y, res.dx, res.dy, res.dz, spacing_m=res.cell_m),

@@ -24,14 +24,22 @@ class SlipMapProvider(QgsProcessingProvider):
         # The algorithm modules import only qgis at load time: the provider loads without
         # laspy/lazrs, and each algorithm's canExecute() then says how to install them.
         from .algorithms.accuracy import PointAccuracyAlgorithm
+        from .algorithms.demdiff import DemDifferenceAlgorithm
         from .algorithms.displacement import DisplacementAlgorithm
+        from .algorithms.piv import PIVAlgorithm
         from .algorithms.planes import PlanesAlgorithm
         from .algorithms.roughness import RoughnessAlgorithm
+        from .algorithms.strain import StrainAlgorithm
+        from .algorithms.windowedicp import WindowedICPAlgorithm
 
         for cls in (
             PlanesAlgorithm,
             DisplacementAlgorithm,
             RoughnessAlgorithm,
             PointAccuracyAlgorithm,
+            PIVAlgorithm,
+            WindowedICPAlgorithm,
+            DemDifferenceAlgorithm,
+            StrainAlgorithm,
         ):
             self.addAlgorithm(cls())

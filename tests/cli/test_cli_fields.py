@@ -293,3 +293,30 @@ def test_field_commands_refuse_bad_input(shifted_pair, tmp_path, capsys):
         opt = ["--cell", "5"] if cmd == "icp" else ["--grid", "0.5"]
         rc = main([cmd, str(d / "b.las"), str(far), *opt, "--out", str(tmp_path / cmd)])
         assert rc == 2 and "overlap" in capsys.readouterr().err, cmd
+
+
+def test_icp_prealign_reports_the_epoch_offset_at_the_centre(shifted_pair, tmp_path):
+    d, shift = shifted_pair
+    out = tmp_path / "pre"
+    rc = main(
+        [
+            "-q",
+            "icp",
+            str(d / "b.las"),
+            str(d / "a.las"),
+            "--cell",
+            "5",
+            "--out",
+            str(out),
+            "--no-progress",
+            "--prealign",
+            "--coarse-to-fine",
+            "0",
+        ]
+    )
+    assert rc == 0
+    pre = json.loads((out / "icp.json").read_text())["prealignment"]
+    np.testing.assert_allclose(pre["offset_at_centre_m"], shift, atol=0.01)
+    cols = read_csv_columns(out / "icp.csv", required=("dx", "dy", "dz", "n"))
+    inner = cols["n"] >= 500
+    assert np.abs(cols["dx"][inner]).max() < 0.01  # relative to the stable frame

@@ -1,0 +1,307 @@
+"""Helpers shared by the "Displacement fields" algorithms (``piv``, ``windowedicp``,
+``demdiff``, ``strain``): reading both epochs, vector sinks, rasters, JSON-safe statistics,
+citations and the diverging raster style centred on zero."""
+
+from __future__ import annotations
+
+from qgis.core import (
+    QgsCoordinateReferenceSystem,
+    QgsFeature,
+    QgsFeatureSink,
+    QgsField,
+    QgsFields,
+    QgsGeometry,
+    QgsPointXY,
+    QgsProcessingException,
+    QgsProcessingLayerPostProcessorInterface,
+    QgsProcessingParameterDefinition,
+    QgsProcessingParameterFile,
+    QgsWkbTypes,
+)
+from qgis.PyQt.QtCore import QVariant
+
+from . import _base
+from ._base import (
+    read_cloud,
+    style_path,
+)
+
+FIELDS_GROUP = ("Displacement fields", "fields")
+CSV_FILTER = "CSV (*.csv *.txt)"
+ARYAL = (
+    "Aryal et al., Determining ground displacement fields of small spatial extent using "
+    "terrestrial laser scanner data: a comparison of 3D methods applied to landslide "
+    "monitoring (Aryal 2014, Landslide deformation character inferred from terrestrial laser "
+    "scanner data, PhD dissertation, chapter 3)"
+)
+PIV_CITATION = f"Method: {ARYAL}, section 3.2.1 (PIV on gridded elevation)."
+ICP_CITATION = (
+    f"Method: {ARYAL}, section 3.2.2 (windowed ICP); point-to-plane ICP: Chen, Y. and "
+    "Medioni, G. (1992), Object modelling by registration of multiple range images, Image and "
+    "Vision Computing 10(3), 145-155."
+)
+CONTROL_HELP = (
+    "<b>Control points</b> (optional): CSV with columns x,y,dx,dy[,dz] (m, the point cloud's "
+    "CRS), e.g. GPS or feature tracking; the field is sampled bilinearly at them and the "
+    "errors (estimate - control: RMSE, bias) go to the summary."
+)
+
+PIV_SINK_FIELDS = (
+    ("dx", QVariant.Double),
+    ("dy", QVariant.Double),
+    ("dz", QVariant.Double),
+    ("magnitude", QVariant.Double),
+    ("azimuth_deg", QVariant.Double),
+    ("snr", QVariant.Double),
+    ("valid", QVariant.Int),
+)
+
+
+# --------------------------------------------------------------------------- shared helpers
+
+
+def read_pair(before_path, after_path):
+    """Both epochs as (N, 3) arrays (after reprojected to before's CRS), and the pyproj CRS."""
+    from ...core.io.crs import reproject_points, same_crs
+
+    first, second = read_cloud(before_path), read_cloud(after_path)
+    xyz2 = second.xyz
+    if first.crs is not None and second.crs is not None and not same_crs(first.crs, second.crs):
+        xyz2 = reproject_points(second.xyz, second.crs, first.crs)
+    crs = first.crs if first.crs is not None else second.crs
+    return first.xyz, xyz2, crs
+
+
+def qgs_crs(crs):
+    """A ``QgsCoordinateReferenceSystem`` of a pyproj CRS (invalid when None)."""
+    if crs is None:
+        return QgsCoordinateReferenceSystem()
+    return QgsCoordinateReferenceSystem.fromWkt(crs.to_wkt())
+
+
+def crs_wkt(crs):
+    return None if crs is None else crs.to_wkt()
+
+
+def finite_stats(values):
+    """n, mean, median, std, min, max of the finite values (``{"n": 0}`` when none)."""
+    import numpy as np
+
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return {"n": 0}
+    return {
+        "n": int(v.size),
+        "mean": float(v.mean()),
+        "median": float(np.median(v)),
+        "std": float(v.std()),
+        "min": float(v.min()),
+        "max": float(v.max()),
+    }
+
+
+def json_safe(obj):
+    """NaN/inf -> None, numpy scalars -> Python, so the JSON is standard."""
+    import math
+
+    import numpy as np
+
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    return obj
+
+
+def horizontal(dx, dy):
+    """Horizontal magnitude (m) and azimuth (degrees clockwise from north, [0, 360))."""
+    import numpy as np
+
+    dx, dy = np.asarray(dx, dtype=np.float64), np.asarray(dy, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.hypot(dx, dy), np.degrees(np.arctan2(dx, dy)) % 360.0
+
+
+def control_comparison(control_path, x, y, dx, dy, dz, spacing_m):
+    """``compare_with_control`` of a field against a control CSV, as a dict (None: no CSV)."""
+    if not control_path:
+        return None
+    from ...core.fields import compare_with_control
+    from ...core.io.table import read_control_points
+
+    cxy, cd = read_control_points(control_path)
+    return compare_with_control(x, y, dx, dy, dz, cxy, cd, spacing_m=spacing_m).to_dict()
+
+
+def add_control_parameter(alg):
+    alg.addParameter(
+        QgsProcessingParameterFile(
+            "CONTROL",
+            "Control points x,y,dx,dy[,dz] (CSV)",
+            extension="",
+            fileFilter=CSV_FILTER,
+            optional=True,
+        )
+    )
+
+
+def advanced(param):
+    param.setFlags(param.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
+    return param
+
+
+def _value(v):
+    """A float attribute, None (NULL) where not finite."""
+    import math
+
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def write_point_sink(alg, parameters, name, context, crs, x, y, columns, kinds):
+    """Point features at (x, y) with ``columns`` (name -> (K,) array) as attributes.
+
+    Non-finite numbers are written as NULL. Returns the sink's id (None: not requested).
+    """
+    return _write_sink(
+        alg,
+        parameters,
+        name,
+        context,
+        crs,
+        QgsWkbTypes.Point,
+        [QgsGeometry.fromPointXY(QgsPointXY(float(a), float(b))) for a, b in zip(x, y)],
+        columns,
+        kinds,
+    )
+
+
+def _write_sink(alg, parameters, name, context, crs, wkb, geometries, columns, kinds):
+    fields = QgsFields()
+    for key, kind in kinds:
+        fields.append(QgsField(key, kind))
+    sink, dest_id = alg.parameterAsSink(parameters, name, context, fields, wkb, crs)
+    if sink is None:
+        return None
+    cols = [columns[key] for key, _ in kinds]
+    for i, geom in enumerate(geometries):
+        f = QgsFeature(fields)
+        f.setGeometry(geom)
+        attrs = []
+        for (_, kind), col in zip(kinds, cols):
+            attrs.append(int(col[i]) if kind == QVariant.Int else _value(col[i]))
+        f.setAttributes(attrs)
+        if not sink.addFeature(f, QgsFeatureSink.FastInsert):
+            raise QgsProcessingException(f"{name}: cannot write feature {i}")
+    return dest_id
+
+
+def write_polygon_sink(alg, parameters, name, context, crs, rings, columns, kinds):
+    """Polygon features (one (K, 2) ring each) with attributes, as :func:`write_point_sink`."""
+    geoms = [QgsGeometry.fromPolygonXY([[QgsPointXY(*map(float, p)) for p in r]]) for r in rings]
+    return _write_sink(
+        alg, parameters, name, context, crs, QgsWkbTypes.Polygon, geoms, columns, kinds
+    )
+
+
+def write_raster(path, array, origin_xy, pixel_m, crs, names, metadata=None):
+    """A float64 GeoTIFF (NaN = no data) through ``core.io.raster.write_geotiff``."""
+    import numpy as np
+
+    from ...core.io.raster import write_geotiff
+
+    write_geotiff(
+        path,
+        np.asarray(array, dtype=np.float64),
+        origin_xy=origin_xy,
+        pixel_size_m=pixel_m,
+        crs_wkt=crs_wkt(crs),
+        band_names=list(names),
+        metadata=metadata,
+    )
+
+
+def symmetric_limits(layer, band=1):
+    """Rescale a single-band pseudocolor renderer to ``[-m, m]``, m = max |value| of ``band``.
+
+    The bundled diverging styles store a ramp symmetric about 0 (white at 0); scaling every
+    colour stop by ``m / old_max`` keeps white at 0 for the layer's own range. Returns m (None
+    when the renderer is not pseudocolor or the band has no finite value).
+    """
+    import math
+
+    from qgis.core import QgsColorRampShader, QgsRasterBandStats, QgsSingleBandPseudoColorRenderer
+
+    renderer = layer.renderer()
+    if not isinstance(renderer, QgsSingleBandPseudoColorRenderer):
+        return None
+    if band != renderer.band():
+        renderer.setBand(band)
+    stats = layer.dataProvider().bandStatistics(
+        band, QgsRasterBandStats.Min | QgsRasterBandStats.Max
+    )
+    m = max(abs(stats.minimumValue), abs(stats.maximumValue))
+    if not math.isfinite(m) or m <= 0:
+        return None
+    shader = renderer.shader()
+    ramp = shader.rasterShaderFunction() if shader is not None else None
+    if not isinstance(ramp, QgsColorRampShader):
+        return None
+    old = max(abs(ramp.minimumValue()), abs(ramp.maximumValue()))
+    if not old > 0:
+        return None
+    items = ramp.colorRampItemList()
+    for item in items:
+        item.value = item.value * m / old
+    ramp.setColorRampItemList(items)
+    ramp.setMinimumValue(-m)
+    ramp.setMaximumValue(m)
+    renderer.setClassificationMin(-m)
+    renderer.setClassificationMax(m)
+    return m
+
+
+def apply_diverging_style_on_load(context, output, style_name="diverging", band=1):
+    """As ``_base.apply_style_on_load``, then :func:`symmetric_limits` on the loaded raster."""
+    qml = style_path(style_name)
+    if qml is None or not context.willLoadLayerOnCompletion(output):
+        return
+
+    class _Diverging(QgsProcessingLayerPostProcessorInterface):
+        def postProcessLayer(self, layer, context, feedback):  # noqa: N802 (QGIS API name)
+            if layer is not None and layer.isValid():
+                layer.loadNamedStyle(qml)
+                symmetric_limits(layer, band)
+                layer.triggerRepaint()
+
+    post = _Diverging()
+    _base._POST_PROCESSORS.append(post)  # QGIS keeps only a C++ pointer
+    context.layerToLoadOnCompletionDetails(output).setPostProcessor(post)
+
+
+def parse_windows(text):
+    """Window sizes (pixels) from ``"64 32 16"`` / ``"64,32,16"``."""
+    parts = str(text or "").replace(",", " ").replace(";", " ").split()
+    try:
+        wins = [int(p) for p in parts]
+    except ValueError:
+        raise QgsProcessingException(
+            f"WINDOWS must be whole numbers of pixels separated by spaces (e.g. '64 32 16'), "
+            f"got {text!r}"
+        ) from None
+    if not wins:
+        raise QgsProcessingException(
+            "WINDOWS: give at least one window size (pixels), e.g. 64 32 16"
+        )
+    return wins
+
+
+# --------------------------------------------------------------------------- the algorithm
