@@ -648,7 +648,7 @@ def test_raster_styles_load_and_centre_on_zero(qgis_app, tmp_path, style):
 
     from slipmap.core.io.raster import write_geotiff
     from slipmap.qgis_plugin.algorithms._base import style_path
-    from slipmap.qgis_plugin.algorithms.piv import apply_diverging_style_on_load
+    from slipmap.qgis_plugin.algorithms._fields import apply_diverging_style_on_load
 
     a = np.linspace(-0.02, 0.05, 30).reshape(5, 6)
     a[0, 0] = np.nan
