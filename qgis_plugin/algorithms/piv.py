@@ -59,7 +59,8 @@ class PIVAlgorithm(SlipMapAlgorithm):
             "reprojected to before's CRS if they differ. "
             "<b>Grid size</b> GR (m): DEM cell (default 0.25; the study used 0.04). "
             "<b>Windows</b> (pixels, advanced): interrogation window side WC of each pass, "
-            "e.g. '64 32 16'; every window must fit in the DEM. "
+            "e.g. '64 32 16 16' (default; repeating the last size refines the field once more); "
+            "every window must fit in the DEM. "
             "<b>Overlap</b> (advanced, 0-0.95): window overlap; vectors every "
             "WC (1 - overlap) pixels of the last pass. "
             "<b>Largest expected displacement</b> d_max (m, optional): sets the first search "
@@ -90,7 +91,7 @@ class PIVAlgorithm(SlipMapAlgorithm):
         self.addParameter(
             advanced(
                 QgsProcessingParameterString(
-                    "WINDOWS", "Interrogation windows per pass (pixels)", defaultValue="64 32 16"
+                    "WINDOWS", "Interrogation windows per pass (pixels)", defaultValue="64 32 16 16"
                 )
             )
         )

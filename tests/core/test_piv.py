@@ -210,7 +210,7 @@ def test_piv_flags_and_repairs_corrupted_area(textured):
     z2c = z2.copy()
     rng = np.random.default_rng(11)
     z2c[80:100, 80:100] = rng.normal(2300.0, 5.0, (20, 20))  # unrelated texture: no match
-    res = piv.piv(z1, z2c, grid=grid)
+    res = piv.piv(z1, z2c, grid=grid, windows_px=(64, 32, 16))
     x_c, y_c = grid.xy_of(90, 90)
     near = (np.abs(res.x - x_c) < 0.6) & (np.abs(res.y - y_c) < 0.6)
     assert (~res.valid[near]).any()
