@@ -129,11 +129,13 @@ def style_path(name):
     return str(p) if p.is_file() else None
 
 
-def apply_style_on_load(context, output, style_name):
+def apply_style_on_load(context, output, style_name, symmetric_band=None):
     """Style ``output`` (an output layer path or id) with a bundled QML when QGIS loads it.
 
-    Does nothing when the output is not loaded on completion (e.g. ``processing.run`` from a
-    script) or the style is missing; never fails the algorithm.
+    With ``symmetric_band`` (a raster band number) the pseudocolor ramp is then rescaled to
+    ``±max|value|`` of that band (:func:`symmetric_limits`), so a diverging ramp keeps white at
+    zero whatever the data's range. Does nothing when the output is not loaded on completion
+    (e.g. ``processing.run`` from a script) or the style is missing; never fails the algorithm.
     """
     from qgis.core import QgsProcessingLayerPostProcessorInterface
 
@@ -145,8 +147,55 @@ def apply_style_on_load(context, output, style_name):
         def postProcessLayer(self, layer, context, feedback):  # noqa: N802 (QGIS API name)
             if layer is not None and layer.isValid():
                 layer.loadNamedStyle(qml)
+                if symmetric_band is not None:
+                    symmetric_limits(layer, symmetric_band)
                 layer.triggerRepaint()
 
     post = _Style()
     _POST_PROCESSORS.append(post)
     context.layerToLoadOnCompletionDetails(output).setPostProcessor(post)
+
+
+def apply_diverging_style_on_load(context, output, style_name="diverging", band=1):
+    """:func:`apply_style_on_load` with the ramp made symmetric about zero on ``band``."""
+    apply_style_on_load(context, output, style_name, symmetric_band=band)
+
+
+def symmetric_limits(layer, band=1):
+    """Rescale a single-band pseudocolor renderer to ``[-m, m]``, m = max |value| of ``band``.
+
+    The bundled diverging styles store a ramp symmetric about 0 (white at 0); scaling every
+    colour stop by ``m / old_max`` keeps white at 0 for the layer's own range. Returns m (None
+    when the renderer is not pseudocolor or the band has no finite value).
+    """
+    import math
+
+    from qgis.core import QgsColorRampShader, QgsRasterBandStats, QgsSingleBandPseudoColorRenderer
+
+    renderer = layer.renderer()
+    if not isinstance(renderer, QgsSingleBandPseudoColorRenderer):
+        return None
+    if band != renderer.band():
+        renderer.setBand(band)
+    stats = layer.dataProvider().bandStatistics(
+        band, QgsRasterBandStats.Min | QgsRasterBandStats.Max
+    )
+    m = max(abs(stats.minimumValue), abs(stats.maximumValue))
+    if not math.isfinite(m) or m <= 0:
+        return None
+    shader = renderer.shader()
+    ramp = shader.rasterShaderFunction() if shader is not None else None
+    if not isinstance(ramp, QgsColorRampShader):
+        return None
+    old = max(abs(ramp.minimumValue()), abs(ramp.maximumValue()))
+    if not old > 0:
+        return None
+    items = ramp.colorRampItemList()
+    for item in items:
+        item.value = item.value * m / old
+    ramp.setColorRampItemList(items)
+    ramp.setMinimumValue(-m)
+    ramp.setMaximumValue(m)
+    renderer.setClassificationMin(-m)
+    renderer.setClassificationMax(m)
+    return m

@@ -13,17 +13,16 @@ from qgis.core import (
     QgsGeometry,
     QgsPointXY,
     QgsProcessingException,
-    QgsProcessingLayerPostProcessorInterface,
     QgsProcessingParameterDefinition,
     QgsProcessingParameterFile,
     QgsWkbTypes,
 )
 from qgis.PyQt.QtCore import QVariant
 
-from . import _base
 from ._base import (
+    apply_diverging_style_on_load,  # noqa: F401  (re-exported for the field algorithms)
     read_cloud,
-    style_path,
+    symmetric_limits,  # noqa: F401
 )
 
 FIELDS_GROUP = ("Displacement fields", "fields")
@@ -227,64 +226,6 @@ def write_raster(path, array, origin_xy, pixel_m, crs, names, metadata=None):
         band_names=list(names),
         metadata=metadata,
     )
-
-
-def symmetric_limits(layer, band=1):
-    """Rescale a single-band pseudocolor renderer to ``[-m, m]``, m = max |value| of ``band``.
-
-    The bundled diverging styles store a ramp symmetric about 0 (white at 0); scaling every
-    colour stop by ``m / old_max`` keeps white at 0 for the layer's own range. Returns m (None
-    when the renderer is not pseudocolor or the band has no finite value).
-    """
-    import math
-
-    from qgis.core import QgsColorRampShader, QgsRasterBandStats, QgsSingleBandPseudoColorRenderer
-
-    renderer = layer.renderer()
-    if not isinstance(renderer, QgsSingleBandPseudoColorRenderer):
-        return None
-    if band != renderer.band():
-        renderer.setBand(band)
-    stats = layer.dataProvider().bandStatistics(
-        band, QgsRasterBandStats.Min | QgsRasterBandStats.Max
-    )
-    m = max(abs(stats.minimumValue), abs(stats.maximumValue))
-    if not math.isfinite(m) or m <= 0:
-        return None
-    shader = renderer.shader()
-    ramp = shader.rasterShaderFunction() if shader is not None else None
-    if not isinstance(ramp, QgsColorRampShader):
-        return None
-    old = max(abs(ramp.minimumValue()), abs(ramp.maximumValue()))
-    if not old > 0:
-        return None
-    items = ramp.colorRampItemList()
-    for item in items:
-        item.value = item.value * m / old
-    ramp.setColorRampItemList(items)
-    ramp.setMinimumValue(-m)
-    ramp.setMaximumValue(m)
-    renderer.setClassificationMin(-m)
-    renderer.setClassificationMax(m)
-    return m
-
-
-def apply_diverging_style_on_load(context, output, style_name="diverging", band=1):
-    """As ``_base.apply_style_on_load``, then :func:`symmetric_limits` on the loaded raster."""
-    qml = style_path(style_name)
-    if qml is None or not context.willLoadLayerOnCompletion(output):
-        return
-
-    class _Diverging(QgsProcessingLayerPostProcessorInterface):
-        def postProcessLayer(self, layer, context, feedback):  # noqa: N802 (QGIS API name)
-            if layer is not None and layer.isValid():
-                layer.loadNamedStyle(qml)
-                symmetric_limits(layer, band)
-                layer.triggerRepaint()
-
-    post = _Diverging()
-    _base._POST_PROCESSORS.append(post)  # QGIS keeps only a C++ pointer
-    context.layerToLoadOnCompletionDetails(output).setPostProcessor(post)
 
 
 def parse_windows(text):

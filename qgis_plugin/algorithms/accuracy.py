@@ -7,6 +7,8 @@ The parameters map one to one onto the settings dict of ``slipmap.pointaccuracy`
 
 from __future__ import annotations
 
+import contextlib
+
 from qgis.core import (
     QgsProcessingException,
     QgsProcessingParameterBoolean,
@@ -52,12 +54,40 @@ PA_HELP = (
     "elevation of the scanner origin in the cloud's vertical datum). <b>Scanner</b>: one of "
     "the built-in specifications or a <b>Scanner specification file</b> (JSON, units in the "
     "key names, e.g. range_sigma_m). <b>Beam footprint term</b>: add the incidence-angle "
-    "footprint covariance (default yes). <b>Point-accuracy configuration</b>: a JSON file as "
+    "footprint covariance (Schaer et al. 2007; default yes). "
+    "<b>Point-accuracy configuration</b>: a JSON file as "
     'the CLI\'s --pa-config ({"before": {...}, "after": {...}} or one object for both, keys '
     "model, sigma, sigma_xyz, columns, trajectory, trajectory_accuracy, scanner, "
     "scanner_position, footprint); when given it replaces all the other point-accuracy "
     "parameters."
 )
+
+
+#: the CLI flags that ``slipmap.pointaccuracy`` messages name, and the parameters here
+FLAGS = (
+    ("--trajectory-accuracy", "TRAJECTORY_ACCURACY"),
+    ("--trajectory", "TRAJECTORY"),
+    ("--sigma-columns", "SIGMA_COLUMNS"),
+    ("--sigma-xyz", "SIGMA_X/Y/Z"),
+    ("--scanner-spec", "SCANNER / SCANNER_FILE"),
+    ("--scanner-position", "SCANNER_POSITION"),
+    ("--pa-config", "PA_CONFIG"),
+    ("--pa ", "the point-accuracy model "),
+)
+
+
+@contextlib.contextmanager
+def pa_errors():
+    """:func:`slipmap_errors` with the CLI flags in point-accuracy messages replaced by the
+    names of these parameters."""
+    try:
+        with slipmap_errors():
+            yield
+    except QgsProcessingException as exc:
+        text = str(exc)
+        for flag, name in FLAGS:
+            text = text.replace(flag, name)
+        raise QgsProcessingException(text) from exc
 
 
 def scanner_names():
@@ -238,7 +268,7 @@ def pa_config(alg, parameters, context):
     path = alg.parameterAsFile(parameters, "PA_CONFIG", context)
     if not path:
         return None
-    with slipmap_errors():
+    with pa_errors():
         from ...pointaccuracy import load_config
 
         return load_config(path)
@@ -312,7 +342,8 @@ class PointAccuracyAlgorithm(SlipMapAlgorithm):
                 else pa_settings(self, parameters, context, "MODEL", cloud_crs(cloud))
             )
             progress(0.2, f"point accuracy ({settings['model']})")
-            cov = covariance_matrices(cloud, None, settings)
+            with pa_errors():
+                cov = covariance_matrices(cloud, None, settings)
             sig = covariance_to_sigmas(cov)
             progress(0.6, "writing")
             extra = {"SigmaX": sig[:, 0], "SigmaY": sig[:, 1], "SigmaZ": sig[:, 2]}

@@ -2,25 +2,32 @@
 
 from __future__ import annotations
 
+import math
+
 from qgis.core import (
-    QgsCoordinateReferenceSystem,
     QgsCoordinateTransform,
     QgsFeature,
     QgsFeatureSink,
     QgsField,
     QgsFields,
     QgsGeometry,
+    QgsMapLayerType,
     QgsPoint,
     QgsProcessing,
     QgsProcessingException,
     QgsProcessingOutputHtml,
     QgsProcessingOutputNumber,
     QgsProcessingParameterBoolean,
+    QgsProcessingParameterDefinition,
+    QgsProcessingParameterEnum,
     QgsProcessingParameterFeatureSink,
     QgsProcessingParameterFeatureSource,
     QgsProcessingParameterFile,
     QgsProcessingParameterFileDestination,
     QgsProcessingParameterNumber,
+    QgsProcessingParameterRasterDestination,
+    QgsProcessingUtils,
+    QgsRectangle,
     QgsWkbTypes,
 )
 from qgis.PyQt.QtCore import QVariant
@@ -29,13 +36,65 @@ from ._base import (
     LAS_FILTER,
     PLANES_CITATION,
     SlipMapAlgorithm,
+    apply_style_on_load,
+    optional_number,
     progress_callback,
     read_cloud,
     select_points,
     slipmap_errors,
     write_json,
 )
+from .accuracy import (
+    PA_HELP,
+    add_pa_parameters,
+    cloud_crs,
+    pa_config,
+    pa_errors,
+    pa_settings,
+)
 from .planes import THRESHOLD_HELP, add_plane_parameters, plane_options
+
+COMBINE = ("joint", "tiles")
+TILE_FIELDS = (
+    ("side", QVariant.String),
+    ("ix", QVariant.Int),
+    ("iy", QVariant.Int),
+    ("n_planes", QVariant.Int),
+    ("dx", QVariant.Double),
+    ("dy", QVariant.Double),
+    ("dz", QVariant.Double),
+    ("sigma_dx", QVariant.Double),
+    ("sigma_dy", QVariant.Double),
+    ("sigma_dz", QVariant.Double),
+    ("fault_parallel", QVariant.Double),
+    ("sigma_fp", QVariant.Double),
+    ("status", QVariant.String),
+)
+STRIP_FIELDS = (
+    ("side", QVariant.String),
+    ("along_start_m", QVariant.Double),
+    ("along_end_m", QVariant.Double),
+    ("along_centre_m", QVariant.Double),
+    ("n_planes", QVariant.Int),
+    ("fault_parallel", QVariant.Double),
+    ("sigma_fp", QVariant.Double),
+    ("fault_normal", QVariant.Double),
+    ("sigma_fn", QVariant.Double),
+    ("dz", QVariant.Double),
+    ("sigma_dz", QVariant.Double),
+    ("status", QVariant.String),
+)
+#: bands of the WINDOWS GeoTIFF; fault_parallel_m = (dx, dy) along the mean strike (band 1, the
+#: one the bundled style shows)
+WINDOW_BANDS = (
+    "fault_parallel_m",
+    "dx_m",
+    "dy_m",
+    "dz_m",
+    "sigma_dx_m",
+    "sigma_dy_m",
+    "n_planes",
+)
 
 SINK_FIELDS = (
     ("side", QVariant.String),
@@ -76,6 +135,60 @@ def fault_parts(source, target_crs, context):
     return parts
 
 
+def cloud_path(alg, parameters, name, context):
+    """A LAS/LAZ path from a file parameter. A value that is not a file but the id or name of
+    a point-cloud layer of the project (QGIS >= 3.18) resolves to that layer's source file."""
+    import os
+
+    path = alg.parameterAsFile(parameters, name, context)
+    if path and not os.path.isfile(path):
+        layer = QgsProcessingUtils.mapLayerFromString(path, context)
+        kind = getattr(QgsMapLayerType, "PointCloudLayer", None)
+        if layer is not None and kind is not None and layer.type() == kind:
+            return layer.source().split("|")[0]
+    return path
+
+
+def _is_set(parameters, name):
+    value = parameters.get(name)
+    return value is not None and value != ""
+
+
+def _advanced(p):
+    p.setFlags(p.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
+    return p
+
+
+def _length(name, label, default=None, optional=True, advanced=False):
+    p = QgsProcessingParameterNumber(
+        name,
+        label,
+        QgsProcessingParameterNumber.Double,
+        defaultValue=default,
+        optional=optional,
+        minValue=1e-6,
+    )
+    return _advanced(p) if advanced else p
+
+
+def _sigma_of(cov, j):
+    """1σ of ``j @ d`` for a (3, 3) covariance ``cov`` of ``d`` (None when not finite)."""
+    v = float(j @ cov @ j)
+    return math.sqrt(max(v, 0.0)) if math.isfinite(v) else None
+
+
+def _finite(v):
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _fields(spec):
+    fields = QgsFields()
+    for name, kind in spec:
+        fields.append(QgsField(name, kind))
+    return fields
+
+
 class DisplacementAlgorithm(SlipMapAlgorithm):
     _id = "displacement"
     _name = "Fault slip (displacement)"
@@ -88,17 +201,41 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             "extracted on each side of the trace, matched between epochs and a rigid "
             "least-squares adjustment (point-to-plane, Gauss-Helmert) gives each side's "
             "displacement; the right-lateral slip is minus the fault-parallel component of "
-            "right minus left.<br>"
-            "<b>Before / After</b>: LAS/LAZ epochs in the same projected CRS (metres). "
+            "right minus left (as the CLI's <tt>slipmap displacement</tt>).<br>"
+            "<b>Before / After</b>: LAS/LAZ epochs in a projected CRS (metres; the second is "
+            "reprojected to the first's CRS when they differ). The id or name of a point-cloud "
+            "layer of the project is accepted too (its source file is read). "
             "<b>Fault trace</b>: a line layer in any CRS, reprojected to the point cloud's CRS. "
-            "<b>Buffer</b> (m): points closer than this to the trace are left out (default 10). "
-            "<b>Point accuracy sigma</b> (m): isotropic accuracy of every point (default 0.05). "
-            "<b>Leave out ground</b>: skip class 2 points (default yes). "
+            "<b>Buffer</b> (m): points closer than this to the trace are left out (default 10, "
+            "as the study). <b>Leave out ground</b>: skip class 2 points (default yes).<br>"
+            "<b>Point accuracy, before / after</b>: the model of each epoch. "
+            + PA_HELP
+            + "<br><b>Tile size</b> (m, optional): extract planes in square tiles of this size "
+            "(the study used 20-100 m); <b>Combine</b>: joint = one adjustment per side on all "
+            "matched planes (default, the study's approach), tiles = information-weighted mean "
+            "of the per-tile adjustments. <b>Strip width</b> (m, optional): profile of the "
+            "fault-parallel displacement in strips along the trace (study: 50-100 m). "
+            "<b>Window size / step</b> (m, optional; step defaults to a quarter of the size): "
+            "moving-window displacement maps (study: 400 m stepped by 20 m). "
+            "<b>Match angle</b> (degrees, default 3) and <b>match distance</b> (m, default 0.5, "
+            "above the largest expected displacement): plane matching between epochs. "
+            "<b>Reference slip</b> (m, optional, positive dextral): an independent measurement "
+            "(e.g. an alinement array); adds the study's Table X figures to the summary. "
             + THRESHOLD_HELP
-            + "<br><b>Outputs</b>: JSON summary, HTML report, matched planes (points at the "
-            "before-epoch plane centroids: side, plane ids, n_points, unit normal), "
+            + "<br><b>Outputs</b>: JSON summary; HTML report (tables and plots, beside the "
+            "JSON); matched planes (points at the before-epoch plane centroids: side, plane "
+            "ids, n_points, unit normal); tiles (polygons: side, ix, iy, n_planes, dx, dy, dz "
+            "= the tile's own motion and sigma_dx/dy/dz in m, fault_parallel and sigma_fp = its "
+            "component along the mean strike, status); strips (points on the trace at the "
+            "strip's centre chainage: side, along_start_m/along_end_m/along_centre_m, "
+            "n_planes, fault_parallel, fault_normal, dz and their sigmas in m, all relative to "
+            "the left side's global displacement, status); windows (GeoTIFF, one pixel per "
+            "window centre, bands fault_parallel_m, dx_m, dy_m, dz_m, sigma_dx_m, sigma_dy_m "
+            "relative to the left side, and n_planes; styled on fault_parallel_m); "
             "right_lateral_slip and sigma_fault_parallel (m).<br>"
-            "Method: Kusari, Glennie, Brooks and Ericksen (2019), IEEE TGRS 57(6). "
+            "Method: Kusari, Glennie, Brooks and Ericksen (2019), Precise registration of "
+            "laser mapping data by planar feature extraction for deformation monitoring, "
+            "IEEE TGRS 57(6): sections II-III (tiles, strips: Fig. 5; windows: Fig. 11). "
             + PLANES_CITATION
         )
 
@@ -121,18 +258,41 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
                 minValue=0.0,
             )
         )
-        self.addParameter(
-            QgsProcessingParameterNumber(
-                "SIGMA",
-                "Point accuracy sigma (m)",
-                QgsProcessingParameterNumber.Double,
-                defaultValue=0.05,
-                minValue=1e-6,
-            )
+        add_pa_parameters(
+            self, {"PA_BEFORE": "Point accuracy, before", "PA_AFTER": "Point accuracy, after"}
         )
         self.addParameter(
             QgsProcessingParameterBoolean(
                 "EXCLUDE_GROUND", "Leave out ground (class 2) points", defaultValue=True
+            )
+        )
+        self.addParameter(_length("TILE_SIZE", "Tile size (m)"))
+        self.addParameter(
+            _advanced(
+                QgsProcessingParameterEnum(
+                    "COMBINE", "Combine tiles", options=list(COMBINE), defaultValue=0
+                )
+            )
+        )
+        self.addParameter(_length("STRIP_WIDTH", "Strip width (m)"))
+        self.addParameter(_length("WINDOW_SIZE", "Moving-window size (m)"))
+        self.addParameter(
+            _length("WINDOW_STEP", "Moving-window step (m; default size / 4)", advanced=True)
+        )
+        self.addParameter(
+            _length("MATCH_ANGLE", "Match angle (degrees)", 3.0, optional=False, advanced=True)
+        )
+        self.addParameter(
+            _length("MATCH_DISTANCE", "Match distance (m)", 0.5, optional=False, advanced=True)
+        )
+        self.addParameter(
+            _advanced(
+                QgsProcessingParameterNumber(
+                    "REFERENCE_SLIP",
+                    "Reference right-lateral slip (m)",
+                    QgsProcessingParameterNumber.Double,
+                    optional=True,
+                )
             )
         )
         add_plane_parameters(self)
@@ -144,6 +304,20 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
                 "PLANES", "Matched planes", QgsProcessing.TypeVectorPoint
             )
         )
+        for name, label, kind in (
+            ("TILES", "Tiles", QgsProcessing.TypeVectorPolygon),
+            ("STRIPS", "Strips", QgsProcessing.TypeVectorPoint),
+        ):
+            self.addParameter(
+                QgsProcessingParameterFeatureSink(
+                    name, label, kind, optional=True, createByDefault=False
+                )
+            )
+        self.addParameter(
+            QgsProcessingParameterRasterDestination(
+                "WINDOWS", "Moving windows", optional=True, createByDefault=False
+            )
+        )
         self.addOutput(QgsProcessingOutputHtml("REPORT", "Report"))
         self.addOutput(QgsProcessingOutputNumber("RIGHT_LATERAL_SLIP", "Right-lateral slip (m)"))
         self.addOutput(
@@ -151,76 +325,223 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         )
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
-        before_path = self.parameterAsFile(parameters, "BEFORE", context)
-        after_path = self.parameterAsFile(parameters, "AFTER", context)
+        opts = self._options(parameters, context)
+        if opts["window_size_m"] is not None and not opts["windows_path"]:
+            feedback.pushInfo("WINDOW_SIZE is set but no WINDOWS output is asked for: no windows")
         source = self.parameterAsSource(parameters, "FAULT", context)
         if source is None:
             raise QgsProcessingException("FAULT: the layer cannot be read")
-        buffer_m = self.parameterAsDouble(parameters, "BUFFER", context)
-        sigma = self.parameterAsDouble(parameters, "SIGMA", context)
-        exclude = self.parameterAsBoolean(parameters, "EXCLUDE_GROUND", context)
-        opts = plane_options(self, parameters, context)
-        summary_path = self.parameterAsFileOutput(parameters, "SUMMARY", context)
         with slipmap_errors():
-            from ...core.displacement import estimate_slip
-            from ...core.fault import fault_trace
-            from ...core.io.crs import reproject_points, same_crs
-
-            first, second = read_cloud(before_path), read_cloud(after_path)
-            crs = QgsCoordinateReferenceSystem()
-            if first.crs is not None:
-                crs = QgsCoordinateReferenceSystem.fromWkt(first.crs.to_wkt())
-            trace = fault_trace(fault_parts(source, crs, context))
-            xyz2 = second.xyz
-            if (
-                first.crs is not None
-                and second.crs is not None
-                and not same_crs(first.crs, second.crs)
-            ):
-                xyz2 = reproject_points(second.xyz, second.crs, first.crs)
-            sel1, sel2 = select_points(first, exclude), select_points(second, exclude)
-            result = estimate_slip(
-                first.xyz[sel1],
-                xyz2[sel2],
-                trace,
-                buffer_m=buffer_m,
-                sigma_before=sigma,
-                sigma_after=sigma,
-                plane_options=opts,
-                progress=progress_callback(feedback),
-            )
-            payload = result.to_dict()
-            payload["parameters"].update(
-                {"before": before_path, "after": after_path, "sigma": sigma}
-            )
-            write_json(summary_path, payload)
-            report_path = summary_path.rsplit(".", 1)[0] + ".html"
-            from ...core.report import write_html_report
-
-            tables = {"relative (right - left), m": payload["relative"]}
-            for side in ("left", "right"):
-                tables[f"{side} side"] = {
-                    k: v for k, v in payload[side].items() if not isinstance(v, (list, dict))
-                }
-            write_html_report(report_path, "SlipMap displacement", tables, [])
-        sink_id = self._write_planes(parameters, context, result, crs)
-        rel = payload["relative"]
+            run = self._run(parameters, context, feedback, source, opts)
+            summary, report = self._write_summary(run, opts)
+        results = {"SUMMARY": summary, "REPORT": report}
+        results["PLANES"] = self._write_planes(parameters, context, run["result"], run["crs"])
+        if run["result"].tiles and _is_set(parameters, "TILES"):
+            results["TILES"] = self._write_tiles(parameters, context, run)
+            apply_style_on_load(context, results["TILES"], "slip_tiles")
+        if run["strips"] is not None and _is_set(parameters, "STRIPS"):
+            results["STRIPS"] = self._write_strips(parameters, context, run)
+            apply_style_on_load(context, results["STRIPS"], "slip_strips")
+        if run["windows"] is not None:
+            with slipmap_errors():
+                results["WINDOWS"] = self._write_windows(run, opts["windows_path"])
+            _diverging_style_on_load(context, results["WINDOWS"], "slip_windows")
+        rel = run["payload"]["relative"]
         feedback.pushInfo(
             f"right-lateral slip {rel['right_lateral_slip']:.4f} ± "
             f"{rel['sigma_fault_parallel']:.4f} m"
         )
+        results["RIGHT_LATERAL_SLIP"] = rel["right_lateral_slip"]
+        results["SIGMA_FAULT_PARALLEL"] = rel["sigma_fault_parallel"]
+        return results
+
+    # ------------------------------------------------------------------ parameters
+
+    def _options(self, parameters, context):
+        """Plain values of the parameters, checked; nothing is kept on ``self``."""
+        number = lambda name: optional_number(self, parameters, name, context)  # noqa: E731
+        opts = {
+            "before": cloud_path(self, parameters, "BEFORE", context),
+            "after": cloud_path(self, parameters, "AFTER", context),
+            "buffer_m": self.parameterAsDouble(parameters, "BUFFER", context),
+            "exclude": self.parameterAsBoolean(parameters, "EXCLUDE_GROUND", context),
+            "plane": plane_options(self, parameters, context),
+            "match": {
+                "angle_threshold_deg": self.parameterAsDouble(parameters, "MATCH_ANGLE", context),
+                "distance_threshold_m": self.parameterAsDouble(
+                    parameters, "MATCH_DISTANCE", context
+                ),
+            },
+            "tile_size_m": number("TILE_SIZE"),
+            "combine": COMBINE[self.parameterAsEnum(parameters, "COMBINE", context)],
+            "strip_width_m": number("STRIP_WIDTH"),
+            "window_size_m": number("WINDOW_SIZE"),
+            "window_step_m": number("WINDOW_STEP"),
+            "reference_slip": number("REFERENCE_SLIP"),
+            "summary": self.parameterAsFileOutput(parameters, "SUMMARY", context),
+            "pa_config": pa_config(self, parameters, context),
+            "windows_path": None,
+        }
+        for name, key in (
+            ("TILE_SIZE", "tile_size_m"),
+            ("STRIP_WIDTH", "strip_width_m"),
+            ("WINDOW_SIZE", "window_size_m"),
+            ("WINDOW_STEP", "window_step_m"),
+        ):
+            if opts[key] is not None and not opts[key] > 0:
+                raise QgsProcessingException(f"{name} must be > 0 m, got {opts[key]}")
+        for sink, key, name in (
+            ("TILES", "tile_size_m", "TILE_SIZE"),
+            ("STRIPS", "strip_width_m", "STRIP_WIDTH"),
+            ("WINDOWS", "window_size_m", "WINDOW_SIZE"),
+        ):
+            if _is_set(parameters, sink) and opts[key] is None:
+                raise QgsProcessingException(
+                    f"{sink} is requested but {name} is not set: give {name} (m) or leave "
+                    f"{sink} out"
+                )
+        if opts["window_size_m"] is not None:
+            if opts["window_step_m"] is None:
+                opts["window_step_m"] = opts["window_size_m"] / 4
+            if _is_set(parameters, "WINDOWS"):
+                opts["windows_path"] = self.parameterAsOutputLayer(parameters, "WINDOWS", context)
+        return opts
+
+    # ------------------------------------------------------------------ core
+
+    def _run(self, parameters, context, feedback, source, opts):
+        from ...core.displacement import estimate_slip, strip_profile, window_field
+        from ...core.fault import fault_trace
+        from ...core.io.crs import reproject_points, same_crs
+        from ...core.progress import scaled
+        from ...pointaccuracy import covariances
+
+        progress = progress_callback(feedback)
+        first, second = read_cloud(opts["before"]), read_cloud(opts["after"])
+        crs = cloud_crs(first)
+        pa = opts["pa_config"] or {
+            "before": pa_settings(self, parameters, context, "PA_BEFORE", crs),
+            "after": pa_settings(
+                self,
+                parameters,
+                context,
+                "PA_AFTER",
+                cloud_crs(second) if second.crs is not None else crs,
+            ),
+        }
+        trace = fault_trace(fault_parts(source, crs, context))
+        xyz2 = second.xyz
+        if first.crs is not None and second.crs is not None and not same_crs(first.crs, second.crs):
+            xyz2 = reproject_points(second.xyz, second.crs, first.crs)
+        sel1, sel2 = select_points(first, opts["exclude"]), select_points(second, opts["exclude"])
+        before, after = first.xyz[sel1], xyz2[sel2]
+        with pa_errors():
+            sigma_before = covariances(first, sel1, pa["before"])
+            sigma_after = covariances(second, sel2, pa["after"])
+        common = dict(
+            buffer_m=opts["buffer_m"],
+            sigma_before=sigma_before,
+            sigma_after=sigma_after,
+            plane_options=opts["plane"],
+            match_options=opts["match"],
+        )
+        # the windows are only computed for their GeoTIFF (the summary does not hold them)
+        n_steps = 1 + (opts["strip_width_m"] is not None) + bool(opts["windows_path"])
+        step = iter(range(n_steps))
+
+        def part():
+            k = next(step)
+            return scaled(progress, k / n_steps, (k + 1) / n_steps)
+
+        result = estimate_slip(
+            before,
+            after,
+            trace,
+            tile_size_m=opts["tile_size_m"],
+            combine=opts["combine"],
+            progress=part(),
+            **common,
+        )
+        strips = windows = None
+        if opts["strip_width_m"] is not None:
+            strips = strip_profile(
+                before,
+                after,
+                trace,
+                result,
+                strip_width_m=opts["strip_width_m"],
+                progress=part(),
+                **common,
+            )
+        if opts["windows_path"]:
+            windows = window_field(
+                before,
+                after,
+                trace,
+                result,
+                window_size_m=opts["window_size_m"],
+                window_step_m=opts["window_step_m"],
+                progress=part(),
+                **common,
+            )
+        payload = result.to_dict()
+        payload["parameters"].update(
+            {"point_accuracy": pa, "before": opts["before"], "after": opts["after"]}
+        )
+        if opts["reference_slip"] is not None:
+            payload["reference"] = result.reference_comparison(opts["reference_slip"])
+        if strips is not None:
+            payload["strips"] = [
+                {
+                    "side": st.side,
+                    "along_start_m": st.along_start_m,
+                    "along_end_m": st.along_end_m,
+                    "n_planes": int(st.n_planes),
+                    "fault_parallel": _finite(st.fault_parallel),
+                    "sigma_fault_parallel": _finite(st.sigma_fault_parallel),
+                    "status": st.status,
+                }
+                for st in strips
+            ]
         return {
-            "SUMMARY": summary_path,
-            "REPORT": report_path,
-            "PLANES": sink_id,
-            "RIGHT_LATERAL_SLIP": rel["right_lateral_slip"],
-            "SIGMA_FAULT_PARALLEL": rel["sigma_fault_parallel"],
+            "result": result,
+            "strips": strips,
+            "windows": windows,
+            "trace": trace,
+            "crs": crs,
+            "crs_wkt": first.crs.to_wkt() if first.crs is not None else None,
+            "payload": payload,
         }
 
+    # ------------------------------------------------------------------ outputs
+
+    def _write_summary(self, run, opts):
+        """The JSON summary and the HTML report (with PNG plots beside it when matplotlib is
+        there); returns both paths."""
+        from ...core.errors import DependencyError
+        from ...core.report import write_html_report
+
+        summary, payload, result = opts["summary"], run["payload"], run["result"]
+        write_json(summary, payload)
+        stem = summary.rsplit(".", 1)[0]
+        tables = {"relative (right - left), m": payload["relative"]}
+        for side in ("left", "right"):
+            tables[f"{side} side"] = {
+                k: v for k, v in payload[side].items() if not isinstance(v, (list, dict))
+            }
+        if "reference" in payload:
+            tables["against the reference slip"] = payload["reference"]
+        images = []
+        try:
+            images = _plots(stem, result, run["strips"])
+        except DependencyError:
+            pass  # no matplotlib in QGIS's Python: tables only
+        report = stem + ".html"
+        write_html_report(report, "SlipMap displacement", tables, images)
+        return summary, report
+
     def _write_planes(self, parameters, context, result, crs):
-        fields = QgsFields()
-        for name, kind in SINK_FIELDS:
-            fields.append(QgsField(name, kind))
+        fields = _fields(SINK_FIELDS)
         sink, sink_id = self.parameterAsSink(
             parameters, "PLANES", context, fields, QgsWkbTypes.PointZ, crs
         )
@@ -234,15 +555,139 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
                 f.setGeometry(QgsGeometry(QgsPoint(float(c[0]), float(c[1]), float(c[2]))))
                 n = pb.normals[i]
                 f.setAttributes(
-                    [
-                        side.side,
-                        int(i),
-                        int(j),
-                        int(pb.n_points[i]),
-                        float(n[0]),
-                        float(n[1]),
-                        float(n[2]),
-                    ]
+                    [side.side, int(i), int(j), int(pb.n_points[i])] + [float(v) for v in n]
                 )
                 sink.addFeature(f, QgsFeatureSink.FastInsert)
         return sink_id
+
+    def _write_tiles(self, parameters, context, run):
+        import numpy as np
+
+        result = run["result"]
+        fields = _fields(TILE_FIELDS)
+        sink, sink_id = self.parameterAsSink(
+            parameters, "TILES", context, fields, QgsWkbTypes.Polygon, run["crs"]
+        )
+        if sink is None:
+            return None
+        j = np.array([math.sin(result.strike_rad), math.cos(result.strike_rad), 0.0])
+        for t in result.tiles:
+            x0, y0, x1, y1 = (float(v) for v in t.bounds)
+            f = QgsFeature(fields)
+            f.setGeometry(QgsGeometry.fromRect(QgsRectangle(x0, y0, x1, y1)))
+            ok = t.status == "ok"
+            d = [_finite(v) if ok else None for v in t.displacement]
+            s = [_finite(math.sqrt(max(t.covariance[k, k], 0.0))) if ok else None for k in range(3)]
+            fp = _finite(j @ t.displacement) if ok else None
+            sfp = _sigma_of(t.covariance, j) if ok else None
+            f.setAttributes(
+                [t.side, int(t.ix), int(t.iy), int(t.n_planes), *d, *s, fp, sfp, t.status]
+            )
+            sink.addFeature(f, QgsFeatureSink.FastInsert)
+        return sink_id
+
+    def _write_strips(self, parameters, context, run):
+        import numpy as np
+
+        from ...core.fault import point_at_chainage
+
+        result = run["result"]
+        fields = _fields(STRIP_FIELDS)
+        sink, sink_id = self.parameterAsSink(
+            parameters, "STRIPS", context, fields, QgsWkbTypes.Point, run["crs"]
+        )
+        if sink is None:
+            return None
+        s, c = math.sin(result.strike_rad), math.cos(result.strike_rad)
+        jn, jz = np.array([c, -s, 0.0]), np.array([0.0, 0.0, 1.0])
+        ref_d, ref_c = result.left.displacement, result.left.displacement_covariance
+        for st in run["strips"]:
+            ok = st.status == "ok"
+            rel, cov = st.displacement - ref_d, st.covariance + ref_c
+            xy = point_at_chainage(run["trace"], st.along_centre_m)
+            f = QgsFeature(fields)
+            f.setGeometry(QgsGeometry(QgsPoint(float(xy[0]), float(xy[1]))))
+            f.setAttributes(
+                [
+                    st.side,
+                    float(st.along_start_m),
+                    float(st.along_end_m),
+                    float(st.along_centre_m),
+                    int(st.n_planes),
+                    _finite(st.fault_parallel),
+                    _finite(st.sigma_fault_parallel),
+                    _finite(jn @ rel) if ok else None,
+                    _sigma_of(cov, jn) if ok else None,
+                    _finite(jz @ rel) if ok else None,
+                    _sigma_of(cov, jz) if ok else None,
+                    st.status,
+                ]
+            )
+            sink.addFeature(f, QgsFeatureSink.FastInsert)
+        return sink_id
+
+    def _write_windows(self, run, path):
+        """One multi-band GeoTIFF: bands :data:`WINDOW_BANDS`, pixels on the window centres."""
+        import numpy as np
+
+        from ...core.io.raster import write_geotiff
+
+        w = run["windows"]
+        half = 0.5 * w.step_m
+        strike = run["result"].strike_rad
+        fp = math.sin(strike) * w.dx + math.cos(strike) * w.dy
+        bands = [fp, w.dx, w.dy, w.dz, w.sigma_dx, w.sigma_dy, w.n_planes]
+        write_geotiff(
+            path,
+            np.stack([np.asarray(b, dtype=np.float64) for b in bands]),
+            origin_xy=(w.x0 - half, w.y0 + half),
+            pixel_size_m=w.step_m,
+            crs_wkt=run["crs_wkt"],
+            band_names=list(WINDOW_BANDS),
+            metadata={"SLIPMAP_WINDOW_SIZE_M": f"{w.window_size_m:g}"},
+        )
+        return path
+
+
+def _plots(stem, result, strips):
+    """Residual, normal and strip-profile PNGs beside the report; their relative names."""
+    import os
+
+    from ...core.report import (
+        plot_normals_polar,
+        plot_plane_residual_polar,
+        plot_residual_histograms,
+        plot_strip_profile,
+    )
+
+    sides = (result.left, result.right)
+    res = {f"{s.side} before": s.rigid.residuals_before for s in sides}
+    res.update({f"{s.side} after": s.rigid.residuals_after for s in sides})
+    names = []
+    plot_residual_histograms(stem + "_residuals.png", res, title="Point-to-plane residuals")
+    names.append("_residuals.png")
+    normals = {s.side: s.planes_before.normals[s.matches.before] for s in sides}
+    plot_normals_polar(stem + "_normals.png", normals, title="Matched plane normals")
+    names.append("_normals.png")
+    if all(s.plane_mean_residual_m is not None for s in sides):
+        plot_plane_residual_polar(
+            stem + "_plane_residuals.png",
+            {s.side: (normals[s.side], s.plane_mean_residual_m) for s in sides},
+        )
+        names.append("_plane_residuals.png")
+    if strips:
+        plot_strip_profile(
+            stem + "_strips.png",
+            [st.along_centre_m for st in strips],
+            [st.fault_parallel for st in strips],
+            [st.sigma_fault_parallel for st in strips],
+            [st.side for st in strips],
+        )
+        names.append("_strips.png")
+    base = os.path.basename(stem)
+    return [base + n for n in names]
+
+
+def _diverging_style_on_load(context, output, style_name):
+    """The diverging raster style, rescaled to the layer's own symmetric range on load."""
+    apply_style_on_load(context, output, style_name, symmetric_band=1)

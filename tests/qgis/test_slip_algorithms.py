@@ -1,0 +1,570 @@
+"""``slipmap:displacement`` tiles, strips, windows and point-accuracy models, and
+``slipmap:pointaccuracy`` for every model, through ``processing.run`` against the core."""
+
+import json
+import math
+
+import numpy as np
+import pyproj
+import pytest
+
+import slipmap
+
+pytestmark = pytest.mark.qgis
+
+UTM10 = pyproj.CRS.from_epsg(32610)
+ORIGIN = (498000.0, 4234000.0, 20.0)
+OFFSET = 0.0181
+
+
+@pytest.fixture(scope="module")
+def provider(qgis_app):
+    plugin = slipmap.classFactory(None)
+    plugin.initProcessing()
+    yield
+    plugin.unload()
+
+
+@pytest.fixture(scope="module")
+def epochs(tmp_path_factory):
+    from slipmap.core.io.las import PointCloud, read_las, write_las
+    from slipmap.core.synthetic import make_fault_pair
+
+    d = tmp_path_factory.mktemp("slip_epochs")
+    fp = make_fault_pair("mls", seed=7, origin=ORIGIN, right_offset_m=(0.0, -OFFSET, 0.0))
+    paths, xyz = [], []
+    for name, sc in (("before", fp.before), ("after", fp.after)):
+        p = d / f"{name}.las"
+        write_las(
+            p,
+            PointCloud(xyz=sc.points, attributes={"Classification": sc.classification}, crs=UTM10),
+        )
+        cloud = read_las(p)  # the core sees the stored (quantised) coordinates, as the plugin
+        paths.append(p)
+        xyz.append(cloud.xyz[np.asarray(cloud.attributes["Classification"]) != 2])
+    return fp, paths, xyz
+
+
+@pytest.fixture(scope="module")
+def tiled_run(provider, epochs, tmp_path_factory):
+    """One run with tiles, strips and windows (the core runs once for the module)."""
+    import processing
+
+    fp, (before, after), _ = epochs
+    d = tmp_path_factory.mktemp("slip_out")
+    res = processing.run(
+        "slipmap:displacement",
+        {
+            "BEFORE": str(before),
+            "AFTER": str(after),
+            "FAULT": _fault_layer(fp.trace_xy),
+            "TILE_SIZE": 30.0,
+            "COMBINE": 1,
+            "STRIP_WIDTH": 30.0,
+            "WINDOW_SIZE": 30.0,
+            "WINDOW_STEP": 10.0,
+            "SUMMARY": str(d / "slip.json"),
+            "PLANES": str(d / "planes.gpkg"),
+            "TILES": str(d / "tiles.gpkg"),
+            "STRIPS": str(d / "strips.gpkg"),
+            "WINDOWS": str(d / "windows.tif"),
+        },
+    )
+    return res, d
+
+
+@pytest.fixture(scope="module")
+def core_tiled(epochs):
+    from slipmap.core.displacement import estimate_slip, strip_profile, window_field
+    from slipmap.core.fault import fault_trace
+
+    fp, _, (b, a) = epochs
+    trace = fault_trace([fp.trace_xy])
+    result = estimate_slip(b, a, trace, tile_size_m=30.0, combine="tiles")
+    strips = strip_profile(b, a, trace, result, strip_width_m=30.0)
+    windows = window_field(b, a, trace, result, window_size_m=30.0, window_step_m=10.0)
+    return result, strips, windows
+
+
+def _fault_layer(xy_utm, crs="EPSG:32610"):
+    """The trace as a memory line layer in ``crs`` (the equality tests keep the cloud's CRS:
+    a round trip through another CRS moves vertices by ~1e-9 m, and points on the buffer's
+    edge with them; test_algorithms.py covers the reprojection)."""
+    from qgis.core import QgsFeature, QgsGeometry, QgsPointXY, QgsVectorLayer
+
+    tr = pyproj.Transformer.from_crs(UTM10, crs, always_xy=True)
+    lon, lat = tr.transform(xy_utm[:, 0], xy_utm[:, 1])
+    layer = QgsVectorLayer(f"LineString?crs={crs}", "fault", "memory")
+    f = QgsFeature()
+    f.setGeometry(QgsGeometry.fromPolylineXY([QgsPointXY(a, b) for a, b in zip(lon, lat)]))
+    layer.dataProvider().addFeatures([f])
+    return layer
+
+
+def _features(path):
+    from qgis.core import QgsVectorLayer
+
+    layer = QgsVectorLayer(str(path), "out", "ogr")
+    assert layer.isValid(), path
+    return layer, list(layer.getFeatures())
+
+
+def _value(v):
+    return float("nan") if v is None or (hasattr(v, "isNull") and v.isNull()) else float(v)
+
+
+# --------------------------------------------------------------------------- displacement
+
+
+def test_tiles_equal_core(tiled_run, core_tiled):
+    res, _ = tiled_run
+    result, _, _ = core_tiled
+    comp = result.components()
+    assert res["RIGHT_LATERAL_SLIP"] == pytest.approx(comp["right_lateral_slip"], abs=1e-6)
+    assert abs(res["RIGHT_LATERAL_SLIP"] - OFFSET) < 2e-3
+    layer, feats = _features(res["TILES"])
+    assert layer.crs().authid() == "EPSG:32610"
+    assert len(feats) == len(result.tiles)
+    by_key = {(f["side"], f["ix"], f["iy"]): f for f in feats}
+    j = np.array([math.sin(result.strike_rad), math.cos(result.strike_rad), 0.0])
+    n_ok = 0
+    for t in result.tiles:
+        f = by_key[(t.side, t.ix, t.iy)]
+        assert f["status"] == t.status
+        assert f["n_planes"] == t.n_planes
+        box = f.geometry().boundingBox()
+        np.testing.assert_allclose(
+            [box.xMinimum(), box.yMinimum(), box.xMaximum(), box.yMaximum()], t.bounds, atol=1e-6
+        )
+        if t.status != "ok":
+            assert math.isnan(_value(f["dx"]))
+            continue
+        n_ok += 1
+        np.testing.assert_allclose([f["dx"], f["dy"], f["dz"]], t.displacement, atol=1e-9)
+        np.testing.assert_allclose(
+            [f["sigma_dx"], f["sigma_dy"], f["sigma_dz"]],
+            np.sqrt(np.diag(t.covariance)),
+            rtol=1e-9,
+        )
+        assert f["fault_parallel"] == pytest.approx(j @ t.displacement, abs=1e-9)
+        assert f["sigma_fp"] == pytest.approx(math.sqrt(j @ t.covariance @ j), rel=1e-9)
+    assert n_ok >= 4
+
+
+def test_strips_equal_core(tiled_run, core_tiled, epochs):
+    from slipmap.core.fault import fault_trace, point_at_chainage
+
+    res, _ = tiled_run
+    result, strips, _ = core_tiled
+    fp = epochs[0]
+    layer, feats = _features(res["STRIPS"])
+    assert len(feats) == len(strips)
+    got = {(f["side"], round(f["along_start_m"], 6)): f for f in feats}
+    c, s = math.cos(result.strike_rad), math.sin(result.strike_rad)
+    ref_d, ref_c = result.left.displacement, result.left.displacement_covariance
+    trace = fault_trace([fp.trace_xy])
+    for st in strips:
+        f = got[(st.side, round(st.along_start_m, 6))]
+        assert f["status"] == st.status
+        pt = f.geometry().asPoint()
+        np.testing.assert_allclose(
+            [pt.x(), pt.y()], point_at_chainage(trace, st.along_centre_m), atol=1e-6
+        )
+        if st.status != "ok":
+            assert math.isnan(_value(f["fault_parallel"]))
+            continue
+        assert f["fault_parallel"] == pytest.approx(st.fault_parallel, abs=1e-9)
+        assert f["sigma_fp"] == pytest.approx(st.sigma_fault_parallel, rel=1e-9)
+        rel, cov = st.displacement - ref_d, st.covariance + ref_c
+        jn = np.array([c, -s, 0.0])
+        assert f["fault_normal"] == pytest.approx(jn @ rel, abs=1e-9)
+        assert f["sigma_fn"] == pytest.approx(math.sqrt(jn @ cov @ jn), rel=1e-9)
+        assert f["dz"] == pytest.approx(rel[2], abs=1e-9)
+        assert f["sigma_dz"] == pytest.approx(math.sqrt(cov[2, 2]), rel=1e-9)
+    right = [_value(f["fault_parallel"]) for f in feats if f["side"] == "right"]
+    assert np.nanmedian(right) == pytest.approx(-OFFSET, abs=2e-3)
+    summary = json.loads((tiled_run[1] / "slip.json").read_text())
+    assert len(summary["strips"]) == len(strips)
+    assert len(summary["tiles"]) == len(result.tiles)
+
+
+def test_windows_raster_grid_and_values(tiled_run, core_tiled):
+    from osgeo import gdal
+    from qgis.core import QgsRasterLayer
+
+    res, _ = tiled_run
+    _, _, w = core_tiled
+    layer = QgsRasterLayer(res["WINDOWS"], "windows")
+    assert layer.isValid()
+    assert layer.crs().authid() == "EPSG:32610"
+    assert layer.bandCount() == 7
+    ny, nx = w.shape
+    assert (layer.width(), layer.height()) == (nx, ny)
+    ext = layer.extent()
+    half = w.step_m / 2
+    np.testing.assert_allclose(
+        [ext.xMinimum(), ext.yMaximum(), ext.xMaximum(), ext.yMinimum()],
+        [w.x0 - half, w.y0 + half, w.x0 - half + nx * w.step_m, w.y0 + half - ny * w.step_m],
+        atol=1e-6,
+    )
+    ds = gdal.Open(res["WINDOWS"])
+    result = core_tiled[0]
+    fp = math.sin(result.strike_rad) * w.dx + math.cos(result.strike_rad) * w.dy
+    for band, ref in enumerate((fp, w.dx, w.dy, w.dz, w.sigma_dx, w.sigma_dy, w.n_planes)):
+        np.testing.assert_allclose(ds.GetRasterBand(band + 1).ReadAsArray(), ref, equal_nan=True)
+    assert ds.GetRasterBand(1).GetDescription() == "fault_parallel_m"
+    # right-side windows carry the offset: fault-parallel = -(right-lateral slip)
+    right = fp[(w.side == 1) & np.isfinite(fp)]
+    assert right.size > 0 and np.median(right) == pytest.approx(-OFFSET, abs=2e-3)
+
+
+def test_report_has_plots(tiled_run):
+    res, d = tiled_run
+    html = open(res["REPORT"], encoding="utf-8").read()
+    assert "right_lateral_slip" in html
+    pytest.importorskip("matplotlib")
+    for name in ("slip_residuals.png", "slip_normals.png", "slip_strips.png"):
+        assert name in html
+        assert (d / name).is_file()
+
+
+def test_pa_config_per_epoch_equals_core(provider, epochs, tmp_path):
+    import processing
+
+    from slipmap.core.displacement import estimate_slip
+    from slipmap.core.fault import fault_trace
+
+    fp, (before, after), (b, a) = epochs
+    cfg = tmp_path / "pa.json"
+    cfg.write_text(
+        json.dumps(
+            {
+                "before": {"model": "constant", "sigma": 0.02},
+                "after": {"model": "axis", "sigma_xyz": [0.01, 0.02, 0.04]},
+            }
+        )
+    )
+    res = processing.run(
+        "slipmap:displacement",
+        {
+            "BEFORE": str(before),
+            "AFTER": str(after),
+            "FAULT": _fault_layer(fp.trace_xy),
+            "PA_CONFIG": str(cfg),
+            "SUMMARY": str(tmp_path / "s.json"),
+            "PLANES": "TEMPORARY_OUTPUT",
+        },
+    )
+    ref = estimate_slip(
+        b,
+        a,
+        fault_trace([fp.trace_xy]),
+        sigma_before=0.02,
+        sigma_after=np.array([0.01, 0.02, 0.04]),
+    ).components()
+    assert res["RIGHT_LATERAL_SLIP"] == pytest.approx(ref["right_lateral_slip"], abs=1e-7)
+    assert res["SIGMA_FAULT_PARALLEL"] == pytest.approx(ref["sigma_fault_parallel"], rel=1e-6)
+    pa = json.loads((tmp_path / "s.json").read_text())["parameters"]["point_accuracy"]
+    assert pa["after"]["model"] == "axis"
+
+
+@pytest.mark.parametrize(
+    "extra, words",
+    [
+        ({"TILES": "TEMPORARY_OUTPUT"}, ("TILES", "TILE_SIZE")),
+        ({"WINDOWS": "TEMPORARY_OUTPUT"}, ("WINDOWS", "WINDOW_SIZE")),
+        ({"PA_BEFORE": 3}, ("TRAJECTORY", "SCANNER_POSITION")),
+        ({"PA_AFTER": 2, "SIGMA_COLUMNS": "SigmaX,SigmaY"}, ("SIGMA_COLUMNS", "three")),
+        ({"PA_AFTER": 2}, ("SigmaX", "columns", "SIGMA_COLUMNS")),
+        ({"PA_CONFIG": "/no/such/pa.json"}, ("PA_CONFIG", "JSON")),
+    ],
+)
+def test_bad_parameters_name_the_parameter(provider, epochs, tmp_path, extra, words):
+    import processing
+    from qgis.core import QgsProcessingException, QgsProcessingFeedback
+
+    class Errors(QgsProcessingFeedback):
+        def __init__(self):
+            super().__init__()
+            self.errors = []
+
+        def reportError(self, error, fatalError=False):  # noqa: N802, N803
+            self.errors.append(error)
+            super().reportError(error, fatalError)
+
+    fp, (before, after), _ = epochs
+    params = {
+        "BEFORE": str(before),
+        "AFTER": str(after),
+        "FAULT": _fault_layer(fp.trace_xy),
+        "SUMMARY": str(tmp_path / "s.json"),
+        "PLANES": "TEMPORARY_OUTPUT",
+    }
+    feedback = Errors()
+    with pytest.raises(QgsProcessingException) as raised:
+        processing.run("slipmap:displacement", {**params, **extra}, feedback=feedback)
+    text = str(raised.value) + " ".join(feedback.errors)
+    for word in words:
+        assert word in text, text
+
+
+def test_styles_applied_on_load(provider, epochs, tmp_path):
+    """TILES and WINDOWS outputs loaded on completion get the bundled styles: tile labels in
+    mm, the windows' diverging ramp rescaled to the layer's own symmetric range."""
+    import processing
+    from osgeo import gdal
+    from qgis.core import (
+        QgsProcessingContext,
+        QgsProcessingFeedback,
+        QgsProject,
+        QgsRasterLayer,
+        QgsRuleBasedRenderer,
+        QgsSingleBandPseudoColorRenderer,
+        QgsVectorLayer,
+    )
+
+    fp, (before, after), _ = epochs
+    tiles, windows = str(tmp_path / "tiles.gpkg"), str(tmp_path / "windows.tif")
+    context = QgsProcessingContext()
+    context.setProject(QgsProject.instance())
+    for path, name in ((tiles, "TILES"), (windows, "WINDOWS")):
+        context.addLayerToLoadOnCompletion(
+            path, QgsProcessingContext.LayerDetails(name, QgsProject.instance(), name)
+        )
+    feedback = QgsProcessingFeedback()
+    processing.run(
+        "slipmap:displacement",
+        {
+            "BEFORE": str(before),
+            "AFTER": str(after),
+            "FAULT": _fault_layer(fp.trace_xy),
+            "TILE_SIZE": 40.0,
+            "WINDOW_SIZE": 40.0,
+            "WINDOW_STEP": 20.0,
+            "SUMMARY": str(tmp_path / "s.json"),
+            "PLANES": "TEMPORARY_OUTPUT",
+            "TILES": tiles,
+            "WINDOWS": windows,
+        },
+        context=context,
+        feedback=feedback,
+    )
+    layer = QgsVectorLayer(tiles, "tiles", "ogr")
+    context.layerToLoadOnCompletionDetails(tiles).postProcessor().postProcessLayer(
+        layer, context, feedback
+    )
+    assert isinstance(layer.renderer(), QgsRuleBasedRenderer)
+    assert layer.labelsEnabled()
+    assert "1000" in layer.labeling().settings().fieldName
+    raster = QgsRasterLayer(windows, "windows")
+    context.layerToLoadOnCompletionDetails(windows).postProcessor().postProcessLayer(
+        raster, context, feedback
+    )
+    renderer = raster.renderer()
+    assert isinstance(renderer, QgsSingleBandPseudoColorRenderer)
+    ds = gdal.Open(windows)  # kept: a band outliving its dataset crashes GDAL
+    band1 = ds.GetRasterBand(1).ReadAsArray()
+    m = np.nanmax(np.abs(band1))
+    assert 0.01 < m < 0.1
+    assert renderer.classificationMax() == pytest.approx(m, rel=1e-6)
+    assert renderer.classificationMin() == pytest.approx(-m, rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    "style, uri",
+    [
+        ("slip_tiles", "Polygon?crs=EPSG:32610"),
+        ("slip_strips", "Point?crs=EPSG:32610"),
+    ],
+)
+def test_vector_styles_load(qgis_app, style, uri):
+    from qgis.core import (
+        QgsExpression,
+        QgsExpressionContext,
+        QgsExpressionContextUtils,
+        QgsFeature,
+        QgsGeometry,
+        QgsPointXY,
+        QgsRectangle,
+        QgsRenderContext,
+        QgsVectorLayer,
+    )
+
+    from slipmap.qgis_plugin.algorithms._base import style_path
+
+    fields = "&".join(
+        f"field={n}:{t}"
+        for n, t in (
+            ("side", "string"),
+            ("fault_parallel", "double"),
+            ("sigma_fp", "double"),
+            ("status", "string"),
+        )
+    )
+    layer = QgsVectorLayer(f"{uri}&{fields}", style, "memory")
+    f = QgsFeature(layer.fields())
+    geom = (
+        QgsGeometry.fromRect(QgsRectangle(0, 0, 10, 10))
+        if uri.startswith("Polygon")
+        else QgsGeometry.fromPointXY(QgsPointXY(5, 5))
+    )
+    f.setGeometry(geom)
+    f.setAttributes(["right", -0.0181, 0.0004, "ok"])
+    layer.dataProvider().addFeatures([f])
+    message, ok = layer.loadNamedStyle(style_path(style))
+    assert ok, message
+    assert layer.labelsEnabled()
+    ctx = QgsExpressionContext(QgsExpressionContextUtils.globalProjectLayerScopes(layer))
+    ctx.setFeature(next(layer.getFeatures()))
+    label = QgsExpression(layer.labeling().settings().fieldName).evaluate(ctx)
+    assert label == "-18.1 ± 0.4 mm"
+    assert len(layer.renderer().symbols(QgsRenderContext())) >= 2
+
+
+def test_window_style_loads(tiled_run):
+    from qgis.core import QgsRasterLayer, QgsSingleBandPseudoColorRenderer
+
+    from slipmap.qgis_plugin.algorithms._base import style_path
+
+    layer = QgsRasterLayer(tiled_run[0]["WINDOWS"], "windows")
+    message, ok = layer.loadNamedStyle(style_path("slip_windows"))
+    assert ok, message
+    renderer = layer.renderer()
+    assert isinstance(renderer, QgsSingleBandPseudoColorRenderer)
+    assert renderer.band() == 1
+    assert renderer.classificationMin() == -renderer.classificationMax()
+
+
+# --------------------------------------------------------------------------- point accuracy
+
+
+@pytest.fixture(scope="module")
+def small_cloud(tmp_path_factory):
+    """2000 points with per-point sigmas in SigmaA/SigmaB/SigmaC (UTM 10N)."""
+    from slipmap.core.io.las import PointCloud, write_las
+
+    rng = np.random.default_rng(3)
+    xyz = np.array(ORIGIN) + rng.uniform([0, 0, 0], [40, 40, 5], size=(2000, 3))
+    sig = rng.uniform(0.005, 0.05, size=(2000, 3))
+    path = tmp_path_factory.mktemp("pa") / "small.las"
+    attrs = {"SigmaA": sig[:, 0], "SigmaB": sig[:, 1], "SigmaC": sig[:, 2]}
+    write_las(path, PointCloud(xyz=xyz, attributes=attrs, crs=UTM10))
+    return path
+
+
+def _accuracy(path, out, **params):
+    import processing
+
+    processing.run("slipmap:pointaccuracy", {"INPUT": str(path), "OUTPUT": str(out), **params})
+    from slipmap.core.io.las import read_las
+
+    return read_las(out)
+
+
+def test_pointaccuracy_columns_equals_core(provider, small_cloud, tmp_path):
+    from slipmap.core.io.las import read_las
+    from slipmap.pointaccuracy import covariance_matrices
+
+    out = _accuracy(small_cloud, tmp_path / "c.las", MODEL=2, SIGMA_COLUMNS="SigmaA, SigmaB,SigmaC")
+    cov = covariance_matrices(
+        read_las(small_cloud), None, {"model": "columns", "columns": ["SigmaA", "SigmaB", "SigmaC"]}
+    )
+    for k, name in enumerate(("SigmaX", "SigmaY", "SigmaZ")):
+        np.testing.assert_allclose(out.attributes[name], np.sqrt(cov[:, k, k]), rtol=1e-12)
+    assert "CovXY" not in out.attributes
+
+
+def test_pointaccuracy_tls_reprojected_position_full_covariance(provider, small_cloud, tmp_path):
+    from slipmap.core.io.las import read_las
+    from slipmap.pointaccuracy import covariance_matrices
+
+    pos = np.array([ORIGIN[0] - 15.0, ORIGIN[1] + 10.0, ORIGIN[2] + 1.8])
+    lon, lat = pyproj.Transformer.from_crs(UTM10, "EPSG:4326", always_xy=True).transform(
+        pos[0], pos[1]
+    )
+    out = _accuracy(
+        small_cloud,
+        tmp_path / "tls.laz",
+        MODEL=3,
+        SCANNER=2,  # riegl-vz400 (sorted names)
+        SCANNER_POSITION=f"{lon:.10f},{lat:.10f} [EPSG:4326]",
+        SCANNER_HEIGHT=float(pos[2]),
+        FULL_COVARIANCE=True,
+    )
+    settings = {"model": "propagated", "scanner": "riegl-vz400", "scanner_position": list(pos)}
+    cov = covariance_matrices(read_las(small_cloud), None, settings)
+    for k, name in enumerate(("SigmaX", "SigmaY", "SigmaZ")):
+        np.testing.assert_allclose(out.attributes[name], np.sqrt(cov[:, k, k]), rtol=1e-5)
+    for name, (r, c) in (
+        ("CovXX", (0, 0)),
+        ("CovYY", (1, 1)),
+        ("CovZZ", (2, 2)),
+        ("CovXY", (0, 1)),
+        ("CovXZ", (0, 2)),
+        ("CovYZ", (1, 2)),
+    ):
+        np.testing.assert_allclose(out.attributes[name], cov[:, r, c], rtol=1e-4, atol=1e-10)
+    assert np.any(np.abs(out.attributes["CovXY"]) > 1e-8)  # correlated: a real TLS model
+
+
+def test_pointaccuracy_pa_config_and_scanner_names(provider, small_cloud, tmp_path):
+    from slipmap.core.accuracy import SCANNERS
+    from slipmap.qgis_plugin.algorithms import accuracy
+
+    assert accuracy.SCANNER_NAMES == tuple(sorted(SCANNERS))
+    cfg = tmp_path / "pa.json"
+    cfg.write_text(json.dumps({"model": "axis", "sigma_xyz": [0.01, 0.02, 0.03]}))
+    out = _accuracy(small_cloud, tmp_path / "cfg.las", PA_CONFIG=str(cfg))
+    for name, value in (("SigmaX", 0.01), ("SigmaY", 0.02), ("SigmaZ", 0.03)):
+        np.testing.assert_allclose(out.attributes[name], value, rtol=1e-12)
+
+
+def test_pointaccuracy_scanner_file_missing_is_clear(provider, small_cloud, tmp_path):
+    import processing
+    from qgis.core import QgsProcessingException
+
+    with pytest.raises(QgsProcessingException) as raised:
+        processing.run(
+            "slipmap:pointaccuracy",
+            {
+                "INPUT": str(small_cloud),
+                "OUTPUT": str(tmp_path / "x.las"),
+                "MODEL": 3,
+                "SCANNER": 3,  # the "JSON file" choice
+                "SCANNER_POSITION": f"{ORIGIN[0]},{ORIGIN[1]} [EPSG:32610]",
+            },
+        )
+    assert "SCANNER_FILE" in str(raised.value)
+
+
+def test_point_cloud_layer_id_resolves_to_its_file(provider, monkeypatch, tmp_path):
+    """A BEFORE/AFTER value naming a project point-cloud layer reads the layer's file (the
+    Debian QGIS has no PDAL provider, so the layer lookup is stubbed)."""
+    from qgis.core import QgsMapLayerType, QgsProcessingContext
+
+    from slipmap.qgis_plugin.algorithms import displacement
+
+    las = tmp_path / "cloud.laz"
+    las.write_bytes(b"")
+
+    class Layer:
+        def type(self):
+            return QgsMapLayerType.PointCloudLayer
+
+        def source(self):
+            return str(las)
+
+    class Utils:
+        @staticmethod
+        def mapLayerFromString(value, context):  # noqa: N802
+            return Layer() if value == "cloud_layer_id" else None
+
+    monkeypatch.setattr(displacement, "QgsProcessingUtils", Utils)
+    alg = displacement.DisplacementAlgorithm()
+    alg.initAlgorithm()
+    context = QgsProcessingContext()
+    assert displacement.cloud_path(alg, {"BEFORE": "cloud_layer_id"}, "BEFORE", context) == str(las)
+    assert displacement.cloud_path(alg, {"BEFORE": str(las)}, "BEFORE", context) == str(las)
+    assert displacement.cloud_path(alg, {"BEFORE": "/no/such.las"}, "BEFORE", context) == (
+        "/no/such.las"
+    )
