@@ -183,7 +183,7 @@ def test_accuracy_then_displacement_uses_per_point_sigmas():
     ins = make_ins(pts, Epoch=tag, SX=s[:, 0], SY=s[:, 1], SZ=s[:, 2])
     acc = call(stage({"model": "columns", "columns": ["SX", "SY", "SZ"]}), ins, SIG)
     ins.update(acc)
-    (x0, y0), (x1, y1) = fp.trace_xy
+    (x0, y0), (x1, y1) = (map(float, v) for v in fp.trace_xy)  # plain floats for the WKT
     disp = load_stage(
         STAGE_DIR / "displacement.py",
         "slipmap_displacement",
