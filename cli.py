@@ -18,6 +18,7 @@ import numpy as np
 
 from ._version import __version__
 from .core.errors import CancelledError, InvalidParameterError, SlipMapError
+from .summaries import finite, strip_rows
 
 log = logging.getLogger("slipmap")
 
@@ -723,12 +724,12 @@ def _roughness_arguments(p: argparse.ArgumentParser) -> None:
 # --------------------------------------------------------------------------- displacement
 
 
-def _read_epochs(args):
-    """Both epochs, the second reprojected to the first one's CRS when they differ."""
+def read_epoch_pair(before, after):
+    """Both epochs' clouds and the second's xyz reprojected to the first one's CRS."""
     from .core.io.crs import reproject_points, same_crs
     from .core.io.las import read_las
 
-    first, second = read_las(args.before), read_las(args.after)
+    first, second = read_las(before), read_las(after)
     for cloud in (first, second):
         if len(cloud) == 0:
             raise SlipMapError(f"{cloud.source}: the file has no points")
@@ -738,6 +739,12 @@ def _read_epochs(args):
         xyz2 = reproject_points(second.xyz, second.crs, first.crs)
     elif (first.crs is None) != (second.crs is None):
         log.warning("only one epoch declares a CRS; both are taken to be in the same CRS")
+    return first, second, xyz2
+
+
+def _read_epochs(args):
+    """Both epochs, the second reprojected to the first one's CRS when they differ."""
+    first, second, xyz2 = read_epoch_pair(args.before, args.after)
     sel1 = _select_points(first, args.classes, args.exclude_classes)
     sel2 = _select_points(second, args.classes, args.exclude_classes)
     return first, second, sel1, sel2, first.xyz[sel1], xyz2[sel2]
@@ -829,9 +836,7 @@ def _add_pa_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-def _finite(v):
-    v = float(v)
-    return v if np.isfinite(v) else None
+_finite = finite
 
 
 def _window_rasters(windows, crs, out_dir: Path) -> List[str]:
@@ -1087,18 +1092,7 @@ def _run_displacement(args: argparse.Namespace) -> int:
             ref["relative_scale"],
         )
     if strips is not None:
-        payload["strips"] = [
-            {
-                "side": st.side,
-                "along_start_m": st.along_start_m,
-                "along_end_m": st.along_end_m,
-                "n_planes": int(st.n_planes),
-                "fault_parallel": _finite(st.fault_parallel),
-                "sigma_fault_parallel": _finite(st.sigma_fault_parallel),
-                "status": st.status,
-            }
-            for st in strips
-        ]
+        payload["strips"] = strip_rows(strips)
     _write_json(out / "displacement.json", payload)
     files = _displacement_outputs(result, trace, first.crs, out, strips=strips)
     if windows is not None:

@@ -14,8 +14,9 @@ from typing import Optional
 
 import numpy as np
 
-from .cli import _check_output_dir, _positive, _ProgressBar, _write_json, command
+from .cli import _check_output_dir, _positive, _ProgressBar, _write_json, command, read_epoch_pair
 from .core.errors import InputDataError, InvalidParameterError, SlipMapError
+from .summaries import finite_stats, horizontal, json_safe
 
 log = logging.getLogger("slipmap")
 
@@ -50,17 +51,7 @@ def _select(cloud, args) -> np.ndarray:
 
 def _read_pair(args):
     """Both epochs (after reprojected to before's CRS if they differ), selected points, CRS."""
-    from .core.io.crs import reproject_points, same_crs
-    from .core.io.las import read_las
-
-    first, second = read_las(args.before), read_las(args.after)
-    for cloud in (first, second):
-        if len(cloud) == 0:
-            raise SlipMapError(f"{cloud.source}: the file has no points")
-    xyz2 = second.xyz
-    if first.crs is not None and second.crs is not None and not same_crs(first.crs, second.crs):
-        log.info("reprojecting %s from %s to %s", second.source, second.crs.name, first.crs.name)
-        xyz2 = reproject_points(second.xyz, second.crs, first.crs)
+    first, second, xyz2 = read_epoch_pair(args.before, args.after)
     before = first.xyz[_select(first, args)]
     after = xyz2[_select(second, args)]
     crs = first.crs if first.crs is not None else second.crs
@@ -117,21 +108,6 @@ def _control(args, x, y, dx, dy, dz, *, spacing_m=None) -> Optional[dict]:
         d["rmse_dz_m"],
     )
     return d
-
-
-def _finite_stats(values: np.ndarray) -> dict:
-    v = np.asarray(values, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    if not v.size:
-        return {"n": 0}
-    return {
-        "n": int(v.size),
-        "mean": float(v.mean()),
-        "median": float(np.median(v)),
-        "std": float(v.std()),
-        "min": float(v.min()),
-        "max": float(v.max()),
-    }
 
 
 # --------------------------------------------------------------------------- piv
@@ -223,14 +199,14 @@ def _run_piv(args: argparse.Namespace) -> int:
         "n_vectors": int(res.dx.size),
         "n_with_value": int(ok.sum()),
         "valid_fraction": float(res.valid.mean()) if res.valid.size else 0.0,
-        "horizontal_m": _finite_stats(np.hypot(res.dx, res.dy)),
-        "dz_m": _finite_stats(res.dz),
+        "horizontal_m": finite_stats(np.hypot(res.dx, res.dy)),
+        "dz_m": finite_stats(res.dz),
         "control": _control(
             args, cols["x"], cols["y"], cols["dx"], cols["dy"], cols["dz"], spacing_m=res.spacing_m
         ),
         "files": files,
     }
-    _write_json(out / "piv.json", _json_safe(summary))
+    _write_json(out / "piv.json", json_safe(summary))
     log.info(
         "PIV: %d vectors (%.0f %% valid), median horizontal %.4f m; wrote %s",
         summary["n_vectors"],
@@ -336,8 +312,7 @@ def _run_icp(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     cols = res.to_columns()
     files = [write_csv_columns(out / "icp.csv", cols).name]
-    mag = np.hypot(res.dx, res.dy)
-    az = np.degrees(np.arctan2(res.dx, res.dy)) % 360.0
+    mag, az = horizontal(res.dx, res.dy)
     fields = {k: np.asarray(v) for k, v in cols.items() if k not in ("row", "col")}
     fields.update({"magnitude": mag, "azimuth_deg": az})
     write_gpkg_layers(
@@ -397,10 +372,10 @@ def _run_icp(args: argparse.Namespace) -> int:
         "n_cells": len(res),
         "skipped": dict(res.skipped),
         "converged": int(np.count_nonzero(res.converged)),
-        "horizontal_m": _finite_stats(mag),
-        "dz_m": _finite_stats(res.dz),
-        "sigma_horizontal_m": _finite_stats(np.hypot(res.sigma_dx, res.sigma_dy)),
-        "rmse_m": _finite_stats(res.rmse),
+        "horizontal_m": finite_stats(mag),
+        "dz_m": finite_stats(res.dz),
+        "sigma_horizontal_m": finite_stats(np.hypot(res.sigma_dx, res.sigma_dy)),
+        "rmse_m": finite_stats(res.rmse),
         "prealignment": None
         if res.prealignment is None
         else {
@@ -415,7 +390,7 @@ def _run_icp(args: argparse.Namespace) -> int:
         "seconds": res.seconds,
         "files": files,
     }
-    _write_json(out / "icp.json", _json_safe(summary))
+    _write_json(out / "icp.json", json_safe(summary))
     log.info(
         "ICP: %d cells (%s skipped), median horizontal %.4f m, median sigma %.4f m; wrote %s",
         len(res),
@@ -505,10 +480,10 @@ def _run_dem_diff(args: argparse.Namespace) -> int:
         "command": "dem-diff",
         "grid_m": g.cell_m,
         "shape": list(g.shape),
-        "dz_m": _finite_stats(res.dz),
+        "dz_m": finite_stats(res.dz),
         "files": files,
     }
-    _write_json(out / "dem_diff.json", _json_safe(summary))
+    _write_json(out / "dem_diff.json", json_safe(summary))
     log.info(
         "DEM difference: %d cells, mean dz %+.4f m (std %.4f); wrote %s",
         res.n_valid,
@@ -621,10 +596,10 @@ def _run_strain(args: argparse.Namespace) -> int:
         "field": str(args.field),
         "shape": list(field.shape),
         "spacing_m": [sx, sy],
-        "bands": {k: _finite_stats(v) for k, v in bands.items()},
+        "bands": {k: finite_stats(v) for k, v in bands.items()},
         "files": files,
     }
-    _write_json(out / "strain.json", _json_safe(summary))
+    _write_json(out / "strain.json", json_safe(summary))
     log.info(
         "strain: %d x %d cells, dilatation median %.2e, max shear max %.2e; wrote %s",
         field.shape[0],
@@ -719,7 +694,7 @@ def _run_synth_lobe(args: argparse.Namespace) -> int:
     f = pair.field
     _write_json(
         out / "lobe.json",
-        _json_safe(
+        json_safe(
             {
                 "command": "synth-lobe",
                 "input": str(args.input),
@@ -778,19 +753,3 @@ def _synth_lobe_arguments(p: argparse.ArgumentParser) -> None:
         default=1.0,
         help="spacing of the truth.csv control grid (m)",
     )
-
-
-def _json_safe(obj):
-    """NaN/inf -> None so the JSON is standard (``allow_nan=False``)."""
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if np.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj

@@ -6,6 +6,18 @@ from qgis.core import QgsProcessingProvider
 
 from .._version import __version__
 
+#: (module, class) of every algorithm, in toolbox order
+ALGORITHMS = (
+    ("planes", "PlanesAlgorithm"),
+    ("displacement", "DisplacementAlgorithm"),
+    ("roughness", "RoughnessAlgorithm"),
+    ("accuracy", "PointAccuracyAlgorithm"),
+    ("piv", "PIVAlgorithm"),
+    ("windowedicp", "WindowedICPAlgorithm"),
+    ("demdiff", "DemDifferenceAlgorithm"),
+    ("strain", "StrainAlgorithm"),
+)
+
 
 class SlipMapProvider(QgsProcessingProvider):
     def id(self):
@@ -22,24 +34,21 @@ class SlipMapProvider(QgsProcessingProvider):
 
     def loadAlgorithms(self):  # noqa: N802 (QGIS API name)
         # The algorithm modules import only qgis at load time: the provider loads without
-        # laspy/lazrs, and each algorithm's canExecute() then says how to install them.
-        from .algorithms.accuracy import PointAccuracyAlgorithm
-        from .algorithms.demdiff import DemDifferenceAlgorithm
-        from .algorithms.displacement import DisplacementAlgorithm
-        from .algorithms.piv import PIVAlgorithm
-        from .algorithms.planes import PlanesAlgorithm
-        from .algorithms.roughness import RoughnessAlgorithm
-        from .algorithms.strain import StrainAlgorithm
-        from .algorithms.windowedicp import WindowedICPAlgorithm
+        # laspy/lazrs, and each algorithm's canExecute() then says how to install them. An
+        # algorithm whose module cannot be imported is left out and logged; the others load
+        # (an exception escaping loadAlgorithms would abort QGIS).
+        import importlib
 
-        for cls in (
-            PlanesAlgorithm,
-            DisplacementAlgorithm,
-            RoughnessAlgorithm,
-            PointAccuracyAlgorithm,
-            PIVAlgorithm,
-            WindowedICPAlgorithm,
-            DemDifferenceAlgorithm,
-            StrainAlgorithm,
-        ):
+        from qgis.core import Qgis, QgsMessageLog
+
+        for module, name in ALGORITHMS:
+            try:
+                cls = getattr(importlib.import_module(f".algorithms.{module}", __package__), name)
+            except Exception as exc:  # noqa: BLE001 - report and go on with the others
+                QgsMessageLog.logMessage(
+                    f"SlipMap: algorithm {module} not loaded: {type(exc).__name__}: {exc}",
+                    "SlipMap",
+                    Qgis.Critical,
+                )
+                continue
             self.addAlgorithm(cls())

@@ -19,6 +19,11 @@ from qgis.core import (
 )
 from qgis.PyQt.QtCore import QVariant
 
+from ...summaries import (  # noqa: F401  (re-exported for the field algorithms)
+    finite_stats,
+    horizontal,
+    json_safe,
+)
 from ._base import (
     apply_diverging_style_on_load,  # noqa: F401  (re-exported for the field algorithms)
     read_cloud,
@@ -80,53 +85,6 @@ def qgs_crs(crs):
 
 def crs_wkt(crs):
     return None if crs is None else crs.to_wkt()
-
-
-def finite_stats(values):
-    """n, mean, median, std, min, max of the finite values (``{"n": 0}`` when none)."""
-    import numpy as np
-
-    v = np.asarray(values, dtype=np.float64).ravel()
-    v = v[np.isfinite(v)]
-    if not v.size:
-        return {"n": 0}
-    return {
-        "n": int(v.size),
-        "mean": float(v.mean()),
-        "median": float(np.median(v)),
-        "std": float(v.std()),
-        "min": float(v.min()),
-        "max": float(v.max()),
-    }
-
-
-def json_safe(obj):
-    """NaN/inf -> None, numpy scalars -> Python, so the JSON is standard."""
-    import math
-
-    import numpy as np
-
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    return obj
-
-
-def horizontal(dx, dy):
-    """Horizontal magnitude (m) and azimuth (degrees clockwise from north, [0, 360))."""
-    import numpy as np
-
-    dx, dy = np.asarray(dx, dtype=np.float64), np.asarray(dy, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        return np.hypot(dx, dy), np.degrees(np.arctan2(dx, dy)) % 360.0
 
 
 def control_comparison(control_path, x, y, dx, dy, dz, spacing_m):

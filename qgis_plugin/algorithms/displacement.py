@@ -32,6 +32,8 @@ from qgis.core import (
 )
 from qgis.PyQt.QtCore import QVariant
 
+from ...summaries import finite as _finite
+from ...summaries import strip_rows
 from ._base import (
     LAS_FILTER,
     PLANES_CITATION,
@@ -175,11 +177,6 @@ def _sigma_of(cov, j):
     """1σ of ``j @ d`` for a (3, 3) covariance ``cov`` of ``d`` (None when not finite)."""
     v = float(j @ cov @ j)
     return math.sqrt(max(v, 0.0)) if math.isfinite(v) else None
-
-
-def _finite(v):
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 def _fields(spec):
@@ -491,18 +488,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         if opts["reference_slip"] is not None:
             payload["reference"] = result.reference_comparison(opts["reference_slip"])
         if strips is not None:
-            payload["strips"] = [
-                {
-                    "side": st.side,
-                    "along_start_m": st.along_start_m,
-                    "along_end_m": st.along_end_m,
-                    "n_planes": int(st.n_planes),
-                    "fault_parallel": _finite(st.fault_parallel),
-                    "sigma_fault_parallel": _finite(st.sigma_fault_parallel),
-                    "status": st.status,
-                }
-                for st in strips
-            ]
+            payload["strips"] = strip_rows(strips)
         return {
             "result": result,
             "strips": strips,
