@@ -30,6 +30,11 @@ def _add_field_selection(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--exclude-classes", type=int, nargs="+", metavar="C", help="drop these classes (e.g. 7)"
     )
+    p.add_argument(
+        "--crs",
+        help="CRS of both epochs when the files lack one or declare a wrong one (e.g. "
+        "EPSG:32612); written to the outputs",
+    )
 
 
 def _select(cloud, args) -> np.ndarray:
@@ -51,11 +56,20 @@ def _select(cloud, args) -> np.ndarray:
 
 def _read_pair(args):
     """Both epochs (after reprojected to before's CRS if they differ), selected points, CRS."""
-    first, second, xyz2 = read_epoch_pair(args.before, args.after)
-    before = first.xyz[_select(first, args)]
-    after = xyz2[_select(second, args)]
-    crs = first.crs if first.crs is not None else second.crs
-    return before, after, crs
+    if getattr(args, "crs", None):
+        from .core.io.crs import parse_crs
+        from .core.io.las import read_las
+
+        crs = parse_crs(args.crs)
+        first, second = read_las(args.before), read_las(args.after)
+        for cloud in (first, second):
+            if len(cloud) == 0:
+                raise SlipMapError(f"{cloud.source}: the file has no points")
+        xyz2 = second.xyz
+    else:
+        first, second, xyz2 = read_epoch_pair(args.before, args.after)
+        crs = first.crs if first.crs is not None else second.crs
+    return first.xyz[_select(first, args)], xyz2[_select(second, args)], crs
 
 
 def _wkt(crs) -> Optional[str]:
@@ -589,6 +603,7 @@ def _run_strain(args: argparse.Namespace) -> int:
             bands,
             extent=extent,
             diverging=("exx", "eyy", "exy", "rotation_rad", "e1", "e2", "dilatation"),
+            cyclic=("e1_azimuth_deg",),
         )
         files.append("strain.png")
     summary = {

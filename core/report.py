@@ -453,7 +453,17 @@ def plot_vector_field(
     elif good.any():
         ax.quiver(x[good], y[good], dx[good], dy[good], color="tab:blue", **kw)
     if bad.any():
-        ax.quiver(x[bad], y[bad], dx[bad], dy[bad], color="tab:orange", label="replaced", **kw)
+        thin = dict(kw, width=0.002)
+        ax.quiver(
+            x[bad],
+            y[bad],
+            dx[bad],
+            dy[bad],
+            color="tab:orange",
+            alpha=0.6,
+            label="replaced",
+            **thin,
+        )
         ax.legend(loc="upper right", fontsize=8)
     if mag.size:
         ax.set_xlabel(f"x (m) - median |d| {np.median(mag):.3f} m, max {np.max(mag):.3f} m")
@@ -473,12 +483,14 @@ def plot_raster_panels(
     *,
     extent: Tuple[float, float, float, float],
     diverging: Sequence[str] = (),
+    cyclic: Sequence[str] = (),
     title: str | None = None,
     columns: int = 3,
     dpi: int = 130,
 ) -> Path:
     """A grid of raster maps (e.g. strain bands); ``diverging`` panels use a symmetric
-    blue-red ramp centred on 0, the others viridis. NaN is drawn white."""
+    blue-red ramp centred on 0, ``cyclic`` panels (axial directions in [0°, 180°)) a cyclic
+    ramp, the others viridis. NaN is drawn white."""
     if not panels:
         raise InvalidParameterError("plot_raster_panels: give at least one panel")
     n = len(panels)
@@ -491,6 +503,8 @@ def plot_raster_panels(
         if name in diverging:
             lim = float(np.ma.max(np.abs(data))) if data.count() else 1.0
             im = ax.imshow(data, extent=extent, cmap="RdBu_r", vmin=-lim, vmax=lim)
+        elif name in cyclic:
+            im = ax.imshow(data, extent=extent, cmap="twilight", vmin=0.0, vmax=180.0)
         else:
             im = ax.imshow(data, extent=extent, cmap="viridis")
         fig.colorbar(im, ax=ax, shrink=0.8)

@@ -80,10 +80,13 @@ def test_dem_diff_equals_core(lobe, tmp_path):
             "0.5",
             "--out",
             str(tmp_path),
+            "--crs",
+            "EPSG:32612",
         ]
     )
     assert rc == 0
-    arr, gt, _ = read_geotiff(tmp_path / "dem_diff.tif")
+    arr, gt, wkt = read_geotiff(tmp_path / "dem_diff.tif")
+    assert "32612" in wkt or "UTM zone 12N" in wkt  # --crs replaces the file's wrong CRS
     core = dem_difference(
         read_las(lobe / "before.laz").xyz, read_las(lobe / "after.laz").xyz, cell_m=0.5
     )
