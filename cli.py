@@ -724,15 +724,22 @@ def _roughness_arguments(p: argparse.ArgumentParser) -> None:
 # --------------------------------------------------------------------------- displacement
 
 
-def read_epoch_pair(before, after):
-    """Both epochs' clouds and the second's xyz reprojected to the first one's CRS."""
-    from .core.io.crs import reproject_points, same_crs
+def read_epoch_pair(before, after, crs=None):
+    """Both epochs' clouds and the second's xyz reprojected to the first one's CRS.
+
+    ``crs`` (``--crs``) replaces the CRS of both files (for files without one, or with a wrong
+    one): both are then taken to be in it and nothing is reprojected.
+    """
+    from .core.io.crs import parse_crs, reproject_points, same_crs
     from .core.io.las import read_las
 
     first, second = read_las(before), read_las(after)
     for cloud in (first, second):
         if len(cloud) == 0:
             raise SlipMapError(f"{cloud.source}: the file has no points")
+    if crs:
+        first.crs = second.crs = parse_crs(crs)
+        return first, second, second.xyz
     xyz2 = second.xyz
     if first.crs is not None and second.crs is not None and not same_crs(first.crs, second.crs):
         log.info("reprojecting %s from %s to %s", second.source, second.crs.name, first.crs.name)
@@ -744,7 +751,7 @@ def read_epoch_pair(before, after):
 
 def _read_epochs(args):
     """Both epochs, the second reprojected to the first one's CRS when they differ."""
-    first, second, xyz2 = read_epoch_pair(args.before, args.after)
+    first, second, xyz2 = read_epoch_pair(args.before, args.after, getattr(args, "crs", None))
     sel1 = _select_points(first, args.classes, args.exclude_classes)
     sel2 = _select_points(second, args.classes, args.exclude_classes)
     return first, second, sel1, sel2, first.xyz[sel1], xyz2[sel2]
@@ -1119,6 +1126,11 @@ def _displacement_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("after", help="second epoch, LAS/LAZ (reprojected to the first's CRS)")
     p.add_argument("--fault", required=True, help="fault trace: any OGR line file, any CRS")
     p.add_argument("--out", required=True, help="output directory")
+    p.add_argument(
+        "--crs",
+        help="CRS of both epochs when the files lack one or declare a wrong one (e.g. "
+        "EPSG:32611): the trace is reprojected into it and the outputs carry it",
+    )
     p.add_argument(
         "--buffer",
         type=_positive(float, "--buffer"),

@@ -56,19 +56,8 @@ def _select(cloud, args) -> np.ndarray:
 
 def _read_pair(args):
     """Both epochs (after reprojected to before's CRS if they differ), selected points, CRS."""
-    if getattr(args, "crs", None):
-        from .core.io.crs import parse_crs
-        from .core.io.las import read_las
-
-        crs = parse_crs(args.crs)
-        first, second = read_las(args.before), read_las(args.after)
-        for cloud in (first, second):
-            if len(cloud) == 0:
-                raise SlipMapError(f"{cloud.source}: the file has no points")
-        xyz2 = second.xyz
-    else:
-        first, second, xyz2 = read_epoch_pair(args.before, args.after)
-        crs = first.crs if first.crs is not None else second.crs
+    first, second, xyz2 = read_epoch_pair(args.before, args.after, getattr(args, "crs", None))
+    crs = first.crs if first.crs is not None else second.crs
     return first.xyz[_select(first, args)], xyz2[_select(second, args)], crs
 
 

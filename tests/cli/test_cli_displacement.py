@@ -244,3 +244,26 @@ def test_point_accuracy_per_epoch(files, tmp_path):
         conf["relative"]["right_lateral_slip"], abs=1e-9
     )
     assert conf["parameters"]["point_accuracy"]["after"]["model"] == "axis"
+
+
+def test_crs_option_for_files_without_one(files, tmp_path):
+    """Epochs written without a CRS: --crs places them, so the WGS 84 trace is reprojected
+    into it and the slip is recovered; without it the geographic trace is refused."""
+    from slipmap.core.io.las import read_las
+
+    fp, paths, fault = files
+    bare = []
+    for p in paths:
+        c = read_las(p)
+        q = tmp_path / f"bare_{p.name}"
+        write_las(
+            q, PointCloud(xyz=c.xyz, attributes={"Classification": c.attributes["Classification"]})
+        )
+        bare.append(q)
+    argv = ["-q", "displacement", str(bare[0]), str(bare[1]), "--fault", str(fault)]
+    assert main(argv + ["--out", str(tmp_path / "no"), "--sigma", "0.02"]) == 2
+    assert (
+        main(argv + ["--out", str(tmp_path / "o"), "--sigma", "0.02", "--crs", "EPSG:32610"]) == 0
+    )
+    js = json.loads((tmp_path / "o" / "displacement.json").read_text())
+    assert abs(js["relative"]["right_lateral_slip"] - 0.0181) < 0.001
