@@ -199,3 +199,48 @@ def symmetric_limits(layer, band=1):
     renderer.setClassificationMin(-m)
     renderer.setClassificationMax(m)
     return m
+
+
+# --------------------------------------------------------------------------- vector inputs
+
+
+def source_parts(source, target_crs, context, *, parameter, polygons):
+    """Vertex arrays (K, 2) of every line part (``polygons=False``) or polygon exterior ring
+    (``polygons=True``, holes ignored as ``core.io.vector.read_polygons``) of the feature
+    source ``source``, transformed to ``target_crs`` with QGIS's own transform context.
+
+    Raises ``QgsProcessingException`` naming ``parameter`` for a layer of the wrong geometry
+    type or one without a usable part.
+    """
+    import numpy as np
+    from qgis.core import QgsCoordinateTransform, QgsGeometry, QgsWkbTypes
+
+    want = QgsWkbTypes.PolygonGeometry if polygons else QgsWkbTypes.LineGeometry
+    kind = "polygon" if polygons else "line"
+    if QgsWkbTypes.geometryType(source.wkbType()) != want:
+        raise QgsProcessingException(
+            f"{parameter} must be a {kind} layer, got {QgsWkbTypes.displayString(source.wkbType())}"
+        )
+    transform = None
+    if target_crs.isValid() and source.sourceCrs().isValid():
+        transform = QgsCoordinateTransform(
+            source.sourceCrs(), target_crs, context.transformContext()
+        )
+    parts = []
+    for feature in source.getFeatures():
+        geom = QgsGeometry(feature.geometry())
+        if geom.isEmpty():
+            continue
+        if transform is not None:
+            geom.transform(transform)
+        if polygons:
+            polys = geom.asMultiPolygon() if geom.isMultipart() else [geom.asPolygon()]
+            vertex_lists = [poly[0] for poly in polys if poly and len(poly[0]) >= 3]
+        else:
+            lines = geom.asMultiPolyline() if geom.isMultipart() else [geom.asPolyline()]
+            vertex_lists = [line for line in lines if len(line) > 1]
+        parts += [np.array([[p.x(), p.y()] for p in v]) for v in vertex_lists]
+    if not parts:
+        need = "three" if polygons else "two"
+        raise QgsProcessingException(f"{parameter} has no {kind} with {need} or more vertices")
+    return parts

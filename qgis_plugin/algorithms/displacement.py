@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 from qgis.core import (
-    QgsCoordinateTransform,
     QgsFeature,
     QgsFeatureSink,
     QgsField,
@@ -44,6 +43,7 @@ from ._base import (
     read_cloud,
     select_points,
     slipmap_errors,
+    source_parts,
     write_json,
 )
 from .accuracy import (
@@ -111,30 +111,7 @@ SINK_FIELDS = (
 
 def fault_parts(source, target_crs, context):
     """Vertices (x, y) of every line part of ``source``, transformed to ``target_crs``."""
-    import numpy as np
-
-    if QgsWkbTypes.geometryType(source.wkbType()) != QgsWkbTypes.LineGeometry:
-        raise QgsProcessingException(
-            "FAULT must be a line layer (the fault trace), got "
-            f"{QgsWkbTypes.displayString(source.wkbType())}"
-        )
-    transform = None
-    if target_crs.isValid() and source.sourceCrs().isValid():
-        transform = QgsCoordinateTransform(
-            source.sourceCrs(), target_crs, context.transformContext()
-        )
-    parts = []
-    for feature in source.getFeatures():
-        geom = QgsGeometry(feature.geometry())
-        if geom.isEmpty():
-            continue
-        if transform is not None:
-            geom.transform(transform)
-        lines = geom.asMultiPolyline() if geom.isMultipart() else [geom.asPolyline()]
-        parts += [np.array([[p.x(), p.y()] for p in line]) for line in lines if len(line) > 1]
-    if not parts:
-        raise QgsProcessingException("FAULT has no line with two or more vertices")
-    return parts
+    return source_parts(source, target_crs, context, parameter="FAULT", polygons=False)
 
 
 def cloud_path(alg, parameters, name, context):

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 from qgis.core import (
-    QgsCoordinateTransform,
-    QgsGeometry,
     QgsProcessing,
     QgsProcessingException,
     QgsProcessingParameterBoolean,
@@ -13,7 +11,6 @@ from qgis.core import (
     QgsProcessingParameterFile,
     QgsProcessingParameterFileDestination,
     QgsProcessingParameterNumber,
-    QgsWkbTypes,
 )
 from qgis.PyQt.QtCore import QVariant
 
@@ -24,6 +21,7 @@ from ._base import (
     optional_number,
     progress_callback,
     slipmap_errors,
+    source_parts,
     write_json,
 )
 from ._fields import (
@@ -65,32 +63,7 @@ ICP_SINK_FIELDS = tuple(
 def polygon_rings(source, target_crs, context):
     """Exterior rings (K, 2) of every polygon part of ``source`` in ``target_crs`` (holes
     ignored, as ``core.io.vector.read_polygons``)."""
-    import numpy as np
-
-    if QgsWkbTypes.geometryType(source.wkbType()) != QgsWkbTypes.PolygonGeometry:
-        raise QgsProcessingException(
-            "STABLE_MASK must be a polygon layer (the moving area), got "
-            f"{QgsWkbTypes.displayString(source.wkbType())}"
-        )
-    transform = None
-    if target_crs.isValid() and source.sourceCrs().isValid():
-        transform = QgsCoordinateTransform(
-            source.sourceCrs(), target_crs, context.transformContext()
-        )
-    rings = []
-    for feature in source.getFeatures():
-        geom = QgsGeometry(feature.geometry())
-        if geom.isEmpty():
-            continue
-        if transform is not None:
-            geom.transform(transform)
-        polys = geom.asMultiPolygon() if geom.isMultipart() else [geom.asPolygon()]
-        for poly in polys:
-            if poly and len(poly[0]) >= 3:
-                rings.append(np.array([[p.x(), p.y()] for p in poly[0]]))
-    if not rings:
-        raise QgsProcessingException("STABLE_MASK has no polygon with three or more vertices")
-    return rings
+    return source_parts(source, target_crs, context, parameter="STABLE_MASK", polygons=True)
 
 
 def cell_rings(res):
