@@ -117,6 +117,41 @@ def _write_json(path: Path, payload: dict) -> None:
     write_text_atomic(path, json.dumps(payload, indent=2, allow_nan=False) + "\n")
 
 
+def _add_crs_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--crs",
+        help="CRS of the input when the file lacks one or declares a wrong one (e.g. "
+        "EPSG:32611): it replaces the file's CRS (nothing is reprojected) and the outputs "
+        "carry it",
+    )
+
+
+def parse_crs_option(value):
+    """The ``pyproj.CRS`` of a ``--crs`` value (``None`` when not given); a bad value is an
+    :class:`InvalidParameterError` naming ``--crs``."""
+    from .core.io.crs import parse_crs
+
+    try:
+        return parse_crs(value)
+    except InvalidParameterError as exc:
+        raise InvalidParameterError(f"--crs: {exc}") from None
+
+
+def read_cloud(path, crs=None):
+    """One LAS/LAZ cloud, refused when empty. ``crs`` (``--crs``, a string or a CRS) replaces
+    the file's CRS (for a file without one, or with a wrong one); nothing is reprojected and
+    every output (LAS, GeoTIFF, GeoPackage, JSON) carries it."""
+    from .core.io.las import read_las
+
+    crs = parse_crs_option(crs)  # before the read: a bad value fails at once
+    cloud = read_las(path)
+    if len(cloud) == 0:
+        raise SlipMapError(f"{cloud.source}: the file has no points")
+    if crs is not None:
+        cloud.crs = crs
+    return cloud
+
+
 # --------------------------------------------------------------------------- planes
 
 
@@ -291,11 +326,9 @@ def run_planes_on_cloud(cloud, args, out_dir: Path, *, progress=None):
 
 @command("planes", "planar segmentation (octree + region growing) of one point cloud")
 def _run_planes(args: argparse.Namespace) -> int:
-    from .core.io.las import read_las
-
     out = Path(args.out)
     _check_output_dir(out)
-    cloud = read_las(args.input)
+    cloud = read_cloud(args.input, args.crs)
     run_planes_on_cloud(cloud, args, out)
     return 0
 
@@ -304,6 +337,7 @@ def _run_planes(args: argparse.Namespace) -> int:
 def _planes_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="LAS/LAZ point cloud")
     p.add_argument("--out", required=True, help="output directory")
+    _add_crs_argument(p)
     _add_selection_arguments(p)
     _add_plane_arguments(p)
 
@@ -537,7 +571,6 @@ def _run_roughness(args: argparse.Namespace) -> int:
 
     from .core import roughness as rg
     from .core.io.atomic import ensure_output_dir
-    from .core.io.las import read_las
 
     if not 0.0 <= args.cutoff <= 1.0:
         raise InvalidParameterError(f"--cutoff must be within [0, 1], got {args.cutoff:g}")
@@ -545,9 +578,7 @@ def _run_roughness(args: argparse.Namespace) -> int:
         raise InvalidParameterError(f"--min-points must be at least 3, got {args.min_points}")
     out = Path(args.out)
     _check_output_dir(out)
-    cloud = read_las(args.input)
-    if len(cloud) == 0:
-        raise SlipMapError(f"{args.input}: the file has no points")
+    cloud = read_cloud(args.input, args.crs)
     t0 = time.perf_counter()
     frame = rg.principal_frame(cloud.xyz)
     ols_axis = rg.resolve_ols_axis(frame, args.ols_axis)
@@ -678,6 +709,7 @@ def _roughness_arguments(p: argparse.ArgumentParser) -> None:
         "0.125). --points-out uses the first one.",
     )
     p.add_argument("--out", required=True, help="output directory")
+    _add_crs_argument(p)
     p.add_argument(
         "--min-points",
         type=_positive(int, "--min-points"),
@@ -730,15 +762,11 @@ def read_epoch_pair(before, after, crs=None):
     ``crs`` (``--crs``) replaces the CRS of both files (for files without one, or with a wrong
     one): both are then taken to be in it and nothing is reprojected.
     """
-    from .core.io.crs import parse_crs, reproject_points, same_crs
-    from .core.io.las import read_las
+    from .core.io.crs import reproject_points, same_crs
 
-    first, second = read_las(before), read_las(after)
-    for cloud in (first, second):
-        if len(cloud) == 0:
-            raise SlipMapError(f"{cloud.source}: the file has no points")
-    if crs:
-        first.crs = second.crs = parse_crs(crs)
+    crs = parse_crs_option(crs)
+    first, second = read_cloud(before, crs), read_cloud(after, crs)
+    if crs is not None:
         return first, second, second.xyz
     xyz2 = second.xyz
     if first.crs is not None and second.crs is not None and not same_crs(first.crs, second.crs):
@@ -1205,13 +1233,11 @@ def _displacement_arguments(p: argparse.ArgumentParser) -> None:
 def _run_accuracy(args: argparse.Namespace) -> int:
     from .core.accuracy import covariance_to_sigmas, covariance_to_six
     from .core.io.atomic import check_not_input
-    from .core.io.las import read_las, write_las
+    from .core.io.las import write_las
     from .pointaccuracy import covariance_matrices
 
     check_not_input(args.out, [args.input])
-    cloud = read_las(args.input)
-    if len(cloud) == 0:
-        raise SlipMapError(f"{cloud.source}: the file has no points")
+    cloud = read_cloud(args.input, args.crs)  # its CRS also places an SBET trajectory
     settings = _pa_settings(args)["before"]
     cov = covariance_matrices(cloud, None, settings)
     sig = covariance_to_sigmas(cov)
@@ -1234,6 +1260,7 @@ def _run_accuracy(args: argparse.Namespace) -> int:
 def _accuracy_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="LAS/LAZ point cloud")
     p.add_argument("--out", required=True, help="output LAS/LAZ with SigmaX/SigmaY/SigmaZ")
+    _add_crs_argument(p)
     p.add_argument(
         "--full-covariance",
         action="store_true",

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import DependencyError, InvalidParameterError, SlipMapError, SlipMapFileError
 from .atomic import atomic_path, check_not_input, ensure_output_dir
-from .crs import crs_from_las
+from .crs import crs_from_las, same_crs
 
 if TYPE_CHECKING:  # pragma: no cover
     import pyproj
@@ -664,13 +664,51 @@ def _plan(
     return new_dims, list(assigns.values())
 
 
-def _out_header(src: laspy.LasHeader, new_dims: Sequence[Tuple[str, np.dtype]]) -> laspy.LasHeader:
+def _out_header(
+    src: laspy.LasHeader,
+    new_dims: Sequence[Tuple[str, np.dtype]],
+    crs: pyproj.CRS | None = None,
+) -> laspy.LasHeader:
     hdr = copy.deepcopy(src)
     if new_dims:
         hdr.add_extra_dims(
             [laspy.ExtraBytesParams(name=name, type=dtype) for name, dtype in new_dims]
         )
+    if crs is not None:
+        _declare_crs(hdr, crs)
     return hdr
+
+
+_CRS_RECORDS = (
+    "WktCoordinateSystemVlr",
+    "GeoKeyDirectoryVlr",
+    "GeoAsciiParamsVlr",
+    "GeoDoubleParamsVlr",
+)
+
+
+def _declare_crs(hdr: laspy.LasHeader, crs: pyproj.CRS) -> None:
+    """Make ``crs`` the CRS records of ``hdr`` (in place) unless they already declare it.
+
+    Nothing is reprojected: a cloud whose ``crs`` was set by the caller (a file without a CRS
+    or with a wrong one) is written with that CRS instead of the source file's records.
+    """
+    try:
+        current = hdr.parse_crs()
+    except Exception:  # malformed records are replaced
+        current = None
+    if current is not None and same_crs(current, crs):
+        return
+    if hdr.evlrs is not None:
+        for name in _CRS_RECORDS:  # laspy's add_crs replaces only the VLRs
+            hdr.evlrs.extract(name)
+    try:
+        hdr.add_crs(crs)
+    except Exception as exc:
+        raise InvalidParameterError(
+            f"cannot store the CRS {crs.name!r} in a LAS {hdr.version} header ({exc}); "
+            "LAS < 1.4 needs a CRS with an EPSG code"
+        ) from exc
 
 
 def _check_xyz(xyz: Any, n: int, scales: np.ndarray, offsets: np.ndarray) -> np.ndarray:
@@ -818,13 +856,7 @@ def _new_header(cloud: PointCloud, xyz: np.ndarray) -> laspy.LasHeader:
     hdr.scales = scales
     hdr.offsets = offsets
     if cloud.crs is not None:
-        try:
-            hdr.add_crs(cloud.crs)
-        except Exception as exc:
-            raise InvalidParameterError(
-                f"cannot store the CRS {cloud.crs.name!r} in a LAS {version} header ({exc}); "
-                "LAS < 1.4 needs a CRS with an EPSG code"
-            ) from exc
+        _declare_crs(hdr, cloud.crs)
     return hdr
 
 
@@ -839,7 +871,9 @@ def write_las(
     """Write a point cloud as LAS (or LAZ when ``path`` ends in ``.laz``), atomically.
 
     Every point of ``source`` is written in input order with all its original dimensions and
-    its header (version, point format, scales, offsets, VLRs/EVLRs including the CRS), then:
+    its header (version, point format, scales, offsets, VLRs/EVLRs including the CRS; for a
+    :class:`PointCloud` whose ``crs`` was set to another CRS, that one replaces the file's
+    CRS records, nothing reprojected), then:
 
     * coordinates: ``xyz`` if given, else (for a :class:`PointCloud`) ``source.xyz``, stored
       with the original scales/offsets (unchanged coordinates give the same integers);
@@ -891,7 +925,7 @@ def write_las(
             src_array = None
             src_header = _new_header(cloud, cloud.xyz)
         new_dims, assigns = _plan(src_header.point_format, n, updates, "attribute")
-        hdr = _out_header(src_header, new_dims)
+        hdr = _out_header(src_header, new_dims, cloud.crs)
         coords = _check_xyz(
             cloud.xyz if xyz is None else xyz,
             n,
@@ -1004,7 +1038,7 @@ def write_las_chunked(
         return new_dims, assigns, array, n
 
     new_dims0, assigns0, array0, n0 = prepare(*first)
-    hdr = _out_header(base, new_dims0)
+    hdr = _out_header(base, new_dims0, first[0].crs)
     scales = np.asarray(hdr.scales, dtype=np.float64)
     offsets = np.asarray(hdr.offsets, dtype=np.float64)
 
