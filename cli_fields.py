@@ -14,7 +14,15 @@ from typing import Optional
 
 import numpy as np
 
-from .cli import _check_output_dir, _positive, _ProgressBar, _write_json, command, read_epoch_pair
+from .cli import (
+    _check_output_dir,
+    _positive,
+    _ProgressBar,
+    _write_json,
+    command,
+    parse_crs_option,
+    read_epoch_pair,
+)
 from .core.errors import InputDataError, InvalidParameterError, SlipMapError
 from .summaries import finite_stats, horizontal, json_safe
 
@@ -310,6 +318,7 @@ def _run_icp(args: argparse.Namespace) -> int:
             prealign=bool(exclude) or args.prealign,
             exclude_polygons=exclude,
             coarse_to_fine=args.coarse_to_fine,
+            sigma_scaling="formal" if args.formal_sigma else "field",
             progress=bar,
         )
     out.mkdir(parents=True, exist_ok=True)
@@ -378,6 +387,11 @@ def _run_icp(args: argparse.Namespace) -> int:
         "horizontal_m": finite_stats(mag),
         "dz_m": finite_stats(res.dz),
         "sigma_horizontal_m": finite_stats(np.hypot(res.sigma_dx, res.sigma_dy)),
+        "sigma_factor": {
+            "applied": res.sigma_factor,
+            "estimate": res.sigma_factor_estimate,
+            "cells": res.sigma_factor_cells,
+        },
         "rmse_m": finite_stats(res.rmse),
         "prealignment": None
         if res.prealignment is None
@@ -437,6 +451,13 @@ def _icp_arguments(p: argparse.ArgumentParser) -> None:
         metavar="LEVELS",
         help="coarser passes (cells 2x, 4x, ...) that start each cell from the coarser motion; "
         "needed when the motion is not small against the cell (default 1; 0 to disable)",
+    )
+    p.add_argument(
+        "--formal-sigma",
+        action="store_true",
+        help="report the cells' formal sigmas; by default they are multiplied by the field's "
+        "variance factor from the agreement of neighbouring cells (formal sigmas assume "
+        "independent point residuals and are 2-4x too small on real surfaces)",
     )
     p.add_argument("--control", help="CSV of control points x,y,dx,dy[,dz] to compare with")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -557,19 +578,17 @@ def _field_from_file(args):
 
 @command("strain", "horizontal strain from a displacement field (PIV/ICP CSV or GeoTIFFs)")
 def _run_strain(args: argparse.Namespace) -> int:
+    from .core.io.crs import parse_crs
     from .core.strain import strain_field
 
     out = Path(args.out)
     _check_output_dir(out)
+    given_crs = parse_crs_option(args.crs)
     field, wkt = _field_from_file(args)
+    crs = given_crs if given_crs is not None else parse_crs(wkt)
     s = strain_field(field)
     bands = s.bands()
     out.mkdir(parents=True, exist_ok=True)
-    crs = None
-    if args.crs or wkt:
-        import pyproj
-
-        crs = pyproj.CRS.from_user_input(args.crs or wkt)
     sx, sy = field.spacing_m
     files = [
         _tif(

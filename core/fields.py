@@ -30,9 +30,11 @@ from .errors import InputDataError, InvalidParameterError
 __all__ = [
     "FieldComparison",
     "GriddedField",
+    "NeighbourVarianceFactor",
     "compare_with_control",
     "compare_with_truth",
     "field_from_columns",
+    "neighbour_variance_factor",
     "sample_field",
 ]
 
@@ -628,3 +630,162 @@ def compare_with_truth(
         xy, d = xy[keep], d[keep]
     truth = _as_d(truth_fn(xy.copy()), "truth_fn(est_xy)", xy.shape[0])
     return _compare(d, truth)
+
+
+# --------------------------------------------------------------------------- variance factor
+
+CHI2_1_MEDIAN = 0.454936423119572  # median of the chi-square distribution with 1 dof
+
+
+@dataclass(frozen=True)
+class NeighbourVarianceFactor:
+    """A-posteriori variance factor of a gridded field from the agreement of neighbours.
+
+    Attributes
+    ----------
+    factor : float
+        ``sqrt(median(r² / var(r)) / median(chi²₁))`` over every usable cell and component:
+        the number the cells' formal sigmas must be multiplied by so that the residuals ``r``
+        of each cell against the plane through its neighbours are standard normal (robustly).
+        NaN when fewer than ``min_cells`` cells had enough neighbours.
+    n_cells : int
+        Cells that entered the estimate.
+    normalised : (K, q) float64
+        ``r / sqrt(var)`` of every cell and component (NaN for cells not tested): about
+        ``factor`` times a standard normal for a consistent cell, an outlier test statistic.
+    """
+
+    factor: float
+    n_cells: int
+    normalised: np.ndarray
+
+
+def _neighbour_table(row: np.ndarray, col: np.ndarray) -> np.ndarray:
+    """(K, 8) index of each cell's 8 neighbours (-1 where there is none)."""
+    r0, c0 = int(row.min()), int(col.min())
+    rr, cc = row - r0 + 1, col - c0 + 1  # one empty ring around the grid
+    grid = np.full((int(rr.max()) + 2, int(cc.max()) + 2), -1, dtype=np.int64)
+    grid[rr, cc] = np.arange(row.size)
+    return np.stack([grid[rr + a, cc + b] for a, b in _OFFSETS], axis=1)
+
+
+_OFFSETS = [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]
+
+
+def _neighbour_args(row, col, values, sigmas, usable):
+    row = np.asarray(row, dtype=np.int64).reshape(-1)
+    col = np.asarray(col, dtype=np.int64).reshape(-1)
+    k = row.size
+    if col.size != k:
+        raise InvalidParameterError(f"row and col must have the same length ({k}, {col.size})")
+    values = np.asarray(values, dtype=np.float64).reshape(k, -1)
+    sigmas = np.asarray(sigmas, dtype=np.float64).reshape(k, -1)
+    if sigmas.shape != values.shape:
+        raise InvalidParameterError(
+            f"sigmas must have the shape of values {values.shape}, got {sigmas.shape}"
+        )
+    ok = np.all(np.isfinite(values), axis=1) & np.all(np.isfinite(sigmas) & (sigmas > 0), axis=1)
+    if usable is not None:
+        ok &= np.asarray(usable, dtype=bool).reshape(k)
+    if np.unique(row * (int(col.max()) + 1 if k else 1) + col).size != k:
+        raise InvalidParameterError("row, col must name each grid cell at most once")
+    return row, col, values, sigmas, ok
+
+
+def neighbour_variance_factor(
+    row: np.ndarray,
+    col: np.ndarray,
+    values: np.ndarray,
+    sigmas: np.ndarray,
+    *,
+    usable: Optional[np.ndarray] = None,
+    min_neighbours: int = 5,
+    min_cells: int = 8,
+) -> NeighbourVarianceFactor:
+    """Variance factor of the formal sigmas of a gridded field, from neighbour agreement.
+
+    Each usable cell with at least ``min_neighbours`` usable cells among its 8 neighbours is
+    predicted by the least-squares plane through them (in grid units; with all 8 present
+    that is their mean); ``r = value - prediction`` has the formal variance
+    ``sigma² + sum(h_j² sigma_j²)`` (``h`` the prediction weights), and
+    ``factor² = median(r² / var) / median(chi²₁)`` over all such cells and components. A field
+    that is locally planar over 3 x 3 cells and whose sigmas are honest gives 1; errors that
+    the formal sigmas miss (correlated residuals of the points, unmodelled surface) raise it;
+    real curvature of the field over 3 x 3 cells raises it too, so the factor errs on the
+    large, safe side. Robust (median): a few outlier cells do not move it.
+
+    Parameters
+    ----------
+    row, col : (K,) int
+        Grid indices of the cells (each cell at most once).
+    values, sigmas : (K,) or (K, q) float64
+        Field components (e.g. dx, dy, dz, metres) and their formal 1-sigma.
+    usable : (K,) bool, optional
+        Cells allowed in the estimate (as centre or neighbour); cells with a non-finite value
+        or a non-finite or zero sigma never are.
+    min_neighbours : int
+        At least 3 (a plane), at most 8.
+    min_cells : int
+        Fewer cells with enough neighbours give ``factor`` NaN.
+
+    Returns
+    -------
+    NeighbourVarianceFactor
+    """
+    if not 3 <= int(min_neighbours) <= 8:
+        raise InvalidParameterError(f"min_neighbours must be within [3, 8], got {min_neighbours}")
+    if np.size(row) == 0:
+        return NeighbourVarianceFactor(float("nan"), 0, np.zeros((0, np.shape(values)[-1])))
+    row, col, values, sigmas, ok = _neighbour_args(row, col, values, sigmas, usable)
+    normalised = np.full(values.shape, np.nan)
+    nb = _neighbour_table(row, col)
+    present = (nb >= 0) & ok[np.maximum(nb, 0)]
+    # plane z = a + b*dc + c*dr through the present neighbours, evaluated at (0, 0): weights
+    # h = e1' (X'WX)^-1 X'W with W the 0/1 presence mask; collinear neighbours (possible with
+    # min_neighbours < 5) define no plane and leave the cell out
+    off = np.array(_OFFSETS, dtype=np.float64)  # (8, 2): row, col offsets
+    X = np.column_stack([np.ones(8), off[:, 1], off[:, 0]])  # (8, 3)
+    W = present.astype(np.float64)
+    XtWX = np.einsum("ki,ij,il->kjl", W, X, X)  # (K, 3, 3), integer entries
+    planar = np.linalg.det(XtWX) > 0.5  # an integer determinant: 0 when collinear
+    centre = ok & (present.sum(axis=1) >= int(min_neighbours)) & planar
+    nb, W, XtWX = nb[centre], W[centre], XtWX[centre]
+    rhs = np.broadcast_to(np.array([1.0, 0.0, 0.0]), (W.shape[0], 3))
+    g = np.linalg.solve(XtWX, rhs[..., None])[..., 0]  # (M, 3) = (X'WX)^-1 e1
+    h = W * (g @ X.T)  # (M, 8)
+    idx = np.maximum(nb, 0)
+    pred = np.einsum("kj,kjq->kq", h, values[idx])
+    var = sigmas[centre] ** 2 + np.einsum("kj,kjq->kq", h * h, sigmas[idx] ** 2)
+    normalised[centre] = (values[centre] - pred) / np.sqrt(var)
+    if nb.shape[0] < int(min_cells):
+        return NeighbourVarianceFactor(float("nan"), int(nb.shape[0]), normalised)
+    ratio = normalised[centre] ** 2
+    return NeighbourVarianceFactor(
+        float(math.sqrt(np.median(ratio) / CHI2_1_MEDIAN)), int(nb.shape[0]), normalised
+    )
+
+
+def _neighbour_variance_factor_reference(
+    row, col, values, sigmas, *, usable=None, min_neighbours=5, min_cells=8
+) -> NeighbourVarianceFactor:
+    """Slow obvious version of :func:`neighbour_variance_factor` (a loop over cells with
+    ``np.linalg.lstsq`` per cell), for testing."""
+    row, col, values, sigmas, ok = _neighbour_args(row, col, values, sigmas, usable)
+    where = {(int(r), int(c)): i for i, (r, c) in enumerate(zip(row, col)) if ok[i]}
+    ratios = []
+    normalised = np.full(values.shape, np.nan)
+    for (r, c), i in where.items():
+        nbs = [(a, b, where[(r + a, c + b)]) for a, b in _OFFSETS if (r + a, c + b) in where]
+        X = np.array([[1.0, b, a] for a, b, _ in nbs]).reshape(-1, 3)
+        if len(nbs) < min_neighbours or np.linalg.matrix_rank(X) < 3:
+            continue
+        j = [k for _, _, k in nbs]
+        h = np.linalg.lstsq(X, np.eye(len(j)), rcond=None)[0][0]  # prediction at (0, 0)
+        r_i = values[i] - h @ values[j]
+        ratios.append(r_i**2 / (sigmas[i] ** 2 + (h**2) @ sigmas[j] ** 2))
+        normalised[i] = r_i / np.sqrt(sigmas[i] ** 2 + (h**2) @ sigmas[j] ** 2)
+    if len(ratios) < min_cells:
+        return NeighbourVarianceFactor(float("nan"), len(ratios), normalised)
+    return NeighbourVarianceFactor(
+        float(math.sqrt(np.median(np.array(ratios)) / CHI2_1_MEDIAN)), len(ratios), normalised
+    )

@@ -38,7 +38,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -56,6 +56,7 @@ NULL_RTOL = 1e-6  # an output depends on an undetermined direction above this re
 NORMAL_PLANARITY_RTOL = 1e-10  # neighbourhoods whose middle eigenvalue is below this are lines
 PREALIGN_MAX_POINTS = 200_000  # source points sampled for the global pre-alignment
 ROBUST_CHOICES = (None, "tukey", "huber")
+SIGMA_SCALING_CHOICES = ("field", "formal")
 
 
 # --------------------------------------------------------------------------- rotations
@@ -455,6 +456,7 @@ def _icp_engine(
     t = np.zeros(3) if t_init is None else np.asarray(t_init, dtype=np.float64).copy()
     converged = False
     it = 0
+    damping = _Damping()
     for it in range(1, opts.max_iterations + 1):
         report(progress, (it - 1) / opts.max_iterations, f"ICP iteration {it}")
         q = src @ R.T + t
@@ -471,6 +473,7 @@ def _icp_engine(
         N = Aw.T @ A[keep]
         b = -(Aw.T @ v[keep])
         x, Ninv, _, null = _solve_scaled(N, b, _rms_radius(q))
+        x = damping(x, _rms_radius(q))
         dR = rotation_matrix(x[:3])
         R = dR @ R
         t = dR @ t + x[3:]
@@ -486,6 +489,36 @@ def _icp_engine(
                 converged = True
                 break
     return _final_fit(src, match, opts, centre, R, t, it, converged)
+
+
+class _Damping:
+    """Step damping against the limit cycles of ICP.
+
+    Two independently sampled clouds have no exact correspondences: near the optimum, a step
+    can change enough nearest-neighbour pairs that the next step points straight back, and
+    plain ICP then alternates between two transforms forever (or wanders). When a step
+    reverses the previous one (cosine < -0.5, rotations scaled to metres by the points' RMS
+    radius) the steps, this one and all later ones, are halved: the optimum sits on a pairing
+    switch between the two transforms, the halved steps bracket it and shrink geometrically,
+    and the convergence tests are met. The factor is never restored: a restored full step
+    jumps over the switch again and the cycle resumes (measured on lone-star: 98 % of cells
+    converge with restoring, 100 % without, at equal error).
+    """
+
+    def __init__(self):
+        self.factor = 1.0
+        self.previous: Optional[np.ndarray] = None
+
+    def __call__(self, x: np.ndarray, length_m: float) -> np.ndarray:
+        scaled = np.concatenate([x[:3] * length_m, x[3:]])
+        prev = self.previous
+        if prev is not None:
+            denom = float(np.linalg.norm(scaled) * np.linalg.norm(prev))
+            cosine = float(scaled @ prev) / denom if denom > 0 else 0.0
+            if cosine < -0.5:
+                self.factor *= 0.5
+        self.previous = scaled * self.factor
+        return x * self.factor
 
 
 def _rms_radius(q: np.ndarray) -> float:
@@ -700,6 +733,7 @@ def _icp_reference(
     m = target - c
     R = np.eye(3)
     t = np.zeros(3)
+    damping = _Damping()
     for _ in range(max_iterations):
         N = np.zeros((6, 6))
         b = np.zeros(6)
@@ -711,7 +745,8 @@ def _icp_reference(
             r = float(n @ (q - m[j]))
             N += np.outer(row, row)
             b -= row * r
-        x = np.linalg.solve(N, b)
+        moved = s @ R.T + t
+        x = damping(np.linalg.solve(N, b), float(np.sqrt(np.mean(np.sum(moved**2, axis=1)))))
         dR = rotation_matrix(x[:3])
         R = dR @ R
         t = dR @ t + x[3:]
@@ -934,9 +969,10 @@ class WindowedICPResult:
     dx, dy, dz : (K,) float64
         Ground motion before -> after at ``(x, y, z)``, metres: ``p - T(p)``.
     sigma_dx, sigma_dy, sigma_dz : (K,) float64
-        Their 1-sigma, metres (inf where the cell geometry leaves the motion undetermined).
+        Their 1-sigma, metres (inf where the cell geometry leaves the motion undetermined);
+        the formal ones times ``sigma_factor``.
     cov_d : (K, 3, 3) float64
-        Full covariance of ``(dx, dy, dz)``, m^2.
+        Full covariance of ``(dx, dy, dz)``, m^2 (formal times ``sigma_factor²``).
     rx, ry, rz, sigma_rx, sigma_ry, sigma_rz : (K,) float64
         Rotation vector of the ground motion (= minus that of ``T``) and 1-sigma, radians.
     rmse : (K,) float64
@@ -962,6 +998,13 @@ class WindowedICPResult:
         The global stable-ground transform applied to epoch 2 first.
     seconds : float
         Wall time.
+    sigma_factor : float
+        The factor the formal sigmas were multiplied by (1 when not scaled).
+    sigma_factor_estimate : float
+        The field's variance factor as estimated (NaN when not estimated or too few cells);
+        ``sigma_factor = max(1, sigma_factor_estimate)`` when scaled.
+    sigma_factor_cells : int
+        Cells that entered the estimate.
     """
 
     x: np.ndarray
@@ -996,6 +1039,9 @@ class WindowedICPResult:
     skipped: Dict[str, int] = field(default_factory=dict)
     prealignment: Optional[ICPFit] = None
     seconds: float = 0.0
+    sigma_factor: float = 1.0
+    sigma_factor_estimate: float = math.nan
+    sigma_factor_cells: int = 0
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -1091,6 +1137,7 @@ def windowed_icp(
     max_points_per_cell: Optional[int] = None,
     coarse_to_fine: int = 0,
     initial_displacement: Optional[Callable[[np.ndarray], np.ndarray]] = None,
+    sigma_scaling: str = "field",
     seed: int = 0,
     progress: Optional[ProgressCallback] = None,
     **icp_options,
@@ -1142,6 +1189,15 @@ def windowed_icp(
     initial_displacement : callable, optional
         ``f(xy (K, 2)) -> (K, 3)`` starting ground motion at cell centres (e.g. from PIV);
         used by the finest pass (or the coarsest, with ``coarse_to_fine``).
+    sigma_scaling : {"field", "formal"}
+        ``"field"`` (default): the cells' covariances are multiplied by the square of the
+        field's a-posteriori variance factor (:func:`~slipmap.core.fields.
+        neighbour_variance_factor` of dx, dy, dz over the converged cells, at least 1): each
+        cell's formal covariance assumes independent point residuals, which real surfaces
+        (vegetation, scan shadows, the scanner's sampling pattern) break, and on lone-star
+        it is 2-3x too small; the factor restores ``err / sigma`` to about 1 there. With
+        fewer than 8 cells that have 5 usable neighbours the formal covariances are kept.
+        ``"formal"``: keep the formal covariances.
     seed : int
         Seed of the samples.
     progress : callable, optional
@@ -1181,6 +1237,10 @@ def windowed_icp(
             f"prealign must be True, False or an ICPFit, got {type(prealign).__name__}"
         )
     levels = _int_at_least("coarse_to_fine", coarse_to_fine, 0)
+    if sigma_scaling not in SIGMA_SCALING_CHOICES:
+        raise InvalidParameterError(
+            f"sigma_scaling must be one of {SIGMA_SCALING_CHOICES}, got {sigma_scaling!r}"
+        )
     if initial_displacement is not None and not callable(initial_displacement):
         raise InvalidParameterError("initial_displacement must be a function xy -> (K, 3)")
     _check_overlap(b, a)
@@ -1199,6 +1259,7 @@ def windowed_icp(
             max_points_per_cell=max_points_per_cell,
             coarse_to_fine=levels - 1,
             initial_displacement=initial_displacement,
+            sigma_scaling="formal",
             seed=seed,
             progress=scaled(progress, 0.0, 0.4),
             **icp_options,
@@ -1367,7 +1428,43 @@ def windowed_icp(
         n_cols=n_cols,
         skipped=skipped,
         prealignment=pre,
-        seconds=time.perf_counter() - t_start,
     )
+    if sigma_scaling == "field":
+        res = _scale_sigmas(res)
+    res = replace(res, seconds=time.perf_counter() - t_start)
     log.info("windowed ICP: %d cells fitted, skipped %s, %.1f s", n_ok, skipped, res.seconds)
     return res
+
+
+def _scale_sigmas(res: WindowedICPResult) -> WindowedICPResult:
+    """``res`` with covariances scaled by the field's variance factor (see windowed_icp)."""
+    from .fields import neighbour_variance_factor
+
+    est = neighbour_variance_factor(
+        res.row,
+        res.col,
+        np.column_stack([res.dx, res.dy, res.dz]),
+        np.column_stack([res.sigma_dx, res.sigma_dy, res.sigma_dz]),
+        usable=res.converged,
+    )
+    res = replace(res, sigma_factor_estimate=est.factor, sigma_factor_cells=est.n_cells)
+    if not math.isfinite(est.factor):
+        log.warning(
+            "only %d cells have 5 usable neighbours: the field's variance factor cannot be "
+            "estimated and the cells' sigmas are the formal ones (likely too small on real "
+            "surfaces); use smaller cells or a larger area",
+            est.n_cells,
+        )
+        return res
+    f = max(1.0, est.factor)
+    log.info(
+        "field variance factor %.2f from %d cells: sigmas multiplied by %.2f",
+        est.factor,
+        est.n_cells,
+        f,
+    )
+    scaled_cols = {
+        k: getattr(res, k) * f
+        for k in ("sigma_dx", "sigma_dy", "sigma_dz", "sigma_rx", "sigma_ry", "sigma_rz")
+    }
+    return replace(res, **scaled_cols, cov_d=res.cov_d * (f * f), sigma_factor=f)

@@ -106,6 +106,10 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
             "<b>Coarse-to-fine levels</b> (advanced): coarser passes (2x, 4x ... cells) whose "
             "motion starts each finer cell; needed when the motion is not small against the "
             "cell (default 1, 0 = off). "
+            "<b>Formal sigmas only</b> (advanced): by default the cells' 1-sigma are multiplied "
+            "by the field's variance factor, estimated from how well each cell agrees with the "
+            "plane through its neighbours (formal sigmas assume independent point residuals "
+            "and are 2-4x too small on real surfaces); tick to keep the formal ones. "
             "<b>Moving area</b> (optional polygon layer, any CRS, reprojected to the clouds' "
             "CRS): the after epoch is first aligned on the points OUTSIDE these polygons "
             "(stable ground; the study's masked global alignment), and displacements are "
@@ -168,6 +172,13 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
             )
         )
         self.addParameter(
+            advanced(
+                QgsProcessingParameterBoolean(
+                    "FORMAL_SIGMA", "Formal sigmas only", defaultValue=False
+                )
+            )
+        )
+        self.addParameter(
             QgsProcessingParameterFeatureSource(
                 "STABLE_MASK",
                 "Moving area (left out of the stable-ground pre-alignment)",
@@ -205,6 +216,7 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
         min_points = self.parameterAsInt(parameters, "MIN_POINTS", context)
         levels = self.parameterAsInt(parameters, "COARSE_TO_FINE", context)
         prealign = self.parameterAsBoolean(parameters, "PREALIGN", context)
+        formal = self.parameterAsBoolean(parameters, "FORMAL_SIGMA", context)
         mask_source = None
         if parameters.get("STABLE_MASK") not in (None, ""):
             mask_source = self.parameterAsSource(parameters, "STABLE_MASK", context)
@@ -228,6 +240,7 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
                 prealign=bool(exclude) or prealign,
                 exclude_polygons=exclude,
                 coarse_to_fine=levels,
+                sigma_scaling="formal" if formal else "field",
                 progress=progress_callback(feedback),
             )
             cols = res.to_columns()
@@ -246,6 +259,11 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
                 "horizontal_m": finite_stats(mag),
                 "dz_m": finite_stats(res.dz),
                 "sigma_horizontal_m": finite_stats(np.hypot(res.sigma_dx, res.sigma_dy)),
+                "sigma_factor": {
+                    "applied": res.sigma_factor,
+                    "estimate": res.sigma_factor_estimate,
+                    "cells": res.sigma_factor_cells,
+                },
                 "rmse_m": finite_stats(res.rmse),
                 "prealignment": None
                 if res.prealignment is None

@@ -150,6 +150,9 @@ def test_strain_from_two_band_geotiff_and_bad_inputs(tmp_path, capsys):
     (tmp_path / "f.csv").write_text("x,y,dx\n1,2,3\n")
     assert main(["strain", str(tmp_path / "f.csv"), "--out", str(tmp_path / "q")]) == 2
     assert "dy" in capsys.readouterr().err
+    bad = ["strain", str(tmp_path / "d.tif"), "--out", str(tmp_path / "r"), "--crs", "EPSG:1"]
+    assert main(bad) == 2
+    assert "--crs" in capsys.readouterr().err and not (tmp_path / "r" / "strain.tif").exists()
 
 
 def _rough(n, seed, side=20.0):
@@ -228,6 +231,13 @@ def test_icp_cli_equals_core_and_writes_layers(shifted_pair, tmp_path):
     summary = json.loads((out / "icp.json").read_text())
     assert summary["control"]["n_compared"] == 1
     assert summary["control"]["rmse_horizontal_m"] < 0.01
+    assert summary["sigma_factor"]["applied"] == core.sigma_factor >= 1.0
+    formal = tmp_path / "formal"
+    args = ["-q", "icp", str(d / "b.las"), str(d / "a.las"), "--cell", "5", "--no-progress"]
+    assert main([*args, "--out", str(formal), "--formal-sigma"]) == 0
+    cols_formal = read_csv_columns(formal / "icp.csv", required=("sigma_dz",))
+    np.testing.assert_allclose(cols_formal["sigma_dz"], core.sigma_dz / core.sigma_factor)
+    assert json.loads((formal / "icp.json").read_text())["sigma_factor"]["applied"] == 1.0
 
 
 def test_piv_cli_equals_core(shifted_pair, tmp_path):

@@ -14,9 +14,11 @@ from slipmap.core.errors import InputDataError, InvalidParameterError
 from slipmap.core.fields import (
     FieldComparison,
     GriddedField,
+    _neighbour_variance_factor_reference,
     compare_with_control,
     compare_with_truth,
     field_from_columns,
+    neighbour_variance_factor,
     sample_field,
 )
 
@@ -313,3 +315,76 @@ def test_jittered_centres_need_the_spacing_and_a_tolerance():
         field_from_columns(x, y, np.zeros(80), np.zeros(80))
     g = field_from_columns(x, y, np.zeros(80), np.zeros(80), spacing_m=1.0, lattice_tolerance=0.1)
     assert g.shape == (8, 10) and np.all(g.valid)
+
+
+# --------------------------------------------------------------------------- variance factor
+
+
+def _noisy_plane_field(seed, true_factor, *, shape=(30, 40), keep=0.85):
+    """A planar 3-component field on a grid with gaps; per-cell formal sigmas vary 4x and the
+    actual noise is ``true_factor`` times them."""
+    rng = np.random.default_rng(seed)
+    rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
+    sel = rng.random(rr.size) < keep
+    row, col = rr.ravel()[sel], cc.ravel()[sel]
+    sig = rng.uniform(0.001, 0.004, (row.size, 3))
+    trend = np.column_stack([0.02 * col - 0.01 * row, 0.5 + 0.003 * row, -0.2 + 0 * row])
+    values = trend + true_factor * sig * rng.standard_normal((row.size, 3))
+    return row, col, values, sig
+
+
+@pytest.mark.parametrize("true_factor", [1.0, 3.0])
+def test_variance_factor_recovers_the_known_noise_scale(true_factor):
+    est = [
+        neighbour_variance_factor(*_noisy_plane_field(seed, true_factor)).factor
+        for seed in range(5)
+    ]
+    # ~1000 cells x 3 components each: the median estimator is within a few per cent
+    np.testing.assert_allclose(est, true_factor, rtol=0.1)
+
+
+def test_variance_factor_fast_equals_loop_reference():
+    row, col, values, sig = _noisy_plane_field(7, 2.0, shape=(12, 15), keep=0.75)
+    usable = np.random.default_rng(1).random(row.size) < 0.9
+    for mn in (3, 5, 7):
+        kw = dict(usable=usable, min_neighbours=mn, min_cells=1)
+        fast = neighbour_variance_factor(row, col, values, sig, **kw)
+        ref = _neighbour_variance_factor_reference(row, col, values, sig, **kw)
+        assert fast.n_cells == ref.n_cells > 0
+        assert fast.factor == pytest.approx(ref.factor, rel=1e-12)
+        np.testing.assert_allclose(fast.normalised, ref.normalised, rtol=1e-10)
+        assert np.isfinite(fast.normalised).all(axis=1).sum() == fast.n_cells
+
+
+@given(
+    a=st.floats(-5, 5),
+    b=st.floats(-1, 1),
+    c=st.floats(-1, 1),
+    shift_r=st.integers(-1000, 1000),
+    shift_c=st.integers(-1000, 1000),
+)
+def test_variance_factor_ignores_a_planar_trend_and_the_grid_origin(a, b, c, shift_r, shift_c):
+    row, col, values, sig = _noisy_plane_field(3, 2.0, shape=(10, 12))
+    base = neighbour_variance_factor(row, col, values, sig).factor
+    moved = values + (a + b * col + c * row)[:, None]
+    got = neighbour_variance_factor(row + shift_r, col + shift_c, moved, sig).factor
+    assert got == pytest.approx(base, rel=1e-6)
+
+
+def test_variance_factor_too_few_cells_and_bad_arguments():
+    row, col, values, sig = _noisy_plane_field(0, 1.0, shape=(3, 3), keep=1.0)
+    one = neighbour_variance_factor(row, col, values, sig)
+    assert math.isnan(one.factor) and one.n_cells == 5  # the centre and the 4 edge middles
+    sig_inf = sig.copy()
+    sig_inf[4] = np.inf  # an undetermined cell never enters: the edges keep 4 neighbours
+    assert neighbour_variance_factor(row, col, values, sig_inf, min_cells=1).n_cells == 0
+    with pytest.raises(InvalidParameterError, match="min_neighbours"):
+        neighbour_variance_factor(row, col, values, sig, min_neighbours=2)
+    with pytest.raises(InvalidParameterError, match="sigmas"):
+        neighbour_variance_factor(row, col, values, sig[:, :2])
+    with pytest.raises(InvalidParameterError, match="at most once"):
+        neighbour_variance_factor(
+            np.r_[row, 0], np.r_[col, 0], np.r_[values, values[:1]], np.r_[sig, sig[:1]]
+        )
+    empty = neighbour_variance_factor([], [], np.zeros((0, 3)), np.zeros((0, 3)))
+    assert math.isnan(empty.factor) and empty.n_cells == 0

@@ -402,6 +402,28 @@ def test_windowedicp_equals_core(provider, epochs, tmp_path):
     summary = json.loads((tmp_path / "icp.json").read_text())
     assert summary["n_cells"] == len(ref)
     assert summary["prealignment"] is None
+    assert summary["sigma_factor"]["applied"] == pytest.approx(ref.sigma_factor, rel=1e-12)
+    assert summary["sigma_factor"]["cells"] == ref.sigma_factor_cells
+    # formal sigmas on request: the field's sigmas divided by the factor
+    formal = _run(
+        "windowedicp",
+        {
+            "BEFORE": str(paths["before"]),
+            "AFTER": str(paths["after"]),
+            "CELL": 6.0,
+            "MIN_POINTS": 50,
+            "COARSE_TO_FINE": 0,
+            "FORMAL_SIGMA": True,
+            "CELLS": "TEMPORARY_OUTPUT",
+            "VECTORS": str(tmp_path / "formal.gpkg"),
+            "SUMMARY": str(tmp_path / "formal.json"),
+        },
+    )
+    _, names, rows = _features(formal["VECTORS"])
+    np.testing.assert_allclose(
+        _col(names, rows, "sigma_dx"), ref.sigma_dx / ref.sigma_factor, rtol=1e-12
+    )
+    assert json.loads((tmp_path / "formal.json").read_text())["sigma_factor"]["applied"] == 1.0
 
 
 def test_windowedicp_stable_mask_is_reprojected(provider, epochs, tmp_path):
