@@ -24,7 +24,7 @@ from .cli import (
     read_epoch_pair,
 )
 from .core.errors import InputDataError, InvalidParameterError, SlipMapError
-from .summaries import finite_stats, horizontal, json_safe
+from .summaries import finite_stats, horizontal, icp_summary, json_safe
 
 log = logging.getLogger("slipmap")
 
@@ -380,31 +380,8 @@ def _run_icp(args: argparse.Namespace) -> int:
         "command": "icp",
         "before": str(args.before),
         "after": str(args.after),
-        "cell_m": res.cell_m,
-        "n_cells": len(res),
-        "skipped": dict(res.skipped),
-        "converged": int(np.count_nonzero(res.converged)),
-        "horizontal_m": finite_stats(mag),
-        "dz_m": finite_stats(res.dz),
-        "sigma_horizontal_m": finite_stats(np.hypot(res.sigma_dx, res.sigma_dy)),
-        "sigma_factor": {
-            "applied": res.sigma_factor,
-            "estimate": res.sigma_factor_estimate,
-            "cells": res.sigma_factor_cells,
-        },
-        "rmse_m": finite_stats(res.rmse),
-        "prealignment": None
-        if res.prealignment is None
-        else {
-            # T(p) = R (p - c) + c + t maps epoch 2 onto epoch 1: the epochs' offset at the
-            # centre c is -t (a translation "about the origin" would be mostly lever arm)
-            "centre_m": np.asarray(res.prealignment.centre).tolist(),
-            "offset_at_centre_m": (-np.asarray(res.prealignment.params[3:])).tolist(),
-            "rotation_rad": np.asarray(res.prealignment.params[:3]).tolist(),
-            "rmse_m": float(res.prealignment.rmse_m),
-        },
+        **icp_summary(res),
         "control": _control(args, res.x, res.y, res.dx, res.dy, res.dz, spacing_m=res.cell_m),
-        "seconds": res.seconds,
         "files": files,
     }
     _write_json(out / "icp.json", json_safe(summary))

@@ -67,3 +67,37 @@ def strip_rows(strips: Iterable) -> List[Dict[str, Any]]:
         }
         for st in strips
     ]
+
+
+def icp_summary(res) -> Dict[str, Any]:
+    """The JSON summary of a ``WindowedICPResult`` shared by the CLI (``icp.json``) and the
+    QGIS algorithm: cell counts, motion and sigma statistics, the field's variance factor
+    and the pre-alignment (NaN/inf are left to :func:`json_safe`)."""
+    mag, _ = horizontal(res.dx, res.dy)
+    pre = res.prealignment
+    return {
+        "cell_m": res.cell_m,
+        "n_cells": len(res),
+        "skipped": dict(res.skipped),
+        "converged": int(np.count_nonzero(res.converged)),
+        "horizontal_m": finite_stats(mag),
+        "dz_m": finite_stats(res.dz),
+        "sigma_horizontal_m": finite_stats(np.hypot(res.sigma_dx, res.sigma_dy)),
+        "sigma_factor": {
+            "applied": res.sigma_factor,
+            "estimate": res.sigma_factor_estimate,
+            "cells": res.sigma_factor_cells,
+        },
+        "rmse_m": finite_stats(res.rmse),
+        "prealignment": None
+        if pre is None
+        else {
+            # T(p) = R (p - c) + c + t maps epoch 2 onto epoch 1: the epochs' offset at the
+            # centre c is -t (a translation "about the origin" would be mostly lever arm)
+            "centre_m": np.asarray(pre.centre).tolist(),
+            "offset_at_centre_m": (-np.asarray(pre.params[3:])).tolist(),
+            "rotation_rad": np.asarray(pre.params[:3]).tolist(),
+            "rmse_m": float(pre.rmse_m),
+        },
+        "seconds": res.seconds,
+    }

@@ -22,6 +22,7 @@ from qgis.PyQt.QtCore import QVariant
 from ...summaries import (  # noqa: F401  (re-exported for the field algorithms)
     finite_stats,
     horizontal,
+    icp_summary,
     json_safe,
 )
 from ._base import (

@@ -31,8 +31,8 @@ from ._fields import (
     add_control_parameter,
     advanced,
     control_comparison,
-    finite_stats,
     horizontal,
+    icp_summary,
     json_safe,
     qgs_crs,
     read_pair,
@@ -207,7 +207,6 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
         )
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
-        import numpy as np
 
         before_path = self.parameterAsFile(parameters, "BEFORE", context)
         after_path = self.parameterAsFile(parameters, "AFTER", context)
@@ -249,36 +248,13 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
                 "command": "icp",
                 "before": before_path,
                 "after": after_path,
-                "cell_m": res.cell_m,
                 "buffer_m": buffer_m,
                 "min_points": min_points,
                 "coarse_to_fine": levels,
-                "n_cells": len(res),
-                "skipped": dict(res.skipped),
-                "converged": int(np.count_nonzero(res.converged)),
-                "horizontal_m": finite_stats(mag),
-                "dz_m": finite_stats(res.dz),
-                "sigma_horizontal_m": finite_stats(np.hypot(res.sigma_dx, res.sigma_dy)),
-                "sigma_factor": {
-                    "applied": res.sigma_factor,
-                    "estimate": res.sigma_factor_estimate,
-                    "cells": res.sigma_factor_cells,
-                },
-                "rmse_m": finite_stats(res.rmse),
-                "prealignment": None
-                if res.prealignment is None
-                else {
-                    # T(p) = R (p - centre) + centre + t: t is the shift at the centre
-                    "centre_m": np.asarray(res.prealignment.centre).tolist(),
-                    "t_at_centre_m": np.asarray(res.prealignment.params[3:]).tolist(),
-                    "rotation_rad": np.asarray(res.prealignment.params[:3]).tolist(),
-                    "translation_m": np.asarray(res.prealignment.translation).tolist(),
-                    "rmse_m": float(res.prealignment.rmse_m),
-                },
+                **icp_summary(res),
                 "control": control_comparison(
                     control, res.x, res.y, res.dx, res.dy, res.dz, res.cell_m
                 ),
-                "seconds": res.seconds,
             }
             write_json(summary_path, json_safe(summary))
         columns = dict(cols, magnitude=mag, azimuth_deg=az)

@@ -464,8 +464,8 @@ def test_windowedicp_stable_mask_is_reprojected(provider, epochs, tmp_path):
     summary = json.loads((tmp_path / "icp.json").read_text())
     # the "stable" ground moved too: the pre-alignment takes the whole shift out...
     pre = summary["prealignment"]
-    np.testing.assert_allclose(pre["t_at_centre_m"], -np.asarray(SHIFT), atol=0.01)
-    np.testing.assert_allclose(pre["t_at_centre_m"], ref.prealignment.params[3:], atol=0.01)
+    np.testing.assert_allclose(pre["offset_at_centre_m"], SHIFT, atol=0.01)
+    np.testing.assert_allclose(pre["offset_at_centre_m"], -ref.prealignment.params[3:], atol=0.01)
     # ...so the cells are still (agreeing with the core's to a mm: the reprojected mask
     # selects a slightly different random sample of stable points)
     _, names, rows = _features(res["VECTORS"])
