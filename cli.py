@@ -18,7 +18,7 @@ import numpy as np
 
 from ._version import __version__
 from .core.errors import CancelledError, InvalidParameterError, SlipMapError
-from .summaries import finite, strip_rows
+from .summaries import strip_rows
 
 log = logging.getLogger("slipmap")
 
@@ -117,13 +117,13 @@ def _write_json(path: Path, payload: dict) -> None:
     write_text_atomic(path, json.dumps(payload, indent=2, allow_nan=False) + "\n")
 
 
-def _add_crs_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--crs",
-        help="CRS of the input when the file lacks one or declares a wrong one (e.g. "
-        "EPSG:32611): it replaces the file's CRS (nothing is reprojected) and the outputs "
-        "carry it",
-    )
+def _add_crs_argument(
+    p: argparse.ArgumentParser,
+    help: str = "CRS of the input when the file lacks one or declares a wrong one (e.g. "
+    "EPSG:32611): it replaces the file's CRS (nothing is reprojected) and the outputs carry it",
+) -> None:
+    """The ``--crs`` option (parsed by :func:`parse_crs_option`), with a command's help."""
+    p.add_argument("--crs", help=help)
 
 
 def parse_crs_option(value):
@@ -871,9 +871,6 @@ def _add_pa_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-_finite = finite
-
-
 def _window_rasters(windows, crs, out_dir: Path) -> List[str]:
     """windows_dx.tif and windows_dy.tif (north-up, one pixel per window centre)."""
     from .core.errors import DependencyError
@@ -1154,9 +1151,9 @@ def _displacement_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("after", help="second epoch, LAS/LAZ (reprojected to the first's CRS)")
     p.add_argument("--fault", required=True, help="fault trace: any OGR line file, any CRS")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument(
-        "--crs",
-        help="CRS of both epochs when the files lack one or declare a wrong one (e.g. "
+    _add_crs_argument(
+        p,
+        "CRS of both epochs when the files lack one or declare a wrong one (e.g. "
         "EPSG:32611): the trace is reprojected into it and the outputs carry it",
     )
     p.add_argument(

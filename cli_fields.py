@@ -15,15 +15,18 @@ from typing import Optional
 import numpy as np
 
 from .cli import (
+    _add_crs_argument,
     _check_output_dir,
+    _have_matplotlib,
     _positive,
     _ProgressBar,
     _write_json,
     command,
     parse_crs_option,
+    read_cloud,
     read_epoch_pair,
 )
-from .core.errors import InputDataError, InvalidParameterError, SlipMapError
+from .core.errors import InputDataError, InvalidParameterError
 from .summaries import finite_stats, horizontal, icp_summary, json_safe
 
 log = logging.getLogger("slipmap")
@@ -38,9 +41,9 @@ def _add_field_selection(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--exclude-classes", type=int, nargs="+", metavar="C", help="drop these classes (e.g. 7)"
     )
-    p.add_argument(
-        "--crs",
-        help="CRS of both epochs when the files lack one or declare a wrong one (e.g. "
+    _add_crs_argument(
+        p,
+        "CRS of both epochs when the files lack one or declare a wrong one (e.g. "
         "EPSG:32612); written to the outputs",
     )
 
@@ -88,15 +91,6 @@ def _tif(path: Path, array, *, origin_xy, pixel_m, crs, names, metadata=None) ->
     return path.name
 
 
-def _have_matplotlib() -> bool:
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        log.warning("matplotlib is not installed: no PNG figures")
-        return False
-    return True
-
-
 def _control(args, x, y, dx, dy, dz, *, spacing_m=None) -> Optional[dict]:
     """Compare a field with --control points; logged and returned as a dict."""
     if not getattr(args, "control", None):
@@ -132,7 +126,7 @@ def _run_piv(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     _check_output_dir(out)
-    _windows(args)  # bad --passes fails before reading
+    windows = _windows(args)  # bad --passes fails before reading
     before, after, crs = _read_pair(args)
     grid = common_grid(before, after, cell_m=args.grid)
     zb = grid_elevation(before, grid=grid)
@@ -143,7 +137,7 @@ def _run_piv(args: argparse.Namespace) -> int:
             zb,
             za,
             grid=grid,
-            windows_px=_windows(args),
+            windows_px=windows,
             overlap=args.overlap,
             search_px=args.search_px,
             expected_max_displacement_m=args.max_displacement,
@@ -182,8 +176,7 @@ def _run_piv(args: argparse.Namespace) -> int:
     if _have_matplotlib():
         from .core.report import hillshade, plot_vector_field
 
-        x0, y0 = grid.origin_xy
-        extent = (x0, x0 + grid.n_cols * grid.cell_m, y0 - grid.n_rows * grid.cell_m, y0)
+        extent = (grid.x_min, grid.x_max, grid.y_min, grid.y_max)
         plot_vector_field(
             out / "piv.png",
             x=cols["x"],
@@ -362,8 +355,7 @@ def _run_icp(args: argparse.Namespace) -> int:
 
         cell = max(res.cell_m / 20.0, 0.05)
         grid = common_grid(before, cell_m=cell, overlap="union")
-        x0, y0 = grid.origin_xy
-        extent = (x0, x0 + grid.n_cols * cell, y0 - grid.n_rows * cell, y0)
+        extent = (grid.x_min, grid.x_max, grid.y_min, grid.y_max)
         plot_vector_field(
             out / "icp.png",
             x=res.x,
@@ -467,8 +459,7 @@ def _run_dem_diff(args: argparse.Namespace) -> int:
     if _have_matplotlib():
         from .core.report import plot_raster_panels
 
-        x0, y0 = g.origin_xy
-        extent = (x0, x0 + g.n_cols * g.cell_m, y0 - g.n_rows * g.cell_m, y0)
+        extent = (g.x_min, g.x_max, g.y_min, g.y_max)
         plot_raster_panels(
             out / "dem_diff.png",
             {"dz = after - before (m)": res.dz, "z before (m)": res.z_before},
@@ -627,7 +618,7 @@ def _strain_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="CSV with a valid column: use only valid (not replaced) vectors",
     )
-    p.add_argument("--crs", help="CRS of the outputs (e.g. EPSG:32612) for a CSV field")
+    _add_crs_argument(p, "CRS of the outputs (e.g. EPSG:32612) for a CSV field")
 
 
 # --------------------------------------------------------------------------- synth-lobe
@@ -636,15 +627,13 @@ def _strain_arguments(p: argparse.ArgumentParser) -> None:
 @command("synth-lobe", "inject a known landslide lobe into a real cloud (validation pair)")
 def _run_synth_lobe(args: argparse.Namespace) -> int:
     from .core.io.atomic import check_not_input
-    from .core.io.las import read_las, write_las
+    from .core.io.las import write_las
     from .core.io.table import write_csv_columns
     from .core.synthetic import make_lobe_pair
 
     out = Path(args.out)
     _check_output_dir(out)
-    cloud = read_las(args.input)
-    if len(cloud) == 0:
-        raise SlipMapError(f"{cloud.source}: the file has no points")
+    cloud = read_cloud(args.input)
     ext = (
         Path(args.input).suffix.lower()
         if Path(args.input).suffix.lower() in (".las", ".laz")

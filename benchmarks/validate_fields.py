@@ -159,14 +159,15 @@ def shift_case(pts, seed, cell):
     res = windowed_icp(pts[half], pts[~half] + shift, cell_m=cell)
     m = res.n >= 500
     e = np.column_stack([res.dx, res.dy, res.dz])[m] - shift
+    h = np.linalg.norm(e, axis=1)
     return {
         "case": "shift",
         "seed": seed,
         "cell_m": cell,
         "cells": int(m.sum()),
-        "rmse_3d_m": round(_rms(np.linalg.norm(e, axis=1)), 4),
-        "median_3d_m": round(float(np.median(np.linalg.norm(e, axis=1))), 4),
-        "over_10cm": int(np.count_nonzero(np.linalg.norm(e, axis=1) > 0.1)),
+        "rmse_3d_m": round(_rms(h), 4),
+        "median_3d_m": round(float(np.median(h)), 4),
+        "over_10cm": int(np.count_nonzero(h > 0.1)),
         "converged": round(float(np.mean(res.converged)), 3),
         "sigma_factor": round(res.sigma_factor, 2),
         **_coverage(res, e, m),
@@ -182,7 +183,7 @@ def dem_case(pair, cell):
     tz = pair.field(xy)[:, 2]
     dz = res.dz.ravel()
     m = pair.field.interior_mask(xy, fraction=0.5) & np.isfinite(dz)
-    stable = (pair.field(xy)[:, 2] == 0) & np.isfinite(dz)
+    stable = (tz == 0) & np.isfinite(dz)
     return {
         "grid_m": cell,
         "interior_rmse_dz_vs_true_vertical_m": round(_rms(dz[m] - tz[m]), 4),
@@ -205,12 +206,12 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     pts = read_las(DATA).xyz
     results = {"piv": [], "icp": [], "dem": []}
+    radius = (
+        None
+        if not args.radius
+        else (args.radius[0] if len(args.radius) == 1 else tuple(args.radius[:2]))
+    )
     for seed in range(args.seeds):
-        radius = (
-            None
-            if not args.radius
-            else (args.radius[0] if len(args.radius) == 1 else tuple(args.radius[:2]))
-        )
         pair = make_lobe_pair(pts, seed=seed, radius_m=radius)
         for cell, win in PIV_CASES:
             r = piv_case(pair, cell, win)

@@ -687,7 +687,7 @@ def _neighbour_args(row, col, values, sigmas, usable):
     ok = np.all(np.isfinite(values), axis=1) & np.all(np.isfinite(sigmas) & (sigmas > 0), axis=1)
     if usable is not None:
         ok &= np.asarray(usable, dtype=bool).reshape(k)
-    if np.unique(row * (int(col.max()) + 1 if k else 1) + col).size != k:
+    if np.unique(np.column_stack([row, col]), axis=0).shape[0] != k:
         raise InvalidParameterError("row, col must name each grid cell at most once")
     return row, col, values, sigmas, ok
 
@@ -772,7 +772,6 @@ def _neighbour_variance_factor_reference(
     ``np.linalg.lstsq`` per cell), for testing."""
     row, col, values, sigmas, ok = _neighbour_args(row, col, values, sigmas, usable)
     where = {(int(r), int(c)): i for i, (r, c) in enumerate(zip(row, col)) if ok[i]}
-    ratios = []
     normalised = np.full(values.shape, np.nan)
     for (r, c), i in where.items():
         nbs = [(a, b, where[(r + a, c + b)]) for a, b in _OFFSETS if (r + a, c + b) in where]
@@ -782,10 +781,11 @@ def _neighbour_variance_factor_reference(
         j = [k for _, _, k in nbs]
         h = np.linalg.lstsq(X, np.eye(len(j)), rcond=None)[0][0]  # prediction at (0, 0)
         r_i = values[i] - h @ values[j]
-        ratios.append(r_i**2 / (sigmas[i] ** 2 + (h**2) @ sigmas[j] ** 2))
         normalised[i] = r_i / np.sqrt(sigmas[i] ** 2 + (h**2) @ sigmas[j] ** 2)
-    if len(ratios) < min_cells:
-        return NeighbourVarianceFactor(float("nan"), len(ratios), normalised)
+    tested = np.all(np.isfinite(normalised), axis=1)
+    n = int(tested.sum())
+    if n < min_cells:
+        return NeighbourVarianceFactor(float("nan"), n, normalised)
     return NeighbourVarianceFactor(
-        float(math.sqrt(np.median(np.array(ratios)) / CHI2_1_MEDIAN)), len(ratios), normalised
+        float(math.sqrt(np.median(normalised[tested] ** 2) / CHI2_1_MEDIAN)), n, normalised
     )

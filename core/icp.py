@@ -472,8 +472,9 @@ def _icp_engine(
         Aw = A[keep] * w[keep, None]
         N = Aw.T @ A[keep]
         b = -(Aw.T @ v[keep])
-        x, Ninv, _, null = _solve_scaled(N, b, _rms_radius(q))
-        x = damping(x, _rms_radius(q))
+        radius = _rms_radius(q)
+        x, Ninv, _, null = _solve_scaled(N, b, radius)
+        x = damping(x, radius)
         dR = rotation_matrix(x[:3])
         R = dR @ R
         t = dR @ t + x[3:]
@@ -745,8 +746,7 @@ def _icp_reference(
             r = float(n @ (q - m[j]))
             N += np.outer(row, row)
             b -= row * r
-        moved = s @ R.T + t
-        x = damping(np.linalg.solve(N, b), float(np.sqrt(np.mean(np.sum(moved**2, axis=1)))))
+        x = damping(np.linalg.solve(N, b), _rms_radius(s @ R.T + t))
         dR = rotation_matrix(x[:3])
         R = dR @ R
         t = dR @ t + x[3:]
@@ -1428,10 +1428,10 @@ def windowed_icp(
         n_cols=n_cols,
         skipped=skipped,
         prealignment=pre,
+        seconds=time.perf_counter() - t_start,
     )
     if sigma_scaling == "field":
         res = _scale_sigmas(res)
-    res = replace(res, seconds=time.perf_counter() - t_start)
     log.info("windowed ICP: %d cells fitted, skipped %s, %.1f s", n_ok, skipped, res.seconds)
     return res
 

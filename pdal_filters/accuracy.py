@@ -24,7 +24,6 @@ import sys
 STAGE = "slipmap accuracy"
 SIGMAS = ("SigmaX", "SigmaY", "SigmaZ")
 COVS = ("CovXX", "CovYY", "CovZZ", "CovXY", "CovXZ", "CovYZ")
-OUTPUTS = {name: "float64" for name in SIGMAS}
 
 
 def outputs(options):
@@ -203,12 +202,11 @@ def run(ins, outs):
     if n > 0:
         from slipmap.core.accuracy import covariance_to_sigmas, covariance_to_six
         from slipmap.core.errors import SlipMapError
-        from slipmap.pointaccuracy import check_settings, covariance_matrices
+        from slipmap.pointaccuracy import covariance_matrices
 
         pts = _stage.points_from(ins, STAGE)
         try:
-            settings = check_settings(_settings(opts))
-            cov = covariance_matrices(_cloud(ins, pts), None, settings)
+            cov = covariance_matrices(_cloud(ins, pts), None, _settings(opts))
             sig = covariance_to_sigmas(cov)
             if opts["full_covariance"]:
                 six = covariance_to_six(cov)
