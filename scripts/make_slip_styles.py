@@ -6,27 +6,19 @@ slip_windows) with PyQGIS. Run with QGIS's Python from the repository root:
 
 from __future__ import annotations
 
-import os
 import sys
 import tempfile
 from pathlib import Path
 
+# shared with the field styles (run as a script, this directory is on sys.path)
+from make_styles import RDBU, _app, _raster_layer, _save
+
 STYLES = Path(sys.argv[1] if len(sys.argv) > 1 else "qgis_plugin/styles")
-RDBU = ("#2166ac", "#67a9cf", "#d1e5f0", "#f7f7f7", "#fddbc7", "#ef8a62", "#b2182b")
 LABEL = (
     "CASE WHEN \"status\" = 'ok' THEN "
     "format_number(\"fault_parallel\" * 1000, 1) || ' ± ' || "
     "format_number(\"sigma_fp\" * 1000, 1) || ' mm' END"
 )
-
-
-def _app():
-    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
-    from qgis.core import QgsApplication
-
-    app = QgsApplication([], False)
-    app.initQgis()
-    return app
 
 
 def _labels(layer, offset_expression=None):
@@ -144,65 +136,17 @@ def strips_layer():
 
 
 def windows_layer(tmp):
-    import numpy as np
-    from osgeo import gdal, osr
-    from qgis.core import (
-        QgsColorRampShader,
-        QgsRasterLayer,
-        QgsRasterMinMaxOrigin,
-        QgsRasterShader,
-        QgsSingleBandPseudoColorRenderer,
-    )
-    from qgis.PyQt.QtGui import QColor
-
-    path = str(Path(tmp) / "slip_windows.tif")
-    ds = gdal.GetDriverByName("GTiff").Create(path, 4, 4, 7, gdal.GDT_Float64)
-    ds.SetGeoTransform((500000.0, 1.0, 0.0, 4200000.0, 0.0, -1.0))
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(32610)
-    ds.SetProjection(srs.ExportToWkt())
-    for b in range(7):
-        ds.GetRasterBand(b + 1).WriteArray(np.linspace(-1, 1, 16).reshape(4, 4))
-        ds.GetRasterBand(b + 1).SetNoDataValue(float("nan"))
-    ds = None
-    layer = QgsRasterLayer(path, "windows")
-    assert layer.isValid(), path
-    values = np.linspace(-1.0, 1.0, len(RDBU))
-    items = [
-        QgsColorRampShader.ColorRampItem(float(v), QColor(c), f"{v:+.2f}")
-        for v, c in zip(values, RDBU)
-    ]
-    ramp = QgsColorRampShader(-1.0, 1.0)
-    ramp.setColorRampType(QgsColorRampShader.Interpolated)
-    ramp.setColorRampItemList(items)
-    ramp.setClip(False)
-    shader = QgsRasterShader(-1.0, 1.0)
-    shader.setRasterShaderFunction(ramp)
-    renderer = QgsSingleBandPseudoColorRenderer(layer.dataProvider(), 1, shader)
-    renderer.setClassificationMin(-1.0)
-    renderer.setClassificationMax(1.0)
-    origin = QgsRasterMinMaxOrigin()
-    origin.setLimits(QgsRasterMinMaxOrigin.None_)
-    renderer.setMinMaxOrigin(origin)
-    layer.setRenderer(renderer)
-    return layer
-
-
-def _save(layer, name):
-    out = STYLES / f"{name}.qml"
-    message, ok = layer.saveNamedStyle(str(out))
-    if not ok:
-        raise RuntimeError(f"{out}: {message}")
-    sys.stdout.write(f"wrote {out}\n")
+    """The 7-band moving-window raster: the diverging ramp on band 1."""
+    return _raster_layer(tmp, RDBU, "slip_windows", bands=7, epsg=32610)
 
 
 def main():
     app = _app()
     STYLES.mkdir(parents=True, exist_ok=True)
-    _save(tiles_layer(), "slip_tiles")
-    _save(strips_layer(), "slip_strips")
+    _save(tiles_layer(), "slip_tiles", STYLES)
+    _save(strips_layer(), "slip_strips", STYLES)
     with tempfile.TemporaryDirectory() as tmp:
-        _save(windows_layer(tmp), "slip_windows")
+        _save(windows_layer(tmp), "slip_windows", STYLES)
     app.exitQgis()
     return 0
 

@@ -119,7 +119,10 @@ def _cells_layer():
     return layer
 
 
-def _raster_layer(tmp, colours, label):
+def _raster_layer(tmp, colours, label, *, bands=1, epsg=32612):
+    """A pseudocolor raster layer (band 1) with ``colours`` as a diverging ramp on [-1, 1],
+    over a small GeoTIFF of ``bands`` bands written in ``tmp`` (also used by
+    make_slip_styles.py)."""
     import numpy as np
     from osgeo import gdal, osr
     from qgis.core import (
@@ -132,13 +135,14 @@ def _raster_layer(tmp, colours, label):
     from qgis.PyQt.QtGui import QColor
 
     path = str(Path(tmp) / f"{label}.tif")
-    ds = gdal.GetDriverByName("GTiff").Create(path, 4, 4, 1, gdal.GDT_Float64)
+    ds = gdal.GetDriverByName("GTiff").Create(path, 4, 4, bands, gdal.GDT_Float64)
     ds.SetGeoTransform((500000.0, 1.0, 0.0, 4200000.0, 0.0, -1.0))
     srs = osr.SpatialReference()
-    srs.ImportFromEPSG(32612)
+    srs.ImportFromEPSG(epsg)
     ds.SetProjection(srs.ExportToWkt())
-    ds.GetRasterBand(1).WriteArray(np.linspace(-1, 1, 16).reshape(4, 4))
-    ds.GetRasterBand(1).SetNoDataValue(float("nan"))
+    for b in range(1, bands + 1):
+        ds.GetRasterBand(b).WriteArray(np.linspace(-1, 1, 16).reshape(4, 4))
+        ds.GetRasterBand(b).SetNoDataValue(float("nan"))
     ds = None
     layer = QgsRasterLayer(path, label)
     assert layer.isValid(), path
@@ -164,8 +168,8 @@ def _raster_layer(tmp, colours, label):
     return layer
 
 
-def _save(layer, name):
-    out = STYLES / f"{name}.qml"
+def _save(layer, name, styles=STYLES):
+    out = Path(styles) / f"{name}.qml"
     message, ok = layer.saveNamedStyle(str(out))
     if not ok:
         raise RuntimeError(f"{out}: {message}")
