@@ -1,5 +1,6 @@
-"""Write the QML styles of the slipmap:displacement outputs (slip_tiles, slip_strips,
-slip_windows) with PyQGIS. Run with QGIS's Python from the repository root:
+"""Write the QML styles of the slipmap:displacement outputs (slip_tiles, slip_strips; the
+moving-window raster uses make_styles.py's ``diverging``) with PyQGIS. Run with QGIS's
+Python from the repository root:
 
     QT_QPA_PLATFORM=offscreen .venv/bin/python scripts/make_slip_styles.py
 """
@@ -7,11 +8,10 @@ slip_windows) with PyQGIS. Run with QGIS's Python from the repository root:
 from __future__ import annotations
 
 import sys
-import tempfile
 from pathlib import Path
 
 # shared with the field styles (run as a script, this directory is on sys.path)
-from make_styles import RDBU, _app, _raster_layer, _save
+from make_styles import _app, _save
 
 STYLES = Path(sys.argv[1] if len(sys.argv) > 1 else "qgis_plugin/styles")
 LABEL = (
@@ -135,18 +135,11 @@ def strips_layer():
     return layer
 
 
-def windows_layer(tmp):
-    """The 7-band moving-window raster: the diverging ramp on band 1."""
-    return _raster_layer(tmp, RDBU, "slip_windows", bands=7, epsg=32610)
-
-
 def main():
     app = _app()
     STYLES.mkdir(parents=True, exist_ok=True)
     _save(tiles_layer(), "slip_tiles", STYLES)
     _save(strips_layer(), "slip_strips", STYLES)
-    with tempfile.TemporaryDirectory() as tmp:
-        _save(windows_layer(tmp), "slip_windows", STYLES)
     app.exitQgis()
     return 0
 

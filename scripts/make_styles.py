@@ -15,7 +15,7 @@ and commit the files it writes to ``qgis_plugin/styles/``:
 * ``diverging.qml`` / ``strain.qml`` -- single-band (band 1) pseudocolor rasters with a
   diverging ramp symmetric about 0 (white at 0, blue/purple negative, red/green positive)
   stored on [-1, 1]; the algorithms rescale it to the layer's own ``[-max|v|, max|v|]`` when
-  they load it.
+  they load it. ``diverging`` also styles slipmap:displacement's moving-window raster.
 """
 
 from __future__ import annotations
@@ -119,10 +119,7 @@ def _cells_layer():
     return layer
 
 
-def _raster_layer(tmp, colours, label, *, bands=1, epsg=32612):
-    """A pseudocolor raster layer (band 1) with ``colours`` as a diverging ramp on [-1, 1],
-    over a small GeoTIFF of ``bands`` bands written in ``tmp`` (also used by
-    make_slip_styles.py)."""
+def _raster_layer(tmp, colours, label):
     import numpy as np
     from osgeo import gdal, osr
     from qgis.core import (
@@ -135,14 +132,13 @@ def _raster_layer(tmp, colours, label, *, bands=1, epsg=32612):
     from qgis.PyQt.QtGui import QColor
 
     path = str(Path(tmp) / f"{label}.tif")
-    ds = gdal.GetDriverByName("GTiff").Create(path, 4, 4, bands, gdal.GDT_Float64)
+    ds = gdal.GetDriverByName("GTiff").Create(path, 4, 4, 1, gdal.GDT_Float64)
     ds.SetGeoTransform((500000.0, 1.0, 0.0, 4200000.0, 0.0, -1.0))
     srs = osr.SpatialReference()
-    srs.ImportFromEPSG(epsg)
+    srs.ImportFromEPSG(32612)
     ds.SetProjection(srs.ExportToWkt())
-    for b in range(1, bands + 1):
-        ds.GetRasterBand(b).WriteArray(np.linspace(-1, 1, 16).reshape(4, 4))
-        ds.GetRasterBand(b).SetNoDataValue(float("nan"))
+    ds.GetRasterBand(1).WriteArray(np.linspace(-1, 1, 16).reshape(4, 4))
+    ds.GetRasterBand(1).SetNoDataValue(float("nan"))
     ds = None
     layer = QgsRasterLayer(path, label)
     assert layer.isValid(), path

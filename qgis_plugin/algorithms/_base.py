@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import contextlib
 
-from qgis.core import QgsProcessingAlgorithm, QgsProcessingException
+from qgis.core import (
+    QgsProcessingAlgorithm,
+    QgsProcessingException,
+    QgsProcessingParameterDefinition,
+)
 
 from ..compat import can_execute
 
@@ -49,10 +53,21 @@ def slipmap_errors():
         raise QgsProcessingException(str(exc)) from exc
 
 
+def is_set(parameters, name):
+    """True when the optional parameter ``name`` was given (not absent, None or empty)."""
+    value = parameters.get(name)
+    return value is not None and value != ""
+
+
+def advanced(param):
+    """``param`` flagged as advanced (shown under "Advanced parameters")."""
+    param.setFlags(param.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
+    return param
+
+
 def optional_number(alg, parameters, name, context, integer=False):
     """An optional numeric parameter, ``None`` when it is not set."""
-    value = parameters.get(name)
-    if value is None or value == "":
+    if not is_set(parameters, name):
         return None
     if integer:
         return alg.parameterAsInt(parameters, name, context)

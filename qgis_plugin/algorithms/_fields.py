@@ -13,22 +13,22 @@ from qgis.core import (
     QgsGeometry,
     QgsPointXY,
     QgsProcessingException,
-    QgsProcessingParameterDefinition,
     QgsProcessingParameterFile,
     QgsWkbTypes,
 )
 from qgis.PyQt.QtCore import QVariant
 
 from ...summaries import (  # noqa: F401  (re-exported for the field algorithms)
+    finite,
     finite_stats,
     horizontal,
     icp_summary,
     json_safe,
 )
-from ._base import (
-    apply_diverging_style_on_load,  # noqa: F401  (re-exported for the field algorithms)
+from ._base import (  # noqa: F401  (advanced, apply_diverging_style_on_load re-exported)
+    advanced,
+    apply_diverging_style_on_load,
     read_cloud,
-    symmetric_limits,  # noqa: F401
 )
 
 FIELDS_GROUP = ("Displacement fields", "fields")
@@ -111,19 +111,6 @@ def add_control_parameter(alg):
     )
 
 
-def advanced(param):
-    param.setFlags(param.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
-    return param
-
-
-def _value(v):
-    """A float attribute, None (NULL) where not finite."""
-    import math
-
-    v = float(v)
-    return v if math.isfinite(v) else None
-
-
 def write_point_sink(alg, parameters, name, context, crs, x, y, columns, kinds):
     """Point features at (x, y) with ``columns`` (name -> (K,) array) as attributes.
 
@@ -155,7 +142,7 @@ def _write_sink(alg, parameters, name, context, crs, wkb, geometries, columns, k
         f.setGeometry(geom)
         attrs = []
         for (_, kind), col in zip(kinds, cols):
-            attrs.append(int(col[i]) if kind == QVariant.Int else _value(col[i]))
+            attrs.append(int(col[i]) if kind == QVariant.Int else finite(col[i]))
         f.setAttributes(attrs)
         if not sink.addFeature(f, QgsFeatureSink.FastInsert):
             raise QgsProcessingException(f"{name}: cannot write feature {i}")
@@ -202,6 +189,3 @@ def parse_windows(text):
             "WINDOWS: give at least one window size (pixels), e.g. 64 32 16"
         )
     return wins
-
-
-# --------------------------------------------------------------------------- the algorithm

@@ -12,7 +12,6 @@ import contextlib
 from qgis.core import (
     QgsProcessingException,
     QgsProcessingParameterBoolean,
-    QgsProcessingParameterDefinition,
     QgsProcessingParameterEnum,
     QgsProcessingParameterFile,
     QgsProcessingParameterFileDestination,
@@ -25,14 +24,16 @@ from ._base import (
     LAS_FILTER,
     LAS_OUTPUT_FILTER,
     SlipMapAlgorithm,
+    advanced,
+    is_set,
     progress_callback,
     read_cloud,
     slipmap_errors,
 )
 
 MODELS = ("constant", "axis", "columns", "propagated")
-#: names of ``core.accuracy.SCANNERS`` (read from the core when it imports; a test keeps this
-#: fallback equal to it)
+#: names of ``core.accuracy.SCANNERS`` (a test keeps them equal; not imported from the core,
+#: which would load numpy and scipy each time QGIS builds the algorithm)
 SCANNER_NAMES = ("leica-als60", "optech-orion", "riegl-vz400")
 SCANNER_FROM_FILE = "JSON file (Scanner specification file)"
 TRAJECTORY_FILTER = "Trajectory (*.sbet *.out *.csv *.txt);;All files (*.*)"
@@ -90,19 +91,6 @@ def pa_errors():
         raise QgsProcessingException(text) from exc
 
 
-def scanner_names():
-    try:
-        from ...core.accuracy import SCANNERS
-    except ImportError:  # scipy missing: canExecute reports it, the dialog still opens
-        return SCANNER_NAMES
-    return tuple(sorted(SCANNERS))
-
-
-def _advanced(p):
-    p.setFlags(p.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
-    return p
-
-
 def _sigma(name, label, default, optional=False):
     return QgsProcessingParameterNumber(
         name,
@@ -119,12 +107,12 @@ def add_pa_parameters(alg, model_names, advanced_models=False):
     ``{"MODEL": "Model"}``), then the model settings shared by them (advanced except SIGMA)."""
     for name, label in model_names.items():
         p = QgsProcessingParameterEnum(name, label, options=list(MODELS), defaultValue=0)
-        alg.addParameter(_advanced(p) if advanced_models else p)
+        alg.addParameter(advanced(p) if advanced_models else p)
     alg.addParameter(_sigma("SIGMA", "Sigma, constant model (m)", 0.05))
     for axis in "XYZ":
-        alg.addParameter(_advanced(_sigma(f"SIGMA_{axis}", f"Sigma {axis}, axis model (m)", 0.05)))
+        alg.addParameter(advanced(_sigma(f"SIGMA_{axis}", f"Sigma {axis}, axis model (m)", 0.05)))
     alg.addParameter(
-        _advanced(
+        advanced(
             QgsProcessingParameterString(
                 "SIGMA_COLUMNS",
                 "Sigma columns, columns model (X,Y,Z dimension names)",
@@ -134,7 +122,7 @@ def add_pa_parameters(alg, model_names, advanced_models=False):
         )
     )
     alg.addParameter(
-        _advanced(
+        advanced(
             QgsProcessingParameterFile(
                 "TRAJECTORY",
                 "Trajectory, propagated model (SBET or CSV)",
@@ -144,7 +132,7 @@ def add_pa_parameters(alg, model_names, advanced_models=False):
         )
     )
     alg.addParameter(
-        _advanced(
+        advanced(
             QgsProcessingParameterFile(
                 "TRAJECTORY_ACCURACY",
                 "Trajectory accuracy, propagated model (SMRMSG or CSV)",
@@ -153,16 +141,16 @@ def add_pa_parameters(alg, model_names, advanced_models=False):
             )
         )
     )
-    names = list(scanner_names()) + [SCANNER_FROM_FILE]
+    names = list(SCANNER_NAMES) + [SCANNER_FROM_FILE]
     alg.addParameter(
-        _advanced(
+        advanced(
             QgsProcessingParameterEnum(
                 "SCANNER", "Scanner, propagated model", options=names, defaultValue=0
             )
         )
     )
     alg.addParameter(
-        _advanced(
+        advanced(
             QgsProcessingParameterFile(
                 "SCANNER_FILE",
                 "Scanner specification file (JSON)",
@@ -172,14 +160,14 @@ def add_pa_parameters(alg, model_names, advanced_models=False):
         )
     )
     alg.addParameter(
-        _advanced(
+        advanced(
             QgsProcessingParameterPoint(
                 "SCANNER_POSITION", "Scanner position, static (TLS) scan", optional=True
             )
         )
     )
     alg.addParameter(
-        _advanced(
+        advanced(
             QgsProcessingParameterNumber(
                 "SCANNER_HEIGHT",
                 "Scanner height, static scan (m)",
@@ -189,14 +177,14 @@ def add_pa_parameters(alg, model_names, advanced_models=False):
         )
     )
     alg.addParameter(
-        _advanced(
+        advanced(
             QgsProcessingParameterBoolean(
                 "FOOTPRINT", "Beam footprint term, propagated model", defaultValue=True
             )
         )
     )
     alg.addParameter(
-        _advanced(
+        advanced(
             QgsProcessingParameterFile(
                 "PA_CONFIG",
                 "Point-accuracy configuration (JSON, as the CLI's --pa-config)",
@@ -205,11 +193,6 @@ def add_pa_parameters(alg, model_names, advanced_models=False):
             )
         )
     )
-
-
-def _is_set(parameters, name):
-    value = parameters.get(name)
-    return value is not None and value != ""
 
 
 def pa_settings(alg, parameters, context, model_name, crs):
@@ -234,7 +217,7 @@ def pa_settings(alg, parameters, context, model_name, crs):
         if names:
             s["columns"] = names
     else:
-        names = list(scanner_names())
+        names = list(SCANNER_NAMES)
         k = alg.parameterAsEnum(parameters, "SCANNER", context)
         if k < len(names):
             s["scanner"] = names[k]
@@ -247,7 +230,7 @@ def pa_settings(alg, parameters, context, model_name, crs):
                 )
             s["scanner"] = spec
         s["footprint"] = alg.parameterAsBoolean(parameters, "FOOTPRINT", context)
-        if _is_set(parameters, "SCANNER_POSITION"):
+        if is_set(parameters, "SCANNER_POSITION"):
             pt = alg.parameterAsPoint(parameters, "SCANNER_POSITION", context, crs)
             z = alg.parameterAsDouble(parameters, "SCANNER_HEIGHT", context)
             s["scanner_position"] = [pt.x(), pt.y(), z]

@@ -17,7 +17,6 @@ from qgis.core import (
     QgsProcessingOutputHtml,
     QgsProcessingOutputNumber,
     QgsProcessingParameterBoolean,
-    QgsProcessingParameterDefinition,
     QgsProcessingParameterEnum,
     QgsProcessingParameterFeatureSink,
     QgsProcessingParameterFeatureSource,
@@ -37,7 +36,10 @@ from ._base import (
     LAS_FILTER,
     PLANES_CITATION,
     SlipMapAlgorithm,
+    advanced,
+    apply_diverging_style_on_load,
     apply_style_on_load,
+    is_set,
     optional_number,
     progress_callback,
     read_cloud,
@@ -128,17 +130,7 @@ def cloud_path(alg, parameters, name, context):
     return path
 
 
-def _is_set(parameters, name):
-    value = parameters.get(name)
-    return value is not None and value != ""
-
-
-def _advanced(p):
-    p.setFlags(p.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
-    return p
-
-
-def _length(name, label, default=None, optional=True, advanced=False):
+def _length(name, label, default=None, optional=True, is_advanced=False):
     p = QgsProcessingParameterNumber(
         name,
         label,
@@ -147,7 +139,7 @@ def _length(name, label, default=None, optional=True, advanced=False):
         optional=optional,
         minValue=1e-6,
     )
-    return _advanced(p) if advanced else p
+    return advanced(p) if is_advanced else p
 
 
 def _sigma_of(cov, j):
@@ -242,7 +234,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         )
         self.addParameter(_length("TILE_SIZE", "Tile size (m)"))
         self.addParameter(
-            _advanced(
+            advanced(
                 QgsProcessingParameterEnum(
                     "COMBINE", "Combine tiles", options=list(COMBINE), defaultValue=0
                 )
@@ -251,16 +243,16 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         self.addParameter(_length("STRIP_WIDTH", "Strip width (m)"))
         self.addParameter(_length("WINDOW_SIZE", "Moving-window size (m)"))
         self.addParameter(
-            _length("WINDOW_STEP", "Moving-window step (m; default size / 4)", advanced=True)
+            _length("WINDOW_STEP", "Moving-window step (m; default size / 4)", is_advanced=True)
         )
         self.addParameter(
-            _length("MATCH_ANGLE", "Match angle (degrees)", 3.0, optional=False, advanced=True)
+            _length("MATCH_ANGLE", "Match angle (degrees)", 3.0, optional=False, is_advanced=True)
         )
         self.addParameter(
-            _length("MATCH_DISTANCE", "Match distance (m)", 0.5, optional=False, advanced=True)
+            _length("MATCH_DISTANCE", "Match distance (m)", 0.5, optional=False, is_advanced=True)
         )
         self.addParameter(
-            _advanced(
+            advanced(
                 QgsProcessingParameterNumber(
                     "REFERENCE_SLIP",
                     "Reference right-lateral slip (m)",
@@ -310,16 +302,16 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             summary, report = self._write_summary(run, opts)
         results = {"SUMMARY": summary, "REPORT": report}
         results["PLANES"] = self._write_planes(parameters, context, run["result"], run["crs"])
-        if run["result"].tiles and _is_set(parameters, "TILES"):
+        if run["result"].tiles and is_set(parameters, "TILES"):
             results["TILES"] = self._write_tiles(parameters, context, run)
             apply_style_on_load(context, results["TILES"], "slip_tiles")
-        if run["strips"] is not None and _is_set(parameters, "STRIPS"):
+        if run["strips"] is not None and is_set(parameters, "STRIPS"):
             results["STRIPS"] = self._write_strips(parameters, context, run)
             apply_style_on_load(context, results["STRIPS"], "slip_strips")
         if run["windows"] is not None:
             with slipmap_errors():
                 results["WINDOWS"] = self._write_windows(run, opts["windows_path"])
-            _diverging_style_on_load(context, results["WINDOWS"], "slip_windows")
+            apply_diverging_style_on_load(context, results["WINDOWS"])
         rel = run["payload"]["relative"]
         feedback.pushInfo(
             f"right-lateral slip {rel['right_lateral_slip']:.4f} ± "
@@ -369,7 +361,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             ("STRIPS", "strip_width_m", "STRIP_WIDTH"),
             ("WINDOWS", "window_size_m", "WINDOW_SIZE"),
         ):
-            if _is_set(parameters, sink) and opts[key] is None:
+            if is_set(parameters, sink) and opts[key] is None:
                 raise QgsProcessingException(
                     f"{sink} is requested but {name} is not set: give {name} (m) or leave "
                     f"{sink} out"
@@ -377,7 +369,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         if opts["window_size_m"] is not None:
             if opts["window_step_m"] is None:
                 opts["window_step_m"] = opts["window_size_m"] / 4
-            if _is_set(parameters, "WINDOWS"):
+            if is_set(parameters, "WINDOWS"):
                 opts["windows_path"] = self.parameterAsOutputLayer(parameters, "WINDOWS", context)
         return opts
 
@@ -649,8 +641,3 @@ def _plots(stem, result, strips):
         names.append("_strips.png")
     base = os.path.basename(stem)
     return [base + n for n in names]
-
-
-def _diverging_style_on_load(context, output, style_name):
-    """The diverging raster style, rescaled to the layer's own symmetric range on load."""
-    apply_style_on_load(context, output, style_name, symmetric_band=1)

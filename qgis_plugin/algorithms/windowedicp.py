@@ -18,6 +18,7 @@ from ._base import (
     LAS_FILTER,
     SlipMapAlgorithm,
     apply_style_on_load,
+    is_set,
     optional_number,
     progress_callback,
     slipmap_errors,
@@ -217,7 +218,7 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
         prealign = self.parameterAsBoolean(parameters, "PREALIGN", context)
         formal = self.parameterAsBoolean(parameters, "FORMAL_SIGMA", context)
         mask_source = None
-        if parameters.get("STABLE_MASK") not in (None, ""):
+        if is_set(parameters, "STABLE_MASK"):
             mask_source = self.parameterAsSource(parameters, "STABLE_MASK", context)
             if mask_source is None:
                 raise QgsProcessingException("STABLE_MASK: the layer cannot be read")

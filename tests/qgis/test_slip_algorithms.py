@@ -427,7 +427,7 @@ def test_window_style_loads(tiled_run):
     from slipmap.qgis_plugin.algorithms._base import style_path
 
     layer = QgsRasterLayer(tiled_run[0]["WINDOWS"], "windows")
-    message, ok = layer.loadNamedStyle(style_path("slip_windows"))
+    message, ok = layer.loadNamedStyle(style_path("diverging"))
     assert ok, message
     renderer = layer.renderer()
     assert isinstance(renderer, QgsSingleBandPseudoColorRenderer)
