@@ -1321,6 +1321,13 @@ def windowed_icp(
     cell_progress = scaled(progress, 0.1 if pre is not None else 0.02, 1.0)
     batch = max(1, len(uk) // 100)
     n_fail_nonconv = 0
+    # starting motion of every cell in one call (a per-cell call of a sampler is slow)
+    start_d = np.zeros((len(uk), 3))
+    if initial_displacement is not None and len(uk):
+        rows_u, cols_u = np.divmod(uk, n_cols)
+        centres_xy = np.column_stack([x0 + (cols_u + 0.5) * cell, y0 - (rows_u + 0.5) * cell])
+        start_d = np.asarray(initial_displacement(centres_xy), dtype=np.float64)
+        start_d = np.where(np.isfinite(start_d), start_d, 0.0).reshape(len(uk), 3)
     for ci, (key, s0, cnt) in enumerate(zip(uk, starts, counts)):
         if ci % batch == 0:
             report(cell_progress, ci / len(uk), f"ICP cell {ci + 1} of {len(uk)}")
@@ -1338,10 +1345,7 @@ def windowed_icp(
         pts = a[idx]
         cx, cy = x0 + (c + 0.5) * cell, y0 - (r + 0.5) * cell
         centre = np.array([cx, cy, float(pts[:, 2].mean())])
-        d0 = np.zeros(3)
-        if initial_displacement is not None:
-            d0 = np.asarray(initial_displacement(centre[None, :2]), dtype=np.float64).reshape(3)
-            d0 = np.where(np.isfinite(d0), d0, 0.0)
+        d0 = start_d[ci]
         # the cell's material came from (cell - d0): its target box moves with it
         bx0, bx1 = x0 + c * cell - buf - d0[0], x0 + (c + 1) * cell + buf - d0[0]
         by1, by0 = y0 - r * cell + buf - d0[1], y0 - (r + 1) * cell - buf - d0[1]

@@ -855,9 +855,7 @@ def _new_header(cloud: PointCloud, xyz: np.ndarray) -> laspy.LasHeader:
         ) from exc
     hdr.scales = scales
     hdr.offsets = offsets
-    if cloud.crs is not None:
-        _declare_crs(hdr, cloud.crs)
-    return hdr
+    return hdr  # the CRS is declared by _out_header, as for a file's header
 
 
 def write_las(

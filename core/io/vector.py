@@ -122,11 +122,12 @@ def _pick_layer(ds, layer: Union[str, int, None], ogr, path: Path, polygons: boo
     return lyr
 
 
-def _read_parts(path, target_crs, layer, what, extract, expected):
+def _read_parts(path, target_crs, layer, what, extract, expected, *, polygons=False):
     """Geometry parts of a vector layer, reprojected to ``target_crs`` (shared reader).
 
     ``extract(geom)`` returns a list of vertex arrays or None for a wrong geometry type (then
-    the error says ``expected``). Returns ``(parts, n_features, layer_name)``.
+    the error says ``expected``); ``polygons`` picks a polygon layer (else a line layer) when
+    the file has several and none is named. Returns ``(parts, n_features, layer_name)``.
     """
     ogr, osr = _ogr()
     p = Path(path)
@@ -139,7 +140,7 @@ def _read_parts(path, target_crs, layer, what, extract, expected):
     if ds is None:
         raise SlipMapFileError(f"cannot read {what} {str(p)!r}: not a vector file")
     try:
-        lyr = _pick_layer(ds, layer, ogr, p, polygons=(what == "polygon file"))
+        lyr = _pick_layer(ds, layer, ogr, p, polygons=polygons)
         dst = _srs_from(target_crs, osr)
         src = lyr.GetSpatialRef()
         if src is not None and src.GetName() in _UNDEFINED_SRS_NAMES:
@@ -167,7 +168,7 @@ def _read_parts(path, target_crs, layer, what, extract, expected):
                     transform = osr.CoordinateTransformation(src, dst)
                 except RuntimeError as exc:
                     raise InputDataError(
-                        f"cannot reproject fault-trace file {str(p)!r} from "
+                        f"cannot reproject {what} {str(p)!r} from "
                         f"{src.GetName()!r} to {dst.GetName()!r}: {exc}"
                     ) from exc
         parts: List[np.ndarray] = []
@@ -189,8 +190,7 @@ def _read_parts(path, target_crs, layer, what, extract, expected):
                     geom.Transform(transform)
                 except RuntimeError as exc:
                     raise InputDataError(
-                        f"cannot reproject fault-trace file {str(p)!r} (feature "
-                        f"{feat.GetFID()}): {exc}"
+                        f"cannot reproject {what} {str(p)!r} (feature {feat.GetFID()}): {exc}"
                     ) from exc
             got = extract(geom)
             if got is None:
@@ -327,6 +327,7 @@ def read_polygons(
         "polygon file",
         lambda g: _polygon_rings(g, ogr),
         "a mask must hold Polygon or MultiPolygon features",
+        polygons=True,
     )
     if not parts:
         raise InputDataError(
