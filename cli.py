@@ -18,7 +18,7 @@ import numpy as np
 
 from ._version import __version__
 from .core.errors import CancelledError, InvalidParameterError, SlipMapError
-from .summaries import strip_rows
+from .summaries import json_safe, slip_summary_lines, strip_rows
 
 log = logging.getLogger("slipmap")
 
@@ -871,6 +871,116 @@ def _add_pa_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+#: --units values -> the dimension they read (stochasticmodel.UNIT_SOURCES)
+_UNITS = {
+    "auto": "auto",
+    "point-source-id": "PointSourceId",
+    "gps-time": "GpsTime",
+    "none": "none",
+}
+_UNITS_SPELLING = {v: k for k, v in _UNITS.items()}
+
+
+def _fixed_component(text: str) -> Dict[str, float]:
+    """argparse type of ``--fixed-component NAME=SIGMA_M`` (bad syntax or names: exit 2)."""
+    from .stochasticmodel import fixed_components_or_error
+
+    try:
+        return fixed_components_or_error(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _add_stochastic_arguments(p: argparse.ArgumentParser) -> None:
+    from .stochasticmodel import DEFAULT_GPS_GAP_S, DEFAULT_MODEL, MODEL_HELP, MODELS
+
+    g = p.add_argument_group(
+        "stochastic model (the slip's σ; variance components estimated by REML)"
+    )
+    g.add_argument(
+        "--stochastic-model",
+        choices=MODELS,
+        default=DEFAULT_MODEL,
+        help="; ".join(f"{m}: {MODEL_HELP[m]}" for m in MODELS),
+    )
+    g.add_argument(
+        "--units",
+        choices=tuple(_UNITS),
+        default="auto",
+        help="acquisition unit of each point, per epoch, for the full model's rigid error per "
+        "unit: auto = PointSourceId when an epoch has more than one distinct value, else "
+        "none (default); point-source-id (ALS strips, MLS passes); gps-time = segments of the "
+        "sorted GpsTime split at jumps larger than --gps-gap (separate passes or scans); none",
+    )
+    g.add_argument(
+        "--gps-gap",
+        type=_positive(float, "--gps-gap"),
+        default=DEFAULT_GPS_GAP_S,
+        metavar="S",
+        help=f"with --units gps-time: a new unit starts where consecutive GPS times jump by "
+        f"more than this, seconds (default {DEFAULT_GPS_GAP_S:g})",
+    )
+    g.add_argument(
+        "--fixed-component",
+        type=_fixed_component,
+        action="append",
+        metavar="NAME=SIGMA_M",
+        help="hold a plane-level component fixed instead of estimating it (repeatable): "
+        "plane, spatial, unit_before, unit_after (σ in metres) or spatial_range_m (metres), "
+        "e.g. --fixed-component unit_after=0.003",
+    )
+
+
+def _stochastic_settings(args, first, second, sel1, sel2) -> dict:
+    """estimate_slip's stochastic keywords from the options, and what was used (for the JSON)."""
+    from .stochasticmodel import cloud_units
+
+    model = args.stochastic_model
+    fixed: Dict[str, float] = {}
+    for item in args.fixed_component or []:
+        for name, value in item.items():
+            if name in fixed:
+                raise InvalidParameterError(f"--fixed-component: {name} is given twice")
+            fixed[name] = value
+    if fixed and model == "white":
+        raise InvalidParameterError(
+            "--fixed-component: the white model has no plane-level components; use "
+            "--stochastic-model plane or full"
+        )
+    units = {"before": None, "after": None}
+    used = {}
+    how = _UNITS[args.units]
+    if model != "full":
+        if how not in ("auto", "none"):
+            log.warning("--units %s is not used by --stochastic-model %s", args.units, model)
+    else:
+        for epoch, cloud, sel in (("before", first, sel1), ("after", second, sel2)):
+            u = cloud_units(
+                cloud,
+                sel,
+                how,
+                gap_s=args.gps_gap,
+                epoch=f"{epoch} epoch ({Path(str(cloud.source)).name})",
+                option="--units",
+                spelling=_UNITS_SPELLING,
+            )
+            units[epoch] = u.units
+            used[epoch] = u.to_dict()
+    return {
+        "kwargs": {
+            "stochastic_model": model,
+            "unit_before": units["before"],
+            "unit_after": units["after"],
+        },
+        "components": fixed or None,
+        "record": {
+            "units_option": args.units,
+            **({"gps_gap_s": args.gps_gap} if args.units == "gps-time" else {}),
+            **used,
+        },
+    }
+
+
 def _window_rasters(windows, crs, out_dir: Path) -> List[str]:
     """windows_dx.tif and windows_dy.tif (north-up, one pixel per window centre)."""
     from .core.errors import DependencyError
@@ -899,9 +1009,14 @@ def _window_rasters(windows, crs, out_dir: Path) -> List[str]:
     return files
 
 
-def _displacement_outputs(result, trace, crs, out_dir: Path, *, strips=None) -> List[str]:
-    """Matched-plane GeoPackage, residual and normal plots, HTML page; returns file names."""
+def _displacement_outputs(
+    result, trace, crs, out_dir: Path, *, strips=None, payload=None
+) -> List[str]:
+    """Matched-plane GeoPackage, residual and normal plots, HTML page; returns file names.
+
+    ``payload``: the JSON summary written (default ``result.to_dict()``), for the report."""
     from .core.errors import DependencyError
+    from .summaries import plane_fields, stochastic_tables
 
     files: List[str] = []
     try:
@@ -924,6 +1039,7 @@ def _displacement_outputs(result, trace, crs, out_dir: Path, *, strips=None) -> 
                         "normal_z": pb.normals[m.before, 2],
                         "angle_deg": np.degrees(m.angle_rad),
                         "distance_m": m.distance_m,
+                        **plane_fields(side),
                     },
                 )
             )
@@ -1025,12 +1141,15 @@ def _displacement_outputs(result, trace, crs, out_dir: Path, *, strips=None) -> 
                 [st.side for st in strips],
             )
             files.append("strips.png")
-        summary = result.to_dict()
+        summary = payload if payload is not None else json_safe(result.to_dict())
         tables = {"relative (right - left), m": summary["relative"]}
         for side in ("left", "right"):
             tables[f"{side} side"] = {
                 k: v for k, v in summary[side].items() if not isinstance(v, (list, dict))
             }
+        tables.update(stochastic_tables(summary))
+        if "reference" in summary:
+            tables["against the reference slip"] = summary["reference"]
         images = [f for f in files if f.endswith(".png")]
         write_html_report(out_dir / "report.html", "SlipMap displacement", tables, images)
         files.append("report.html")
@@ -1050,6 +1169,7 @@ def _run_displacement(args: argparse.Namespace) -> int:
     from .pointaccuracy import covariances
 
     first, second, sel1, sel2, before, after = _read_epochs(args)
+    stoch = _stochastic_settings(args, first, second, sel1, sel2)
     pa = _pa_settings(args)
     sigma_b = covariances(first, sel1, pa["before"])
     sigma_a = covariances(second, sel2, pa["after"])
@@ -1073,6 +1193,8 @@ def _run_displacement(args: argparse.Namespace) -> int:
             tile_size_m=args.tile_size,
             combine=args.combine,
             progress=bar,
+            components=stoch["components"],
+            **stoch["kwargs"],
         )
         common = dict(
             buffer_m=args.buffer,
@@ -1080,6 +1202,7 @@ def _run_displacement(args: argparse.Namespace) -> int:
             sigma_after=sigma_a,
             plane_options=plane_opts,
             match_options=match_opts,
+            **stoch["kwargs"],
         )
         strips = windows = None
         if args.strip_width:
@@ -1108,6 +1231,7 @@ def _run_displacement(args: argparse.Namespace) -> int:
             "before": str(args.before),
             "after": str(args.after),
             "fault": str(args.fault),
+            "acquisition_unit_sources": stoch["record"],
         }
     )
     payload["runtime_s"] = round(runtime, 3)
@@ -1125,22 +1249,13 @@ def _run_displacement(args: argparse.Namespace) -> int:
         )
     if strips is not None:
         payload["strips"] = strip_rows(strips)
+    payload = json_safe(payload)  # NaN (e.g. a component's sd) -> null: standard JSON
     _write_json(out / "displacement.json", payload)
-    files = _displacement_outputs(result, trace, first.crs, out, strips=strips)
+    files = _displacement_outputs(result, trace, first.crs, out, strips=strips, payload=payload)
     if windows is not None:
         files += _window_rasters(windows, first.crs, out)
-    rel = payload["relative"]
-    log.info(
-        "relative displacement (right - left): fault-parallel %.4f ± %.4f m, fault-normal "
-        "%.4f ± %.4f m, vertical %.4f ± %.4f m; right-lateral slip %.4f m",
-        rel["fault_parallel"],
-        rel["sigma_fault_parallel"],
-        rel["fault_normal"],
-        rel["sigma_fault_normal"],
-        rel["dz"],
-        rel["sigma_dz"],
-        rel["right_lateral_slip"],
-    )
+    for line in slip_summary_lines(payload):
+        log.info("%s", line)
     log.info("wrote %s", ", ".join(["displacement.json"] + files))
     return 0
 
@@ -1203,6 +1318,7 @@ def _displacement_arguments(p: argparse.ArgumentParser) -> None:
         "adds the study's Table X figures (scale, relative scale) to the summary",
     )
     _add_pa_arguments(p)
+    _add_stochastic_arguments(p)
     g = p.add_argument_group("plane matching")
     g.add_argument(
         "--match-angle",

@@ -1,5 +1,6 @@
 """Output shaping shared by the adapters (CLI, QGIS, PDAL): JSON-safe values, statistics of
-finite values, horizontal magnitude/azimuth, strip rows. No science and no QGIS/PDAL here."""
+finite values, horizontal magnitude/azimuth, strip rows, the slip's stochastic-model summary
+(console lines, report tables, per-plane fields). No science and no QGIS/PDAL here."""
 
 from __future__ import annotations
 
@@ -101,3 +102,221 @@ def icp_summary(res) -> Dict[str, Any]:
         },
         "seconds": res.seconds,
     }
+
+
+# --------------------------------------------------------------------------- slip: stochastic model
+
+
+def _mm(value) -> Optional[float]:
+    """metres -> millimetres (None stays None; NaN/inf -> None)."""
+    if value is None:
+        return None
+    v = float(value)
+    return 1000.0 * v if math.isfinite(v) else None
+
+
+def _fmt_mm(value, digits: int = 2) -> str:
+    v = _mm(value)
+    return "n/a" if v is None else f"{v:.{digits}f}"
+
+
+def slip_model(payload: Dict[str, Any]) -> str:
+    """The stochastic model of a ``SlipResult.to_dict()`` payload ("white" when absent)."""
+    model = (payload.get("parameters") or {}).get("stochastic_model")
+    if model is None:
+        model = (payload.get("left") or {}).get("stochastic_model", "white")
+    return str(model)
+
+
+def component_text(name: str, comp: Dict[str, Any], range_m=None) -> str:
+    """One variance component for a console line, e.g. ``spatial 2.56 mm (sd 1.10, estimated,
+    range 27 m)``; ``unit_after off`` for a component that is not in the model."""
+    source = comp.get("source", "")
+    if source == "off":
+        return f"{name} off"
+    extra = []
+    if comp.get("sd_m") is not None and _mm(comp.get("sd_m")) is not None:
+        extra.append(f"sd {_fmt_mm(comp['sd_m'])}")
+    extra.append(source)
+    if name == "white" and comp.get("variance_factor") is not None:
+        extra.append(f"σ0² {float(comp['variance_factor']):.2f}")
+    if name == "spatial" and range_m is not None and math.isfinite(float(range_m)):
+        extra.append(f"range {float(range_m):.0f} m")
+    return f"{name} {_fmt_mm(comp.get('sigma_m'))} mm ({', '.join(e for e in extra if e)})"
+
+
+def side_component_line(side: str, side_dict: Dict[str, Any]) -> Optional[str]:
+    """``left side: 15 planes, n_eff 13.3; white 19.91 mm (estimated, σ0² 0.99); …`` or None
+    for the white model (no components)."""
+    vc = side_dict.get("variance_components")
+    if not vc:
+        return None
+    n_eff = vc.get("n_eff")
+    head = f"{side} side: {vc.get('n_planes', side_dict.get('n_planes'))} planes, n_eff " + (
+        "n/a" if n_eff is None else f"{float(n_eff):.1f}"
+    )
+    comps = [
+        component_text(name, c, vc.get("spatial_range_m"))
+        for name, c in (vc.get("components") or {}).items()
+    ]
+    return head + "; " + "; ".join(comps)
+
+
+def slip_summary_lines(payload: Dict[str, Any]) -> List[str]:
+    """Console summary of a slip payload: each relative component ± its σ (the model's) with
+    the white-noise σ beside it, the right-lateral slip, then one line per side with the
+    variance components and n_eff (stochastic models)."""
+    rel = payload["relative"]
+    model = slip_model(payload)
+
+    def pm(value, sigma, white=None) -> str:
+        text = f"{_fmt_mm(value):>8} ± {_fmt_mm(sigma)} mm"
+        if model != "white" and white is not None:
+            text += f"   (white noise only ± {_fmt_mm(white)} mm)"
+        return text
+
+    lines = [
+        f"relative displacement (right − left), stochastic model {model}:",
+        "  fault-parallel "
+        + pm(
+            rel["fault_parallel"],
+            rel["sigma_fault_parallel"],
+            rel.get("sigma_fault_parallel_white"),
+        ),
+        "  fault-normal   " + pm(rel["fault_normal"], rel["sigma_fault_normal"]),
+        "  vertical       " + pm(rel["dz"], rel["sigma_dz"], rel.get("sigma_dz_white")),
+        f"  right-lateral slip {_fmt_mm(rel['right_lateral_slip'])} mm",
+    ]
+    for side in ("left", "right"):
+        line = side_component_line(side, payload.get(side) or {})
+        if line is not None:
+            lines.append("  " + line)
+    return lines
+
+
+def stochastic_tables(payload: Dict[str, Any]) -> Dict[str, Any]:
+    """The report's tables of the stochastic model (``write_html_report`` ``tables``):
+
+    * "Stochastic model": the model, the fault-parallel and vertical σ of the model and of the
+      white model, and per side n_planes, n_eff, the spatial range and the notes;
+    * "Stochastic model: components per side" (rows): side, component, σ (mm), sd (mm),
+      source, notes;
+    * "Rejected and down-weighted planes" (rows): side, plane, status, weight, reason.
+    """
+    rel = payload["relative"]
+    model = slip_model(payload)
+    head: Dict[str, Any] = {"model": model}
+    head["σ fault-parallel (mm)"] = _mm(rel.get("sigma_fault_parallel"))
+    if model != "white":
+        head["σ fault-parallel, white noise only (mm)"] = _mm(rel.get("sigma_fault_parallel_white"))
+    head["σ vertical (mm)"] = _mm(rel.get("sigma_dz"))
+    if model != "white":
+        head["σ vertical, white noise only (mm)"] = _mm(rel.get("sigma_dz_white"))
+    units = (payload.get("parameters") or {}).get("acquisition_unit_sources") or {}
+    rows, planes = [], []
+    for side in ("left", "right"):
+        sd = payload.get(side) or {}
+        vc = sd.get("variance_components")
+        if vc:
+            head[f"{side}: planes"] = vc.get("n_planes")
+            head[f"{side}: n_eff"] = vc.get("n_eff")
+            head[f"{side}: spatial range (m)"] = vc.get("spatial_range_m")
+            if vc.get("notes"):
+                head[f"{side}: notes"] = "; ".join(vc["notes"])
+            for name, c in (vc.get("components") or {}).items():
+                rows.append(
+                    {
+                        "side": side,
+                        "component": name,
+                        "σ (mm)": _mm(c.get("sigma_m")),
+                        "sd (mm)": _mm(c.get("sd_m")),
+                        "source": c.get("source", ""),
+                        "σ0² (white)": c.get("variance_factor"),
+                        "notes": c.get("note", ""),
+                    }
+                )
+        for r in sd.get("rejected_planes") or []:
+            planes.append(
+                {
+                    "side": side,
+                    "plane": r["plane"],
+                    "status": "rejected",
+                    "weight": 0.0,
+                    "reason": r["reason"],
+                }
+            )
+        for r in sd.get("downweighted_planes") or []:
+            planes.append(
+                {
+                    "side": side,
+                    "plane": r["plane"],
+                    "status": "down-weighted",
+                    "weight": r["weight"],
+                    "reason": r["reason"],
+                }
+            )
+    for epoch in ("before", "after"):
+        if epoch in units:
+            u = units[epoch]
+            head[f"acquisition units, {epoch}"] = (
+                f"{u['n_units']} from {u['source']}" if u.get("n_units") else u.get("note", "none")
+            )
+    tables: Dict[str, Any] = {"Stochastic model": head}
+    if rows:
+        tables["Stochastic model: components per side"] = rows
+    tables["Rejected and down-weighted planes"] = planes or {"planes": "none"}
+    return tables
+
+
+def plane_fields(side) -> Dict[str, np.ndarray]:
+    """Per matched plane of a :class:`~slipmap.core.displacement.SideResult` (in match order):
+    ``weight`` (1 full, (0, 1) down-weighted, 0 rejected, NaN unused), ``w_test`` (w-test of
+    its misclosure against the plane-level spread), ``offset_mm`` (predicted plane offset δ
+    along the normal) and ``misclosure_mm``. The white model has weights 1 / 0 (rejected) and
+    NaN for the rest."""
+    n = len(side.matches)
+    r = side.rigid
+
+    def padded(values, scale=1.0):
+        out = np.full(n, np.nan)
+        if values is not None:
+            v = np.asarray(values, dtype=np.float64).ravel()
+            k = min(n, v.size)
+            out[:k] = v[:k] * scale
+        return out
+
+    if r.plane_weights is None:
+        weight = np.ones(n)
+        for p, _ in r.rejected_planes:
+            if 0 <= p < n:
+                weight[p] = 0.0
+    else:
+        weight = padded(r.plane_weights)
+    return {
+        "weight": weight,
+        "w_test": padded(r.plane_w),
+        "offset_mm": padded(r.plane_offset_m, 1000.0),
+        "misclosure_mm": padded(r.plane_misclosure_m, 1000.0),
+    }
+
+
+def stochastic_outputs(payload: Dict[str, Any]) -> Dict[str, Any]:
+    """Compact per-side components ``{side: {"n_eff", "spatial_range_m", name: sigma_m, …}}``
+    and the model's and white σ of the fault-parallel slip, for outputs that hold one value
+    (QGIS outputs, PDAL metadata)."""
+    rel = payload["relative"]
+    out: Dict[str, Any] = {
+        "model": slip_model(payload),
+        "sigma_fault_parallel": rel.get("sigma_fault_parallel"),
+        "sigma_fault_parallel_white": rel.get("sigma_fault_parallel_white"),
+    }
+    for side in ("left", "right"):
+        vc = (payload.get(side) or {}).get("variance_components")
+        if not vc:
+            continue
+        d: Dict[str, Any] = {"n_eff": vc.get("n_eff"), "spatial_range_m": vc.get("spatial_range_m")}
+        for name, c in (vc.get("components") or {}).items():
+            d[f"{name}_m"] = c.get("sigma_m")
+            d[f"{name}_source"] = c.get("source")
+        out[side] = d
+    return out

@@ -45,6 +45,7 @@ Kusari et al. (2019), section II.D (Eq. 9-11) and Appendix (Eq. 14-17), with the
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -52,10 +53,13 @@ from statistics import NormalDist
 from typing import List, Optional, Tuple
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 
+from . import stochastic as _stoch
 from .errors import InputDataError, InvalidParameterError
 from .planes import orient_normals
 from .progress import ProgressCallback, report
+from .stochastic import PlaneModel, VarianceComponents
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +69,9 @@ WEAK_RATIO = 1e-3  # translation eigenvalue ratio below which a direction is wea
 SINGULAR_RATIO = 1e-6  # ... and below which it is unconstrained (singular system)
 DENSE_MAX_UNKNOWNS = 2000  # adjust_rigid_dense refuses bigger problems
 MAX_REJECTED_SHARE = 0.5  # data snooping stops before rejecting more than this share of planes
+NCOL = 11  # row columns: motion (6), plane a b c d (4), plane offset δ (1)
+_XD = [0, 1, 2, 3, 4, 5, 10]  # motion and δ columns
+MAX_OUTER = 8  # stochastic models: rounds of (adjustment, components, plane tests)
 
 
 @dataclass(frozen=True)
@@ -78,13 +85,17 @@ class RigidResult:
         x, y, z axes through ``centre``) and ``tx, ty, tz`` (metres, displacement of the
         material at ``centre``): ``after = R (before - centre) + centre + t``.
     covariance : (6, 6) float64
-        A-posteriori covariance ``variance_factor * cofactor`` (rad², rad·m, m²).
+        A-posteriori covariance (rad², rad·m, m²): ``variance_factor * cofactor`` for the
+        white model; the inverse of the plane-level GLS normal matrix with the estimated
+        components for the "plane" and "full" models.
     cofactor : (6, 6) float64
-        ``Qxx``: inverse of the reduced normal matrix (a-priori covariance of ``params``).
+        ``Qxx``: inverse of the reduced normal matrix (white: a-priori covariance of
+        ``params``; stochastic models: equal to ``covariance``).
     sigma : (6,) float64
         Square roots of the diagonal of ``covariance``.
     variance_factor : float
-        ``sigma0² = v^T P v / redundancy`` (NaN if the redundancy is 0).
+        ``sigma0² = v^T P v / redundancy`` of the point residuals (NaN if the redundancy is 0);
+        stochastic models: with each plane's offset removed (the white point-noise component).
     redundancy : int
         Conditions + constraints - unknowns.
     iterations : int
@@ -112,6 +123,21 @@ class RigidResult:
         The corresponding unit eigenvectors, as columns.
     weak_directions : tuple of str
         Warnings about weakly constrained translation directions.
+    stochastic_model : str
+        "white", "plane" or "full" (see :mod:`.stochastic`).
+    variance_components : VarianceComponents or None
+        The estimated components (None for the white model).
+    plane_weights : (b,) float64 or None
+        Stochastic models: 1 for a plane used at full weight, its IGG-III weight (0, 1) when
+        down-weighted, 0 when rejected, NaN when never used.
+    plane_w : (b,) float64 or None
+        w-test statistic of each active plane's misclosure against the plane-level spread.
+    plane_offset_m : (b,) float64 or None
+        Predicted (BLUP) after-epoch offset ``δ`` of each active plane along its normal, m.
+    plane_misclosure_m : (b,) float64 or None
+        After-minus-before mean misclosure of each plane along its normal, metres.
+    downweighted_planes : tuple of (int, float)
+        Planes kept with a weight below 1, and the weight.
     """
 
     params: np.ndarray
@@ -132,6 +158,13 @@ class RigidResult:
     translation_eigenvalues: np.ndarray
     translation_eigenvectors: np.ndarray
     weak_directions: Tuple[str, ...]
+    stochastic_model: str = "white"
+    variance_components: Optional[VarianceComponents] = None
+    plane_weights: Optional[np.ndarray] = None
+    plane_w: Optional[np.ndarray] = None
+    plane_offset_m: Optional[np.ndarray] = None
+    plane_misclosure_m: Optional[np.ndarray] = None
+    downweighted_planes: Tuple[Tuple[int, float], ...] = ()
 
     @property
     def displacement(self) -> np.ndarray:
@@ -415,21 +448,24 @@ def _check_points(pts, labels, name):
 class _State:
     """Current estimate: rotation matrix R (3, 3), translation t (3,), planes n (b, 3), d (b,)."""
 
-    def __init__(self, r, t, n, d):
+    def __init__(self, r, t, n, d, delta=None):
         self.r, self.t, self.n, self.d = r, t, n, d
+        self.delta = np.zeros(d.shape[0]) if delta is None else delta
 
     def copy(self):
-        return _State(self.r.copy(), self.t.copy(), self.n.copy(), self.d.copy())
+        return _State(self.r.copy(), self.t.copy(), self.n.copy(), self.d.copy(), self.delta.copy())
 
 
 def _epoch_rows(state: _State, g: np.ndarray, after: bool):
-    """Affine row model per plane: rows ``a0 + M u`` (b, 10) / (b, 10, 3), misclosure
-    ``f0 + bvec . u`` (b,) / (b, 3)."""
+    """Affine row model per plane: rows ``a0 + M u`` (b, 11) / (b, 11, 3), misclosure
+    ``f0 + bvec . u`` (b,) / (b, 3). Columns: motion (6), plane ``a, b, c, d`` (4) and the
+    plane's after-epoch offset ``δ`` (1, after rows only; see :mod:`.stochastic`)."""
     b = g.shape[0]
-    a0 = np.zeros((b, 10))
-    mm = np.zeros((b, 10, 3))
+    a0 = np.zeros((b, NCOL))
+    mm = np.zeros((b, NCOL, 3))
     a0[:, 9] = 1.0
     if after:
+        a0[:, 10] = 1.0
         bvec = state.n @ state.r.T  # m = R n
         e = g - state.t
         a0[:, 0:3] = np.cross(bvec, e)
@@ -447,10 +483,10 @@ def _epoch_rows(state: _State, g: np.ndarray, after: bool):
 
 
 def _blocks(state: _State, epochs, b: int):
-    """Per-plane normal blocks N (b, 10, 10), right-hand sides A^T W w (b, 10), v^T P v (b,),
+    """Per-plane normal blocks N (b, 11, 11), right-hand sides A^T W w (b, 11), v^T P v (b,),
     and per-epoch (sum w, weighted mean misclosure) for the outlier test."""
-    nn = np.zeros((b, 10, 10))
-    rhs = np.zeros((b, 10))
+    nn = np.zeros((b, NCOL, NCOL))
+    rhs = np.zeros((b, NCOL))
     vpv = np.zeros(b)
     stats = []
     for ep, after in zip(epochs, (False, True)):
@@ -470,44 +506,117 @@ def _blocks(state: _State, epochs, b: int):
     return nn, rhs, vpv, stats
 
 
-def _step_block(state: _State, epochs, active: np.ndarray, b: int):
-    """One Gauss-Helmert step by plane-block elimination. Returns (d1 (6,), d2 (k, 4), Nred,
-    Qxx) for the active planes."""
+def _reduce(state: _State, epochs, active: np.ndarray, b: int):
+    """Eliminate each active plane's ``a, b, c, d`` (with its unit-normal constraint).
+
+    Returns ``G`` (k, 7, 7) and ``g`` (k, 7), the plane's reduced normal block and right-hand
+    side over (motion (6), δ), and ``x`` (k, 5, 8), the solved plane block for the
+    back-substitution ``d2 = x[:4, 7] - x[:4, :6] d1 - x[:4, 6] δ``."""
     nn, rhs, _, _ = _blocks(state, epochs, b)
     nn, rhs = nn[active], rhs[active]
     n = state.n[active]
     k = n.shape[0]
     kk = np.zeros((k, 5, 5))
-    kk[:, :4, :4] = nn[:, 6:, 6:]
+    kk[:, :4, :4] = nn[:, 6:10, 6:10]
     kk[:, 4, :3] = kk[:, :3, 4] = 2.0 * n
-    cols = np.zeros((k, 5, 7))
-    cols[:, :4, :6] = nn[:, 6:, :6]  # N21 = N12^T
-    cols[:, :4, 6] = -rhs[:, 6:]
-    cols[:, 4, 6] = -(np.einsum("ij,ij->i", n, n) - 1.0)
+    cols = np.zeros((k, 5, 8))
+    cols[:, :4, :7] = nn[:, 6:10, _XD]
+    cols[:, :4, 7] = -rhs[:, 6:10]
+    cols[:, 4, 7] = -(np.einsum("ij,ij->i", n, n) - 1.0)
     try:
         x = np.linalg.solve(kk, cols)
     except np.linalg.LinAlgError as exc:
         raise InputDataError(
             "a plane's points are degenerate (collinear or too few): its 4x4 block is singular"
         ) from exc
-    n12 = np.swapaxes(nn[:, 6:, :6], 1, 2)  # (k, 6, 4)
-    nred = nn[:, :6, :6].sum(axis=0) - np.einsum("kij,kjl->il", n12, x[:, :4, :6])
-    rred = -rhs[:, :6].sum(axis=0) - np.einsum("kij,kj->i", n12, x[:, :4, 6])
+    cross = nn[:, _XD, 6:10]  # (k, 7, 4)
+    g_mat = nn[:, _XD][:, :, _XD] - np.einsum("kij,kjl->kil", cross, x[:, :4, :7])
+    g_vec = -rhs[:, _XD] - np.einsum("kij,kj->ki", cross, x[:, :4, 7])
+    return g_mat, g_vec, x
+
+
+class _PlaneLevel:
+    """Plane-level GLS pieces of the active planes (see :mod:`.stochastic`), unscaled:
+    ``y`` (k,), ``h`` (k, 6), ``p`` (k,) = 1/D, tilt information ``t`` (6, 6) and ``rt`` (6,)."""
+
+    def __init__(self, g_mat, g_vec):
+        dd = g_mat[:, 6, 6]
+        c = g_mat[:, :6, 6]
+        q = g_vec[:, 6]
+        self.p = 1.0 / dd
+        self.h = c / dd[:, None]
+        self.y = q / dd
+        self.t = (g_mat[:, :6, :6] - c[:, :, None] * c[:, None, :] / dd[:, None, None]).sum(0)
+        self.t = 0.5 * (self.t + self.t.T)
+        self.rt = (g_vec[:, :6] - c * (q / dd)[:, None]).sum(0)
+        self.n_white = g_mat[:, :6, :6].sum(0)
+        self.r_white = g_vec[:, :6].sum(0)
+
+
+class _StochasticConfig:
+    """The plane-level model in force: components ``theta`` (variances, m²), spatial range,
+    point-level factor ``s0sq``, per-plane variance ``inflation`` (b,) of down-weighted
+    planes, and the structure ``model`` (:class:`.stochastic.PlaneModel`)."""
+
+    def __init__(self, model: PlaneModel, b: int):
+        self.model = model
+        self.theta: dict = {}
+        self.range_m = float("nan")
+        self.s0sq = 1.0
+        self.inflation = np.zeros(b)
+
+    def v_matrix(self, active: np.ndarray, p: np.ndarray) -> np.ndarray:
+        idx = np.flatnonzero(active)
+        return _stoch.covariance(
+            self.model, idx, self.s0sq * p, self.theta, self.range_m, self.inflation[idx]
+        )
+
+
+def _step_block(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
+    """One Gauss-Helmert step by plane-block elimination. Returns (d1 (6,), d2 (k, 4), Nred,
+    Qxx) for the active planes; ``cfg`` (a :class:`_StochasticConfig`) adds the plane-level
+    random offsets (their BLUP is left in ``state.delta``), None is the white model."""
+    g_mat, g_vec, x = _reduce(state, epochs, active, b)
+    if cfg is None:
+        nred = g_mat[:, :6, :6].sum(axis=0)
+        rred = g_vec[:, :6].sum(axis=0)
+        delta = np.zeros(g_mat.shape[0])
+    else:
+        pl = _PlaneLevel(g_mat, g_vec)
+        v = cfg.v_matrix(active, pl.p)
+        cf = cho_factor(v, lower=True, check_finite=False)
+        vih = cho_solve(cf, pl.h, check_finite=False)
+        nred = pl.t / cfg.s0sq + pl.h.T @ vih
+        rred = pl.rt / cfg.s0sq + vih.T @ pl.y
     nred = 0.5 * (nred + nred.T)
     _check_singular(nred)
     qxx = np.linalg.inv(nred)
     d1 = qxx @ rred
-    d2 = x[:, :4, 6] - np.einsum("kij,j->ki", x[:, :4, :6], d1)
+    if cfg is not None:
+        e = pl.y - pl.h @ d1
+        delta = e - cfg.s0sq * pl.p * cho_solve(cf, e, check_finite=False)  # Σ_δ V⁻¹ e
+    d2 = x[:, :4, 7] - np.einsum("kij,j->ki", x[:, :4, :6], d1) - x[:, :4, 6] * delta[:, None]
+    state.delta = np.zeros(b)
+    state.delta[active] = delta
     return d1, d2, nred, 0.5 * (qxx + qxx.T)
 
 
-def _step_dense(state: _State, epochs, active: np.ndarray, b: int):
-    """The same step from the full Gauss-Helmert matrices (A, B, W, G) of every point."""
+def _step_dense(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
+    """The same step from the full Gauss-Helmert matrices (A, B, W, G) of every point.
+
+    With ``cfg`` the plane offsets ``δ`` are explicit unknowns (one column per plane on its
+    after-epoch conditions) with the pseudo-observations ``δ ~ N(0, Σ_δ)``: the mixed model in
+    its direct form, against the block step's Woodbury form. Needs ``Σ_δ`` regular (a plane
+    component > 0)."""
     act = np.flatnonzero(active)
     col = np.full(b, -1)
     col[act] = np.arange(act.size)
     k = act.size
-    nu = 6 + 4 * k
+    use_delta = cfg is not None and (
+        any(v > 0 for v in cfg.theta.values()) or bool(np.any(cfg.inflation[act] > 0))
+    )
+    nd = k if use_delta else 0
+    nu = 6 + 4 * k + nd
     rows_a, ws, wv = [], [], []
     r, t = state.r, state.t
     for ep, after in zip(epochs, (False, True)):
@@ -530,6 +639,8 @@ def _step_dense(state: _State, epochs, active: np.ndarray, b: int):
         for j in range(3):
             a[np.arange(idx.size), 6 + 4 * c + j] = xa[:, j]
         a[np.arange(idx.size), 6 + 4 * c + 3] = 1.0
+        if after and use_delta:
+            a[np.arange(idx.size), 6 + 4 * k + c] = 1.0
         w = np.einsum("ij,ij->i", bmat, xa if not after else x) + state.d[idx]
         if ep.var is not None:
             cov = np.broadcast_to(np.diag(ep.var), (idx.size, 3, 3))
@@ -549,8 +660,14 @@ def _step_dense(state: _State, epochs, active: np.ndarray, b: int):
     for i, p in enumerate(act):
         gmat[i, 6 + 4 * i : 9 + 4 * i] = 2.0 * state.n[p]
         wc[i] = state.n[p] @ state.n[p] - 1.0
+    if cfg is not None:
+        weight = weight / cfg.s0sq
     big = np.zeros((nu + k, nu + k))
     big[:nu, :nu] = a.T @ (weight[:, None] * a)
+    if use_delta:
+        # prior of the plane offsets (their misclosure is 0: each step solves for all of δ)
+        v = cfg.v_matrix(active, np.zeros(k))
+        big[nu - nd : nu, nu - nd : nu] += np.linalg.inv(v)
     big[:nu, nu:] = gmat.T
     big[nu:, :nu] = gmat
     rhs = np.concatenate([-(a.T @ (weight * w)), -wc])
@@ -560,12 +677,15 @@ def _step_dense(state: _State, epochs, active: np.ndarray, b: int):
     except np.linalg.LinAlgError:
         ok = False
     if not ok:
-        _step_block(state, epochs, active, b)  # raises the error naming the direction
+        _step_block(state, epochs, active, b, cfg)  # raises the error naming the direction
         raise InputDataError("the Gauss-Helmert normal system is singular")
     q = 0.5 * (inv[:6, :6] + inv[:6, :6].T)
     _check_singular(np.linalg.inv(q))
     sol = np.linalg.solve(big, rhs)
-    return sol[:6], sol[6:nu].reshape(k, 4), np.linalg.inv(q), q
+    state.delta = np.zeros(b)
+    if use_delta:
+        state.delta[active] = sol[nu - nd : nu]
+    return sol[:6], sol[6 : 6 + 4 * k].reshape(k, 4), np.linalg.inv(q), q
 
 
 def _check_singular(nred: np.ndarray) -> None:
@@ -666,6 +786,10 @@ def _run(
     min_planes,
     progress,
     dense,
+    stochastic_model="white",
+    unit_before=None,
+    unit_after=None,
+    components=None,
 ):
     before, before_plane = _check_points(before, before_plane, "before")
     after, after_plane = _check_points(after, after_plane, "after")
@@ -677,6 +801,12 @@ def _run(
         raise InvalidParameterError(f"alpha must be in (0, 1), got {alpha}")
     if int(min_planes) < 1:
         raise InvalidParameterError(f"min_planes must be >= 1, got {min_planes}")
+    model = _stoch.check_stochastic_model(stochastic_model)
+    fixed = _stoch.check_components(components)
+    units = [
+        _check_units(unit_before, before_plane, "before"),
+        _check_units(unit_after, after_plane, "after"),
+    ]
     b = int(max(before_plane.max(initial=-1), after_plane.max(initial=-1))) + 1
     if centre is None:
         pts = [p[lab >= 0] for p, lab in ((before, before_plane), (after, after_plane))]
@@ -694,9 +824,9 @@ def _run(
         _Epoch(before, before_plane, sigma_before, b, centre, "before"),
         _Epoch(after, after_plane, sigma_after, b, centre, "after"),
     )
-    if dense and 6 + 4 * b > DENSE_MAX_UNKNOWNS:
+    if dense and 6 + 5 * b > DENSE_MAX_UNKNOWNS:
         raise InvalidParameterError(
-            f"adjust_rigid_dense is a reference for small problems ({6 + 4 * b} unknowns); "
+            f"adjust_rigid_dense is a reference for small problems ({6 + 5 * b} unknowns); "
             "use adjust_rigid"
         )
     c0, c1 = epochs[0].count, epochs[1].count
@@ -722,10 +852,64 @@ def _run(
     state = _State(np.eye(3), np.zeros(3), n0.copy(), d0.copy())
     step = _step_dense if dense else _step_block
     z_crit = NormalDist().inv_cdf(1.0 - alpha / (2.0 * max(int(active.sum()), 1)))
+    opts = (int(max_iterations), tolerance, progress)
+    if model == "white":
+        out = _white(state, epochs, active, b, step, z_crit, rejected, reject_outlier_planes,
+                     min_planes, opts)  # fmt: skip
+        stoch = None
+    else:
+        shares = [_unit_shares(ep, u, b) for ep, u in zip(epochs, units)]
+        gc = (epochs[0].g * c0[:, None] + epochs[1].g * c1[:, None]) / np.maximum(c0 + c1, 1)[
+            :, None
+        ]
+        cfg = _StochasticConfig(PlaneModel(gc, n0.copy(), shares[0], shares[1]), b)
+        out, stoch = _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit,
+                                 rejected, reject_outlier_planes, min_planes, opts)  # fmt: skip
+    state, active, it, converged, nred, qxx, s0, redundancy, n_cond, cov = out
+    report(progress, 0.97, "residuals")
+    return _finish(
+        state, epochs, active, b, centre, it, converged, nred, qxx, s0, redundancy, n_cond,
+        rejected, n0, d0, before_plane, after_plane, progress, cov, model, stoch,
+    )  # fmt: skip
+
+
+def _check_units(unit, labels, name):
+    """(N,) int64 acquisition unit per point (PointSourceId, trajectory segment, TLS setup),
+    or None."""
+    if unit is None:
+        return None
+    u = np.asarray(unit)
+    if u.shape != labels.shape:
+        raise InputDataError(
+            f"unit_{name} must have one acquisition unit per point, shape {labels.shape}; "
+            f"got {u.shape}"
+        )
+    if u.size and not np.issubdtype(u.dtype, np.integer):
+        raise InputDataError(f"unit_{name} must hold integer unit ids, got {u.dtype}")
+    return u.astype(np.int64, copy=False)
+
+
+def _unit_shares(ep: _Epoch, unit, b: int):
+    """(b, U) share of each plane's points of this epoch per acquisition unit, or None."""
+    if unit is None:
+        return None
+    u = unit if ep.all_valid else unit[ep.valid]
+    codes, inv = np.unique(u, return_inverse=True)
+    nu = codes.size
+    if nu == 0:
+        return None
+    cnt = np.bincount(ep.idx * nu + inv.ravel(), minlength=b * nu).reshape(b, nu)
+    return cnt / np.maximum(ep.count, 1.0)[:, None]
+
+
+def _white(state, epochs, active, b, step, z_crit, rejected, reject, min_planes, opts):
+    """The white model: the study's adjustment with data snooping against the white σ."""
+    max_iterations, tolerance, progress = opts
+    c0, c1 = epochs[0].count, epochs[1].count
     n_start = int(active.sum())
     while True:
         it, converged, nred, qxx = _iterate(
-            state, epochs, active, b, step, int(max_iterations), tolerance, progress, 0.05
+            state, epochs, active, b, step, max_iterations, tolerance, progress, 0.05
         )
         _, _, vpv_b, stats = _blocks(state, epochs, b)
         n_cond = int(c0[active].sum() + c1[active].sum())
@@ -733,7 +917,7 @@ def _run(
         redundancy = n_cond + k - (6 + 4 * k)
         vpv = float(vpv_b[active].sum())
         s0 = vpv / redundancy if redundancy > 0 else float("nan")
-        if not reject_outlier_planes or k <= min_planes:
+        if not reject or k <= min_planes:
             break
         n_out = sum(1 for r in rejected if r[1].startswith("outlier"))
         if n_out >= MAX_REJECTED_SHARE * n_start:
@@ -750,30 +934,240 @@ def _run(
         trial[worst] = False
         reason = (
             f"outlier: after-before mean misclosure {f1[worst] - f0[worst]:+.4f} m, "
-            f"|w| = {z[worst]:.1f} > {z_crit:.2f} (alpha={alpha:g}, Bonferroni, "
+            f"|w| = {z[worst]:.1f} > {z_crit:.2f} (alpha, Bonferroni, white model, "
             f"sigma0²={s0:.3g})"
         )
         log.info("rejecting plane %d: %s", worst, reason)
-        saved = state.copy()
-        try:
-            _check_singular(_step_block(state, epochs, trial, b)[2])
-        except InputDataError:
-            log.warning("plane %d not rejected: without it the system is singular", worst)
-            state = saved
+        if not _can_drop(state, epochs, trial, b, [worst]):
             break
-        state = saved
         active = trial
         rejected.append((worst, reason))
-    report(progress, 0.97, "residuals")
-    return _finish(
-        state, epochs, active, b, centre, it, converged, nred, qxx, s0, redundancy, n_cond,
-        rejected, n0, d0, before_plane, after_plane, progress,
+    cov = (s0 if s0 == s0 else 1.0) * qxx
+    return state, active, it, converged, nred, qxx, s0, redundancy, n_cond, cov
+
+
+def _can_drop(state, epochs, trial, b, planes) -> bool:
+    """Whether the adjustment stays regular without ``planes`` (state unchanged)."""
+    saved = state.copy()
+    try:
+        _check_singular(_step_block(saved, epochs, trial, b)[2])
+    except InputDataError:
+        log.warning("plane(s) %s not rejected: without them the system is singular", planes)
+        return False
+    return True
+
+
+def _point_factor(state, epochs, active, b):
+    """Point-level a-posteriori variance factor with each plane's offset δ removed, the white
+    model's factor at the same solution, their redundancies, conditions and the after-epoch
+    mean misclosures (f1 - f0) per plane."""
+    c0, c1 = epochs[0].count, epochs[1].count
+    _, _, vpv_b, stats = _blocks(state, epochs, b)
+    (w0, f0), (w1, f1) = stats
+    delta = state.delta
+    with np.errstate(invalid="ignore"):
+        vpv_d = vpv_b + np.where(active, 2.0 * delta * w1 * f1 + delta * delta * w1, 0.0)
+    n_cond = int(c0[active].sum() + c1[active].sum())
+    k = int(active.sum())
+    red_w = n_cond + k - (6 + 4 * k)
+    red_d = red_w - k
+    s0w = float(vpv_b[active].sum()) / red_w if red_w > 0 else float("nan")
+    s0d = float(vpv_d[active].sum()) / red_d if red_d > 0 else float("nan")
+    with np.errstate(invalid="ignore"):
+        mis = f1 - f0
+    return s0d, s0w, red_d, red_w, n_cond, mis
+
+
+def _with_cfg(step, cfg, state, epochs, active, b):
+    return step(state, epochs, active, b, cfg)
+
+
+def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejected, reject,
+                min_planes, opts):  # fmt: skip
+    """Plane-level variance components (REML), robust plane tests and the GLS adjustment,
+    iterated to a fixed point (see :mod:`.stochastic`)."""
+    max_iterations, tolerance, progress = opts
+    which = ("plane",) if model == "plane" else _stoch.COMPONENT_NAMES
+    k_reject = max(_stoch.K_REJECT_MIN, z_crit)
+    n_start = int(active.sum())
+    weights = np.where(active, 1.0, np.nan)
+    wstat = np.full(b, np.nan)
+    est = None
+    theta_old = None
+    s0d = s0w = float("nan")
+    it, converged = 0, False
+    gross_done = not reject
+    notes: List[str] = []
+    for outer in range(MAX_OUTER):
+        it, converged, nred, qxx = _iterate(
+            state, epochs, active, b, functools.partial(_with_cfg, step, cfg if outer else None),
+            max_iterations, tolerance, progress, 0.05 + 0.1 * outer / MAX_OUTER,
+        )  # fmt: skip
+        s0d, s0w, red_d, red_w, n_cond, mis = _point_factor(state, epochs, active, b)
+        cfg.s0sq = s0d if s0d == s0d and s0d > 0 else 1.0
+        g_mat, g_vec, _ = _reduce(state, epochs, active, b)
+        pl = _PlaneLevel(g_mat, g_vec)
+        idx = np.flatnonzero(active)
+        e = pl.y  # at convergence the increment is nil: y is the misclosure residual
+        xd = pl.h
+        t_s = pl.t / cfg.s0sq
+        p_s = cfg.s0sq * pl.p
+        cfg.model.normals[idx] = state.n[idx] / np.linalg.norm(state.n[idx], axis=1)[:, None]
+        if not gross_done:
+            gross_done = True
+            gross, s_rob = _stoch.robust_start(e, xd, t_s, p_s, _stoch.GROSS_MAD)
+            drop = [int(idx[j]) for j in np.flatnonzero(gross)]
+            drop = drop[: max(0, int(MAX_REJECTED_SHARE * n_start) - 1)]
+            if drop:
+                trial = active.copy()
+                trial[drop] = False
+                if int(trial.sum()) >= max(min_planes, 3) and _can_drop(
+                    state, epochs, trial, b, drop
+                ):
+                    for j in drop:
+                        jj = int(np.searchsorted(idx, j))
+                        zj = abs(e[jj] - np.median(e)) / math.sqrt(p_s[jj] + s_rob**2)
+                        rejected.append((j, f"outlier: after-before mean misclosure "
+                                         f"{mis[j]:+.4f} m, {zj:.1f} robust std from the "
+                                         f"plane-level spread (first pass, robust plane σ "
+                                         f"{s_rob * 1000:.2f} mm)"))  # fmt: skip
+                        weights[j] = 0.0
+                    active = trial
+                    log.info("robust start: %d gross outlier planes rejected", len(drop))
+                    continue
+        est = _stoch.estimate_components(
+            cfg.model, idx, e, xd, t_s, p_s, which=which, fixed=fixed,
+            inflation=cfg.inflation[idx],
+        )  # fmt: skip
+        cfg.theta = {n: v for n, v in est.theta.items() if v > 0}
+        cfg.range_m = est.range_m
+        changed = False
+        if reject and idx.size > min_planes:
+            v = cfg.v_matrix(active, pl.p)
+            gls = _stoch.PlaneGLS(v - np.diag(cfg.inflation[idx]), xd, t_s)
+            w = _stoch.w_statistics(gls, e)
+            wstat[:] = np.nan
+            wstat[idx] = w
+            bad = np.flatnonzero(np.abs(w) > k_reject)
+            n_out = sum(1 for r in rejected if r[1].startswith("outlier"))
+            room = int(MAX_REJECTED_SHARE * n_start) - n_out
+            if bad.size and room > 0 and idx.size - 1 >= min_planes:
+                order = bad[np.argsort(-np.abs(w[bad]))][: max(1, min(room, bad.size))]
+                order = order[: max(1, idx.size - min_planes)]
+                drop = [int(idx[j]) for j in order]
+                trial = active.copy()
+                trial[drop] = False
+                if _can_drop(state, epochs, trial, b, drop):
+                    for j, jj in zip(drop, order):
+                        rejected.append((j, f"outlier: after-before mean misclosure "
+                                         f"{mis[j]:+.4f} m, |w| = {abs(w[jj]):.1f} > "
+                                         f"{k_reject:.2f} against the plane-level spread "
+                                         f"(stochastic model {model!r})"))  # fmt: skip
+                        weights[j] = 0.0
+                        cfg.inflation[j] = 0.0
+                    active = trial
+                    changed = True
+            if not changed:
+                wt = _stoch.igg3_weight(w, _stoch.K_WEIGHT, k_reject)
+                new_infl = np.zeros(b)
+                dv = np.diag(v) - cfg.inflation[idx]
+                with np.errstate(divide="ignore"):
+                    new_infl[idx] = np.where(wt > 0, dv * (1.0 / np.maximum(wt, 1e-12) - 1.0), 0)
+                old_w = weights[idx].copy()
+                weights[idx] = wt
+                if np.max(np.abs(old_w - wt), initial=0.0) > 0.05:
+                    changed = True
+                cfg.inflation = new_infl
+        theta_now = np.array([est.theta.get(n, 0.0) for n in _stoch.COMPONENT_NAMES])
+        if theta_old is not None and not changed:
+            scale = max(float(np.max(theta_now)), float(np.median(p_s)), 1e-14)
+            if float(np.max(np.abs(theta_now - theta_old))) <= 0.02 * scale:
+                break
+        theta_old = theta_now
+    else:
+        notes.append(f"components and plane tests did not settle in {MAX_OUTER} rounds")
+    # the solution and covariance with the final components
+    it, converged, nred, qxx = _iterate(
+        state, epochs, active, b, functools.partial(_with_cfg, step, cfg), max_iterations,
+        tolerance, progress, 0.9,
     )  # fmt: skip
+    s0d, s0w, red_d, red_w, n_cond, mis = _point_factor(state, epochs, active, b)
+    g_mat, g_vec, _ = _reduce(state, epochs, active, b)
+    pl = _PlaneLevel(g_mat, g_vec)
+    idx = np.flatnonzero(active)
+    v = cfg.v_matrix(active, pl.p)
+    n_eff = _stoch.effective_planes(v, pl.h)
+    # estimated components make the GLS covariance optimistic (Kackar & Harville 1984): the
+    # slip then follows about a t distribution with the plane-level residual degrees of
+    # freedom nu = planes - 6, whose variance is nu / (nu - 2) times the normal one
+    estimated = est is not None and any(v_ == "estimated" for v_ in est.source.values())
+    nu = max(idx.size - 6.0, 3.0)
+    small = nu / (nu - 2.0) if estimated else 1.0
+    qxx = qxx * small
+    qw = np.linalg.inv(0.5 * (pl.n_white + pl.n_white.T))
+    sig_white = (s0w if s0w == s0w else 1.0) * qw[3:, 3:]
+    stoch = _components_result(model, est, epochs, active, cfg, idx.size, n_eff, sig_white,
+                               notes, weights, wstat, state.delta, mis, b, small)  # fmt: skip
+    cov = 0.5 * (qxx + qxx.T)
+    return (state, active, it, converged, nred, qxx, cfg.s0sq, red_d, n_cond, cov), stoch
+
+
+def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, notes, weights,
+                       wstat, delta, mis, b, small=1.0):  # fmt: skip
+    """VarianceComponents and the per-plane diagnostics of a stochastic adjustment."""
+    # the a-priori variance of a typical condition: median over planes of count / sum w
+    s_w = []
+    for ep in epochs:
+        bvec = cfg.model.normals
+        s0, _, _ = ep.weighted(bvec, b)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_w.append((ep.count / s0)[active])
+    apri = float(np.median(np.concatenate(s_w))) if active.any() else float("nan")
+    comps = [
+        _stoch.Component(
+            "white",
+            math.sqrt(cfg.s0sq * apri) if apri == apri else float("nan"),
+            source="estimated",
+            variance_factor=float(cfg.s0sq),
+            note="point noise: a-posteriori variance factor of the point residuals with each "
+            "plane's offset removed",
+        )
+    ]
+    est_notes = dict(est.notes) if est is not None else {}
+    for name in _stoch.COMPONENT_NAMES:
+        if model == "plane" and name != "plane":
+            comps.append(_stoch.Component(name, 0.0, source="off", note="not in the 'plane' model"))
+            continue
+        th = est.theta.get(name, 0.0) if est is not None else 0.0
+        sd_var = est.sd.get(name, float("nan")) if est is not None else float("nan")
+        sig = math.sqrt(max(th, 0.0))
+        sd = sd_var / (2.0 * sig) if sig > 0 and sd_var == sd_var else float("nan")
+        src = est.source.get(name, "off") if est is not None else "off"
+        comps.append(_stoch.Component(name, sig, sd, src, est_notes.get(name, "")))
+    all_notes = list(notes) + [v for k_, v in est_notes.items() if k_ == "reml"]
+    if k < _stoch.MIN_PLANES_VCE:
+        all_notes.append(f"only {k} planes: the components are poorly determined")
+    vc = _stoch.VarianceComponents(
+        model=model,
+        method="point level: a-posteriori variance factor; plane level: REML (iterated "
+        "MINQUE / Helmert-Förstner fixed point), spherical spatial range by profile REML; "
+        "robust: w-tests of correlated plane misclosures, IGG-III weights; covariance "
+        "scaled by nu/(nu-2), nu = planes - 6, for the estimated components",
+        components=tuple(comps),
+        spatial_range_m=float(est.range_m) if est is not None else float("nan"),
+        n_planes=int(k),
+        n_eff=float(n_eff),
+        covariance_white=sig_white,
+        small_sample_factor=float(small),
+        notes=tuple(all_notes),
+    )
+    delta_out = np.where(active, delta, np.nan)
+    return vc, weights, wstat, delta_out, mis
 
 
 def _finish(
     state, epochs, active, b, centre, it, converged, nred, qxx, s0, redundancy, n_cond,
-    rejected, n0, d0, before_plane, after_plane, progress,
+    rejected, n0, d0, before_plane, after_plane, progress, cov, model, stoch,
 ):  # fmt: skip
     n = np.where(active[:, None], state.n, n0)
     d = np.where(active, state.d, d0)
@@ -796,7 +1190,6 @@ def _finish(
     plane_params[has, :3] = n[has]
     plane_params[has, 3] = d[has] - n[has] @ centre
     params = np.concatenate([_logm_so3(state.r), state.t])
-    cov = (s0 if s0 == s0 else 1.0) * qxx
     ev, evec = np.linalg.eigh(nred[3:, 3:])
     weak = []
     for j in range(3):
@@ -828,7 +1221,28 @@ def _finish(
         translation_eigenvalues=ev,
         translation_eigenvectors=evec,
         weak_directions=tuple(weak),
+        stochastic_model=model,
+        **_plane_diagnostics(stoch, b, active),
     )
+
+
+def _plane_diagnostics(stoch, b, active):
+    """RigidResult's per-plane fields of a stochastic adjustment (defaults for "white")."""
+    if stoch is None:
+        return {}
+    vc, weights, wstat, delta, mis = stoch
+    down = tuple(
+        (int(j), float(weights[j]))
+        for j in np.flatnonzero(active & (weights < 1.0) & (weights > 0.0))
+    )
+    return {
+        "variance_components": vc,
+        "plane_weights": weights,
+        "plane_w": wstat,
+        "plane_offset_m": delta,
+        "plane_misclosure_m": np.where(np.isfinite(weights), mis, np.nan),
+        "downweighted_planes": down,
+    }
 
 
 def adjust_rigid(
@@ -846,6 +1260,10 @@ def adjust_rigid(
     alpha: float = 0.001,
     min_planes: int = 3,
     progress: Optional[ProgressCallback] = None,
+    stochastic_model: str = "white",
+    unit_before: Optional[np.ndarray] = None,
+    unit_after: Optional[np.ndarray] = None,
+    components: Optional[dict] = None,
 ) -> RigidResult:
     """Estimate the rigid motion before -> after from points on matched planes.
 
@@ -880,6 +1298,18 @@ def adjust_rigid(
         Fewest planes with points in both epochs.
     progress : callable, optional
         ``progress(fraction, message)``.
+    stochastic_model : {"white", "plane", "full"}
+        "white": independent point errors only, data snooping against the white σ (the
+        study's model). "plane": plus one random offset per plane. "full": plus spatially
+        correlated plane offsets and a rigid error per acquisition unit (when ``unit_*`` are
+        given). Components are estimated by REML; see :mod:`.stochastic`.
+    unit_before, unit_after : (N1,), (N2,) int, optional
+        Acquisition unit of each point (PointSourceId of ALS strips or MLS passes, trajectory
+        segments, TLS setups), for the "full" model.
+    components : dict, optional
+        Plane-level components to hold fixed instead of estimating them, as standard
+        deviations in metres: ``plane``, ``spatial``, ``unit_before``, ``unit_after`` and
+        ``spatial_range_m`` (e.g. a side's global estimate for a strip or window).
 
     Returns
     -------
@@ -898,6 +1328,8 @@ def adjust_rigid(
         sigma_after=sigma_after, centre=centre, max_iterations=max_iterations,
         tolerance=tolerance, reject_outlier_planes=reject_outlier_planes, alpha=alpha,
         min_planes=min_planes, progress=progress, dense=False,
+        stochastic_model=stochastic_model, unit_before=unit_before, unit_after=unit_after,
+        components=components,
     )  # fmt: skip
 
 
@@ -916,6 +1348,10 @@ def adjust_rigid_dense(
     alpha: float = 0.001,
     min_planes: int = 3,
     progress: Optional[ProgressCallback] = None,
+    stochastic_model: str = "white",
+    unit_before: Optional[np.ndarray] = None,
+    unit_after: Optional[np.ndarray] = None,
+    components: Optional[dict] = None,
 ) -> RigidResult:
     """Reference solver: :func:`adjust_rigid` with the full Gauss-Helmert matrices.
 
@@ -929,4 +1365,6 @@ def adjust_rigid_dense(
         sigma_after=sigma_after, centre=centre, max_iterations=max_iterations,
         tolerance=tolerance, reject_outlier_planes=reject_outlier_planes, alpha=alpha,
         min_planes=min_planes, progress=progress, dense=True,
+        stochastic_model=stochastic_model, unit_before=unit_before, unit_after=unit_after,
+        components=components,
     )  # fmt: skip

@@ -26,6 +26,7 @@ from .fault import FaultTrace, fault_geometry, mean_strike_rad, side_masks, trac
 from .matching import PlaneMatches, match_planes
 from .planes import PlaneSet, segment_planes
 from .progress import ProgressCallback, report, scaled
+from .stochastic import DEFAULT_STOCHASTIC_MODEL, check_components, check_stochastic_model
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +142,30 @@ class SideResult:
                 {"plane": int(p), "reason": str(why)} for p, why in r.rejected_planes
             ],
             "weak_directions": list(r.weak_directions),
+            "stochastic_model": r.stochastic_model,
+            **_stochastic_dict(r),
         }
+
+
+def _stochastic_dict(r: RigidResult) -> Dict[str, object]:
+    """The variance components and down-weighted planes of a side (stochastic models)."""
+    vc = r.variance_components
+    if vc is None:
+        return {}
+    return {
+        "variance_components": vc.to_dict(),
+        "sigma_white_dx": float(vc.sigma_white_m[0]),
+        "sigma_white_dy": float(vc.sigma_white_m[1]),
+        "sigma_white_dz": float(vc.sigma_white_m[2]),
+        "downweighted_planes": [
+            {
+                "plane": int(p),
+                "weight": float(w),
+                "reason": "IGG-III: |w| between the down-weighting and rejection limits",
+            }
+            for p, w in r.downweighted_planes
+        ],  # fmt: skip
+    }
 
 
 @dataclass(frozen=True)
@@ -182,6 +206,14 @@ class SlipResult:
         else:
             s_h = float(math.sqrt(max(np.trace(self.relative_covariance[:2, :2]) / 2, 0.0)))
         sig = np.sqrt(np.diag(self.relative_covariance))
+        white = self.relative_covariance_white
+        extra: Dict[str, float] = {}
+        if white is not None:
+            jp = np.array([s[0], s[1], 0.0])
+            extra = {
+                "sigma_fault_parallel_white": float(math.sqrt(max(jp @ white @ jp, 0.0))),
+                "sigma_dz_white": float(math.sqrt(max(white[2, 2], 0.0))),
+            }
         return {
             "dx": float(self.relative[0]),
             "dy": float(self.relative[1]),
@@ -196,7 +228,18 @@ class SlipResult:
             "fault_normal": nor,
             "sigma_fault_normal": s_nor,
             "right_lateral_slip": -par,
+            **extra,
         }
+
+    @property
+    def relative_covariance_white(self) -> Optional[np.ndarray]:
+        """(3, 3) covariance of :attr:`relative` under the white model (m²), or None when the
+        white model was the one used (then it is :attr:`relative_covariance`)."""
+        vl = self.left.rigid.variance_components
+        vr = self.right.rigid.variance_components
+        if vl is None or vr is None:
+            return None
+        return vl.covariance_white + vr.covariance_white
 
     def reference_comparison(self, reference_slip_m: float) -> Dict[str, float]:
         """The study's Table X figures against an independent slip (e.g. an alinement array).
@@ -277,6 +320,7 @@ def register_side(
     plane_options: Optional[dict] = None,
     match_options: Optional[dict] = None,
     progress: Optional[ProgressCallback] = None,
+    stochastic: Optional[dict] = None,
 ) -> SideResult:
     """Planes, matches and the rigid adjustment for the points of one side.
 
@@ -286,6 +330,9 @@ def register_side(
         The side's points in each epoch (metres).
     sigma_before, sigma_after
         Point accuracy: scalar, (3,) per axis, or (N, 3, 3) per point (metres).
+    stochastic : dict, optional
+        ``stochastic_model``, ``unit_before``/``unit_after`` ((N1,), (N2,) acquisition units of
+        the side's points) and ``components`` for :func:`.adjustment.adjust_rigid`.
     """
     opts = dict(plane_options or {})
     pb = segment_planes(before, progress=scaled(progress, 0.0, 0.35), **opts)
@@ -302,7 +349,7 @@ def register_side(
     la = _labels_for_matches(pa.labels, m.after)
 
     rigid, mean_res = _adjust_labelled(
-        before, lb, after, la, sigma_before, sigma_after, pb.planarity, pa.planarity
+        before, lb, after, la, sigma_before, sigma_after, pb.planarity, pa.planarity, stochastic
     )
     report(progress, 1.0, f"{side} side done")
     return SideResult(
@@ -385,9 +432,34 @@ def _positive(name: str, value) -> float:
     return v
 
 
+def _stochastic_kw(stochastic: Optional[dict], kb, ka) -> dict:
+    """adjust_rigid's stochastic-model keywords with the unit arrays cut by ``kb``/``ka``."""
+    st = dict(stochastic or {})
+    out = {
+        "stochastic_model": st.get("stochastic_model", DEFAULT_STOCHASTIC_MODEL),
+        "components": st.get("components"),
+    }
+    for name, k in (("unit_before", kb), ("unit_after", ka)):
+        u = st.get(name)
+        out[name] = None if u is None else (np.asarray(u) if k is None else np.asarray(u)[k])
+    return out
+
+
+def _sub_stochastic(stochastic: Optional[dict], mb, ma, components=None) -> dict:
+    """The stochastic options of a subset of points (masks or indices ``mb``, ``ma``)."""
+    st = dict(stochastic or {})
+    for name, m in (("unit_before", mb), ("unit_after", ma)):
+        if st.get(name) is not None:
+            st[name] = np.asarray(st[name])[m]
+    if components is not None:
+        st["components"] = components
+    return st
+
+
 def _adjust_labelled(
-    before, lb, after, la, sigma_before, sigma_after, planarity_before, planarity_after
-) -> Tuple[RigidResult, np.ndarray]:
+    before, lb, after, la, sigma_before, sigma_after, planarity_before, planarity_after,
+    stochastic=None,
+) -> Tuple[RigidResult, np.ndarray]:  # fmt: skip
     """adjust_rigid on the labelled points (labels = match indices) of clean planar leaves
     (see CLEAN_LEAF_RATIO); also returns the mean after-epoch misclosure per match (metres)."""
     kb = (lb >= 0) & (planarity_before >= CLEAN_LEAF_RATIO)
@@ -399,6 +471,7 @@ def _adjust_labelled(
         la[ka],
         sigma_before=_per_point(sigma_before, kb),
         sigma_after=_per_point(sigma_after, ka),
+        **_stochastic_kw(stochastic, kb, ka),
     )
     r = rigid.residuals_after
     ok = np.isfinite(r)
@@ -478,8 +551,12 @@ def _register_side_tiled(
     plane_options: Optional[dict],
     match_options: Optional[dict],
     progress: Optional[ProgressCallback],
+    stochastic: Optional[dict] = None,
 ) -> Tuple[SideResult, Tuple[TileResult, ...]]:
-    """Tiled plane extraction and matching; joint or per-tile-combined adjustment."""
+    """Tiled plane extraction and matching; joint or per-tile-combined adjustment.
+
+    The joint adjustment runs first; with a stochastic model each tile then holds the side's
+    estimated plane-level components fixed (a tile has too few planes to estimate them)."""
     opts = dict(plane_options or {})
     t = tile_size_m
     kb = np.floor(before[:, :2] / t).astype(np.int64)
@@ -548,6 +625,17 @@ def _register_side_tiled(
     lb = np.where(pb_all.planarity >= CLEAN_LEAF_RATIO, lb, -1)
     la = np.where(pa_all.planarity >= CLEAN_LEAF_RATIO, la, -1)
 
+    if len(matches) < 3:
+        raise InputDataError(
+            f"{side} side: only {len(matches)} matched planes over all tiles of {t:g} m "
+            "(need at least 3); use bigger tiles or relax the matching thresholds"
+        )
+    rigid, mean_res = _adjust_labelled(
+        before, lb, after, la, sigma_before, sigma_after, pb_all.planarity, pa_all.planarity,
+        stochastic,
+    )  # fmt: skip
+    vc = rigid.variance_components
+    tile_fixed = vc.fixed() if vc is not None else None
     # per-tile adjustments (reporting for "joint", the estimate for "tiles")
     tiles: List[TileResult] = []
     nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
@@ -568,6 +656,9 @@ def _register_side_tiled(
                         la[sa] - first,
                         sigma_before=_per_point(sigma_before, sb),
                         sigma_after=_per_point(sigma_after, sa),
+                        **_stochastic_kw(
+                            _sub_stochastic(stochastic, sb, sa, tile_fixed), None, None
+                        ),
                     )
                     d, c = r.displacement, r.displacement_covariance
                     if not np.all(np.isfinite(c)) or np.linalg.matrix_rank(c) < 3:
@@ -591,14 +682,7 @@ def _register_side_tiled(
         )
     if n_skipped:
         log.info("%s side: %d of %d tiles not adjusted", side, n_skipped, len(tiles))
-    if len(matches) < 3:
-        raise InputDataError(
-            f"{side} side: only {len(matches)} matched planes over all tiles of {t:g} m "
-            "(need at least 3); use bigger tiles or relax the matching thresholds"
-        )
-    rigid, mean_res = _adjust_labelled(
-        before, lb, after, la, sigma_before, sigma_after, pb_all.planarity, pa_all.planarity
-    )
+
     comb_d = comb_c = None
     if combine == "tiles":
         ok = [x for x in tiles if x.status == "ok"]
@@ -616,6 +700,8 @@ def _register_side_tiled(
         comb_c = np.linalg.inv(info)
         comb_c = 0.5 * (comb_c + comb_c.T)
         comb_d = comb_c @ vec
+        if vc is not None:
+            comb_c = _honest_tile_covariance(ok, comb_d, comb_c, rigid.displacement_covariance)
         log.info("%s side: %d tiles combined", side, len(ok))
     report(progress, 1.0, f"{side} side done")
     res = SideResult(
@@ -629,6 +715,29 @@ def _register_side_tiled(
         plane_mean_residual_m=mean_res,
     )
     return res, tuple(tiles)
+
+
+def _honest_tile_covariance(tiles, mean, cov, joint_cov):
+    """Covariance of the tiles' information-weighted mean under a stochastic model.
+
+    The mean treats tiles as independent, which spatially correlated and unit errors make
+    them not. Two corrections, both conservative: the Birge ratio ``χ²/(n − 1)`` of the tile
+    displacements about their mean scales the covariance when above 1 (the tiles scatter more
+    than their σ say), and the result is raised to at least the joint adjustment's
+    covariance, which uses every plane with the full correlation and so bounds any linear
+    combination of the same data from below (Gauss-Markov)."""
+    n = len(tiles)
+    if n > 1:
+        chi2 = sum(
+            float((x.displacement - mean) @ np.linalg.solve(x.covariance, x.displacement - mean))
+            for x in tiles
+        )
+        birge = chi2 / (3.0 * (n - 1))
+        if birge > 1.0:
+            cov = cov * birge
+    ev, evec = np.linalg.eigh(joint_cov - cov)
+    cov = cov + (evec * np.clip(ev, 0.0, None)) @ evec.T
+    return 0.5 * (cov + cov.T)
 
 
 def _side_points(before, after, trace, buffer_m):
@@ -654,6 +763,10 @@ def estimate_slip(
     tile_size_m: Optional[float] = None,
     combine: str = "joint",
     progress: Optional[ProgressCallback] = None,
+    stochastic_model: str = DEFAULT_STOCHASTIC_MODEL,
+    unit_before: Optional[np.ndarray] = None,
+    unit_after: Optional[np.ndarray] = None,
+    components: Optional[dict] = None,
 ) -> SlipResult:
     """Relative displacement across ``trace`` between two epochs.
 
@@ -676,7 +789,17 @@ def estimate_slip(
         a side at once; "tiles" adjusts each tile with at least 3 matched planes and takes the
         information-weighted mean ``(Σ Cᵢ⁻¹)⁻¹ Σ Cᵢ⁻¹ dᵢ`` of the tile displacements (with
         covariance ``(Σ Cᵢ⁻¹)⁻¹``); tiles that are skipped are counted in the log. Per-tile
-        results are in :attr:`SlipResult.tiles` for both modes. Ignored without tiles.
+        results are in :attr:`SlipResult.tiles` for both modes. Ignored without tiles. With a
+        stochastic model the tiles hold the side's components fixed and the combined
+        covariance is made honest (see ``_honest_tile_covariance``).
+    stochastic_model : {"white", "plane", "full"}
+        The stochastic model of each side's adjustment (:mod:`.stochastic`; default "full").
+    unit_before, unit_after : (N1,), (N2,) int, optional
+        Acquisition unit of each point (PointSourceId, trajectory segment, TLS setup), for
+        the "full" model's rigid error per unit.
+    components : dict, optional
+        Plane-level components held fixed instead of estimated (sigmas in metres, see
+        :func:`.adjustment.adjust_rigid`), for both sides.
 
     Returns
     -------
@@ -693,6 +816,9 @@ def estimate_slip(
         raise InvalidParameterError(f"combine must be one of {COMBINE_MODES}, got {combine!r}")
     if tile_size_m is not None:
         tile_size_m = _positive("tile_size_m", tile_size_m)
+    stochastic = _stochastic_options(
+        before, after, stochastic_model, unit_before, unit_after, components
+    )
     _, _, masks = _side_points(before, after, trace, buffer_m)
     sigma_before = _packed(sigma_before, "sigma_before")
     sigma_after = _packed(sigma_after, "sigma_after")
@@ -709,6 +835,7 @@ def estimate_slip(
             plane_options=plane_options,
             match_options=match_options,
             progress=sub,
+            stochastic=_sub_stochastic(stochastic, mb, ma),
         )
         if tile_size_m is None:
             results[side] = register_side(before[mb], after[ma], **kw)
@@ -733,9 +860,36 @@ def estimate_slip(
             **({"tile_size_m": tile_size_m} if tile_size_m is not None else {}),
             "plane_options": dict(plane_options or {}),
             "match_options": dict(match_options or {}),
+            "stochastic_model": stochastic["stochastic_model"],
+            "acquisition_units": {
+                e: int(np.unique(stochastic[f"unit_{e}"]).size)
+                for e in ("before", "after")
+                if stochastic.get(f"unit_{e}") is not None
+            },
+            **({"components": dict(stochastic["components"])} if stochastic["components"] else {}),
         },
         tiles=tuple(tiles),
     )
+
+
+def _stochastic_options(before, after, model, unit_before, unit_after, components) -> dict:
+    """Validated stochastic-model options of a whole run."""
+    check_stochastic_model(model)
+    out = {"stochastic_model": model, "components": check_components(components)}
+    for name, u, pts in (("unit_before", unit_before, before), ("unit_after", unit_after, after)):
+        if u is None:
+            out[name] = None
+            continue
+        a = np.asarray(u)
+        if a.shape != (np.asarray(pts).shape[0],):
+            raise InputDataError(
+                f"{name} must hold one acquisition unit per point ({np.asarray(pts).shape[0]}), "
+                f"got shape {a.shape}"
+            )
+        if a.size and not np.issubdtype(a.dtype, np.integer):
+            raise InputDataError(f"{name} must hold integer unit ids, got {a.dtype}")
+        out[name] = a
+    return out
 
 
 # --------------------------------------------------------------------------- strips
@@ -797,6 +951,9 @@ def strip_profile(
     plane_options: Optional[dict] = None,
     match_options: Optional[dict] = None,
     progress: Optional[ProgressCallback] = None,
+    stochastic_model: Optional[str] = None,
+    unit_before: Optional[np.ndarray] = None,
+    unit_after: Optional[np.ndarray] = None,
 ) -> Tuple[StripResult, ...]:
     """Slip profile along the trace from strips of each side (Kusari et al. 2019, Fig. 5).
 
@@ -818,6 +975,15 @@ def strip_profile(
     buffer_m, sigma_before, sigma_after, plane_options, match_options
         As :func:`estimate_slip`.
     progress : callable, optional
+    stochastic_model, unit_before, unit_after
+        As :func:`estimate_slip` (default: the model of ``slip``). A strip holds its side's
+        global plane-level components fixed (a strip has too few planes to estimate them).
+        A strip of the LEFT side shares its data with the left side's global estimate that
+        is subtracted: the variance of the difference is ``C_strip − C_left`` (the global
+        estimate is the efficient one, so its covariance with any other unbiased estimate
+        from the same data is its own covariance; Hausman 1978), floored at a quarter of
+        ``C_strip``; a right-side strip adds ``C_left``. With the white model both add, as
+        the study did.
 
     Returns
     -------
@@ -825,6 +991,9 @@ def strip_profile(
         Ordered by side (left, right), then chainage.
     """
     w = _positive("strip_width_m", strip_width_m)
+    stochastic = _stochastic_options(
+        before, after, stochastic_model or _model_of(slip), unit_before, unit_after, None
+    )
     gb, ga, masks = _side_points(before, after, trace, buffer_m)
     sigma_before = _packed(sigma_before, "sigma_before")
     sigma_after = _packed(sigma_after, "sigma_after")
@@ -852,6 +1021,7 @@ def strip_profile(
                 sigma_after=_per_point(sigma_after, _mask(ia, after.shape[0])),
                 plane_options=plane_options,
                 match_options=match_options,
+                stochastic=_sub_stochastic(stochastic, ib, ia, _fixed_of(slip, side)),
             )
             npl = len(r.matches)
             d, c = r.rigid.displacement, r.rigid.displacement_covariance
@@ -861,7 +1031,7 @@ def strip_profile(
             d, c, status = nan3, nan33, f"skipped: {exc}"
         if status == "ok":
             fp = float(j @ (d - ref_d))
-            sfp = float(math.sqrt(max(j @ (c + ref_c) @ j, 0.0)))
+            sfp = float(math.sqrt(_difference_variance(j, c, ref_c, side, stochastic)))
         else:
             fp = sfp = float("nan")
         out.append(
@@ -882,6 +1052,24 @@ def strip_profile(
     skipped = sum(s.status != "ok" for s in out)
     log.info("strip profile: %d strips of %g m, %d skipped", len(out), w, skipped)
     return tuple(out)
+
+
+def _model_of(slip: SlipResult) -> str:
+    return str(slip.parameters.get("stochastic_model", "white"))
+
+
+def _fixed_of(slip: SlipResult, side: str) -> Optional[dict]:
+    """The side's global plane-level components, to hold fixed in its strips and windows."""
+    vc = getattr(slip, side).rigid.variance_components
+    return vc.fixed() if vc is not None else None
+
+
+def _difference_variance(j, c, ref_c, side: str, stochastic: dict) -> float:
+    """Variance of ``j · (d_local − d_left_global)`` (see :func:`strip_profile`)."""
+    vl, vr = float(j @ c @ j), float(j @ ref_c @ j)
+    if stochastic["stochastic_model"] == "white" or side != "left":
+        return max(vl + vr, 0.0)
+    return max(vl - vr, 0.25 * vl)
 
 
 def _mask(idx: np.ndarray, n: int) -> np.ndarray:
@@ -962,6 +1150,9 @@ def window_field(
     match_options: Optional[dict] = None,
     min_planes: int = 3,
     progress: Optional[ProgressCallback] = None,
+    stochastic_model: Optional[str] = None,
+    unit_before: Optional[np.ndarray] = None,
+    unit_after: Optional[np.ndarray] = None,
 ) -> WindowField:
     """Moving-window displacement maps relative to the left side's global motion.
 
@@ -988,6 +1179,9 @@ def window_field(
     min_planes : int
         Fewest matched planes for a window to be adjusted (>= 3).
     progress : callable, optional
+    stochastic_model, unit_before, unit_after
+        As :func:`strip_profile`: windows hold their side's global components fixed, and a
+        left-side window's σ accounts for its correlation with the left global estimate.
 
     Returns
     -------
@@ -998,6 +1192,9 @@ def window_field(
     if int(min_planes) != min_planes or min_planes < 3:
         raise InvalidParameterError(f"min_planes must be an integer >= 3, got {min_planes!r}")
     min_planes = int(min_planes)
+    stochastic = _stochastic_options(
+        before, after, stochastic_model or _model_of(slip), unit_before, unit_after, None
+    )
     _, _, masks = _side_points(before, after, trace, buffer_m)
     sigma_before = _packed(sigma_before, "sigma_before")
     sigma_after = _packed(sigma_after, "sigma_after")
@@ -1028,6 +1225,7 @@ def window_field(
             la=la[ka],
             sb=_per_point(_per_point(sigma_before, mb), kb),
             sa=_per_point(_per_point(sigma_after, ma), ka),
+            st=_sub_stochastic(_sub_stochastic(stochastic, mb, ma), kb, ka, _fixed_of(slip, side)),
         )
         log.info("%s side: %d matched planes for the windows", side, len(m))
 
@@ -1079,17 +1277,22 @@ def window_field(
                     sigma_before=_per_point(d["sb"], kb),
                     sigma_after=_per_point(d["sa"], ka),
                     min_planes=min_planes,
+                    **_stochastic_kw(d["st"], kb, ka),
                 )
             except InputDataError as exc:
                 log.debug("window (%d, %d) not adjusted: %s", r, c, exc)
                 continue
             disp = res.displacement - ref_d
-            cov = res.displacement_covariance + ref_c
+            cov = res.displacement_covariance
             if not np.all(np.isfinite(cov)):
                 continue
+            side_name = SIDES[(s + 1) // 2]
             out["dx"][r, c], out["dy"][r, c], out["dz"][r, c] = disp
-            out["sigma_dx"][r, c] = math.sqrt(max(cov[0, 0], 0.0))
-            out["sigma_dy"][r, c] = math.sqrt(max(cov[1, 1], 0.0))
+            for key, ax in (("sigma_dx", 0), ("sigma_dy", 1)):
+                e = np.eye(3)[ax]
+                out[key][r, c] = math.sqrt(
+                    _difference_variance(e, cov, ref_c, side_name, stochastic)
+                )
     log.info(
         "window field: %d x %d windows of %g m stepped %g m, %d adjusted",
         ny,

@@ -272,25 +272,55 @@ def plot_normals_polar(
 
 
 def write_html_report(
-    path: PathLike, title: str, tables: Mapping[str, Mapping[str, object]], images: Sequence[str]
+    path: PathLike,
+    title: str,
+    tables: Mapping[str, object],
+    images: Sequence[str],
 ) -> Path:
     """A self-contained HTML summary: one table per entry of ``tables`` and the given image
-    files (relative paths beside the report)."""
+    files (relative paths beside the report).
+
+    A table is either a mapping (one ``key | value`` row per item) or a sequence of mappings
+    (rows of a table whose columns are the keys, in order of first appearance). Floats are
+    shown with 6 significant digits, None as an empty cell."""
     import html
+
+    def cell(value) -> str:
+        if value is None:
+            return ""
+        if isinstance(value, float):
+            return f"{value:.6g}"
+        return str(value)
 
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",
         f"<title>{html.escape(title)}</title>",
         "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;"
         "margin-bottom:1.5em}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}"
-        "th{background:#eee}img{max-width:100%;margin:1em 0}</style></head><body>",
+        "th{background:#eee}td.text{text-align:left}img{max-width:100%;margin:1em 0}"
+        "</style></head><body>",
         f"<h1>{html.escape(title)}</h1>",
     ]
     for name, rows in tables.items():
         parts.append(f"<h2>{html.escape(name)}</h2><table>")
-        for key, value in rows.items():
-            text = f"{value:.6g}" if isinstance(value, float) else str(value)
-            parts.append(f"<tr><th>{html.escape(str(key))}</th><td>{html.escape(text)}</td></tr>")
+        if isinstance(rows, Mapping):
+            for key, value in rows.items():
+                parts.append(
+                    f"<tr><th>{html.escape(str(key))}</th><td>{html.escape(cell(value))}</td></tr>"
+                )
+        else:
+            rows = list(rows)
+            columns: list = []
+            for row in rows:
+                columns += [k for k in row if k not in columns]
+            parts.append("<tr>" + "".join(f"<th>{html.escape(str(c))}</th>" for c in columns))
+            for row in rows:
+                tds = []
+                for c in columns:
+                    v = row.get(c)
+                    cls = " class='text'" if isinstance(v, str) else ""
+                    tds.append(f"<td{cls}>{html.escape(cell(v))}</td>")
+                parts.append("<tr>" + "".join(tds) + "</tr>")
         parts.append("</table>")
     for img in images:
         parts.append(f"<div><img src='{html.escape(img)}' alt='{html.escape(img)}'></div>")

@@ -30,6 +30,10 @@ Conventions
   placement, one key per surface, shuffling). So the same seed gives the same scene, and
   switching off e.g. vegetation or the ground leaves the buildings and their points
   unchanged; building ``i`` has the same size whatever ``n_buildings`` is.
+- Survey error: :func:`apply_survey_error` adds the errors real surveys share between
+  many points (MLS trajectory drift, ALS strip offsets, TLS setup registration) and a
+  smooth non-flatness of the true surfaces, with point source ids and GPS times;
+  :func:`make_fault_pair` applies one :class:`SurveyError` per epoch.
 """
 
 from __future__ import annotations
@@ -49,12 +53,16 @@ __all__ = [
     "ASPRS_GROUND",
     "ASPRS_HIGH_VEGETATION",
     "PROFILES",
+    "SURVEY_ERROR_KINDS",
     "Building",
     "LobeField",
     "LobePair",
     "ProfileSpec",
     "Scene",
     "Surface",
+    "SurveyError",
+    "SurveyErrorDraw",
+    "apply_survey_error",
     "make_lobe_pair",
     "make_scene",
     "make_scene_n_points",
@@ -1228,6 +1236,454 @@ def _solve_increasing(func: Any, target: float, lo: float) -> float:
     return hi
 
 
+# --------------------------------------------------------------------------- survey error
+
+SURVEY_ERROR_KINDS = ("none", "mls", "als", "tls")
+"""Kinds of correlated survey error accepted by :class:`SurveyError`."""
+
+# SeedSequence spawn keys: (_KEY_SURVEY, purpose) from the error seed, (_KEY_NONFLAT, building
+# + 1, role) from the surface seed (the same key as the surface's sampling, other stream).
+_KEY_SURVEY = 21
+_KEY_NONFLAT = 22
+_SUB_GPS = 1  # start time of the survey
+_SUB_MLS_DRIFT = 2  # random Fourier features of the trajectory drift
+_SUB_ALS_LAYOUT = 3  # flight heading
+_SUB_ALS_ASSIGN = 4  # strip of each point in an overlap
+_SUB_UNIT_ERROR = 5  # rigid error of each strip / setup
+
+_MLS_LINE_SPACING_M = 22.0  # nominal spacing of the parallel streets of the drive path
+_MLS_SPEED_M_S = 5.0  # vehicle speed
+_MLS_PATH_STEP_M = 0.5  # sampling step of the drive path (finer for short correlations)
+_MLS_MAX_PATH_SAMPLES = 2_000_000
+_N_FOURIER = 64  # random Fourier features per axis of the MLS drift
+_ALS_OVERLAP = 0.30  # side overlap of neighbouring strips (share of the strip width)
+_ALS_SPEED_M_S = 60.0  # aircraft ground speed
+_ALS_TURN_S = 120.0  # time between two strips
+_TLS_HEIGHT_M = 1.7  # instrument height above the ground (rotation centre of a setup)
+_TLS_SCAN_S = 300.0  # duration of one scan (the head turns once)
+_TLS_MOVE_S = 600.0  # time between the end of a scan and the start of the next
+_GPS_START_MAX_S = 302_400.0  # a survey starts in the first half of the GPS week
+_NONFLAT_WAVES = 8  # sinusoids per surface
+_NONFLAT_WAVELENGTH_M = (3.0, 15.0)
+_MAX_UNITS = 65_535  # point source ids are uint16
+
+
+@dataclass(frozen=True)
+class SurveyError:
+    """Correlated error model of one survey epoch (see :func:`apply_survey_error`).
+
+    Range noise (:attr:`Scene.noise_m`) is independent from point to point; real surveys
+    also have errors shared by many points: the drift of a mobile mapper's trajectory, the
+    offset of an airborne strip, the registration of a terrestrial setup. They are what
+    limits the comparison of two epochs at the millimetre level. The true surfaces are not
+    perfect planes either (``nonflat_m``).
+
+    Attributes
+    ----------
+    kind : str
+        "none" (no correlated error, ``level_m`` must be 0), "mls" (trajectory drift along
+        a serpentine drive path), "als" (a rigid error per flight strip) or "tls" (a rigid
+        registration error per setup); see :data:`SURVEY_ERROR_KINDS`.
+    level_m : float
+        Standard deviation of the correlated error on each axis (metres, >= 0): typically
+        0-5 mm of MLS drift, up to 3 cm of ALS strip offset, a few mm of TLS registration.
+    correlation_length_m : float
+        MLS: correlation length ``l`` of the drift along the drive path (metres of path
+        travelled, > 0); the correlation of two points ``ds`` apart along the path is
+        ``exp(-ds**2 / (2 l**2))`` (0.61 at ``l``, 0.011 at ``3 l``).
+    strip_width_m : float
+        ALS: width of one flight strip (metres, > 0; neighbouring strips overlap by 30 %).
+        TLS: spacing of the grid of setups (metres, > 0).
+    rotation_rad : float
+        ALS / TLS: standard deviation of a small random rotation (about each axis) of each
+        strip about its centre on the ground, or of each setup about the instrument
+        (radians, >= 0); 0 (default) gives pure translations. Must be 0 for "none" and "mls".
+    nonflat_m : float
+        Standard deviation (metres, >= 0) of the smooth non-flatness of every planar
+        surface: the true surface is a plane plus a random bump field (sinusoids of 3-15 m
+        wavelength in the surface's own coordinates) applied along its normal. It belongs to
+        the surfaces, so two epochs of the same buildings get the same bumps.
+
+    Raises
+    ------
+    InvalidParameterError
+        For an unknown kind, a negative or non-finite level, rotation or non-flatness, a
+        non-positive length, or a level / rotation the kind does not use.
+    """
+
+    kind: str = "none"
+    level_m: float = 0.0
+    correlation_length_m: float = 30.0
+    strip_width_m: float = 40.0
+    rotation_rad: float = 0.0
+    nonflat_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        kind = self.kind
+        if not isinstance(kind, str) or kind.lower() not in SURVEY_ERROR_KINDS:
+            allowed = ", ".join(repr(k) for k in SURVEY_ERROR_KINDS)
+            raise InvalidParameterError(f"kind={kind!r} is unknown; use one of {allowed}")
+        kind = kind.lower()
+        object.__setattr__(self, "kind", kind)
+        for name in ("level_m", "rotation_rad", "nonflat_m"):
+            object.__setattr__(self, name, _check_non_negative(name, getattr(self, name)))
+        for name in ("correlation_length_m", "strip_width_m"):
+            object.__setattr__(self, name, _check_positive(name, getattr(self, name)))
+        if kind == "none" and self.level_m > 0.0:
+            raise InvalidParameterError(
+                f"level_m={self.level_m!r} needs a correlated error kind; set kind to 'mls', "
+                "'als' or 'tls', or level_m=0"
+            )
+        if kind in ("none", "mls") and self.rotation_rad > 0.0:
+            raise InvalidParameterError(
+                f"rotation_rad={self.rotation_rad!r} applies to ALS strips and TLS setups "
+                f"only; set rotation_rad=0 for kind={kind!r}"
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class SurveyErrorDraw:
+    """One random draw of a :class:`SurveyError` on a scene.
+
+    Attributes
+    ----------
+    points : numpy.ndarray
+        (N, 3) float64 the scene's points plus ``error`` (metres); a new array.
+    error : numpy.ndarray
+        (N, 3) float64 error vector added to each point (metres): the correlated survey
+        error plus the non-flatness along the surface normal.
+    point_source_id : numpy.ndarray
+        (N,) uint16 acquisition unit of each point, from 1: the MLS pass (line of the drive
+        path), the ALS strip, the TLS setup; all 1 for kind "none".
+    gps_time : numpy.ndarray
+        (N,) float64 plausible GPS time of each point (seconds of the GPS week): MLS the
+        time along the drive path, ALS the time along its strip's flight line, TLS a block of
+        time per setup (the scanner head turns once per scan); all 0 for kind "none".
+    model : SurveyError
+        The error model drawn.
+    """
+
+    points: np.ndarray
+    error: np.ndarray
+    point_source_id: np.ndarray
+    gps_time: np.ndarray
+    model: SurveyError
+
+
+def apply_survey_error(
+    scene: Scene, model: SurveyError, *, seed: int, surface_seed: int | None = None
+) -> SurveyErrorDraw:
+    """Add one random draw of correlated survey error to a scene's points.
+
+    Physics of each kind (see :class:`SurveyError` for the options):
+
+    - "mls": the vehicle drives a serpentine of parallel streets along x, about 22 m apart
+      (lines at the middle of equal bands of the scene, joined outside the scene), at 5 m/s.
+      Each point is seen from the nearest point of the path in the horizontal plane, which
+      gives its path length ``s``, its time and its pass (the line, ``point_source_id``).
+      The trajectory drift is a stationary Gaussian process of ``s``, independent on each
+      axis, of standard deviation ``level_m`` and squared-exponential correlation of length
+      ``correlation_length_m`` (64 random Fourier features per axis: every point's error is
+      exactly Gaussian of variance ``level_m**2``). A wall between two streets is seen from
+      both, with different errors.
+    - "als": parallel flight strips at a random heading, ``strip_width_m`` wide, 30 % side
+      overlap, covering the scene; a point in an overlap belongs to either strip at random
+      (real returns come from both). Each strip moves rigidly: a translation drawn from
+      ``N(0, level_m**2 I3)`` and a rotation (rotation vector from ``N(0, rotation_rad**2
+      I3)``) about the strip's centre on the ground. Strips are flown alternately in the
+      two directions at 60 m/s.
+    - "tls": setups on a grid of spacing about ``strip_width_m`` through the scene, 1.7 m
+      above the ground, numbered along a serpentine; each point belongs to the nearest setup
+      (horizontally), which moves rigidly as an ALS strip does (rotation about the
+      instrument).
+    - any kind with ``nonflat_m > 0``: every planar surface gets a smooth bump along its
+      normal, a sum of 8 sinusoids of random direction, phase and wavelength (3-15 m) in the
+      surface's own 2-D coordinates, with amplitudes giving a standard deviation of
+      ``nonflat_m`` over a large surface. The bumps depend on ``surface_seed`` and on the
+      surface's building and place in it only (not on the profile or the epoch's sampling),
+      so two epochs of the same buildings given the same ``surface_seed`` get the same
+      bumps. Vegetation (label -1) gets none.
+
+    Parameters
+    ----------
+    scene : Scene
+        A scene from :func:`make_scene`; not modified. The survey layout (path, strips,
+        setups) covers its square ``[0, extent_m]²`` (shifted by ``origin``), or the
+        points' bounding box when ``extent_m`` is not finite.
+    model : SurveyError
+        The error model of this epoch.
+    seed : int
+        Non-negative seed of the survey error (same seed, same draw).
+    surface_seed : int, optional
+        Non-negative seed of the non-flatness; default ``seed``. Give the seed of the scene
+        that made the buildings to every epoch of them.
+
+    Returns
+    -------
+    SurveyErrorDraw
+        Points (N, 3) with the error, the error (N, 3), source ids (N,) and GPS times (N,).
+
+    Raises
+    ------
+    InvalidParameterError
+        For a model that is not a :class:`SurveyError`, a negative seed, or a layout with
+        more than 65535 passes, strips or setups.
+
+    Notes
+    -----
+    The cost is linear in the points (plus a k-d tree query for "mls" and "tls"): about a
+    second for a million points.
+    """
+    if not isinstance(model, SurveyError):
+        raise InvalidParameterError(
+            f"model must be a SurveyError, not {type(model).__name__}; "
+            "build one with SurveyError(kind=..., level_m=...)"
+        )
+    seed = _check_int("seed", seed, minimum=0)
+    surface_seed = (
+        seed if surface_seed is None else _check_int("surface_seed", surface_seed, minimum=0)
+    )
+    pts = np.asarray(scene.points, dtype=np.float64)
+    n = pts.shape[0]
+    origin = np.asarray(scene.origin, dtype=np.float64)
+    error = np.zeros((n, 3))
+    ids = np.ones(n, dtype=np.uint16)
+    gps = np.zeros(n)
+    if n and model.kind != "none":
+        local = pts - origin
+        lo, hi = _survey_area(scene, local)
+        t0 = float(_rng(seed, _KEY_SURVEY, _SUB_GPS).uniform(0.0, _GPS_START_MAX_S))
+        if model.kind == "mls":
+            error, unit, gps = _mls_error(local, lo, hi, model, seed)
+        else:
+            layout = _als_layout if model.kind == "als" else _tls_layout
+            unit, centres, gps = layout(local, lo, hi, model, seed)
+            error = _rigid_unit_errors(local, unit, centres, model, seed)
+        ids = (unit + 1).astype(np.uint16)
+        gps = gps + t0
+    if n and model.nonflat_m > 0.0:
+        error = error + _nonflat_error(scene, model.nonflat_m, surface_seed)
+    points = pts + error if (model.kind != "none" or model.nonflat_m > 0.0) else pts.copy()
+    return SurveyErrorDraw(
+        points=points, error=error, point_source_id=ids, gps_time=gps, model=model
+    )
+
+
+def _survey_area(scene: Scene, local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Local xy bounds lo, hi (2,) of the surveyed area: the scene's square, else the box."""
+    extent = float(scene.extent_m)
+    if math.isfinite(extent) and extent > 0.0:
+        return np.zeros(2), np.full(2, extent)
+    return local[:, :2].min(axis=0), local[:, :2].max(axis=0)
+
+
+def _check_units(count: int, what: str, option: str) -> None:
+    if count > _MAX_UNITS:
+        raise InvalidParameterError(
+            f"the survey layout has {count} {what}, more than the {_MAX_UNITS} point source "
+            f"ids a LAS file can hold; increase {option}"
+        )
+
+
+def _serpentine(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drive path: vertices (V, 2) of parallel lines along x joined outside the area.
+
+    Returns the vertices and, per segment (V - 1,), the index of its line (a connector
+    counts with the line it leads to).
+    """
+    height = float(hi[1] - lo[1])
+    n_lines = max(1, int(round(height / _MLS_LINE_SPACING_M)))
+    _check_units(n_lines, "drive lines", "the scene's extent or use fewer, longer lines")
+    band = height / n_lines
+    ys = lo[1] + (np.arange(n_lines) + 0.5) * band
+    # connectors farther from the area than any point is from its nearest line
+    margin = max(_MLS_LINE_SPACING_M, band)
+    x0, x1 = float(lo[0]) - margin, float(hi[0]) + margin
+    verts = []
+    for k, y in enumerate(ys):
+        ends = [(x0, y), (x1, y)] if k % 2 == 0 else [(x1, y), (x0, y)]
+        verts += ends
+    line_of_segment = np.arange(2 * n_lines - 1) // 2
+    line_of_segment[1::2] += 1  # connectors
+    return np.array(verts, dtype=np.float64), line_of_segment
+
+
+def _mls_error(
+    local: np.ndarray, lo: np.ndarray, hi: np.ndarray, model: SurveyError, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drift (N, 3), pass index (N,) from 0 and time since the start (N,) of MLS points."""
+    from scipy.spatial import cKDTree
+
+    ell = model.correlation_length_m
+    verts, line_of_segment = _serpentine(lo, hi)
+    start, end = verts[:-1], verts[1:]
+    lengths = np.linalg.norm(end - start, axis=1)
+    total = float(lengths.sum())
+    step = min(_MLS_PATH_STEP_M, ell / 10.0, total)
+    step = max(step, total / _MLS_MAX_PATH_SAMPLES)
+    counts = np.maximum(1, np.ceil(lengths / step).astype(np.int64))
+    seg = np.repeat(np.arange(lengths.size), counts)
+    k = np.arange(seg.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    frac = (k + 0.5) / counts[seg]
+    samples = start[seg] + frac[:, None] * (end - start)[seg]
+    tangent = (end - start) / lengths[:, None]
+    s_start = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
+    s_samples = s_start[seg] + frac * lengths[seg]
+    half = 0.5 * lengths[seg] / counts[seg]
+
+    _, idx = cKDTree(samples).query(local[:, :2])
+    along = np.einsum("ij,ij->i", local[:, :2] - samples[idx], tangent[seg[idx]])
+    s = s_samples[idx] + np.clip(along, -half[idx], half[idx])
+
+    # stationary Gaussian drift: random Fourier features of the squared-exponential kernel
+    rng = _rng(seed, _KEY_SURVEY, _SUB_MLS_DRIFT)
+    omega = rng.normal(0.0, 1.0 / ell, size=_N_FOURIER)
+    a = rng.normal(size=(_N_FOURIER, 3))
+    b = rng.normal(size=(_N_FOURIER, 3))
+    grid = np.linspace(0.0, total, max(2, int(math.ceil(total / step)) + 1))
+    phase = np.outer(grid, omega)
+    drift = (np.cos(phase) @ a + np.sin(phase) @ b) * (model.level_m / math.sqrt(_N_FOURIER))
+    error = np.column_stack([np.interp(s, grid, drift[:, axis]) for axis in range(3)])
+    return error, line_of_segment[seg[idx]], s / _MLS_SPEED_M_S
+
+
+def _als_layout(
+    local: np.ndarray, lo: np.ndarray, hi: np.ndarray, model: SurveyError, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Strip index (N,) from 0, strip centres (S, 3) and time since the start (N,)."""
+    heading = float(_rng(seed, _KEY_SURVEY, _SUB_ALS_LAYOUT).uniform(0.0, math.pi))
+    along_dir = np.array([math.cos(heading), math.sin(heading)])
+    across_dir = np.array([-math.sin(heading), math.cos(heading)])
+    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+    q_lo, q_hi = (corners @ across_dir).min(), (corners @ across_dir).max()
+    a_lo, a_hi = (corners @ along_dir).min(), (corners @ along_dir).max()
+    width = model.strip_width_m
+    spacing = (1.0 - _ALS_OVERLAP) * width
+    n_strips = 1 if q_hi - q_lo <= width else int(math.ceil((q_hi - q_lo - width) / spacing)) + 1
+    _check_units(n_strips, "flight strips", "strip_width_m")
+    first = 0.5 * (q_lo + q_hi) - 0.5 * (n_strips - 1) * spacing
+    q = local[:, :2] @ across_dir
+    j_lo = np.clip(np.ceil((q - first - 0.5 * width) / spacing), 0, n_strips - 1)
+    j_hi = np.clip(np.floor((q - first + 0.5 * width) / spacing), 0, n_strips - 1)
+    j_hi = np.maximum(j_hi, j_lo)  # at most two strips cover a point (overlap < 50 %)
+    pick = _rng(seed, _KEY_SURVEY, _SUB_ALS_ASSIGN).random(q.size) < 0.5
+    strip = np.where(pick, j_hi, j_lo).astype(np.int64)
+    centre_q = first + spacing * np.arange(n_strips)
+    centres = np.zeros((n_strips, 3))
+    centres[:, :2] = 0.5 * (a_lo + a_hi) * along_dir + centre_q[:, None] * across_dir
+    along = local[:, :2] @ along_dir
+    duration = (a_hi - a_lo) / _ALS_SPEED_M_S
+    flown = np.where(strip % 2 == 0, along - a_lo, a_hi - along) / _ALS_SPEED_M_S
+    return strip, centres, strip * (duration + _ALS_TURN_S) + flown
+
+
+def _tls_layout(
+    local: np.ndarray, lo: np.ndarray, hi: np.ndarray, model: SurveyError, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Setup index (N,) from 0, setup positions (S, 3) and time since the start (N,)."""
+    from scipy.spatial import cKDTree
+
+    size = hi - lo
+    nx, ny = (max(1, int(round(float(v) / model.strip_width_m))) for v in size)
+    _check_units(nx * ny, "setups", "strip_width_m")
+    xs = lo[0] + (np.arange(nx) + 0.5) * size[0] / nx
+    ys = lo[1] + (np.arange(ny) + 0.5) * size[1] / ny
+    rows = [[(x, y) for x in (xs if j % 2 == 0 else xs[::-1])] for j, y in enumerate(ys)]
+    setups = np.zeros((nx * ny, 3))
+    setups[:, :2] = np.array(rows).reshape(-1, 2)
+    setups[:, 2] = _TLS_HEIGHT_M
+    _, setup = cKDTree(setups[:, :2]).query(local[:, :2])
+    rel = local[:, :2] - setups[setup, :2]
+    azimuth = np.mod(np.arctan2(rel[:, 1], rel[:, 0]), 2.0 * math.pi)
+    time = setup * (_TLS_SCAN_S + _TLS_MOVE_S) + azimuth / (2.0 * math.pi) * _TLS_SCAN_S
+    return setup.astype(np.int64), setups, time
+
+
+def _rotation_minus_identity(rotvec: np.ndarray) -> np.ndarray:
+    """(U, 3) rotation vectors (radians) -> (U, 3, 3) ``R - I`` (Rodrigues; 0 for no turn)."""
+    angle = np.linalg.norm(rotvec, axis=1)
+    axis = rotvec / np.where(angle > 0.0, angle, 1.0)[:, None]
+    k = np.zeros((rotvec.shape[0], 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = axis[:, 2], -axis[:, 1], axis[:, 0]
+    return np.sin(angle)[:, None, None] * k + (1.0 - np.cos(angle))[:, None, None] * (k @ k)
+
+
+def _rigid_unit_errors(
+    local: np.ndarray, unit: np.ndarray, centres: np.ndarray, model: SurveyError, seed: int
+) -> np.ndarray:
+    """(N, 3) error of points moved with their unit: ``t + (R - I) (p - centre)``."""
+    rng = _rng(seed, _KEY_SURVEY, _SUB_UNIT_ERROR)
+    count = centres.shape[0]
+    shift = rng.normal(size=(count, 3)) * model.level_m
+    rotvec = rng.normal(size=(count, 3)) * model.rotation_rad
+    error = shift[unit]
+    if model.rotation_rad > 0.0:
+        turn = _rotation_minus_identity(rotvec)
+        error = error + np.einsum("nij,nj->ni", turn[unit], local - centres[unit])
+    return error
+
+
+def _surface_keys(scene: Scene) -> list[tuple[int, ...]]:
+    """Spawn key of each surface's bumps: (building + 1, role), as its sampling key.
+
+    The role (place of the surface in its building) is found by matching the normal to the
+    building's geometry, so it does not depend on the profile (which numbers the surfaces
+    differently). Surfaces without a known building get a key from their id.
+    """
+    keys: list[tuple[int, ...]] = []
+    for s in scene.surfaces:
+        if s.kind == "ground":
+            keys.append((0, 0))
+        elif s.kind in ("roof", "facade") and 0 <= s.building < len(scene.buildings):
+            b = scene.buildings[s.building]
+            geoms = _roof_geoms(b, s.building) if s.kind == "roof" else _facade_geoms(b, s.building)
+            normal = np.asarray(s.normal, dtype=np.float64)
+            best = geoms[int(np.argmax([float(g.normal @ normal) for g in geoms]))]
+            keys.append((s.building + 1, best.role))
+        else:
+            keys.append((1_000_000 + s.id, 0))
+    return keys
+
+
+def _surface_frame(normal: np.ndarray) -> np.ndarray:
+    """(2, 3) unit in-plane axes of a surface (horizontal first for walls and roofs)."""
+    ref = np.array([1.0, 0.0, 0.0]) if abs(normal[2]) >= 0.9 else np.array([0.0, 0.0, 1.0])
+    e1 = np.cross(ref, normal)
+    e1 /= np.linalg.norm(e1)
+    return np.array([e1, np.cross(normal, e1)])
+
+
+def _nonflat_error(scene: Scene, amplitude: float, surface_seed: int) -> np.ndarray:
+    """(N, 3) bump of each point along its surface's normal (metres); 0 for clutter."""
+    out = np.zeros((scene.points.shape[0], 3))
+    labels = np.asarray(scene.labels)
+    if not scene.surfaces:
+        return out
+    order = np.argsort(labels, kind="stable")
+    sorted_labels = labels[order]
+    origin = np.asarray(scene.origin, dtype=np.float64)
+    lo_w, hi_w = _NONFLAT_WAVELENGTH_M
+    scale = amplitude * math.sqrt(2.0 / _NONFLAT_WAVES)
+    for surface, key in zip(scene.surfaces, _surface_keys(scene)):
+        first, last = np.searchsorted(sorted_labels, [surface.id, surface.id + 1])
+        if first == last:
+            continue
+        idx = order[first:last]
+        normal = np.asarray(surface.normal, dtype=np.float64)
+        uv = (scene.points[idx] - origin) @ _surface_frame(normal).T
+        rng = _rng(surface_seed, _KEY_NONFLAT, *key)
+        wavelength = rng.uniform(lo_w, hi_w, _NONFLAT_WAVES)
+        direction = rng.uniform(0.0, 2.0 * math.pi, _NONFLAT_WAVES)
+        phase = rng.uniform(0.0, 2.0 * math.pi, _NONFLAT_WAVES)
+        wave = (2.0 * math.pi / wavelength)[:, None] * np.array(
+            [np.cos(direction), np.sin(direction)]
+        ).T
+        bump = scale * np.cos(uv @ wave.T + phase).sum(axis=1)
+        out[idx] = bump[:, None] * normal
+    return out
+
+
 # --------------------------------------------------------------------------- fault pairs
 
 
@@ -1238,9 +1694,10 @@ class FaultPair:
     Attributes
     ----------
     before, after : Scene
-        The epochs; ``after`` is sampled independently (other points, other noise) from the
-        same buildings, then each side is moved by its offset (``after.surfaces`` still
-        describe the unmoved geometry).
+        The epochs; ``after`` is sampled independently (other points, other noise, possibly
+        another profile) from the same buildings, then each side is moved by its offset
+        (``after.surfaces`` still describe the unmoved geometry). With survey error models
+        their points include the drawn errors.
     trace_xy : (2, 2) float64
         The fault trace (two vertices, map coordinates incl. ``origin``), digitised from the
         first to the second vertex.
@@ -1250,6 +1707,14 @@ class FaultPair:
         -1 left, +1 right of each point; every point moves with its side.
     moved_buildings : tuple of int
         Buildings given an extra ``blunder_offset_m`` (renovated / rebuilt: not the signal).
+    source_before, source_after : (N,) uint16, optional
+        Point source id (MLS pass, ALS strip, TLS setup) of each point of an epoch drawn
+        with a :class:`SurveyError`; None for an epoch without one.
+    gps_time_before, gps_time_after : (N,) float64, optional
+        GPS time of each point (seconds) of an epoch with an error model; None otherwise.
+    error_before, error_after : (N, 3) float64, optional
+        Survey error (incl. non-flatness) added to each point of an epoch (metres), before
+        the side offsets; None for an epoch without an error model.
     """
 
     before: Scene
@@ -1260,6 +1725,12 @@ class FaultPair:
     side_before: np.ndarray
     side_after: np.ndarray
     moved_buildings: tuple = ()
+    source_before: Optional[np.ndarray] = None
+    source_after: Optional[np.ndarray] = None
+    gps_time_before: Optional[np.ndarray] = None
+    gps_time_after: Optional[np.ndarray] = None
+    error_before: Optional[np.ndarray] = None
+    error_after: Optional[np.ndarray] = None
 
     @property
     def relative_offset_m(self) -> np.ndarray:
@@ -1284,6 +1755,10 @@ def make_fault_pair(
     blunder_fraction: float = 0.0,
     blunder_offset_m: Sequence[float] = (0.5, 0.0, 0.0),
     after_seed: Optional[int] = None,
+    error_before: Optional[SurveyError] = None,
+    error_after: Optional[SurveyError] = None,
+    after_profile: Optional[str] = None,
+    error_seed: Optional[int] = None,
     **scene_options: Any,
 ) -> FaultPair:
     """Two epochs of a synthetic scene cut by a straight fault through its centre.
@@ -1305,6 +1780,24 @@ def make_fault_pair(
     blunder_fraction : float
         Share of buildings (at least one when > 0) moved by ``blunder_offset_m`` on top of
         their side's offset.
+    blunder_offset_m : (3,) array-like
+        Extra displacement of the blundered buildings (metres).
+    after_seed : int, optional
+        Seed of the second epoch's sampling; default ``seed + 1_000_003``.
+    error_before, error_after : SurveyError, optional
+        Correlated survey error of each epoch (see :func:`apply_survey_error`), added before
+        the side offsets (it is survey error, not motion); None (default) leaves the epoch
+        as without it, bit for bit. Both epochs get the same non-flatness (drawn with
+        ``surface_seed=seed``, the buildings' seed), so their ``nonflat_m`` must agree (a
+        missing model counts as 0).
+    after_profile : str, optional
+        Acquisition profile of the second epoch (default ``profile``), e.g. "als" after an
+        "mls" first epoch: the same buildings seen by another sensor. With another profile,
+        ``density_pts_m2`` and ``noise_m`` of ``scene_options`` apply to the first epoch
+        only; the second uses its profile's defaults.
+    error_seed : int, optional
+        Seed of the survey errors (default ``seed``): the first epoch's draw uses
+        ``error_seed``, the second's ``error_seed + 1_000_003`` (independent draws).
     **scene_options
         Passed to :func:`make_scene` (``n_buildings``, ``extent_m``, ``density_pts_m2``,
         ``noise_m``, ``origin``, ``ground``, ``vegetation``, ...).
@@ -1312,13 +1805,39 @@ def make_fault_pair(
     Returns
     -------
     FaultPair
+
+    Raises
+    ------
+    InvalidParameterError
+        For bad scene options, an error model that is not a :class:`SurveyError`, models
+        whose ``nonflat_m`` differ, or a negative ``error_seed``.
     """
+    for name, model in (("error_before", error_before), ("error_after", error_after)):
+        if model is not None and not isinstance(model, SurveyError):
+            raise InvalidParameterError(
+                f"{name} must be a SurveyError or None, not {type(model).__name__}"
+            )
+    nonflat = [0.0 if m is None else m.nonflat_m for m in (error_before, error_after)]
+    if nonflat[0] != nonflat[1]:
+        raise InvalidParameterError(
+            f"error_before.nonflat_m={nonflat[0]!r} and error_after.nonflat_m={nonflat[1]!r} "
+            "differ, but the non-flatness belongs to the buildings both epochs see; give both "
+            "models the same nonflat_m"
+        )
+    spec_before = _check_profile(profile)
+    spec_after = spec_before if after_profile is None else _check_profile(after_profile)
+    if error_seed is not None:
+        error_seed = _check_int("error_seed", error_seed, minimum=0)
     before = make_scene(profile, seed=seed, **scene_options)
     opts = dict(scene_options)
     opts.pop("n_buildings", None)
     opts.pop("buildings", None)
+    if spec_after.name != spec_before.name:
+        opts.pop("density_pts_m2", None)
+        opts.pop("noise_m", None)
     after_seed = seed + 1_000_003 if after_seed is None else int(after_seed)
-    after = make_scene(profile, seed=after_seed, buildings=before.buildings, **opts)
+    after_name = profile if after_profile is None else spec_after.name
+    after = make_scene(after_name, seed=after_seed, buildings=before.buildings, **opts)
     origin = np.asarray(before.origin, dtype=np.float64)
     half = 0.5 * before.extent_m
     az = math.radians(fault_azimuth_deg)
@@ -1341,7 +1860,18 @@ def make_fault_pair(
         # ground is (the slip workflow leaves out a buffer around the trace)
         return _side_of_line(scene.points[:, :2], a, b)
 
+    # the side (the motion) of a point follows its true position, not the surveyed one
     side_b, side_a = sides(before), sides(after)
+    base_seed = seed if error_seed is None else error_seed
+    draw_b = draw_a = None
+    if error_before is not None:
+        draw_b = apply_survey_error(before, error_before, seed=base_seed, surface_seed=before.seed)
+        before = dataclasses.replace(before, points=draw_b.points)
+    if error_after is not None:
+        draw_a = apply_survey_error(
+            after, error_after, seed=base_seed + 1_000_003, surface_seed=before.seed
+        )
+        after = dataclasses.replace(after, points=draw_a.points)
     pts = after.points.copy()
     pts[side_a < 0] += left
     pts[side_a > 0] += right
@@ -1357,6 +1887,12 @@ def make_fault_pair(
         side_before=side_b,
         side_after=side_a,
         moved_buildings=moved,
+        source_before=None if draw_b is None else draw_b.point_source_id,
+        source_after=None if draw_a is None else draw_a.point_source_id,
+        gps_time_before=None if draw_b is None else draw_b.gps_time,
+        gps_time_after=None if draw_a is None else draw_a.gps_time,
+        error_before=None if draw_b is None else draw_b.error,
+        error_after=None if draw_a is None else draw_a.error,
     )
 
 

@@ -27,7 +27,7 @@ from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
-TYPES = ("float", "int", "bool", "str", "choice", "object", "vector3", "names")
+TYPES = ("float", "int", "bool", "str", "choice", "object", "vector3", "names", "keyvalues")
 
 
 class StageError(RuntimeError):
@@ -120,9 +120,10 @@ class Option:
             return num
         if t == "choice":
             v = str(value).strip().lower() if isinstance(value, str) else value
-            if v not in self.choices:
-                raise StageError(f"{where} must be one of {list(self.choices)}, got {value!r}")
-            return v
+            for c in self.choices:  # case-insensitive; the choice as the table spells it
+                if v == c or (isinstance(v, str) and v == c.lower()):
+                    return c
+            raise StageError(f"{where} must be one of {list(self.choices)}, got {value!r}")
         if t == "str":
             if not isinstance(value, str) or not value.strip():
                 raise StageError(f"{where} must be a non-empty string, got {value!r}")
@@ -135,6 +136,31 @@ class Option:
                     raise StageError(f"{where} must be a JSON object, got {value!r}") from None
             if not isinstance(value, dict):
                 raise StageError(f"{where} must be a JSON object, got {value!r}")
+            return dict(value)
+        if t == "keyvalues":
+            if isinstance(value, str):
+                text = value.strip()
+                if text.startswith("{"):
+                    try:
+                        value = json.loads(text)
+                    except ValueError:
+                        raise StageError(f"{where} must be a JSON object, got {value!r}") from None
+                else:
+                    pairs = {}
+                    for part in (p.strip() for p in text.split(",")):
+                        if not part:
+                            continue
+                        key, sep, val = part.partition("=")
+                        if not sep or not key.strip() or not val.strip():
+                            raise StageError(
+                                f"{where} must be a JSON object or name=value,… text, got {value!r}"
+                            )
+                        pairs[key.strip()] = val.strip()
+                    value = pairs
+            if not isinstance(value, dict):
+                raise StageError(
+                    f"{where} must be a JSON object or name=value,… text, got {value!r}"
+                )
             return dict(value)
         if t == "vector3":
             if isinstance(value, str):
@@ -182,6 +208,8 @@ class Option:
             return "[x, y, z]"
         if self.type == "names":
             return "3 names"
+        if self.type == "keyvalues":
+            return "object or name=value,…"
         return self.type
 
 

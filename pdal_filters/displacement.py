@@ -128,6 +128,44 @@ def options_table():
                 "With tiles: one adjustment per side, or the weighted mean of tile results.",
                 choices=("joint", "tiles"),
             ),
+            Option(
+                "stochastic_model",
+                "choice",
+                "full",
+                "Stochastic model of the slip's σ: `white` = independent point errors only "
+                "(the study's; too small a σ for real surveys), `plane` = plus one random "
+                "offset per plane, `full` = plus spatially correlated plane offsets and a "
+                "rigid error per acquisition unit (`units`); components estimated by REML.",
+                choices=("white", "plane", "full"),
+            ),
+            Option(
+                "units",
+                "choice",
+                "auto",
+                "Acquisition unit of each point (full model), per epoch: `auto` = "
+                "`PointSourceId` when the epoch has more than one distinct value, else none; "
+                "`PointSourceId` (ALS strips, MLS passes); `GpsTime` = segments of the sorted "
+                "GPS times split at jumps > `gps_gap_s` (passes, scans); `none`. "
+                "Case-insensitive.",
+                choices=("auto", "PointSourceId", "GpsTime", "none"),
+            ),
+            Option(
+                "gps_gap_s",
+                "float",
+                1.0,
+                "With `units` GpsTime: a new unit starts where consecutive GPS times jump by "
+                "more than this (s).",
+                minimum=0,
+                exclusive=True,
+            ),
+            Option(
+                "fixed_components",
+                "keyvalues",
+                None,
+                "Plane-level components held fixed instead of estimated: `plane`, `spatial`, "
+                "`unit_before`, `unit_after` (σ, m) and `spatial_range_m` (m), e.g. "
+                '`"plane=0.002,unit_after=0.003"` or `{"plane": 0.002}`.',
+            ),
             Option("plane_options", "object", {}, "Keyword options of `segment_planes`."),
             Option("match_options", "object", {}, "Keyword options of the plane matching."),
         ],
@@ -179,6 +217,9 @@ def run(ins, outs):
     from slipmap.core.displacement import estimate_slip
     from slipmap.core.errors import SlipMapError
     from slipmap.core.fault import fault_geometry, side_masks
+    from slipmap.summaries import json_safe, stochastic_outputs
+
+    stochastic = _stochastic_options(opts, _stage)
 
     dim = opts["epoch_dimension"]
     if dim not in ins:
@@ -212,6 +253,7 @@ def run(ins, outs):
                 )
             per_point = np.column_stack([np.asarray(ins[d], dtype=np.float64) for d in names])
             sigma = {key: per_point[ix] for key, ix in idx.items()}
+        units = _units(opts, ins, idx, stochastic["stochastic_model"])
         res = estimate_slip(
             before,
             after,
@@ -223,6 +265,9 @@ def run(ins, outs):
             match_options=opts["match_options"] or None,
             tile_size_m=opts["tile_size_m"],
             combine=opts["combine"],
+            unit_before=units["before"].units,
+            unit_after=units["after"].units,
+            **stochastic,
         )
         for key, cloud in (("before", before), ("after", after)):
             left, right = side_masks(fault_geometry(cloud[:, :2], trace), buffer_m=opts["buffer_m"])
@@ -245,14 +290,78 @@ def run(ins, outs):
     _stage.set_output(outs, "PlaneId", labels, np.int32, n, STAGE)
     _stage.set_output(outs, "Residual", residual, np.float64, n, STAGE)
     summary = res.to_dict()
+    summary["parameters"]["acquisition_unit_sources"] = {
+        "units_option": opts["units"],
+        **{key: u.to_dict() for key, u in units.items()},
+    }
     rel = summary["relative"]
+    summary = json_safe(summary)  # NaN -> null: the metadata holds standard JSON
     out_metadata = _stage.metadata_node(
         "slipmap_displacement",
         "",
         "SlipMap relative displacement across the fault (right minus left), metres",
         [
             _stage.metadata_node("summary", summary, "SlipResult.to_dict() as JSON"),
+            _stage.metadata_node(
+                "stochastic_model", stochastic["stochastic_model"], "white, plane or full"
+            ),
+            _stage.metadata_node(
+                "variance_components",
+                json_safe(stochastic_outputs(summary)),
+                "per side: n_eff, the spatial range and each component's sigma (m) and "
+                "source; the fault-parallel sigma of the model and of the white model",
+            ),
+            _stage.metadata_node(
+                "acquisition_units",
+                summary["parameters"]["acquisition_unit_sources"],
+                "per epoch: where the units came from and how many",
+            ),
             *(_stage.metadata_node(k, float(v)) for k, v in rel.items()),
         ],
     )
     return True
+
+
+def _stochastic_options(opts, _stage):
+    """estimate_slip's ``stochastic_model`` and ``components`` from the options."""
+    from slipmap.core.errors import InvalidParameterError
+    from slipmap.stochasticmodel import parse_fixed_components
+
+    try:
+        fixed = parse_fixed_components(
+            opts["fixed_components"], option=f"{STAGE}: option 'fixed_components'"
+        )
+    except InvalidParameterError as e:
+        raise _stage.StageError(str(e)) from None
+    if fixed and opts["stochastic_model"] == "white":
+        raise _stage.StageError(
+            f"{STAGE}: option 'fixed_components': the white model has no plane-level "
+            "components; set stochastic_model to plane or full"
+        )
+    return {"stochastic_model": opts["stochastic_model"], "components": fixed or None}
+
+
+def _units(opts, ins, idx, model):
+    """Acquisition units of each epoch (``EpochUnits``) from the view's dimensions."""
+    import numpy as np
+
+    from slipmap.stochasticmodel import EpochUnits, epoch_units, log_units
+
+    out = {}
+    for key, ix in idx.items():
+        if model != "full":
+            out[key] = EpochUnits(None, "none", 0, f"not used by the {model} model")
+            continue
+        dims = {
+            d: (np.asarray(ins[d])[ix] if d in ins else None) for d in ("PointSourceId", "GpsTime")
+        }
+        out[key] = epoch_units(
+            opts["units"],
+            point_source_id=dims["PointSourceId"],
+            gps_time=dims["GpsTime"],
+            gap_s=opts["gps_gap_s"],
+            epoch=f"{key} epoch ({opts['epoch_dimension']} == {opts[key]})",
+            option="option 'units'",
+        )
+        log_units(f"{STAGE}: {key} epoch", out[key])
+    return out

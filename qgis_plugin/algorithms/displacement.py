@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 from qgis.core import (
@@ -16,6 +17,7 @@ from qgis.core import (
     QgsProcessingException,
     QgsProcessingOutputHtml,
     QgsProcessingOutputNumber,
+    QgsProcessingOutputString,
     QgsProcessingParameterBoolean,
     QgsProcessingParameterEnum,
     QgsProcessingParameterFeatureSink,
@@ -24,14 +26,32 @@ from qgis.core import (
     QgsProcessingParameterFileDestination,
     QgsProcessingParameterNumber,
     QgsProcessingParameterRasterDestination,
+    QgsProcessingParameterString,
     QgsProcessingUtils,
     QgsRectangle,
     QgsWkbTypes,
 )
 from qgis.PyQt.QtCore import QVariant
 
+from ...core.errors import InvalidParameterError
+from ...stochasticmodel import (
+    DEFAULT_GPS_GAP_S,
+    DEFAULT_MODEL,
+    MODEL_HELP,
+    MODELS,
+    UNIT_SOURCES,
+    UNITS_HELP,
+    parse_fixed_components,
+)
 from ...summaries import finite as _finite
-from ...summaries import strip_rows
+from ...summaries import (
+    json_safe,
+    plane_fields,
+    slip_summary_lines,
+    stochastic_outputs,
+    stochastic_tables,
+    strip_rows,
+)
 from ._base import (
     LAS_FILTER,
     PLANES_CITATION,
@@ -108,6 +128,20 @@ SINK_FIELDS = (
     ("normal_x", QVariant.Double),
     ("normal_y", QVariant.Double),
     ("normal_z", QVariant.Double),
+    ("weight", QVariant.Double),
+    ("w_test", QVariant.Double),
+    ("offset_mm", QVariant.Double),
+    ("misclosure_mm", QVariant.Double),
+)
+STOCHASTIC_HELP = (
+    "<b>Stochastic model</b> of the slip's σ: "
+    + "; ".join(f"<i>{m}</i>: {MODEL_HELP[m]}" for m in MODELS)
+    + ". <b>Acquisition units</b>: "
+    + UNITS_HELP
+    + " (<b>GPS gap</b>, s, advanced, default 1). <b>Fixed components</b> (advanced): "
+    "plane-level components held fixed instead of estimated, as name=value pairs separated by "
+    "commas: plane, spatial, unit_before, unit_after (σ in metres), spatial_range_m (metres), "
+    "e.g. <tt>plane=0.002,unit_after=0.003</tt>."
 )
 
 
@@ -145,6 +179,26 @@ def _length(name, label, default=None, optional=True, is_advanced=False):
 def _sigma_of(cov, j):
     """1σ of ``j @ d`` for a (3, 3) covariance ``cov`` of ``d`` (None when not finite)."""
     v = float(j @ cov @ j)
+    return math.sqrt(max(v, 0.0)) if math.isfinite(v) else None
+
+
+def _with_help(param, text):
+    """``param`` with a tooltip help text (QGIS >= 3.16)."""
+    if hasattr(param, "setHelp"):
+        param.setHelp(text)
+    return param
+
+
+def _strip_sigma(cov, ref_c, j, side, model):
+    """1σ of ``j @ (d_strip − d_left)``, as the core's ``strip_profile`` takes it for the
+    fault-parallel σ: a left strip shares its data with the left side's global estimate, so
+    under a stochastic model the variances subtract (floored at a quarter of the strip's);
+    otherwise they add (the study's rule)."""
+    vl, vr = float(j @ cov @ j), float(j @ ref_c @ j)
+    if model == "white" or side != "left":
+        v = vl + vr
+    else:
+        v = max(vl - vr, 0.25 * vl)
     return math.sqrt(max(v, 0.0)) if math.isfinite(v) else None
 
 
@@ -186,11 +240,16 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             "<b>Match angle</b> (degrees, default 3) and <b>match distance</b> (m, default 0.5, "
             "above the largest expected displacement): plane matching between epochs. "
             "<b>Reference slip</b> (m, optional, positive dextral): an independent measurement "
-            "(e.g. an alinement array); adds the study's Table X figures to the summary. "
+            "(e.g. an alinement array); adds the study's Table X figures to the summary.<br>"
+            + STOCHASTIC_HELP
+            + "<br>"
             + THRESHOLD_HELP
             + "<br><b>Outputs</b>: JSON summary; HTML report (tables and plots, beside the "
-            "JSON); matched planes (points at the before-epoch plane centroids: side, plane "
-            "ids, n_points, unit normal); tiles (polygons: side, ix, iy, n_planes, dx, dy, dz "
+            "JSON; with the stochastic model's components per side, n_eff, the white-noise σ "
+            "beside the model's, rejected and down-weighted planes); matched planes (points at "
+            "the before-epoch plane centroids: side, plane ids, n_points, unit normal, weight "
+            "= 1 full / below 1 down-weighted / 0 rejected, w_test, offset_mm = predicted "
+            "plane offset, misclosure_mm); tiles (polygons: side, ix, iy, n_planes, dx, dy, dz "
             "= the tile's own motion and sigma_dx/dy/dz in m, fault_parallel and sigma_fp = its "
             "component along the mean strike, status); strips (points on the trace at the "
             "strip's centre chainage: side, along_start_m/along_end_m/along_centre_m, "
@@ -198,7 +257,8 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             "the left side's global displacement, status); windows (GeoTIFF, one pixel per "
             "window centre, bands fault_parallel_m, dx_m, dy_m, dz_m, sigma_dx_m, sigma_dy_m "
             "relative to the left side, and n_planes; styled on fault_parallel_m); "
-            "right_lateral_slip and sigma_fault_parallel (m).<br>"
+            "right_lateral_slip, sigma_fault_parallel and sigma_fault_parallel_white (m), "
+            "n_eff of each side, the model and the variance components (JSON text).<br>"
             "Method: Kusari, Glennie, Brooks and Ericksen (2019), Precise registration of "
             "laser mapping data by planar feature extraction for deformation monitoring, "
             "IEEE TGRS 57(6): sections II-III (tiles, strips: Fig. 5; windows: Fig. 11). "
@@ -261,6 +321,54 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
                 )
             )
         )
+        self.addParameter(
+            _with_help(
+                QgsProcessingParameterEnum(
+                    "STOCHASTIC_MODEL",
+                    "Stochastic model",
+                    options=list(MODELS),
+                    defaultValue=MODELS.index(DEFAULT_MODEL),
+                ),
+                "; ".join(f"{m}: {MODEL_HELP[m]}" for m in MODELS),
+            )
+        )
+        self.addParameter(
+            _with_help(
+                QgsProcessingParameterEnum(
+                    "UNITS", "Acquisition units", options=list(UNIT_SOURCES), defaultValue=0
+                ),
+                UNITS_HELP,
+            )
+        )
+        self.addParameter(
+            advanced(
+                _with_help(
+                    QgsProcessingParameterNumber(
+                        "GPS_GAP",
+                        "GPS gap between acquisition units (s)",
+                        QgsProcessingParameterNumber.Double,
+                        defaultValue=DEFAULT_GPS_GAP_S,
+                        minValue=1e-6,
+                    ),
+                    "With Acquisition units = GpsTime: a new unit starts where consecutive GPS "
+                    "times jump by more than this (seconds)",
+                )
+            )
+        )
+        self.addParameter(
+            advanced(
+                _with_help(
+                    QgsProcessingParameterString(
+                        "FIXED_COMPONENTS",
+                        "Fixed components (name=sigma_m, …)",
+                        optional=True,
+                    ),
+                    "Plane-level components held fixed instead of estimated: plane, spatial, "
+                    "unit_before, unit_after (σ, m) and spatial_range_m (m), e.g. "
+                    "plane=0.002,unit_after=0.003",
+                )
+            )
+        )
         add_plane_parameters(self)
         self.addParameter(
             QgsProcessingParameterFileDestination("SUMMARY", "Summary", "JSON (*.json)")
@@ -289,6 +397,18 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         self.addOutput(
             QgsProcessingOutputNumber("SIGMA_FAULT_PARALLEL", "Sigma of fault-parallel slip (m)")
         )
+        self.addOutput(
+            QgsProcessingOutputNumber(
+                "SIGMA_FAULT_PARALLEL_WHITE",
+                "Sigma of fault-parallel slip under the white-noise model (m)",
+            )
+        )
+        self.addOutput(QgsProcessingOutputString("STOCHASTIC_MODEL", "Stochastic model"))
+        self.addOutput(QgsProcessingOutputNumber("N_EFF_LEFT", "Effective planes, left side"))
+        self.addOutput(QgsProcessingOutputNumber("N_EFF_RIGHT", "Effective planes, right side"))
+        self.addOutput(
+            QgsProcessingOutputString("VARIANCE_COMPONENTS", "Variance components (JSON)")
+        )
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
         opts = self._options(parameters, context)
@@ -312,13 +432,22 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             with slipmap_errors():
                 results["WINDOWS"] = self._write_windows(run, opts["windows_path"])
             apply_diverging_style_on_load(context, results["WINDOWS"])
-        rel = run["payload"]["relative"]
-        feedback.pushInfo(
-            f"right-lateral slip {rel['right_lateral_slip']:.4f} ± "
-            f"{rel['sigma_fault_parallel']:.4f} m"
-        )
+        payload = run["payload"]
+        rel = payload["relative"]
+        for line in slip_summary_lines(payload):
+            feedback.pushInfo(line)
+        stoch = stochastic_outputs(payload)
         results["RIGHT_LATERAL_SLIP"] = rel["right_lateral_slip"]
         results["SIGMA_FAULT_PARALLEL"] = rel["sigma_fault_parallel"]
+        # the white model's σ is its own σ
+        white = rel.get("sigma_fault_parallel_white")
+        results["SIGMA_FAULT_PARALLEL_WHITE"] = (
+            rel["sigma_fault_parallel"] if white is None else white
+        )
+        results["STOCHASTIC_MODEL"] = stoch["model"]
+        for side in ("left", "right"):
+            results[f"N_EFF_{side.upper()}"] = (stoch.get(side) or {}).get("n_eff")
+        results["VARIANCE_COMPONENTS"] = json.dumps(json_safe(stoch))
         return results
 
     # ------------------------------------------------------------------ parameters
@@ -347,7 +476,28 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             "summary": self.parameterAsFileOutput(parameters, "SUMMARY", context),
             "pa_config": pa_config(self, parameters, context),
             "windows_path": None,
+            "stochastic_model": MODELS[
+                self.parameterAsEnum(parameters, "STOCHASTIC_MODEL", context)
+            ],
+            "units": UNIT_SOURCES[self.parameterAsEnum(parameters, "UNITS", context)],
+            "gps_gap_s": self.parameterAsDouble(parameters, "GPS_GAP", context),
+            "components": None,
         }
+        try:
+            fixed = parse_fixed_components(
+                self.parameterAsString(parameters, "FIXED_COMPONENTS", context),
+                option="FIXED_COMPONENTS",
+            )
+        except InvalidParameterError as exc:
+            raise QgsProcessingException(str(exc)) from None
+        if fixed and opts["stochastic_model"] == "white":
+            raise QgsProcessingException(
+                "FIXED_COMPONENTS: the white model has no plane-level components; set "
+                "STOCHASTIC_MODEL to plane or full"
+            )
+        opts["components"] = fixed or None
+        if not opts["gps_gap_s"] > 0:
+            raise QgsProcessingException(f"GPS_GAP must be > 0 s, got {opts['gps_gap_s']}")
         for name, key in (
             ("TILE_SIZE", "tile_size_m"),
             ("STRIP_WIDTH", "strip_width_m"),
@@ -401,6 +551,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             xyz2 = reproject_points(second.xyz, second.crs, first.crs)
         sel1, sel2 = select_points(first, opts["exclude"]), select_points(second, opts["exclude"])
         before, after = first.xyz[sel1], xyz2[sel2]
+        units, unit_record = self._units(opts, first, second, sel1, sel2, feedback)
         with pa_errors():
             sigma_before = covariances(first, sel1, pa["before"])
             sigma_after = covariances(second, sel2, pa["after"])
@@ -410,6 +561,9 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             sigma_after=sigma_after,
             plane_options=opts["plane"],
             match_options=opts["match"],
+            stochastic_model=opts["stochastic_model"],
+            unit_before=units["before"],
+            unit_after=units["after"],
         )
         # the windows are only computed for their GeoTIFF (the summary does not hold them)
         n_steps = 1 + (opts["strip_width_m"] is not None) + bool(opts["windows_path"])
@@ -426,6 +580,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             tile_size_m=opts["tile_size_m"],
             combine=opts["combine"],
             progress=part(),
+            components=opts["components"],
             **common,
         )
         strips = windows = None
@@ -452,7 +607,12 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             )
         payload = result.to_dict()
         payload["parameters"].update(
-            {"point_accuracy": pa, "before": opts["before"], "after": opts["after"]}
+            {
+                "point_accuracy": pa,
+                "before": opts["before"],
+                "after": opts["after"],
+                "acquisition_unit_sources": unit_record,
+            }
         )
         if opts["reference_slip"] is not None:
             payload["reference"] = result.reference_comparison(opts["reference_slip"])
@@ -465,8 +625,42 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             "trace": trace,
             "crs": crs,
             "crs_wkt": first.crs.to_wkt() if first.crs is not None else None,
-            "payload": payload,
+            "payload": json_safe(payload),
         }
+
+    @staticmethod
+    def _units(opts, first, second, sel1, sel2, feedback):
+        """Acquisition units of each epoch's selected points (full model only) and what was
+        used, for the summary."""
+        from ...stochasticmodel import cloud_units
+
+        units = {"before": None, "after": None}
+        record = {"units_option": opts["units"]}
+        if opts["stochastic_model"] != "full":
+            if opts["units"] not in ("auto", "none"):
+                feedback.pushInfo(
+                    f"UNITS {opts['units']} is not used by the {opts['stochastic_model']} model"
+                )
+            return units, record
+        if opts["units"] == "GpsTime":
+            record["gps_gap_s"] = opts["gps_gap_s"]
+        for epoch, cloud, sel in (("before", first, sel1), ("after", second, sel2)):
+            u = cloud_units(
+                cloud,
+                sel,
+                opts["units"],
+                gap_s=opts["gps_gap_s"],
+                epoch=f"{epoch} epoch ({opts[epoch]})",
+                option="UNITS",
+            )
+            units[epoch] = u.units
+            record[epoch] = u.to_dict()
+            feedback.pushInfo(
+                f"{epoch} epoch: {u.n_units} acquisition unit(s) from {u.source}"
+                if u.units is not None
+                else f"{epoch} epoch: no acquisition units ({u.note})"
+            )
+        return units, record
 
     # ------------------------------------------------------------------ outputs
 
@@ -477,13 +671,14 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         from ...core.report import write_html_report
 
         summary, payload, result = opts["summary"], run["payload"], run["result"]
-        write_json(summary, payload)
+        write_json(summary, payload)  # json_safe: NaN written as null
         stem = summary.rsplit(".", 1)[0]
         tables = {"relative (right - left), m": payload["relative"]}
         for side in ("left", "right"):
             tables[f"{side} side"] = {
                 k: v for k, v in payload[side].items() if not isinstance(v, (list, dict))
             }
+        tables.update(stochastic_tables(payload))
         if "reference" in payload:
             tables["against the reference slip"] = payload["reference"]
         images = []
@@ -504,13 +699,17 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             return None
         for side in (result.left, result.right):
             pb, m = side.planes_before, side.matches
-            for i, j in zip(m.before, m.after):
+            diag = plane_fields(side)
+            keys = ("weight", "w_test", "offset_mm", "misclosure_mm")
+            for k, (i, j) in enumerate(zip(m.before, m.after)):
                 f = QgsFeature(fields)
                 c = pb.centroids[i]
                 f.setGeometry(QgsGeometry(QgsPoint(float(c[0]), float(c[1]), float(c[2]))))
                 n = pb.normals[i]
                 f.setAttributes(
-                    [side.side, int(i), int(j), int(pb.n_points[i])] + [float(v) for v in n]
+                    [side.side, int(i), int(j), int(pb.n_points[i])]
+                    + [float(v) for v in n]
+                    + [_finite(diag[key][k]) for key in keys]
                 )
                 sink.addFeature(f, QgsFeatureSink.FastInsert)
         return sink_id
@@ -556,9 +755,10 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         s, c = math.sin(result.strike_rad), math.cos(result.strike_rad)
         jn, jz = np.array([c, -s, 0.0]), np.array([0.0, 0.0, 1.0])
         ref_d, ref_c = result.left.displacement, result.left.displacement_covariance
+        model = run["payload"]["parameters"].get("stochastic_model", "white")
         for st in run["strips"]:
             ok = st.status == "ok"
-            rel, cov = st.displacement - ref_d, st.covariance + ref_c
+            rel, cov = st.displacement - ref_d, st.covariance
             xy = point_at_chainage(run["trace"], st.along_centre_m)
             f = QgsFeature(fields)
             f.setGeometry(QgsGeometry(QgsPoint(float(xy[0]), float(xy[1]))))
@@ -572,9 +772,9 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
                     _finite(st.fault_parallel),
                     _finite(st.sigma_fault_parallel),
                     _finite(jn @ rel) if ok else None,
-                    _sigma_of(cov, jn) if ok else None,
+                    _strip_sigma(cov, ref_c, jn, st.side, model) if ok else None,
                     _finite(jz @ rel) if ok else None,
-                    _sigma_of(cov, jz) if ok else None,
+                    _strip_sigma(cov, ref_c, jz, st.side, model) if ok else None,
                     st.status,
                 ]
             )

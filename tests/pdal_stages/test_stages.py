@@ -116,12 +116,33 @@ def slip_run(pair):
 
 
 def test_displacement_summary_equals_core(slip_run):
+    from slipmap.summaries import json_safe
+
     mod, outs, core = slip_run
     md = mod.out_metadata
     summary = json.loads(md["children"][0]["value"])
-    assert summary == json.loads(json.dumps(core.to_dict()))
-    rls = {c["name"]: c["value"] for c in md["children"]}["right_lateral_slip"]
-    assert rls == pytest.approx(0.0181, abs=0.002)
+    units = summary["parameters"].pop("acquisition_unit_sources")
+    assert summary == json_safe(core.to_dict())
+    nodes = {c["name"]: c["value"] for c in md["children"]}
+    assert nodes["right_lateral_slip"] == pytest.approx(0.0181, abs=0.002)
+    # the default model is full; the view has no PointSourceId: no units
+    assert nodes["stochastic_model"] == "full" == summary["parameters"]["stochastic_model"]
+    assert units["units_option"] == "auto"
+    assert units["before"] == {
+        "source": "none",
+        "n_units": 0,
+        "note": "auto: no PointSourceId dimension",
+    }
+    vc = json.loads(nodes["variance_components"])
+    assert vc["model"] == "full"
+    assert vc["sigma_fault_parallel"] == pytest.approx(core.components()["sigma_fault_parallel"])
+    assert vc["sigma_fault_parallel_white"] < vc["sigma_fault_parallel"]
+    for side in ("left", "right"):
+        ref = core.left if side == "left" else core.right
+        vcs = ref.rigid.variance_components
+        assert vc[side]["n_eff"] == pytest.approx(vcs.n_eff)
+        assert vc[side]["white_m"] == pytest.approx(vcs.component("white").sigma_m)
+        assert vc[side]["unit_before_source"] == "off"
 
 
 def test_displacement_per_point_dims(pair, slip_run):
@@ -159,6 +180,137 @@ def test_displacement_multilinestring_wkt():
     assert parse_wkt_lines("LINESTRING(1 2,3 4)")[0].tolist() == [[1, 2], [3, 4]]
 
 
+@pytest.fixture(scope="module")
+def drift_pair():
+    """A small pair with 3 mm of MLS trajectory drift, PointSourceId and GpsTime per epoch."""
+    from slipmap.core.synthetic import SurveyError
+
+    err = SurveyError(kind="mls", level_m=0.003)
+    return make_fault_pair(
+        "mls",
+        seed=11,
+        origin=ORIGIN,
+        vegetation=False,
+        n_buildings=4,
+        extent_m=70.0,
+        right_offset_m=(0.0, -0.0181, 0.0),
+        error_before=err,
+        error_after=err,
+    )
+
+
+def _drift_ins(fp):
+    pts, tag = _epochs(fp)
+    return make_ins(
+        pts,
+        Epoch=tag,
+        PointSourceId=np.r_[fp.source_before, fp.source_after],
+        GpsTime=np.r_[fp.gps_time_before, fp.gps_time_after],
+    )
+
+
+@pytest.mark.parametrize("units", ["auto", "gpstime"])
+def test_displacement_units_equal_core(drift_pair, units):
+    """units auto reads PointSourceId, GpsTime the segments of the GPS times: the slip and
+    the components equal the core's with the same unit arrays."""
+    from slipmap.stochasticmodel import gps_time_segments
+
+    fp = drift_pair
+    args = {"trace": _trace_wkt(fp), "sigma_before": 0.02, "sigma_after": 0.02, "units": units}
+    mod = stage("displacement", {**args, "gps_gap_s": 2.0})
+    call(mod, _drift_ins(fp), DISP)
+    nodes = {c["name"]: c["value"] for c in mod.out_metadata["children"]}
+    if units == "auto":
+        ub, ua = fp.source_before, fp.source_after
+        source = "PointSourceId"
+    else:
+        ub = gps_time_segments(fp.gps_time_before, 2.0)
+        ua = gps_time_segments(fp.gps_time_after, 2.0)
+        source = "GpsTime"
+    acq = json.loads(nodes["acquisition_units"])
+    assert acq["units_option"] == ("auto" if units == "auto" else "GpsTime")
+    assert acq["before"]["source"] == source
+    assert acq["before"]["n_units"] == int(np.unique(ub).size)
+    assert acq["after"]["n_units"] == int(np.unique(ua).size) > 1
+    core = estimate_slip(
+        fp.before.points,
+        fp.after.points,
+        fault_trace([fp.trace_xy]),
+        sigma_before=0.02,
+        sigma_after=0.02,
+        unit_before=ub,
+        unit_after=ua,
+    )
+    summary = json.loads(nodes["summary"])
+    assert summary["relative"]["right_lateral_slip"] == pytest.approx(
+        core.components()["right_lateral_slip"], abs=1e-9
+    )
+    vc = summary["left"]["variance_components"]
+    for name in ("white", "plane", "spatial", "unit_before", "unit_after"):
+        c = vc["components"][name]
+        assert c["source"] in ("estimated", "prior", "fixed", "off")
+        assert c["sigma_m"] is not None and 0.0 <= c["sigma_m"] < 0.05
+    assert vc["components"]["unit_before"]["source"] != "off"  # the units reached the core
+    assert 1.0 <= vc["n_eff"] <= vc["n_planes"]
+
+
+def test_displacement_fixed_components_and_white(drift_pair):
+    fp = drift_pair
+    base = {"trace": _trace_wkt(fp), "sigma_before": 0.02, "sigma_after": 0.02}
+    mod = stage("displacement", {**base, "fixed_components": "plane=0.002, spatial=0"})
+    call(mod, _drift_ins(fp), DISP)
+    summary = json.loads(mod.out_metadata["children"][0]["value"])
+    for side in ("left", "right"):
+        comps = summary[side]["variance_components"]["components"]
+        assert comps["plane"]["source"] == "fixed"
+        assert comps["plane"]["sigma_m"] == pytest.approx(0.002, abs=1e-12)
+    assert summary["parameters"]["components"] == {"plane": 0.002, "spatial": 0.0}
+    mod = stage("displacement", {**base, "stochastic_model": "white", "units": "PointSourceId"})
+    call(mod, _drift_ins(fp), DISP)
+    nodes = {c["name"]: c["value"] for c in mod.out_metadata["children"]}
+    summary = json.loads(nodes["summary"])
+    assert nodes["stochastic_model"] == "white"
+    assert "variance_components" not in summary["left"]
+    assert "sigma_fault_parallel_white" not in summary["relative"]
+    assert json.loads(nodes["acquisition_units"])["before"]["source"] == "none"
+
+
+def test_displacement_stochastic_options_parse():
+    from slipmap.pdal_filters import _stage
+
+    mod = stage("displacement", {})
+    table = mod.options_table()
+    opts = table.parse(
+        {
+            "trace": "LINESTRING (0 0, 1 1)",
+            "units": "pointsourceid",
+            "stochastic_model": "PLANE",
+            "fixed_components": "plane=0.002, spatial_range_m=30",
+        }
+    )
+    assert opts["units"] == "PointSourceId" and opts["stochastic_model"] == "plane"
+    assert opts["gps_gap_s"] == 1.0
+    assert mod._stochastic_options(opts, _stage) == {
+        "stochastic_model": "plane",
+        "components": {"plane": 0.002, "spatial_range_m": 30.0},
+    }
+    opts = table.parse({"trace": "x", "fixed_components": {"unit_after": 0.003}})
+    assert opts["units"] == "auto" and opts["stochastic_model"] == "full"
+    assert mod._stochastic_options(opts, _stage)["components"] == {"unit_after": 0.003}
+    opts = table.parse('{"trace": "x", "fixed_components": "{\\"plane\\": 0.001}"}')
+    assert mod._stochastic_options(opts, _stage)["components"] == {"plane": 0.001}
+    assert mod._stochastic_options(table.parse({"trace": "x"}), _stage)["components"] is None
+
+
+def test_displacement_gps_time_units_need_the_dimension(drift_pair):
+    fp = drift_pair
+    ins = _drift_ins(fp)
+    del ins["GpsTime"]
+    mod = stage("displacement", {"trace": _trace_wkt(fp), "units": "GpsTime"})
+    with pytest.raises(StageError, match="option 'units' GpsTime.*no GpsTime dimension"):
+        call(mod, ins, DISP)
+
+
 # --------------------------------------------------------------------------- bad options
 
 
@@ -179,6 +331,19 @@ def test_displacement_multilinestring_wkt():
         ("displacement", {"trace": "LINESTRING (0 0, 1 1)", "combine": "x"}, "combine"),
         ("displacement", {"trace": "/no/such/file.gpkg"}, "trace"),
         ("displacement", {"trace": "LINESTRING (0 0, 1 1)", "epoch_dimension": "E"}, "E"),
+        ("displacement", {"trace": "LINESTRING (0 0, 1 1)", "stochastic_model": "red"}, "model"),
+        ("displacement", {"trace": "LINESTRING (0 0, 1 1)", "units": "strips"}, "'units'"),
+        ("displacement", {"trace": "LINESTRING (0 0, 1 1)", "gps_gap_s": 0}, "gps_gap_s"),
+        ("displacement", {"trace": "x", "fixed_components": "plane"}, "fixed_components"),
+        ("displacement", {"trace": "x", "fixed_components": [1, 2]}, "fixed_components"),
+        ("displacement", {"trace": "x", "fixed_components": "bogus=1"}, "fixed_.*bogus"),
+        ("displacement", {"trace": "x", "fixed_components": "plane=-1"}, "fixed_.*plane"),
+        ("displacement", {"trace": "x", "fixed_components": {"plane": "a"}}, "fixed_.*plane"),
+        (
+            "displacement",
+            {"trace": "x", "stochastic_model": "white", "fixed_components": "plane=0.001"},
+            "fixed_components.*white",
+        ),
     ],
 )
 def test_bad_options_name_the_option(name, args, match):

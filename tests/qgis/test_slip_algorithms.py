@@ -113,6 +113,14 @@ def _value(v):
     return float("nan") if v is None or (hasattr(v, "isNull") and v.isNull()) else float(v)
 
 
+def _strip_sigma(cov, ref_c, j, side, model):
+    """1σ of j·(strip − left global): the core's strip_profile rule (stochastic models: a
+    left strip's variance minus the left side's, floored at a quarter; otherwise added)."""
+    vl, vr = float(j @ cov @ j), float(j @ ref_c @ j)
+    v = vl + vr if model == "white" or side != "left" else max(vl - vr, 0.25 * vl)
+    return math.sqrt(v)
+
+
 # --------------------------------------------------------------------------- displacement
 
 
@@ -175,12 +183,22 @@ def test_strips_equal_core(tiled_run, core_tiled, epochs):
             continue
         assert f["fault_parallel"] == pytest.approx(st.fault_parallel, abs=1e-9)
         assert f["sigma_fp"] == pytest.approx(st.sigma_fault_parallel, rel=1e-9)
-        rel, cov = st.displacement - ref_d, st.covariance + ref_c
-        jn = np.array([c, -s, 0.0])
+        rel = st.displacement - ref_d
+        jn, jz = np.array([c, -s, 0.0]), np.array([0.0, 0.0, 1.0])
+        # the fault-normal and vertical σ follow the core's rule for the fault-parallel σ
+        # (full model: a left strip's variance minus the left side's, floored; a right
+        # strip's plus it)
+        assert _strip_sigma(st.covariance, ref_c, np.array([s, c, 0.0]), st.side, "full") == (
+            pytest.approx(st.sigma_fault_parallel, rel=1e-9)
+        )
         assert f["fault_normal"] == pytest.approx(jn @ rel, abs=1e-9)
-        assert f["sigma_fn"] == pytest.approx(math.sqrt(jn @ cov @ jn), rel=1e-9)
+        assert f["sigma_fn"] == pytest.approx(
+            _strip_sigma(st.covariance, ref_c, jn, st.side, "full"), rel=1e-9
+        )
         assert f["dz"] == pytest.approx(rel[2], abs=1e-9)
-        assert f["sigma_dz"] == pytest.approx(math.sqrt(cov[2, 2]), rel=1e-9)
+        assert f["sigma_dz"] == pytest.approx(
+            _strip_sigma(st.covariance, ref_c, jz, st.side, "full"), rel=1e-9
+        )
     right = [_value(f["fault_parallel"]) for f in feats if f["side"] == "right"]
     assert np.nanmedian(right) == pytest.approx(-OFFSET, abs=2e-3)
     summary = json.loads((tiled_run[1] / "slip.json").read_text())
@@ -277,6 +295,11 @@ def test_pa_config_per_epoch_equals_core(provider, epochs, tmp_path):
         ({"PA_AFTER": 2, "SIGMA_COLUMNS": "SigmaX,SigmaY"}, ("SIGMA_COLUMNS", "three")),
         ({"PA_AFTER": 2}, ("SigmaX", "columns", "SIGMA_COLUMNS")),
         ({"PA_CONFIG": "/no/such/pa.json"}, ("PA_CONFIG", "JSON")),
+        ({"FIXED_COMPONENTS": "plane"}, ("FIXED_COMPONENTS", "NAME=SIGMA_M")),
+        ({"FIXED_COMPONENTS": "bogus=0.001"}, ("FIXED_COMPONENTS", "bogus", "spatial")),
+        ({"FIXED_COMPONENTS": "plane=-0.001"}, ("FIXED_COMPONENTS", "plane", ">= 0")),
+        ({"FIXED_COMPONENTS": "plane=1,plane=2"}, ("FIXED_COMPONENTS", "twice")),
+        ({"STOCHASTIC_MODEL": 0, "FIXED_COMPONENTS": "plane=0.001"}, ("FIXED_COMPONENTS", "white")),
     ],
 )
 def test_bad_parameters_name_the_parameter(provider, epochs, tmp_path, extra, words):
@@ -568,3 +591,168 @@ def test_point_cloud_layer_id_resolves_to_its_file(provider, monkeypatch, tmp_pa
     assert displacement.cloud_path(alg, {"BEFORE": "/no/such.las"}, "BEFORE", context) == (
         "/no/such.las"
     )
+
+
+# --------------------------------------------------------------------------- stochastic model
+
+
+def test_stochastic_parameters(provider):
+    from qgis.core import QgsApplication, QgsProcessingParameterDefinition
+
+    alg = QgsApplication.processingRegistry().algorithmById("slipmap:displacement")
+    model = alg.parameterDefinition("STOCHASTIC_MODEL")
+    assert model.options() == ["white", "plane", "full"] and model.defaultValue() == 2
+    assert "REML" in model.help() and "white" in model.help()
+    units = alg.parameterDefinition("UNITS")
+    assert units.options() == ["auto", "PointSourceId", "GpsTime", "none"]
+    assert units.defaultValue() == 0
+    advanced = QgsProcessingParameterDefinition.FlagAdvanced
+    for name in ("FIXED_COMPONENTS", "GPS_GAP"):
+        p = alg.parameterDefinition(name)
+        assert p.flags() & advanced, name
+    assert alg.parameterDefinition("FIXED_COMPONENTS").flags() & (
+        QgsProcessingParameterDefinition.FlagOptional
+    )
+    assert alg.parameterDefinition("GPS_GAP").defaultValue() == 1.0
+    outputs = {o.name() for o in alg.outputDefinitions()}
+    assert {
+        "SIGMA_FAULT_PARALLEL_WHITE",
+        "STOCHASTIC_MODEL",
+        "N_EFF_LEFT",
+        "N_EFF_RIGHT",
+        "VARIANCE_COMPONENTS",
+    } <= outputs
+    assert "Stochastic model" in alg.shortHelpString()
+    # one vocabulary with the core
+    from slipmap import stochasticmodel
+    from slipmap.core import stochastic
+
+    assert stochasticmodel.MODELS == stochastic.STOCHASTIC_MODELS
+    assert stochasticmodel.DEFAULT_MODEL == stochastic.DEFAULT_STOCHASTIC_MODEL
+    assert stochasticmodel.COMPONENTS == stochastic.COMPONENT_NAMES + ("spatial_range_m",)
+
+
+@pytest.fixture(scope="module")
+def drift_epochs(tmp_path_factory):
+    """A small pair with 3 mm of MLS drift, PointSourceId and GpsTime written in the LAS."""
+    from slipmap.core.io.las import PointCloud, read_las, write_las
+    from slipmap.core.synthetic import SurveyError, make_fault_pair
+
+    d = tmp_path_factory.mktemp("drift_epochs")
+    err = SurveyError(kind="mls", level_m=0.003)
+    fp = make_fault_pair(
+        "mls",
+        seed=11,
+        origin=ORIGIN,
+        n_buildings=4,
+        extent_m=70.0,
+        right_offset_m=(0.0, -OFFSET, 0.0),
+        error_before=err,
+        error_after=err,
+    )
+    paths, clouds = [], []
+    for name, sc, src, gps in (
+        ("before", fp.before, fp.source_before, fp.gps_time_before),
+        ("after", fp.after, fp.source_after, fp.gps_time_after),
+    ):
+        p = d / f"{name}.las"
+        attrs = {"Classification": sc.classification, "PointSourceId": src, "GpsTime": gps}
+        write_las(p, PointCloud(xyz=sc.points, attributes=attrs, crs=UTM10))
+        paths.append(p)
+        clouds.append(read_las(p))
+    return fp, paths, clouds
+
+
+def test_units_auto_and_components_equal_core(provider, drift_epochs, tmp_path):
+    """UNITS auto reads PointSourceId: the slip, its σ and the white σ equal the core's with
+    the same units; the outputs, JSON, report and planes carry the components."""
+    import processing
+
+    from slipmap.core.displacement import estimate_slip
+    from slipmap.core.fault import fault_trace
+
+    fp, (before, after), (cb, ca) = drift_epochs
+    res = processing.run(
+        "slipmap:displacement",
+        {
+            "BEFORE": str(before),
+            "AFTER": str(after),
+            "FAULT": _fault_layer(fp.trace_xy),
+            "SUMMARY": str(tmp_path / "s.json"),
+            "PLANES": str(tmp_path / "planes.gpkg"),
+        },
+    )
+    kb = np.asarray(cb.attributes["Classification"]) != 2
+    ka = np.asarray(ca.attributes["Classification"]) != 2
+    ub, ua = cb.attributes["PointSourceId"][kb], ca.attributes["PointSourceId"][ka]
+    ref = estimate_slip(
+        cb.xyz[kb], ca.xyz[ka], fault_trace([fp.trace_xy]), unit_before=ub, unit_after=ua
+    )
+    comp = ref.components()
+    assert res["RIGHT_LATERAL_SLIP"] == pytest.approx(comp["right_lateral_slip"], abs=1e-7)
+    assert res["SIGMA_FAULT_PARALLEL"] == pytest.approx(comp["sigma_fault_parallel"], rel=1e-6)
+    assert res["SIGMA_FAULT_PARALLEL_WHITE"] == pytest.approx(
+        comp["sigma_fault_parallel_white"], rel=1e-6
+    )
+    assert res["SIGMA_FAULT_PARALLEL_WHITE"] < res["SIGMA_FAULT_PARALLEL"]
+    assert res["STOCHASTIC_MODEL"] == "full"
+    assert res["N_EFF_LEFT"] == pytest.approx(ref.left.rigid.variance_components.n_eff)
+    assert 1.0 <= res["N_EFF_RIGHT"] <= ref.right.rigid.n_planes
+    vc = json.loads(res["VARIANCE_COMPONENTS"])
+    assert vc["left"]["unit_before_source"] != "off"  # the units reached the core
+    assert vc["right"]["plane_m"] == pytest.approx(
+        ref.right.rigid.variance_components.component("plane").sigma_m
+    )
+    summary = json.loads((tmp_path / "s.json").read_text())  # standard JSON (no NaN)
+    acq = summary["parameters"]["acquisition_unit_sources"]
+    assert acq["before"]["source"] == "PointSourceId"
+    assert acq["before"]["n_units"] == int(np.unique(ub).size) > 1
+    for side in ("left", "right"):
+        comps = summary[side]["variance_components"]["components"]
+        assert set(comps) == {"white", "plane", "spatial", "unit_before", "unit_after"}
+        assert all(math.isfinite(c["sigma_m"]) for c in comps.values())
+    html = open(res["REPORT"], encoding="utf-8").read()
+    assert "Stochastic model" in html and "unit_before" in html
+    assert "Rejected and down-weighted planes" in html
+    layer, feats = _features(res["PLANES"])
+    names = [f.name() for f in layer.fields()]
+    assert {"weight", "w_test", "offset_mm", "misclosure_mm"} <= set(names)
+    weights = [_value(f["weight"]) for f in feats]
+    assert all(0.0 <= w <= 1.0 for w in weights if not math.isnan(w))
+    assert any(not math.isnan(_value(f["offset_mm"])) for f in feats)
+
+
+def test_white_model_and_fixed_components(provider, drift_epochs, tmp_path):
+    import processing
+
+    fp, (before, after), _ = drift_epochs
+    base = {
+        "BEFORE": str(before),
+        "AFTER": str(after),
+        "FAULT": _fault_layer(fp.trace_xy),
+        "PLANES": "TEMPORARY_OUTPUT",
+    }
+    white = processing.run(
+        "slipmap:displacement",
+        {**base, "STOCHASTIC_MODEL": 0, "UNITS": 1, "SUMMARY": str(tmp_path / "w.json")},
+    )
+    assert white["STOCHASTIC_MODEL"] == "white"
+    assert white["SIGMA_FAULT_PARALLEL_WHITE"] == white["SIGMA_FAULT_PARALLEL"]
+    assert white["N_EFF_LEFT"] is None
+    js = json.loads((tmp_path / "w.json").read_text())
+    assert "variance_components" not in js["left"]
+    assert "before" not in js["parameters"]["acquisition_unit_sources"]  # units not read
+    fixed = processing.run(
+        "slipmap:displacement",
+        {
+            **base,
+            "STOCHASTIC_MODEL": 1,
+            "FIXED_COMPONENTS": "plane=0.002",
+            "SUMMARY": str(tmp_path / "f.json"),
+        },
+    )
+    vc = json.loads(fixed["VARIANCE_COMPONENTS"])
+    assert vc["model"] == "plane"
+    for side in ("left", "right"):
+        assert vc[side]["plane_source"] == "fixed"
+        assert vc[side]["plane_m"] == pytest.approx(0.002, abs=1e-12)

@@ -1,0 +1,653 @@
+"""Plane-level stochastic model of planar registration: variance components, REML, robust tests.
+
+Why a plane level. Each matched plane contributes hundreds to tens of thousands of point
+conditions per epoch. Errors that are common to a plane's points — trajectory drift over
+the plane, an ALS strip or TLS setup offset, a surface that is not quite flat, edge effects —
+do not shrink with the number of points. Under a white (independent point) model a plane's
+mean misclosure has a variance ``σ²/n``: a 3 mm common error is then tens of "σ", data
+snooping rejects good planes, and the slip's σ stays ~1/√(points) however large the common
+error (see ``shared/docs/honest-slip.md`` and issue #13).
+
+The model. One random effect per plane ``δ_j`` on its after-epoch conditions (the before
+epoch's common error is absorbed by the plane's free offset ``d_j``, so ``δ_j`` is the
+difference of the two epochs' common errors along the plane normal)::
+
+    Cov(δ) = σ_p² I                                     plane component (nugget)
+           + σ_c² ρ(|c_j − c_k|; a) n_jᵀ n_k              spatial (spherical, range a)
+           + σ_b² Z_b Z_bᵀ + σ_a² Z_a Z_aᵀ               acquisition units, before / after
+
+``ρ`` is the spherical correlation (compact support: zero beyond the range ``a``; positive
+definite in 3-D) of the distance between plane centroids. The spatial part is a smooth 3-D
+error FIELD ``s(c)`` (trajectory drift: each axis a stationary process of variance ``σ_c²``)
+seen along each plane's normal, ``δ_j = n_jᵀ s(c_j)``: hence the factor ``n_jᵀ n_k`` (a
+Schur product of two positive semi-definite matrices, so positive semi-definite). A scalar
+field along the normals would not be physical: the sign of a normal is a convention.
+``Z_e`` (planes × 3·units) holds,
+for plane ``j`` and unit ``u`` of epoch ``e``, the share of the plane's epoch-``e`` points from
+that unit times the plane normal: a random rigid translation ``s_u ~ N(0, σ_e² I₃)`` per unit
+and epoch moves the plane along its normal by ``n_jᵀ s_u``.
+
+Reduction to a plane-level GLS. :mod:`.adjustment` carries ``δ_j`` as an eleventh column of
+the after-epoch rows and eliminates each plane's own parameters (``a, b, c, d`` with the unit
+normal constraint). What is left per plane is a 7x7 block over the motion ``x`` (6) and
+``δ_j``. Its ``δ`` row defines a scalar plane observation ``y_j = q_j / D_j`` with design row
+``h_j = c_j / D_j`` and white variance ``p_j = σ0² / D_j``, and ``T = Σ (G_xx − c cᵀ / D)`` is
+the information on the motion that the plane's tilt gives whatever its offset. Eliminating
+``δ`` with the prior ``δ ~ N(0, Σ_δ)`` gives (Woodbury, with ``V = Σ_δ + diag(p)``)::
+
+    N_red = T / σ0² + H V⁻¹ Hᵀ        r_red = r_T / σ0² + H V⁻¹ y        δ̂ = Σ_δ V⁻¹ (y − Hᵀ x)
+
+With ``Σ_δ = 0`` this is the white model's reduced system exactly.
+
+Estimation of the components (:func:`estimate_components`). The point-level factor ``σ0²``
+is the a-posteriori variance factor of the point residuals once each plane's ``δ̂`` is
+removed (redundancy ≈ points − 5 planes − 6). The plane-level components are estimated by
+restricted maximum likelihood (REML) on the plane misclosures, with the iterated
+MINQUE / Helmert–Förstner fixed point (Fisher scoring of the REML score, Koch 1999 §3.6;
+Förstner 1979): ``F θ = q`` with ``F_ik = ½ tr(Π V_i Π V_k)``, ``q_i = ½ eᵀ Π V_i Π e
+− ½ tr(Π V_i Π V₀)`` and ``Π = V⁻¹ − V⁻¹ X (Xᵀ V⁻¹ X + T)⁻¹ Xᵀ V⁻¹`` (the tilt information
+``T`` enters as prior information on the motion). Negative solutions are set to zero and that
+component removed (the non-negative fixed point). The standard deviation of each component
+is from ``F⁻¹``. The range ``a`` is chosen by profile REML over a geometric grid. Components
+whose Fisher information is nil (e.g. one acquisition unit covering the whole side: its
+error is a translation of the whole side, indistinguishable from the motion) are not
+estimable: they keep the prior the caller gives (default: left out, with a note).
+
+Robustness (:func:`plane_tests`). Plane misclosures are tested with the w-test of correlated
+observations ``w_j = (Π e)_j / √Π_jj`` — against the plane-level spread (the components), not
+the white point noise. Planes beyond ``k_reject`` are rejected; planes between ``k_weight`` and
+``k_reject`` are down-weighted by the IGG-III weight, applied as an inflation of their
+variance in ``V``. The first pass starts from a robust scale (MAD of the misclosures) so that
+gross outliers (renovated buildings) cannot inflate the components and mask themselves.
+
+Cost. Dense ``V`` (planes × planes) with one Cholesky per Gauss–Helmert iteration, and
+REML on at most :data:`VCE_MAX_PLANES` planes (a seeded random subset beyond: the
+components are global scalars, which a thousand planes pin down well).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Dict, Mapping, Optional, Sequence, Tuple
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve, solve_triangular
+from scipy.spatial import cKDTree
+
+from .errors import InvalidParameterError
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "COMPONENT_NAMES",
+    "STOCHASTIC_MODELS",
+    "DEFAULT_STOCHASTIC_MODEL",
+    "Component",
+    "VarianceComponents",
+    "check_components",
+    "check_stochastic_model",
+    "spherical_correlation",
+]
+
+#: the models: "white" = independent point errors only (the study's model, data snooping
+#: against the white σ); "plane" = white + one random offset per plane; "full" = plane +
+#: spatially correlated offsets + rigid errors per acquisition unit (where units are given)
+STOCHASTIC_MODELS = ("white", "plane", "full")
+DEFAULT_STOCHASTIC_MODEL = "full"
+#: plane-level components, in the order of the estimation vector
+COMPONENT_NAMES = ("plane", "spatial", "unit_before", "unit_after")
+VCE_MAX_PLANES = 800  # REML on a seeded random subset of planes beyond this
+MIN_PLANES_VCE = 15  # fewer planes than this cannot pin the plane component down
+K_WEIGHT = 3.0  # |w| above which a plane is down-weighted (IGG-III)
+K_REJECT_MIN = 4.0  # |w| above which a plane is rejected (at least; Bonferroni may raise it)
+GROSS_MAD = 8.0  # first pass: misclosures beyond this many robust std are gross outliers
+VCE_MAX_ITER = 40
+VCE_TOL = 1e-4
+N_RANGES = 6  # spatial ranges tried by profile REML
+_FLOOR = 1e-14  # m², numerical floor of a variance component
+
+
+def check_stochastic_model(model: str, *, option: str = "stochastic_model") -> str:
+    """Return ``model`` if it is one of :data:`STOCHASTIC_MODELS`, else raise."""
+    if model not in STOCHASTIC_MODELS:
+        raise InvalidParameterError(
+            f"{option} must be one of {', '.join(STOCHASTIC_MODELS)}; got {model!r}"
+        )
+    return model
+
+
+def check_components(components: Optional[Mapping[str, float]], *, option: str = "components"):
+    """Validate fixed components ``{name: sigma_m, "spatial_range_m": a}``; returns a dict."""
+    if components is None:
+        return {}
+    out = {}
+    for k, v in dict(components).items():
+        if k not in COMPONENT_NAMES + ("spatial_range_m",):
+            raise InvalidParameterError(
+                f"{option}: unknown component {k!r}; use "
+                f"{', '.join(COMPONENT_NAMES + ('spatial_range_m',))}"
+            )
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            raise InvalidParameterError(f"{option}: {k} must be a number (metres)") from None
+        if not math.isfinite(f) or f < 0 or (k == "spatial_range_m" and f <= 0):
+            raise InvalidParameterError(
+                f"{option}: {k} must be a finite number {'> 0' if k.endswith('_m') else '>= 0'}"
+                f" (metres); got {v!r}"
+            )
+        out[k] = f
+    return out
+
+
+def spherical_correlation(h: np.ndarray, range_m: float) -> np.ndarray:
+    """Spherical correlation ``1 − 1.5 h/a + 0.5 (h/a)³`` for ``h < a``, else 0 (any shape)."""
+    r = np.minimum(np.asarray(h, dtype=np.float64) / range_m, 1.0)
+    return 1.0 - 1.5 * r + 0.5 * r**3
+
+
+@dataclass(frozen=True)
+class Component:
+    """One variance component of the slip's stochastic model.
+
+    Attributes
+    ----------
+    name : str
+        "white" (point noise), "plane", "spatial", "unit_before", "unit_after".
+    sigma_m : float
+        Its standard deviation, metres (for "white": the a-posteriori σ of one point
+        condition of median a-priori σ).
+    sd_m : float
+        Standard deviation of ``sigma_m`` from the REML information (NaN when not estimated).
+    source : str
+        "estimated", "fixed" (given by the caller), "prior" (too few planes / not estimable:
+        a conservative value), or "off" (not part of the model or no data for it).
+    note : str
+        Why a component is a prior or off; empty otherwise.
+    variance_factor : float
+        "white" only: the point-level a-posteriori variance factor σ0² (NaN for others).
+    """
+
+    name: str
+    sigma_m: float
+    sd_m: float = float("nan")
+    source: str = "estimated"
+    note: str = ""
+    variance_factor: float = float("nan")
+
+    def to_dict(self) -> Dict[str, object]:
+        out: Dict[str, object] = {
+            "sigma_m": _num(self.sigma_m),
+            "sd_m": _num(self.sd_m),
+            "source": self.source,
+        }
+        if self.name == "white":
+            out["variance_factor"] = _num(self.variance_factor)
+        if self.note:
+            out["note"] = self.note
+        return out
+
+
+def _num(v: float):
+    return float(v) if v == v and math.isfinite(v) else None
+
+
+@dataclass(frozen=True)
+class VarianceComponents:
+    """The stochastic model of one adjustment and its estimated components.
+
+    Attributes
+    ----------
+    model : str
+        One of :data:`STOCHASTIC_MODELS`.
+    method : str
+        How the components were estimated.
+    components : tuple of Component
+        "white" first, then the plane-level components.
+    spatial_range_m : float
+        Range of the spherical spatial correlation, metres (NaN when off).
+    n_planes : int
+        Planes in the plane-level model.
+    n_eff : float
+        Effective number of independent planes: ``(Σw)²/Σw²`` of the plane weights
+        ``w = 1/diag(V)``, times the ratio of the translation information with the full ``V``
+        to that with its diagonal alone.
+    covariance_white : (3, 3) float64
+        Covariance of the translation under the white model (m², its own variance factor) at
+        the same solution, to show beside the full model's (:attr:`sigma_white_m`).
+    small_sample_factor : float
+        ``ν/(ν − 2)`` with ``ν = max(planes − 6, 3)``, the factor the covariance was scaled by
+        because its components are estimated, not known (1 when every component was fixed).
+    notes : tuple of str
+        Warnings (few planes, components not estimable, REML not converged).
+    """
+
+    model: str
+    method: str
+    components: Tuple[Component, ...]
+    spatial_range_m: float
+    n_planes: int
+    n_eff: float
+    covariance_white: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    small_sample_factor: float = 1.0
+    notes: Tuple[str, ...] = ()
+
+    @property
+    def sigma_white_m(self) -> np.ndarray:
+        """(3,) 1σ of the translation under the white model, metres."""
+        return np.sqrt(np.clip(np.diag(self.covariance_white), 0.0, None))
+
+    def component(self, name: str) -> Optional[Component]:
+        for c in self.components:
+            if c.name == name:
+                return c
+        return None
+
+    def fixed(self) -> Dict[str, float]:
+        """The plane-level components as ``components=`` for another adjustment (e.g. a strip
+        or window of this side): every estimated, fixed or prior component and the range."""
+        out = {
+            c.name: float(c.sigma_m)
+            for c in self.components
+            if c.name in COMPONENT_NAMES and c.source != "off" and c.sigma_m == c.sigma_m
+        }
+        if self.spatial_range_m == self.spatial_range_m and "spatial" in out:
+            out["spatial_range_m"] = float(self.spatial_range_m)
+        return out
+
+    def to_dict(self) -> Dict[str, object]:
+        return {
+            "model": self.model,
+            "method": self.method,
+            "components": {c.name: c.to_dict() for c in self.components},
+            "spatial_range_m": _num(self.spatial_range_m),
+            "n_planes": int(self.n_planes),
+            "n_eff": _num(self.n_eff),
+            "sigma_white_m": [_num(v) for v in self.sigma_white_m],
+            "small_sample_factor": _num(self.small_sample_factor),
+            "notes": list(self.notes),
+        }
+
+
+# --------------------------------------------------------------------------- the model
+
+
+@dataclass
+class PlaneModel:
+    """Structure of ``Σ_δ`` for a set of planes (everything but the component values).
+
+    centroids : (b, 3) plane centroids (centred frame, metres); normals : (b, 3) unit normals;
+    shares_before, shares_after : (b, U) shares of each plane's points per unit, or None.
+    """
+
+    centroids: np.ndarray
+    normals: np.ndarray
+    shares_before: Optional[np.ndarray] = None
+    shares_after: Optional[np.ndarray] = None
+
+    def unit_basis(self, which: str, idx: np.ndarray) -> Optional[np.ndarray]:
+        """(k, 3U) ``Z`` of the planes ``idx`` for unit component ``which``."""
+        s = self.shares_before if which == "unit_before" else self.shares_after
+        if s is None:
+            return None
+        sub = s[idx]
+        keep = sub.sum(axis=0) > 0
+        if not np.any(keep):
+            return None
+        sub = sub[:, keep]
+        z = sub[:, :, None] * self.normals[idx][:, None, :]
+        return z.reshape(idx.size, -1)
+
+    def n_units(self, which: str, idx: np.ndarray) -> int:
+        s = self.shares_before if which == "unit_before" else self.shares_after
+        return 0 if s is None else int(np.count_nonzero(s[idx].sum(axis=0) > 0))
+
+    def bases(self, idx: np.ndarray, range_m: float) -> Dict[str, np.ndarray]:
+        """Dense (k, k) ``V_i`` of each plane-level component for planes ``idx``."""
+        k = idx.size
+        out = {"plane": np.eye(k)}
+        if range_m == range_m and range_m > 0:
+            c = self.centroids[idx]
+            h = np.sqrt(((c[:, None, :] - c[None, :, :]) ** 2).sum(-1))
+            nrm = self.normals[idx]
+            out["spatial"] = spherical_correlation(h, range_m) * (nrm @ nrm.T)
+        for name in ("unit_before", "unit_after"):
+            z = self.unit_basis(name, idx)
+            if z is not None:
+                out[name] = z @ z.T
+        return out
+
+
+def covariance(
+    model: PlaneModel,
+    idx: np.ndarray,
+    p: np.ndarray,
+    theta: Mapping[str, float],
+    range_m: float,
+    inflation: Optional[np.ndarray] = None,
+) -> np.ndarray:
+    """``V = diag(p (+ inflation)) + Σ θ_i V_i`` (k, k), m²; ``theta`` holds variances (m²)."""
+    v = np.zeros((idx.size, idx.size))
+    bases = model.bases(idx, range_m if theta.get("spatial", 0.0) > 0 else float("nan"))
+    for name, b in bases.items():
+        t = float(theta.get(name, 0.0))
+        if t > 0:
+            v += t * b
+    v[np.diag_indices_from(v)] += p + (0.0 if inflation is None else inflation)
+    return v
+
+
+# --------------------------------------------------------------------------- GLS algebra
+
+
+class PlaneGLS:
+    """Cholesky of ``V`` and the REML pieces for misclosures ``e`` (k,), design ``x`` (k, 6),
+    tilt information ``t`` (6, 6)."""
+
+    def __init__(self, v: np.ndarray, x: np.ndarray, t: np.ndarray):
+        self.v = v
+        self.x = x
+        self.t = t
+        self.cf = cho_factor(v, lower=True, check_finite=False)
+        self.vix = cho_solve(self.cf, x, check_finite=False)  # V^-1 X
+        self.m = x.T @ self.vix + t  # X^T V^-1 X + T
+        self.m = 0.5 * (self.m + self.m.T)
+
+    def logdet_v(self) -> float:
+        return 2.0 * float(np.log(np.diag(self.cf[0])).sum())
+
+    def vinv(self) -> np.ndarray:
+        li = solve_triangular(self.cf[0], np.eye(self.v.shape[0]), lower=True, check_finite=False)
+        return li.T @ li
+
+    def pi_matrix(self) -> np.ndarray:
+        """Π = V⁻¹ − V⁻¹X M⁻¹ XᵀV⁻¹ (k, k)."""
+        mi = np.linalg.pinv(self.m, hermitian=True)
+        return self.vinv() - self.vix @ mi @ self.vix.T
+
+    def pi_e(self, e: np.ndarray) -> np.ndarray:
+        vie = cho_solve(self.cf, e, check_finite=False)
+        beta = np.linalg.lstsq(self.m, self.x.T @ vie, rcond=None)[0]
+        return vie - self.vix @ beta
+
+    def reml(self, e: np.ndarray) -> float:
+        """−2 × restricted log-likelihood (up to a constant)."""
+        sign, ld_m = np.linalg.slogdet(self.m)
+        if sign <= 0:
+            ld_m = float(np.log(np.abs(np.linalg.eigvalsh(self.m)).clip(1e-300)).sum())
+        return self.logdet_v() + ld_m + float(e @ self.pi_e(e))
+
+
+# --------------------------------------------------------------------------- estimation
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Result of :func:`estimate_components`: variances (m²), their sds, sources, range."""
+
+    theta: Dict[str, float]
+    sd: Dict[str, float]
+    source: Dict[str, str]
+    notes: Dict[str, str]
+    range_m: float
+    iterations: int
+    converged: bool
+
+
+def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation):
+    """Iterated MINQUE / Fisher scoring of REML for the free components; returns (theta, sd,
+    iterations, converged, -2 log L)."""
+    names = [n for n in bases if n not in fixed]
+    theta = dict(theta0)
+    converged = False
+    it = 0
+    sd = {n: float("nan") for n in names}
+    v0 = np.diag(p + (0.0 if inflation is None else inflation))
+    for n, t_fixed in fixed.items():
+        if n in bases and t_fixed > 0:
+            v0 = v0 + t_fixed * bases[n]
+    free = list(names)
+    gls = None
+    it = 0
+    while it < VCE_MAX_ITER:
+        it += 1
+        v = v0.copy()
+        for n in free:
+            v += max(theta.get(n, 0.0), 0.0) * bases[n]
+        gls = PlaneGLS(v, x, t)
+        if not free:
+            converged = True
+            break
+        pi = gls.pi_matrix()
+        pie = pi @ e
+        piv = {n: pi @ bases[n] for n in free}
+        f = np.empty((len(free), len(free)))
+        q = np.empty(len(free))
+        piv0 = pi @ v0
+        for a, na in enumerate(free):
+            q[a] = 0.5 * float(pie @ bases[na] @ pie) - 0.5 * float(np.sum(piv[na] * piv0.T))
+            for c in range(a, len(free)):
+                f[a, c] = f[c, a] = 0.5 * float(np.sum(piv[na] * piv[free[c]].T))
+        try:
+            new = np.linalg.solve(f, q)
+        except np.linalg.LinAlgError:
+            new = np.linalg.lstsq(f, q, rcond=None)[0]
+        old = np.array([theta.get(n, 0.0) for n in free])
+        if np.any(new < 0):
+            # the non-negative fixed point: drop the most negative component and redo
+            worst = free[int(np.argmin(new))]
+            theta[worst] = 0.0
+            free.remove(worst)
+            sd[worst] = float("nan")
+            continue
+        for n, val in zip(free, new):
+            theta[n] = float(val)
+        try:
+            cov = np.linalg.inv(f)
+            for a, n in enumerate(free):
+                sd[n] = float(math.sqrt(max(cov[a, a], 0.0)))
+        except np.linalg.LinAlgError:
+            pass
+        scale = max(float(np.max(np.abs(new))), float(np.median(p)) if p.size else 0.0, _FLOOR)
+        if float(np.max(np.abs(new - old))) <= VCE_TOL * scale:
+            converged = True
+            break
+    # final likelihood at the estimate
+    v = v0.copy()
+    for n in free:
+        v += max(theta.get(n, 0.0), 0.0) * bases[n]
+    gls = PlaneGLS(v, x, t)
+    return theta, sd, it, converged, gls.reml(e)
+
+
+def _candidate_ranges(c: np.ndarray) -> np.ndarray:
+    """Geometric grid of ranges from 3x the median nearest-plane distance to the extent."""
+    if c.shape[0] < 3:
+        return np.zeros(0)
+    dist, _ = cKDTree(c).query(c, k=2)
+    nn = float(np.median(dist[:, 1]))
+    ext = 2.0 * float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())  # rotation-invariant
+    lo = max(3.0 * nn, 1.0)
+    hi = max(ext, 2.0 * lo)
+    return np.geomspace(lo, hi, N_RANGES)
+
+
+def estimate_components(
+    model: PlaneModel,
+    idx: np.ndarray,
+    e: np.ndarray,
+    x: np.ndarray,
+    t: np.ndarray,
+    p: np.ndarray,
+    *,
+    which: Sequence[str],
+    fixed: Mapping[str, float],
+    inflation: Optional[np.ndarray] = None,
+    seed: int = 0,
+) -> Estimate:
+    """REML estimates of the plane-level components ``which`` (see the module docstring).
+
+    Parameters
+    ----------
+    model : PlaneModel
+    idx : (k,) int
+        Planes in the model (indices into ``model``).
+    e : (k,) float64
+        Plane misclosures at the solution (m).
+    x : (k, 6) float64
+        Their design rows.
+    t : (6, 6) float64
+        Tilt information on the motion (scaled by the point-level factor).
+    p : (k,) float64
+        White variance of each misclosure (m², scaled).
+    which : sequence of str
+        Components to include (subset of :data:`COMPONENT_NAMES`).
+    fixed : mapping
+        Components given by the caller: ``{name: sigma_m}`` and optionally ``spatial_range_m``.
+    inflation : (k,) float64, optional
+        Extra variance of down-weighted planes (m²).
+    seed : int
+        Seed of the subset drawn when there are more than :data:`VCE_MAX_PLANES` planes.
+    """
+    k = idx.size
+    sub = np.arange(k)
+    if k > VCE_MAX_PLANES:
+        sub = np.sort(np.random.default_rng(seed).choice(k, VCE_MAX_PLANES, replace=False))
+    es, xs, ps = e[sub], x[sub], p[sub]
+    inf_s = None if inflation is None else inflation[sub]
+    ts = t * (sub.size / k)  # the subset's share of the tilt information
+    ids = idx[sub]
+    theta: Dict[str, float] = {}
+    source: Dict[str, str] = {}
+    notes: Dict[str, str] = {}
+    fixed_var = {n: float(fixed[n]) ** 2 for n in COMPONENT_NAMES if n in fixed}
+    for n, v in fixed_var.items():
+        theta[n] = v
+        source[n] = "fixed"
+    free = [n for n in which if n not in fixed_var]
+    # units: estimable only with at least two units holding planes
+    for n in ("unit_before", "unit_after"):
+        if n in free and model.n_units(n, ids) < 2:
+            free.remove(n)
+            theta[n] = 0.0
+            source[n] = "off"
+            nu = model.n_units(n, ids)
+            notes[n] = (
+                "no acquisition units given"
+                if nu == 0
+                else "one acquisition unit holds every plane: its rigid error moves the whole "
+                "side like the motion and cannot be estimated; give it as a fixed component"
+            )
+    few = k < MIN_PLANES_VCE
+    start = max(float(np.mean(es * es) - np.mean(ps)), float(np.median(ps)), _FLOOR)
+    theta0 = {n: start / max(len(free), 1) for n in free}
+    ranges = [float("nan")]
+    if "spatial" in free or "spatial" in fixed_var:
+        if "spatial_range_m" in fixed:
+            ranges = [float(fixed["spatial_range_m"])]
+        else:
+            ranges = list(_candidate_ranges(model.centroids[ids]))
+            if not ranges:
+                free = [n for n in free if n != "spatial"]
+                theta["spatial"], source["spatial"] = 0.0, "off"
+                notes["spatial"] = "fewer than 3 planes"
+                ranges = [float("nan")]
+    best = None
+    for rng_m in ranges:
+        bases = model.bases(ids, rng_m)
+        bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
+        fx = {n: fixed_var[n] for n in fixed_var if n in bases}
+        th, sd, it, conv, m2ll = _reml_fixed_point(es, xs, ts, ps, bases, theta0, fx, inf_s)
+        log.debug("REML range %.3g m: %s, -2logL %.6g", rng_m, th, m2ll)
+        if best is None or m2ll < best[4]:
+            best = (th, sd, it, conv, m2ll, rng_m)
+    th, sd, it, conv, _, rng_m = best
+    sds = {}
+    for n in free:
+        theta[n] = float(th.get(n, 0.0))
+        source[n] = "estimated"
+        sds[n] = float(sd.get(n, float("nan")))
+    if few and "plane" in free:
+        # a handful of planes cannot pin the plane component down: take the conservative
+        # mean square misclosure (white part included) unless REML found more
+        prior = max(float(np.mean(es * es)), theta.get("plane", 0.0))
+        theta["plane"] = prior
+        source["plane"] = "prior"
+        notes["plane"] = (
+            f"only {k} planes (< {MIN_PLANES_VCE}): the plane component is the mean square "
+            "misclosure (conservative), not an estimate"
+        )
+    if not conv:
+        notes["reml"] = f"REML did not converge in {VCE_MAX_ITER} iterations"
+    for n in COMPONENT_NAMES:
+        theta.setdefault(n, 0.0)
+        source.setdefault(n, "off")
+    if theta.get("spatial", 0.0) <= 0:
+        rng_m = float("nan") if "spatial_range_m" not in fixed else rng_m
+    return Estimate(theta, sds, source, notes, float(rng_m), int(it), bool(conv))
+
+
+# --------------------------------------------------------------------------- robustness
+
+
+def igg3_weight(w: np.ndarray, k0: float, k1: float) -> np.ndarray:
+    """IGG-III weights of standardised residuals: 1 below ``k0``, 0 beyond ``k1``, and
+    ``(k0/|w|) ((k1 − |w|)/(k1 − k0))²`` between (Yang 1994)."""
+    a = np.abs(w)
+    out = np.ones_like(a)
+    mid = (a > k0) & (a <= k1)
+    out[mid] = (k0 / a[mid]) * ((k1 - a[mid]) / (k1 - k0)) ** 2
+    out[a > k1] = 0.0
+    return out
+
+
+def w_statistics(gls: PlaneGLS, e: np.ndarray) -> np.ndarray:
+    """w-test statistics of correlated plane misclosures ``(Π e)_j / √Π_jj`` (k,)."""
+    pi = gls.pi_matrix()
+    d = np.sqrt(np.clip(np.diag(pi), 1e-300, None))
+    return (pi @ e) / d
+
+
+def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_gross: float):
+    """Gross outliers before any component is estimated: an IRLS fit of the misclosures with
+    a MAD scale (diagonal model ``p + s²``) and the planes whose standardised residual exceeds
+    ``k_gross``. Returns (bool (k,) gross, robust plane sigma s (m))."""
+    k = e.size
+    w = np.ones(k)
+    r = e.copy()
+    s2 = 0.0
+    for _ in range(10):
+        med = np.median(r)
+        mad = 1.4826 * float(np.median(np.abs(r - med)))
+        s2 = max(mad * mad - float(np.median(p)), 0.0)
+        z = r / np.sqrt(p + s2 + _FLOOR)
+        w = igg3_weight(z, 2.0, max(k_gross, 3.0))
+        wt = w / (p + s2 + _FLOOR)
+        m = x.T @ (wt[:, None] * x) + t
+        beta = np.linalg.lstsq(m, x.T @ (wt * e), rcond=None)[0]
+        r_new = e - x @ beta
+        if np.allclose(r_new, r, atol=1e-12, rtol=0):
+            r = r_new
+            break
+        r = r_new
+    med = np.median(r)
+    mad = 1.4826 * float(np.median(np.abs(r - med)))
+    s2 = max(mad * mad - float(np.median(p)), 0.0)
+    z = r / np.sqrt(p + s2 + _FLOOR)
+    return np.abs(z) > k_gross, math.sqrt(s2)
+
+
+def effective_planes(v: np.ndarray, x: np.ndarray) -> float:
+    """``n_eff``: ``(Σw)²/Σw²`` of ``w = 1/diag V`` times the ratio of the translation
+    information with the full ``V`` to that with its diagonal alone."""
+    dv = np.diag(v)
+    w = 1.0 / dv
+    n_w = float(w.sum() ** 2 / (w * w).sum())
+    xt = x[:, 3:]
+    info_full = xt.T @ cho_solve(cho_factor(v, lower=True), xt)
+    info_diag = xt.T @ (w[:, None] * xt)
+    tr_d = float(np.trace(info_diag))
+    ratio = float(np.trace(info_full)) / tr_d if tr_d > 0 else 1.0
+    return float(min(n_w * min(ratio, 1.0), v.shape[0]))

@@ -1,0 +1,292 @@
+"""Stochastic-model options of the slip → core keywords, for the adapters (CLI, PDAL, QGIS).
+
+One vocabulary for the three faces (as :mod:`.pointaccuracy` is for the point accuracy):
+
+=====================  ==========================================================
+option                 meaning
+=====================  ==========================================================
+stochastic model       white | plane | full (:data:`MODELS`, help in :data:`MODEL_HELP`)
+acquisition units      auto | PointSourceId | GpsTime | none (:data:`UNIT_SOURCES`): the
+                       unit of each point for the "full" model's rigid error per unit
+GPS gap                seconds: GpsTime segments are split where consecutive (sorted)
+                       times jump by more than this (separate passes / scans)
+fixed components       ``name=sigma_m`` for ``plane``, ``spatial``, ``unit_before``,
+                       ``unit_after`` (σ in metres) and ``spatial_range_m`` (metres), held
+                       fixed instead of estimated (:func:`parse_fixed_components`)
+=====================  ==========================================================
+
+The science (REML, robust tests) is :mod:`.core.stochastic`; nothing here imports scipy, so the
+faces can build their parameters without it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any, Dict, Mapping, Optional, Sequence, Union
+
+import numpy as np
+
+from .core.errors import InputDataError, InvalidParameterError
+
+log = logging.getLogger("slipmap.stochastic")
+
+#: the models, as :data:`slipmap.core.stochastic.STOCHASTIC_MODELS` (a test checks they agree)
+MODELS = ("white", "plane", "full")
+DEFAULT_MODEL = "full"
+MODEL_HELP = {
+    "white": "independent point errors only (the study's model): the σ shrinks as "
+    "1/√points and ignores errors shared by a plane's points, so it is too small for real "
+    "surveys",
+    "plane": "white noise plus one random offset per plane (errors common to a plane's "
+    "points: trajectory error over it, a surface that is not quite flat)",
+    "full": "plane plus spatially correlated plane offsets and a rigid error per acquisition "
+    "unit (ALS strip, MLS pass, TLS setup; see the units option); components estimated by "
+    "REML (default)",
+}
+#: plane-level components that can be held fixed (σ in metres) and the spatial range (metres),
+#: as :data:`slipmap.core.stochastic.COMPONENT_NAMES` + ``spatial_range_m``
+COMPONENTS = ("plane", "spatial", "unit_before", "unit_after", "spatial_range_m")
+#: where the acquisition unit of each point comes from
+UNIT_SOURCES = ("auto", "PointSourceId", "GpsTime", "none")
+UNITS_HELP = (
+    "acquisition unit of each point, for the full model's rigid error per unit: auto = "
+    "PointSourceId when an epoch has more than one distinct value, else none; PointSourceId "
+    "(ALS strips, MLS passes); GpsTime = segments of the sorted GPS times split at jumps "
+    "larger than the GPS gap (separate passes or scans); none. Before and after are read "
+    "separately"
+)
+DEFAULT_GPS_GAP_S = 1.0
+#: more units than this in one epoch is suspicious (a GPS gap below the scan's own gaps)
+MANY_UNITS = 1000
+
+
+# --------------------------------------------------------------------------- fixed components
+
+
+def _component_value(name: str, text: Any) -> float:
+    try:
+        v = float(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number (metres), got {text!r}") from None
+    if not math.isfinite(v) or v < 0 or (name == "spatial_range_m" and v <= 0):
+        bound = "> 0" if name == "spatial_range_m" else ">= 0"
+        raise ValueError(f"{name} must be a finite number {bound} (metres), got {text!r}")
+    return v
+
+
+def _items(value: Any):
+    """(name, value) pairs of a mapping, a "name=value,…" text or a sequence of such texts."""
+    if isinstance(value, Mapping):
+        return [(str(k).strip(), v) for k, v in value.items()]
+    texts = [value] if isinstance(value, str) else list(value)
+    pairs = []
+    for text in texts:
+        if not isinstance(text, str):
+            raise ValueError(f"expected NAME=SIGMA_M, got {text!r}")
+        for part in text.split(","):
+            part = part.strip()
+            if not part:
+                continue
+            name, sep, num = part.partition("=")
+            if not sep or not name.strip() or not num.strip():
+                raise ValueError(f"expected NAME=SIGMA_M (e.g. plane=0.002), got {part!r}")
+            pairs.append((name.strip(), num.strip()))
+    return pairs
+
+
+def fixed_components_or_error(value: Any) -> Dict[str, float]:
+    """:func:`parse_fixed_components` raising a bare ``ValueError`` (for argparse types)."""
+    out: Dict[str, float] = {}
+    for name, num in _items(value):
+        if name not in COMPONENTS:
+            raise ValueError(f"unknown component {name!r}; use {', '.join(COMPONENTS)}")
+        if name in out:
+            raise ValueError(f"{name} is given twice")
+        out[name] = _component_value(name, num)
+    return out
+
+
+def parse_fixed_components(
+    value: Union[None, str, Mapping[str, Any], Sequence[str]], *, option: str
+) -> Dict[str, float]:
+    """Fixed plane-level components ``{name: metres}`` from a mapping, a ``"name=value,…"``
+    text, or a sequence of such texts (e.g. a repeated command-line option).
+
+    ``None`` or an empty text gives ``{}``. Names are :data:`COMPONENTS`; σ values must be
+    finite and >= 0, ``spatial_range_m`` > 0. Errors are :class:`InvalidParameterError`
+    messages starting with ``option`` (the name of the option as the user's face spells it).
+    """
+    if value is None or (isinstance(value, str) and not value.strip()):
+        return {}
+    try:
+        return fixed_components_or_error(value)
+    except ValueError as exc:
+        raise InvalidParameterError(f"{option}: {exc}") from None
+
+
+# --------------------------------------------------------------------------- units
+
+
+@dataclass(frozen=True)
+class EpochUnits:
+    """The acquisition units of one epoch's selected points.
+
+    Attributes
+    ----------
+    units : (N,) int or None
+        Unit id of each point (None: no units).
+    source : str
+        "PointSourceId", "GpsTime" or "none".
+    n_units : int
+        Distinct units (0 for none).
+    note : str
+        Why (e.g. "auto: PointSourceId has a single value").
+    """
+
+    units: Optional[np.ndarray]
+    source: str
+    n_units: int
+    note: str = ""
+
+    def to_dict(self) -> Dict[str, Any]:
+        out: Dict[str, Any] = {"source": self.source, "n_units": int(self.n_units)}
+        if self.note:
+            out["note"] = self.note
+        return out
+
+
+def gps_time_segments(gps_time: Any, gap_s: float = DEFAULT_GPS_GAP_S) -> np.ndarray:
+    """(N,) int64 segment of each point: the sorted GPS times are split where consecutive
+    times jump by more than ``gap_s`` seconds; segments are numbered from 0 in time order.
+
+    Raises :class:`InvalidParameterError` for a gap that is not > 0 and
+    :class:`InputDataError` for non-finite times.
+    """
+    gap = float(gap_s)
+    if not (math.isfinite(gap) and gap > 0):
+        raise InvalidParameterError(f"the GPS gap must be > 0 seconds, got {gap_s!r}")
+    t = np.asarray(gps_time, dtype=np.float64).ravel()
+    if t.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if not np.all(np.isfinite(t)):
+        raise InputDataError("GpsTime holds NaN or infinite values")
+    s = np.sort(t)
+    starts = s[1:][np.diff(s) > gap]  # first time of every segment but the first
+    return np.searchsorted(starts, t, side="right").astype(np.int64)
+
+
+def epoch_units(
+    how: str,
+    *,
+    point_source_id: Any = None,
+    gps_time: Any = None,
+    gap_s: float = DEFAULT_GPS_GAP_S,
+    epoch: str = "epoch",
+    option: str = "units",
+    spelling: Optional[Mapping[str, str]] = None,
+) -> EpochUnits:
+    """The acquisition units of one epoch from its (selected points') dimensions.
+
+    Parameters
+    ----------
+    how : str
+        One of :data:`UNIT_SOURCES`.
+    point_source_id, gps_time : (N,) array or None
+        The epoch's dimensions for the points that enter the adjustment; None when the
+        file or view has no such dimension.
+    gap_s : float
+        GPS gap for ``how="GpsTime"`` (seconds).
+    epoch : str
+        The epoch as messages name it (e.g. "before epoch (a.laz)").
+    option, spelling
+        The option's name and its values as the user's face spells them (e.g. "--units",
+        ``{"GpsTime": "gps-time"}``), for messages.
+
+    Raises
+    ------
+    InvalidParameterError
+        An explicit source whose dimension the epoch lacks (the message names ``option``).
+    """
+    spell = dict(spelling or {})
+    name = lambda src: spell.get(src, src)  # noqa: E731
+    if how not in UNIT_SOURCES:
+        raise InvalidParameterError(
+            f"{option} must be one of {', '.join(name(s) for s in UNIT_SOURCES)}; got {how!r}"
+        )
+    if how == "none":
+        return EpochUnits(None, "none", 0, "no units asked for")
+    others = ", ".join(name(s) for s in UNIT_SOURCES if s != how)
+    if how == "auto":
+        if point_source_id is None:
+            return EpochUnits(None, "none", 0, "auto: no PointSourceId dimension")
+        ids = np.asarray(point_source_id)
+        n = int(np.unique(ids).size)
+        if n <= 1:
+            return EpochUnits(None, "none", 0, "auto: PointSourceId has a single value")
+        return EpochUnits(ids, "PointSourceId", n, "auto")
+    dim, values = (
+        ("PointSourceId", point_source_id) if how == "PointSourceId" else ("GpsTime", gps_time)
+    )
+    if values is None:
+        why = " (LAS point formats 0 and 2 have none)" if dim == "GpsTime" else ""
+        raise InvalidParameterError(
+            f"{option} {name(how)}: the {epoch} has no {dim} dimension{why}; use {option} {others}"
+        )
+    if dim == "PointSourceId":
+        units = np.asarray(values)
+        if not np.issubdtype(units.dtype, np.integer):
+            if not np.all(np.isfinite(units)) or np.any(units != np.round(units)):
+                raise InvalidParameterError(
+                    f"{option} {name(how)}: the {epoch}'s PointSourceId holds non-integer values"
+                )
+            units = units.astype(np.int64)
+    else:
+        try:
+            units = gps_time_segments(values, gap_s)
+        except InputDataError as exc:
+            raise InputDataError(f"{option} {name(how)}: the {epoch}'s {exc}") from None
+    n = int(np.unique(units).size)
+    note = ""
+    if n <= 1:
+        note = "a single unit: its rigid error cannot be told from the motion (not estimable)"
+        log.warning("%s: %s %s gives %s", epoch, option, name(how), note)
+    elif n > MANY_UNITS:
+        log.warning(
+            "%s: %d acquisition units from %s; is the GPS gap (%g s) below the gaps within "
+            "one pass?",
+            epoch,
+            n,
+            dim,
+            gap_s,
+        )
+    return EpochUnits(units, dim, n, note)
+
+
+def cloud_units(
+    cloud, sel, how: str, *, gap_s: float, epoch: str, option: str, spelling=None
+) -> EpochUnits:
+    """:func:`epoch_units` of a :class:`~slipmap.core.io.las.PointCloud`'s selected points
+    (``sel``: indices or mask), logging which units were used."""
+    attrs = cloud.attributes
+    psid = attrs.get("PointSourceId")
+    gps = attrs.get("GpsTime")
+    res = epoch_units(
+        how,
+        point_source_id=None if psid is None else np.asarray(psid)[sel],
+        gps_time=None if gps is None else np.asarray(gps)[sel],
+        gap_s=gap_s,
+        epoch=epoch,
+        option=option,
+        spelling=spelling,
+    )
+    log_units(epoch, res)
+    return res
+
+
+def log_units(epoch: str, units: EpochUnits) -> None:
+    if units.units is None:
+        log.info("%s: no acquisition units (%s)", epoch, units.note)
+    else:
+        log.info("%s: %d acquisition unit(s) from %s", epoch, units.n_units, units.source)
