@@ -145,7 +145,7 @@ def one(case_name: str, seed: int, peer: bool) -> dict:
         try:
             out = icp_relative(
                 fp.before.points, fp.after.points, sides[0], sides[1],
-                pts[sides[0] < 0].mean(axis=0), pts[sides[0] > 0].mean(axis=0), voxel_m=0.1,
+                pts[sides[0] < 0].mean(axis=0), pts[sides[0] > 0].mean(axis=0), voxel_m=VOXEL_M,
             )  # fmt: skip
             row["icp"] = {"err": _errors(np.asarray(out["relative"]), truth, strike),
                           "s": round(time.perf_counter() - t0, 2)}  # fmt: skip
@@ -162,6 +162,9 @@ def _errors(rel, truth, strike):
     return [float(jp @ d), float(jn @ d), float(d[2])]
 
 
+#: the peer works on a 0.25 m voxel grid: 4-6x faster, and on these scenes as accurate (its
+#: error is the survey error, not the point noise; checked on white-noise scenes: 0.1-0.8 mm)
+VOXEL_M = 0.25
 WEAK_SIGMA_M = 0.005  # pairs whose full-model σ∥ exceeds this: geometry too weak to compare
 
 

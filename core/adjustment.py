@@ -72,6 +72,9 @@ MAX_REJECTED_SHARE = 0.5  # data snooping stops before rejecting more than this 
 NCOL = 11  # row columns: motion (6), plane a b c d (4), plane offset δ (1)
 _XD = [0, 1, 2, 3, 4, 5, 10]  # motion and δ columns
 MAX_OUTER = 8  # stochastic models: rounds of (adjustment, components, plane tests)
+#: with too few planes to estimate it, the plane component is at least this share of the
+#: a-priori point σ (a survey-level error of a quarter of the point noise: 5 mm for 2 cm MLS)
+PRIOR_PLANE_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -998,6 +1001,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     it, converged = 0, False
     gross_done = not reject
     notes: List[str] = []
+    apri = _apriori_condition_variance(epochs, active, cfg.model.normals, b)
     for outer in range(MAX_OUTER):
         it, converged, nred, qxx = _iterate(
             state, epochs, active, b, functools.partial(_with_cfg, step, cfg if outer else None),
@@ -1037,7 +1041,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
                     continue
         est = _stoch.estimate_components(
             cfg.model, idx, e, xd, t_s, p_s, which=which, fixed=fixed,
-            inflation=cfg.inflation[idx],
+            inflation=cfg.inflation[idx], prior_plane_var=PRIOR_PLANE_SHARE**2 * apri,
         )  # fmt: skip
         cfg.theta = {n: v for n, v in est.theta.items() if v > 0}
         cfg.range_m = est.range_m
@@ -1112,17 +1116,20 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     return (state, active, it, converged, nred, qxx, cfg.s0sq, red_d, n_cond, cov), stoch
 
 
+def _apriori_condition_variance(epochs, active, normals, b) -> float:
+    """Median over planes of the a-priori variance of one point condition (m²)."""
+    s_w = []
+    for ep in epochs:
+        s0, _, _ = ep.weighted(normals, b)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_w.append((ep.count / s0)[active])
+    return float(np.median(np.concatenate(s_w))) if active.any() else float("nan")
+
+
 def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, notes, weights,
                        wstat, delta, mis, b, small=1.0):  # fmt: skip
     """VarianceComponents and the per-plane diagnostics of a stochastic adjustment."""
-    # the a-priori variance of a typical condition: median over planes of count / sum w
-    s_w = []
-    for ep in epochs:
-        bvec = cfg.model.normals
-        s0, _, _ = ep.weighted(bvec, b)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s_w.append((ep.count / s0)[active])
-    apri = float(np.median(np.concatenate(s_w))) if active.any() else float("nan")
+    apri = _apriori_condition_variance(epochs, active, cfg.model.normals, b)
     comps = [
         _stoch.Component(
             "white",

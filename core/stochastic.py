@@ -61,8 +61,10 @@ variance in ``V``. The first pass starts from a robust scale (MAD of the misclos
 gross outliers (renovated buildings) cannot inflate the components and mask themselves.
 
 Cost. Dense ``V`` (planes × planes) with one Cholesky per Gauss–Helmert iteration, and
-REML on at most :data:`VCE_MAX_PLANES` planes (a seeded random subset beyond: the
-components are global scalars, which a thousand planes pin down well).
+REML on at most :data:`VCE_MAX_PLANES` planes (beyond, the spatially contiguous block of
+planes nearest to a seeded random plane: the components are global scalars, which a few
+hundred planes pin down well, and a contiguous block keeps the close plane pairs that the
+spatial component is seen in).
 """
 
 from __future__ import annotations
@@ -98,7 +100,7 @@ STOCHASTIC_MODELS = ("white", "plane", "full")
 DEFAULT_STOCHASTIC_MODEL = "full"
 #: plane-level components, in the order of the estimation vector
 COMPONENT_NAMES = ("plane", "spatial", "unit_before", "unit_after")
-VCE_MAX_PLANES = 800  # REML on a seeded random subset of planes beyond this
+VCE_MAX_PLANES = 400  # REML on a spatially contiguous subset of planes beyond this
 MIN_PLANES_VCE = 15  # fewer planes than this cannot pin the plane component down
 K_WEIGHT = 3.0  # |w| above which a plane is down-weighted (IGG-III)
 K_REJECT_MIN = 4.0  # |w| above which a plane is rejected (at least; Bonferroni may raise it)
@@ -486,6 +488,7 @@ def estimate_components(
     fixed: Mapping[str, float],
     inflation: Optional[np.ndarray] = None,
     seed: int = 0,
+    prior_plane_var: float = 0.0,
 ) -> Estimate:
     """REML estimates of the plane-level components ``which`` (see the module docstring).
 
@@ -510,11 +513,20 @@ def estimate_components(
         Extra variance of down-weighted planes (m²).
     seed : int
         Seed of the subset drawn when there are more than :data:`VCE_MAX_PLANES` planes.
+    prior_plane_var : float
+        Floor of the plane component (m²) when there are fewer than :data:`MIN_PLANES_VCE`
+        planes (then nothing is estimated reliably: with 6 or fewer planes the motion absorbs
+        every misclosure).
     """
     k = idx.size
     sub = np.arange(k)
     if k > VCE_MAX_PLANES:
-        sub = np.sort(np.random.default_rng(seed).choice(k, VCE_MAX_PLANES, replace=False))
+        # a spatially contiguous block (the planes nearest to a seeded random plane) keeps
+        # the local density of plane pairs that the spatial component is estimated from
+        c = model.centroids[idx]
+        start = int(np.random.default_rng(seed).integers(k))
+        _, near = cKDTree(c).query(c[start], k=VCE_MAX_PLANES)
+        sub = np.sort(np.asarray(near))
     es, xs, ps = e[sub], x[sub], p[sub]
     inf_s = None if inflation is None else inflation[sub]
     ts = t * (sub.size / k)  # the subset's share of the tilt information
@@ -571,13 +583,15 @@ def estimate_components(
         sds[n] = float(sd.get(n, float("nan")))
     if few and "plane" in free:
         # a handful of planes cannot pin the plane component down: take the conservative
-        # mean square misclosure (white part included) unless REML found more
-        prior = max(float(np.mean(es * es)), theta.get("plane", 0.0))
+        # mean square misclosure (white part included) or the caller's floor, unless REML
+        # found more
+        prior = max(float(np.mean(es * es)), theta.get("plane", 0.0), float(prior_plane_var))
         theta["plane"] = prior
         source["plane"] = "prior"
         notes["plane"] = (
-            f"only {k} planes (< {MIN_PLANES_VCE}): the plane component is the mean square "
-            "misclosure (conservative), not an estimate"
+            f"only {k} planes (< {MIN_PLANES_VCE}): the plane component is a conservative "
+            "prior (the mean square misclosure, at least a quarter of the point noise), not an "
+            "estimate"
         )
     if not conv:
         notes["reml"] = f"REML did not converge in {VCE_MAX_ITER} iterations"
