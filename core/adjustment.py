@@ -53,7 +53,6 @@ from statistics import NormalDist
 from typing import List, Optional, Tuple
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
 
 from . import stochastic as _stoch
 from .errors import InputDataError, InvalidParameterError
@@ -574,6 +573,12 @@ class _StochasticConfig:
             self.model, idx, self.s0sq * p, self.theta, self.range_m, self.inflation[idx]
         )
 
+    def v_operator(self, active: np.ndarray, p: np.ndarray) -> _stoch.CovarianceOperator:
+        idx = np.flatnonzero(active)
+        return _stoch.CovarianceOperator(
+            self.model, idx, self.s0sq * p, self.theta, self.range_m, self.inflation[idx]
+        )
+
 
 def _step_block(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
     """One Gauss-Helmert step by plane-block elimination. Returns (d1 (6,), d2 (k, 4), Nred,
@@ -586,9 +591,8 @@ def _step_block(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
         delta = np.zeros(g_mat.shape[0])
     else:
         pl = _PlaneLevel(g_mat, g_vec)
-        v = cfg.v_matrix(active, pl.p)
-        cf = cho_factor(v, lower=True, check_finite=False)
-        vih = cho_solve(cf, pl.h, check_finite=False)
+        vop = cfg.v_operator(active, pl.p)
+        vih = vop.solve(pl.h)
         nred = pl.t / cfg.s0sq + pl.h.T @ vih
         rred = pl.rt / cfg.s0sq + vih.T @ pl.y
     nred = 0.5 * (nred + nred.T)
@@ -597,7 +601,7 @@ def _step_block(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
     d1 = qxx @ rred
     if cfg is not None:
         e = pl.y - pl.h @ d1
-        delta = e - cfg.s0sq * pl.p * cho_solve(cf, e, check_finite=False)  # Σ_δ V⁻¹ e
+        delta = e - cfg.s0sq * pl.p * vop.solve(e)  # Σ_δ V⁻¹ e
     d2 = x[:, :4, 7] - np.einsum("kij,j->ki", x[:, :4, :6], d1) - x[:, :4, 6] * delta[:, None]
     state.delta = np.zeros(b)
     state.delta[active] = delta
@@ -1047,9 +1051,15 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         cfg.range_m = est.range_m
         changed = False
         if reject and idx.size > min_planes:
-            v = cfg.v_matrix(active, pl.p)
-            gls = _stoch.PlaneGLS(v - np.diag(cfg.inflation[idx]), xd, t_s)
-            w = _stoch.w_statistics(gls, e)
+            infl0 = cfg.inflation.copy()
+            cfg.inflation[:] = 0.0  # the test is against the model, not the last weights
+            vop = cfg.v_operator(active, pl.p)
+            cfg.inflation = infl0
+            if vop.sparse:
+                w = _stoch.w_statistics_large(vop, e, xd, t_s)
+            else:
+                w = _stoch.w_statistics(_stoch.PlaneGLS(vop.v, xd, t_s), e)
+            dv = vop.diag()
             wstat[:] = np.nan
             wstat[idx] = w
             bad = np.flatnonzero(np.abs(w) > k_reject)
@@ -1074,7 +1084,6 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             if not changed:
                 wt = _stoch.igg3_weight(w, _stoch.K_WEIGHT, k_reject)
                 new_infl = np.zeros(b)
-                dv = np.diag(v) - cfg.inflation[idx]
                 with np.errstate(divide="ignore"):
                     new_infl[idx] = np.where(wt > 0, dv * (1.0 / np.maximum(wt, 1e-12) - 1.0), 0)
                 old_w = weights[idx].copy()
@@ -1099,8 +1108,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     g_mat, g_vec, _ = _reduce(state, epochs, active, b)
     pl = _PlaneLevel(g_mat, g_vec)
     idx = np.flatnonzero(active)
-    v = cfg.v_matrix(active, pl.p)
-    n_eff = _stoch.effective_planes(v, pl.h)
+    n_eff = _stoch.effective_planes(cfg.v_operator(active, pl.p), pl.h)
     # estimated components make the GLS covariance optimistic (Kackar & Harville 1984): the
     # slip then follows about a t distribution with the plane-level residual degrees of
     # freedom nu = planes - 6, whose variance is nu / (nu - 2) times the normal one

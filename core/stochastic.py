@@ -100,6 +100,7 @@ STOCHASTIC_MODELS = ("white", "plane", "full")
 DEFAULT_STOCHASTIC_MODEL = "full"
 #: plane-level components, in the order of the estimation vector
 COMPONENT_NAMES = ("plane", "spatial", "unit_before", "unit_after")
+DENSE_MAX_PLANES = 1500  # dense V (Cholesky) up to this many planes, sparse + Woodbury beyond
 VCE_MAX_PLANES = 400  # REML on a spatially contiguous subset of planes beyond this
 MIN_PLANES_VCE = 15  # fewer planes than this cannot pin the plane component down
 K_WEIGHT = 3.0  # |w| above which a plane is down-weighted (IGG-III)
@@ -341,6 +342,73 @@ def covariance(
     return v
 
 
+class CovarianceOperator:
+    """``V`` of the planes ``idx`` with solves, dense or sparse.
+
+    Up to :data:`DENSE_MAX_PLANES` planes ``V`` is dense and factored by Cholesky. Beyond,
+    nothing of size planes² is formed: the spherical correlation is zero past its range, so
+    ``A = diag(p + θ_p + inflation) + θ_c ρ∘NNᵀ`` is sparse (pairs within the range from a
+    k-d tree) and factored by SuperLU, and the unit components, of rank 3 × units, enter by
+    the Woodbury identity ``V⁻¹ = A⁻¹ − A⁻¹ Z (Λ⁻¹ + Zᵀ A⁻¹ Z)⁻¹ Zᵀ A⁻¹``. Cost and memory
+    are then linear in planes for a fixed density of planes within the range.
+    """
+
+    def __init__(self, model, idx, p, theta, range_m, inflation=None):
+        self.k = idx.size
+        diag = p + (0.0 if inflation is None else inflation) + float(theta.get("plane", 0.0))
+        self.sparse = self.k > DENSE_MAX_PLANES
+        self._diag_v = diag.copy()
+        if not self.sparse:
+            self.v = covariance(model, idx, p, theta, range_m, inflation)
+            self.cf = cho_factor(self.v, lower=True, check_finite=False)
+            self._diag_v = np.diag(self.v).copy()
+            return
+        from scipy.sparse import coo_matrix, diags
+        from scipy.sparse.linalg import splu
+
+        a = diags(diag).tocsc()
+        tc = float(theta.get("spatial", 0.0))
+        if tc > 0 and range_m == range_m:
+            c = model.centroids[idx]
+            tree = cKDTree(c)
+            pairs = tree.sparse_distance_matrix(tree, range_m, output_type="coo_matrix")
+            off = pairs.row != pairs.col  # the diagonal is added once, below
+            i, j, h = pairs.row[off], pairs.col[off], pairs.data[off]
+            nrm = model.normals[idx]
+            val = tc * spherical_correlation(h, range_m) * np.einsum("ij,ij->i", nrm[i], nrm[j])
+            a = a + coo_matrix((val, (i, j)), shape=(self.k, self.k)).tocsc()
+            a = a + diags(np.full(self.k, tc)).tocsc()
+            self._diag_v += tc
+        self.lu = splu(a.tocsc(), permc_spec="MMD_AT_PLUS_A")
+        zs, lam = [], []
+        for name in ("unit_before", "unit_after"):
+            t = float(theta.get(name, 0.0))
+            z = model.unit_basis(name, idx) if t > 0 else None
+            if z is not None:
+                zs.append(z)
+                lam.append(np.full(z.shape[1], t))
+                self._diag_v += t * (z * z).sum(axis=1)
+        self.z = np.hstack(zs) if zs else None
+        if self.z is not None:
+            lam = np.concatenate(lam)
+            self.aiz = self.lu.solve(self.z)
+            cap = np.diag(1.0 / lam) + self.z.T @ self.aiz
+            self.cap = cho_factor(0.5 * (cap + cap.T), lower=True, check_finite=False)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``V⁻¹ b`` for (k,) or (k, m) ``b``."""
+        if not self.sparse:
+            return cho_solve(self.cf, b, check_finite=False)
+        aib = self.lu.solve(np.asarray(b, dtype=np.float64))
+        if self.z is None:
+            return aib
+        return aib - self.aiz @ cho_solve(self.cap, self.z.T @ aib, check_finite=False)
+
+    def diag(self) -> np.ndarray:
+        """(k,) diagonal of ``V``."""
+        return self._diag_v
+
+
 # --------------------------------------------------------------------------- GLS algebra
 
 
@@ -464,13 +532,17 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation):
     return theta, sd, it, converged, gls.reml(e)
 
 
-def _candidate_ranges(c: np.ndarray) -> np.ndarray:
-    """Geometric grid of ranges from 3x the median nearest-plane distance to the extent."""
+def _candidate_ranges(c: np.ndarray, subset: bool = False) -> np.ndarray:
+    """Geometric grid of ranges from 3x the median nearest-plane distance to the extent (to
+    the radius of a contiguous subset of a larger problem: beyond it the subset says little,
+    and the sparse covariance of the whole problem would fill in)."""
     if c.shape[0] < 3:
         return np.zeros(0)
     dist, _ = cKDTree(c).query(c, k=2)
     nn = float(np.median(dist[:, 1]))
     ext = 2.0 * float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())  # rotation-invariant
+    if subset:
+        ext *= 0.5
     lo = max(3.0 * nn, 1.0)
     hi = max(ext, 2.0 * lo)
     return np.geomspace(lo, hi, N_RANGES)
@@ -560,7 +632,7 @@ def estimate_components(
         if "spatial_range_m" in fixed:
             ranges = [float(fixed["spatial_range_m"])]
         else:
-            ranges = list(_candidate_ranges(model.centroids[ids]))
+            ranges = list(_candidate_ranges(model.centroids[ids], subset=sub.size < k))
             if not ranges:
                 free = [n for n in free if n != "spatial"]
                 theta["spatial"], source["spatial"] = 0.0, "off"
@@ -624,6 +696,18 @@ def w_statistics(gls: PlaneGLS, e: np.ndarray) -> np.ndarray:
     return (pi @ e) / d
 
 
+def w_statistics_large(op: CovarianceOperator, e: np.ndarray, x: np.ndarray, t: np.ndarray):
+    """Beyond :data:`DENSE_MAX_PLANES`: ``(Π e)_j`` from solves, standardised with
+    ``diag(Π) ≈ 1 / diag(V)`` (exact for uncorrelated planes; the fixed-effect projection and
+    the correlation are left out of the scale)."""
+    vix = op.solve(x)
+    vie = op.solve(e)
+    m = x.T @ vix + t
+    beta = np.linalg.lstsq(0.5 * (m + m.T), x.T @ vie, rcond=None)[0]
+    pie = vie - vix @ beta
+    return pie * np.sqrt(op.diag())
+
+
 def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_gross: float):
     """Gross outliers before any component is estimated: an IRLS fit of the misclosures with
     a MAD scale (diagonal model ``p + s²``) and the planes whose standardised residual exceeds
@@ -653,15 +737,15 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
     return np.abs(z) > k_gross, math.sqrt(s2)
 
 
-def effective_planes(v: np.ndarray, x: np.ndarray) -> float:
+def effective_planes(v: CovarianceOperator, x: np.ndarray) -> float:
     """``n_eff``: ``(Σw)²/Σw²`` of ``w = 1/diag V`` times the ratio of the translation
     information with the full ``V`` to that with its diagonal alone."""
-    dv = np.diag(v)
+    dv = v.diag()
     w = 1.0 / dv
     n_w = float(w.sum() ** 2 / (w * w).sum())
     xt = x[:, 3:]
-    info_full = xt.T @ cho_solve(cho_factor(v, lower=True), xt)
+    info_full = xt.T @ v.solve(xt)
     info_diag = xt.T @ (w[:, None] * xt)
     tr_d = float(np.trace(info_diag))
     ratio = float(np.trace(info_full)) / tr_d if tr_d > 0 else 1.0
-    return float(min(n_w * min(ratio, 1.0), v.shape[0]))
+    return float(min(n_w * min(ratio, 1.0), v.k))

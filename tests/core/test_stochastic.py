@@ -284,3 +284,25 @@ def test_components_dict_is_json_ready():
     assert d["n_eff"] > 1
     fixed = r.variance_components.fixed()
     assert "plane" in fixed
+
+
+@pytest.mark.parametrize(
+    "comps",
+    [
+        {"plane": 0.002, "spatial": 0.003, "spatial_range_m": 40.0},
+        {"plane": 0.001, "spatial": 0.002, "spatial_range_m": 25.0, "unit_after": 0.003},
+    ],
+)
+def test_sparse_woodbury_equals_dense(monkeypatch, comps):
+    """The large-problem path (sparse spherical correlation, SuperLU, Woodbury for the units)
+    gives the dense Cholesky path's solution and covariance."""
+    b, lb, ub, a, la, ua = make_pair(7, n_planes=40, n_per=60, plane_sigma=0.003, n_units=4)
+    kw = dict(sigma_before=0.02, sigma_after=0.02, centre=OFFSET, stochastic_model="full",
+              components=comps, unit_after=ua, reject_outlier_planes=False)  # fmt: skip
+    r1 = adjust_rigid(b, lb, a, la, **kw)
+    monkeypatch.setattr(sto, "DENSE_MAX_PLANES", 5)
+    r2 = adjust_rigid(b, lb, a, la, **kw)
+    np.testing.assert_allclose(r2.params, r1.params, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(r2.covariance, r1.covariance, rtol=1e-8, atol=1e-16)
+    np.testing.assert_allclose(r2.plane_offset_m, r1.plane_offset_m, rtol=0, atol=1e-10)
+    assert r2.variance_components.n_eff == pytest.approx(r1.variance_components.n_eff, rel=1e-8)
