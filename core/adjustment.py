@@ -71,6 +71,7 @@ MAX_REJECTED_SHARE = 0.5  # data snooping stops before rejecting more than this 
 NCOL = 11  # row columns: motion (6), plane a b c d (4), plane offset δ (1)
 _XD = [0, 1, 2, 3, 4, 5, 10]  # motion and δ columns
 MAX_OUTER = 8  # stochastic models: rounds of (adjustment, components, plane tests)
+MAX_GROSS_PASSES = 5  # robust-start passes (gross outliers) before the components
 #: with too few planes to estimate it, the plane component is at least this share of the
 #: a-priori point σ (a survey-level error of a quarter of the point noise: 5 mm for 2 cm MLS)
 PRIOR_PLANE_SHARE = 0.25
@@ -1004,9 +1005,10 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     s0d = s0w = float("nan")
     it, converged = 0, False
     gross_done = not reject
+    gross_passes = 0
     notes: List[str] = []
     apri = _apriori_condition_variance(epochs, active, cfg.model.normals, b)
-    for outer in range(MAX_OUTER):
+    for outer in range(MAX_OUTER + MAX_GROSS_PASSES):
         it, converged, nred, qxx = _iterate(
             state, epochs, active, b, functools.partial(_with_cfg, step, cfg if outer else None),
             max_iterations, tolerance, progress, 0.05 + 0.1 * outer / MAX_OUTER,
@@ -1022,10 +1024,16 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         p_s = cfg.s0sq * pl.p
         cfg.model.normals[idx] = state.n[idx] / np.linalg.norm(state.n[idx], axis=1)[:, None]
         if not gross_done:
-            gross_done = True
+            # repeated until a pass finds none: several gross outliers mask each other in a
+            # fit that still holds them
+            gross_passes += 1
+            gross_done = gross_passes >= MAX_GROSS_PASSES
             gross, s_rob = _stoch.robust_start(e, xd, t_s, p_s, _stoch.GROSS_MAD)
             drop = [int(idx[j]) for j in np.flatnonzero(gross)]
-            drop = drop[: max(0, int(MAX_REJECTED_SHARE * n_start) - 1)]
+            n_out = sum(1 for r in rejected if r[1].startswith("outlier"))
+            drop = drop[: max(0, int(MAX_REJECTED_SHARE * n_start) - n_out)]
+            if not drop:
+                gross_done = True
             if drop:
                 trial = active.copy()
                 trial[drop] = False
@@ -1037,7 +1045,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
                         zj = abs(e[jj] - np.median(e)) / math.sqrt(p_s[jj] + s_rob**2)
                         rejected.append((j, f"outlier: after-before mean misclosure "
                                          f"{mis[j]:+.4f} m, {zj:.1f} robust std from the "
-                                         f"plane-level spread (first pass, robust plane σ "
+                                         f"plane-level spread (robust start, plane σ "
                                          f"{s_rob * 1000:.2f} mm)"))  # fmt: skip
                         weights[j] = 0.0
                     active = trial
