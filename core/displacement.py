@@ -916,10 +916,15 @@ class StripResult:
         global displacement (``slip.left.displacement``), metres; negative = dextral for
         the right side. NaN when skipped.
     sigma_fault_parallel : float
-        1σ of ``fault_parallel`` (strip and global left covariances added, i.e. treated as
-        independent), metres.
+        1σ of ``fault_parallel``: ``√(jᵀ C_rel j)`` with ``C_rel`` =
+        :attr:`relative_covariance`, metres.
     status : str
         "ok" or "skipped: <reason>".
+    relative_covariance : (3, 3) float64
+        Covariance of ``displacement`` minus the left side's global displacement, m²: the
+        two added (white model, right-side strips), or for a left-side strip under a
+        stochastic model ``C_strip − C_left`` floored at ``C_strip / 4`` (see
+        :func:`strip_profile`). NaN when skipped.
     """
 
     side: str
@@ -932,6 +937,7 @@ class StripResult:
     fault_parallel: float
     sigma_fault_parallel: float
     status: str
+    relative_covariance: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
 
 
 def _strike_vector(slip: SlipResult) -> np.ndarray:
@@ -983,7 +989,7 @@ def strip_profile(
         estimate is the efficient one, so its covariance with any other unbiased estimate
         from the same data is its own covariance; Hausman 1978), floored at a quarter of
         ``C_strip``; a right-side strip adds ``C_left``. With the white model both add, as
-        the study did.
+        the study did. :attr:`StripResult.relative_covariance` holds the whole matrix.
 
     Returns
     -------
@@ -1029,9 +1035,11 @@ def strip_profile(
                 raise InputDataError("non-finite covariance")
         except InputDataError as exc:
             d, c, status = nan3, nan33, f"skipped: {exc}"
+        rel_c = np.full((3, 3), np.nan)
         if status == "ok":
+            rel_c = _difference_covariance(c, ref_c, side, stochastic)
             fp = float(j @ (d - ref_d))
-            sfp = float(math.sqrt(_difference_variance(j, c, ref_c, side, stochastic)))
+            sfp = float(math.sqrt(max(float(j @ rel_c @ j), 0.0)))
         else:
             fp = sfp = float("nan")
         out.append(
@@ -1046,6 +1054,7 @@ def strip_profile(
                 fault_parallel=fp,
                 sigma_fault_parallel=sfp,
                 status=status,
+                relative_covariance=rel_c,
             )
         )
         report(progress, (n + 1) / len(jobs), f"strip {n + 1}/{len(jobs)}")
@@ -1064,12 +1073,15 @@ def _fixed_of(slip: SlipResult, side: str) -> Optional[dict]:
     return vc.fixed() if vc is not None else None
 
 
-def _difference_variance(j, c, ref_c, side: str, stochastic: dict) -> float:
-    """Variance of ``j · (d_local − d_left_global)`` (see :func:`strip_profile`)."""
-    vl, vr = float(j @ c @ j), float(j @ ref_c @ j)
+def _difference_covariance(c, ref_c, side: str, stochastic: dict) -> np.ndarray:
+    """(3, 3) covariance of ``d_local − d_left_global`` (see :func:`strip_profile`): the sum,
+    or for a left-side strip or window under a stochastic model ``C − C_left`` floored at
+    ``C / 4`` (in the positive semi-definite order: ``C/4 + max(¾ C − C_left, 0)``)."""
     if stochastic["stochastic_model"] == "white" or side != "left":
-        return max(vl + vr, 0.0)
-    return max(vl - vr, 0.25 * vl)
+        return c + ref_c
+    ev, evec = np.linalg.eigh(0.75 * c - ref_c)
+    out = 0.25 * c + (evec * np.clip(ev, 0.0, None)) @ evec.T
+    return 0.5 * (out + out.T)
 
 
 def _mask(idx: np.ndarray, n: int) -> np.ndarray:
@@ -1286,13 +1298,10 @@ def window_field(
             cov = res.displacement_covariance
             if not np.all(np.isfinite(cov)):
                 continue
-            side_name = SIDES[(s + 1) // 2]
+            rel_c = _difference_covariance(cov, ref_c, SIDES[(s + 1) // 2], stochastic)
             out["dx"][r, c], out["dy"][r, c], out["dz"][r, c] = disp
-            for key, ax in (("sigma_dx", 0), ("sigma_dy", 1)):
-                e = np.eye(3)[ax]
-                out[key][r, c] = math.sqrt(
-                    _difference_variance(e, cov, ref_c, side_name, stochastic)
-                )
+            out["sigma_dx"][r, c] = math.sqrt(max(rel_c[0, 0], 0.0))
+            out["sigma_dy"][r, c] = math.sqrt(max(rel_c[1, 1], 0.0))
     log.info(
         "window field: %d x %d windows of %g m stepped %g m, %d adjusted",
         ny,

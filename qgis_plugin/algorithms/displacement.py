@@ -189,19 +189,6 @@ def _with_help(param, text):
     return param
 
 
-def _strip_sigma(cov, ref_c, j, side, model):
-    """1σ of ``j @ (d_strip − d_left)``, as the core's ``strip_profile`` takes it for the
-    fault-parallel σ: a left strip shares its data with the left side's global estimate, so
-    under a stochastic model the variances subtract (floored at a quarter of the strip's);
-    otherwise they add (the study's rule)."""
-    vl, vr = float(j @ cov @ j), float(j @ ref_c @ j)
-    if model == "white" or side != "left":
-        v = vl + vr
-    else:
-        v = max(vl - vr, 0.25 * vl)
-    return math.sqrt(max(v, 0.0)) if math.isfinite(v) else None
-
-
 def _fields(spec):
     fields = QgsFields()
     for name, kind in spec:
@@ -754,11 +741,10 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             return None
         s, c = math.sin(result.strike_rad), math.cos(result.strike_rad)
         jn, jz = np.array([c, -s, 0.0]), np.array([0.0, 0.0, 1.0])
-        ref_d, ref_c = result.left.displacement, result.left.displacement_covariance
-        model = run["payload"]["parameters"].get("stochastic_model", "white")
+        ref_d = result.left.displacement
         for st in run["strips"]:
             ok = st.status == "ok"
-            rel, cov = st.displacement - ref_d, st.covariance
+            rel = st.displacement - ref_d
             xy = point_at_chainage(run["trace"], st.along_centre_m)
             f = QgsFeature(fields)
             f.setGeometry(QgsGeometry(QgsPoint(float(xy[0]), float(xy[1]))))
@@ -772,9 +758,9 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
                     _finite(st.fault_parallel),
                     _finite(st.sigma_fault_parallel),
                     _finite(jn @ rel) if ok else None,
-                    _strip_sigma(cov, ref_c, jn, st.side, model) if ok else None,
+                    _sigma_of(st.relative_covariance, jn) if ok else None,
                     _finite(jz @ rel) if ok else None,
-                    _strip_sigma(cov, ref_c, jz, st.side, model) if ok else None,
+                    _sigma_of(st.relative_covariance, jz) if ok else None,
                     st.status,
                 ]
             )

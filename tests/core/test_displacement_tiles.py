@@ -135,6 +135,19 @@ def test_strip_profile_shows_a_step(pair, trace):
     assert abs(north.fault_parallel + 0.03) < 3 * north.sigma_fault_parallel + 0.0015
     assert south.fault_parallel - north.fault_parallel > 0.015
     _check_strips(strips, lambda s: -0.01 if s.along_end_m <= 100.0 else -0.03, 0.0015)
+    # full model: a right strip adds the left side's covariance; a left strip shares its data
+    # with the left global estimate, C_strip - C_left, at least C_strip / 4 (PSD order)
+    ref = slip.left.displacement_covariance
+    for st in strips:
+        if st.status != "ok":
+            continue
+        rc = st.relative_covariance
+        if st.side == "right":
+            np.testing.assert_allclose(rc, st.covariance + ref, rtol=1e-12)
+        else:
+            tol = -1e-12 * np.abs(st.covariance).max()
+            assert np.linalg.eigvalsh(rc - 0.25 * st.covariance).min() >= tol
+            assert np.linalg.eigvalsh(st.covariance - rc).min() >= tol
 
 
 def test_window_field(pair, trace, plain):

@@ -113,14 +113,6 @@ def _value(v):
     return float("nan") if v is None or (hasattr(v, "isNull") and v.isNull()) else float(v)
 
 
-def _strip_sigma(cov, ref_c, j, side, model):
-    """1σ of j·(strip − left global): the core's strip_profile rule (stochastic models: a
-    left strip's variance minus the left side's, floored at a quarter; otherwise added)."""
-    vl, vr = float(j @ cov @ j), float(j @ ref_c @ j)
-    v = vl + vr if model == "white" or side != "left" else max(vl - vr, 0.25 * vl)
-    return math.sqrt(v)
-
-
 # --------------------------------------------------------------------------- displacement
 
 
@@ -169,7 +161,7 @@ def test_strips_equal_core(tiled_run, core_tiled, epochs):
     assert len(feats) == len(strips)
     got = {(f["side"], round(f["along_start_m"], 6)): f for f in feats}
     c, s = math.cos(result.strike_rad), math.sin(result.strike_rad)
-    ref_d, ref_c = result.left.displacement, result.left.displacement_covariance
+    ref_d = result.left.displacement
     trace = fault_trace([fp.trace_xy])
     for st in strips:
         f = got[(st.side, round(st.along_start_m, 6))]
@@ -184,21 +176,18 @@ def test_strips_equal_core(tiled_run, core_tiled, epochs):
         assert f["fault_parallel"] == pytest.approx(st.fault_parallel, abs=1e-9)
         assert f["sigma_fp"] == pytest.approx(st.sigma_fault_parallel, rel=1e-9)
         rel = st.displacement - ref_d
-        jn, jz = np.array([c, -s, 0.0]), np.array([0.0, 0.0, 1.0])
-        # the fault-normal and vertical σ follow the core's rule for the fault-parallel σ
-        # (full model: a left strip's variance minus the left side's, floored; a right
-        # strip's plus it)
-        assert _strip_sigma(st.covariance, ref_c, np.array([s, c, 0.0]), st.side, "full") == (
-            pytest.approx(st.sigma_fault_parallel, rel=1e-9)
+        jn = np.array([c, -s, 0.0])
+        # the fault-normal and vertical σ come from the core's relative covariance (full
+        # model: a left strip's covariance minus the left side's, floored; a right strip's
+        # plus it), whose fault-parallel σ is the core's
+        rc = st.relative_covariance
+        assert np.sqrt(np.array([s, c, 0.0]) @ rc @ np.array([s, c, 0.0])) == pytest.approx(
+            st.sigma_fault_parallel, rel=1e-9
         )
         assert f["fault_normal"] == pytest.approx(jn @ rel, abs=1e-9)
-        assert f["sigma_fn"] == pytest.approx(
-            _strip_sigma(st.covariance, ref_c, jn, st.side, "full"), rel=1e-9
-        )
+        assert f["sigma_fn"] == pytest.approx(np.sqrt(jn @ rc @ jn), rel=1e-9)
         assert f["dz"] == pytest.approx(rel[2], abs=1e-9)
-        assert f["sigma_dz"] == pytest.approx(
-            _strip_sigma(st.covariance, ref_c, jz, st.side, "full"), rel=1e-9
-        )
+        assert f["sigma_dz"] == pytest.approx(np.sqrt(rc[2, 2]), rel=1e-9)
     right = [_value(f["fault_parallel"]) for f in feats if f["side"] == "right"]
     assert np.nanmedian(right) == pytest.approx(-OFFSET, abs=2e-3)
     summary = json.loads((tiled_run[1] / "slip.json").read_text())
