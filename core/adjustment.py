@@ -1021,6 +1021,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         e = pl.y  # at convergence the increment is nil: y is the misclosure residual
         xd = pl.h
         t_s = pl.t / cfg.s0sq
+        rt_s = pl.rt / cfg.s0sq
         p_s = cfg.s0sq * pl.p
         cfg.model.normals[idx] = state.n[idx] / np.linalg.norm(state.n[idx], axis=1)[:, None]
         if not gross_done:
@@ -1028,7 +1029,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             # fit that still holds them
             gross_passes += 1
             gross_done = gross_passes >= MAX_GROSS_PASSES
-            gross, s_rob = _stoch.robust_start(e, xd, t_s, p_s, _stoch.GROSS_MAD)
+            gross, s_rob = _stoch.robust_start(e, xd, t_s, p_s, _stoch.GROSS_MAD, rt_s)
             drop = [int(idx[j]) for j in np.flatnonzero(gross)]
             n_out = sum(1 for r in rejected if r[1].startswith("outlier"))
             drop = drop[: max(0, int(MAX_REJECTED_SHARE * n_start) - n_out)]
@@ -1053,7 +1054,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
                     continue
         est = _stoch.estimate_components(
             cfg.model, idx, e, xd, t_s, p_s, which=which, fixed=fixed,
-            inflation=cfg.inflation[idx], prior_plane_var=PRIOR_PLANE_SHARE**2 * apri,
+            inflation=cfg.inflation[idx], prior_plane_var=PRIOR_PLANE_SHARE**2 * apri, rt=rt_s,
         )  # fmt: skip
         cfg.theta = {n: v for n, v in est.theta.items() if v > 0}
         cfg.range_m = est.range_m
@@ -1064,9 +1065,9 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             vop = cfg.v_operator(active, pl.p)
             cfg.inflation = infl0
             if vop.sparse:
-                w = _stoch.w_statistics_large(vop, e, xd, t_s)
+                w = _stoch.w_statistics_large(vop, e, xd, t_s, rt_s)
             else:
-                w = _stoch.w_statistics(_stoch.PlaneGLS(vop.v, xd, t_s), e)
+                w = _stoch.w_statistics(_stoch.PlaneGLS(vop.v, xd, t_s, rt_s), e)
             dv = vop.diag()
             wstat[:] = np.nan
             wstat[idx] = w

@@ -414,12 +414,15 @@ class CovarianceOperator:
 
 class PlaneGLS:
     """Cholesky of ``V`` and the REML pieces for misclosures ``e`` (k,), design ``x`` (k, 6),
-    tilt information ``t`` (6, 6)."""
+    tilt information ``t`` (6, 6) and its right-hand side ``rt`` (6,): the planes' tilts
+    say ``t β = rt`` about the motion increment ``β``, whatever the offsets (at a converged
+    solution ``rt`` balances the offsets' pull and the increment is nil)."""
 
-    def __init__(self, v: np.ndarray, x: np.ndarray, t: np.ndarray):
+    def __init__(self, v: np.ndarray, x: np.ndarray, t: np.ndarray, rt=None):
         self.v = v
         self.x = x
         self.t = t
+        self.rt = np.zeros(x.shape[1]) if rt is None else rt
         self.cf = cho_factor(v, lower=True, check_finite=False)
         self.vix = cho_solve(self.cf, x, check_finite=False)  # V^-1 X
         self.m = x.T @ self.vix + t  # X^T V^-1 X + T
@@ -437,17 +440,25 @@ class PlaneGLS:
         mi = np.linalg.pinv(self.m, hermitian=True)
         return self.vinv() - self.vix @ mi @ self.vix.T
 
-    def pi_e(self, e: np.ndarray) -> np.ndarray:
+    def beta(self, e: np.ndarray) -> np.ndarray:
+        """GLS increment of the motion (6,) from the offsets and the tilts."""
         vie = cho_solve(self.cf, e, check_finite=False)
-        beta = np.linalg.lstsq(self.m, self.x.T @ vie, rcond=None)[0]
-        return vie - self.vix @ beta
+        return np.linalg.lstsq(self.m, self.x.T @ vie + self.rt, rcond=None)[0]
+
+    def pi_e(self, e: np.ndarray) -> np.ndarray:
+        """``V⁻¹ (e − X β̂)``, the weighted residuals (``Π e`` when ``rt`` is 0)."""
+        return cho_solve(self.cf, e - self.x @ self.beta(e), check_finite=False)
 
     def reml(self, e: np.ndarray) -> float:
         """−2 × restricted log-likelihood (up to a constant)."""
         sign, ld_m = np.linalg.slogdet(self.m)
         if sign <= 0:
             ld_m = float(np.log(np.abs(np.linalg.eigvalsh(self.m)).clip(1e-300)).sum())
-        return self.logdet_v() + ld_m + float(e @ self.pi_e(e))
+        b = self.beta(e)
+        r = e - self.x @ b
+        quad = float(r @ cho_solve(self.cf, r, check_finite=False))
+        quad += float(b @ self.t @ b - 2.0 * b @ self.rt)
+        return self.logdet_v() + ld_m + quad
 
 
 # --------------------------------------------------------------------------- estimation
@@ -466,7 +477,7 @@ class Estimate:
     converged: bool
 
 
-def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation):
+def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
     """Iterated MINQUE / Fisher scoring of REML for the free components; returns (theta, sd,
     iterations, converged, -2 log L)."""
     names = [n for n in bases if n not in fixed]
@@ -486,12 +497,12 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation):
         v = v0.copy()
         for n in free:
             v += max(theta.get(n, 0.0), 0.0) * bases[n]
-        gls = PlaneGLS(v, x, t)
+        gls = PlaneGLS(v, x, t, rt)
         if not free:
             converged = True
             break
         pi = gls.pi_matrix()
-        pie = pi @ e
+        pie = gls.pi_e(e)
         piv = {n: pi @ bases[n] for n in free}
         f = np.empty((len(free), len(free)))
         q = np.empty(len(free))
@@ -528,7 +539,7 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation):
     v = v0.copy()
     for n in free:
         v += max(theta.get(n, 0.0), 0.0) * bases[n]
-    gls = PlaneGLS(v, x, t)
+    gls = PlaneGLS(v, x, t, rt)
     return theta, sd, it, converged, gls.reml(e)
 
 
@@ -561,6 +572,7 @@ def estimate_components(
     inflation: Optional[np.ndarray] = None,
     seed: int = 0,
     prior_plane_var: float = 0.0,
+    rt: Optional[np.ndarray] = None,
 ) -> Estimate:
     """REML estimates of the plane-level components ``which`` (see the module docstring).
 
@@ -575,6 +587,8 @@ def estimate_components(
         Their design rows.
     t : (6, 6) float64
         Tilt information on the motion (scaled by the point-level factor).
+    rt : (6,) float64, optional
+        Its right-hand side (see :class:`PlaneGLS`; default 0).
     p : (k,) float64
         White variance of each misclosure (m², scaled).
     which : sequence of str
@@ -602,6 +616,7 @@ def estimate_components(
     es, xs, ps = e[sub], x[sub], p[sub]
     inf_s = None if inflation is None else inflation[sub]
     ts = t * (sub.size / k)  # the subset's share of the tilt information
+    rts = None if rt is None else rt * (sub.size / k)
     ids = idx[sub]
     theta: Dict[str, float] = {}
     source: Dict[str, str] = {}
@@ -643,7 +658,7 @@ def estimate_components(
         bases = model.bases(ids, rng_m)
         bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
         fx = {n: fixed_var[n] for n in fixed_var if n in bases}
-        th, sd, it, conv, m2ll = _reml_fixed_point(es, xs, ts, ps, bases, theta0, fx, inf_s)
+        th, sd, it, conv, m2ll = _reml_fixed_point(es, xs, ts, ps, bases, theta0, fx, inf_s, rts)
         log.debug("REML range %.3g m: %s, -2logL %.6g", rng_m, th, m2ll)
         if best is None or m2ll < best[4]:
             best = (th, sd, it, conv, m2ll, rng_m)
@@ -693,28 +708,34 @@ def w_statistics(gls: PlaneGLS, e: np.ndarray) -> np.ndarray:
     """w-test statistics of correlated plane misclosures ``(Π e)_j / √Π_jj`` (k,)."""
     pi = gls.pi_matrix()
     d = np.sqrt(np.clip(np.diag(pi), 1e-300, None))
-    return (pi @ e) / d
+    return gls.pi_e(e) / d
 
 
-def w_statistics_large(op: CovarianceOperator, e: np.ndarray, x: np.ndarray, t: np.ndarray):
+def w_statistics_large(op: CovarianceOperator, e: np.ndarray, x: np.ndarray, t: np.ndarray,
+                       rt: Optional[np.ndarray] = None):  # fmt: skip
     """Beyond :data:`DENSE_MAX_PLANES`: ``(Π e)_j`` from solves, standardised with
     ``diag(Π) ≈ 1 / diag(V)`` (exact for uncorrelated planes; the fixed-effect projection and
     the correlation are left out of the scale)."""
     vix = op.solve(x)
     vie = op.solve(e)
     m = x.T @ vix + t
-    beta = np.linalg.lstsq(0.5 * (m + m.T), x.T @ vie, rcond=None)[0]
+    rhs = x.T @ vie + (0.0 if rt is None else rt)
+    beta = np.linalg.lstsq(0.5 * (m + m.T), rhs, rcond=None)[0]
     pie = vie - vix @ beta
     return pie * np.sqrt(op.diag())
 
 
-def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_gross: float):
+def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_gross: float,
+                 rt: Optional[np.ndarray] = None):  # fmt: skip
     """Gross outliers before any component is estimated: an IRLS fit of the misclosures with
-    a MAD scale (diagonal model ``p + s²``) and the planes whose standardised residual exceeds
+    a MAD scale (diagonal model ``p + s²``), started from a least-median-of-squares fit (a
+    fit that still holds several renovated buildings is pulled by decimetres, and a MAD of
+    its residuals then masks them), and the planes whose standardised residual exceeds
     ``k_gross``. Returns (bool (k,) gross, robust plane sigma s (m))."""
     k = e.size
     w = np.ones(k)
-    r = e.copy()
+    r = e - x @ _lms_start(e, x, p)
+    rt = np.zeros(x.shape[1]) if rt is None else rt
     s2 = 0.0
     for _ in range(10):
         med = np.median(r)
@@ -724,7 +745,7 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
         w = igg3_weight(z, 2.0, max(k_gross, 3.0))
         wt = w / (p + s2 + _FLOOR)
         m = x.T @ (wt[:, None] * x) + t
-        beta = np.linalg.lstsq(m, x.T @ (wt * e), rcond=None)[0]
+        beta = np.linalg.lstsq(m, x.T @ (wt * e) + rt, rcond=None)[0]
         r_new = e - x @ beta
         if np.allclose(r_new, r, atol=1e-12, rtol=0):
             r = r_new
@@ -735,6 +756,38 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
     s2 = max(mad * mad - float(np.median(p)), 0.0)
     z = r / np.sqrt(p + s2 + _FLOOR)
     return np.abs(z) > k_gross, math.sqrt(s2)
+
+
+LMS_SUBSETS = 500  # random elemental subsets of the least-median-of-squares start
+LMS_SIZE = 8  # planes per subset (6 motion parameters, and room for poor geometry)
+
+
+def _lms_start(e: np.ndarray, x: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Least median of squares (Rousseeuw 1984) of the plane misclosures by random subsets:
+    the motion increment (6,) whose median squared residual is smallest (50 % breakdown).
+    The offsets alone (no tilts: the tilts' information is centred on a solution that the
+    outliers have pulled). Subsets are drawn with a fixed seed over the plane order, so the
+    start is reproducible. Hand-written: scipy has no LMS / LTS regression."""
+    k = e.size
+    if k <= LMS_SIZE + 2:
+        return np.zeros(x.shape[1])
+    rng = np.random.default_rng(20190101)
+    best, beta_best = np.inf, np.zeros(x.shape[1])
+    wt = 1.0 / (p + _FLOOR)
+    for _ in range(LMS_SUBSETS):
+        sub = rng.choice(k, LMS_SIZE, replace=False)
+        xs = x[sub]
+        m = xs.T @ (wt[sub, None] * xs)
+        if np.linalg.cond(m) > 1e12:
+            continue
+        try:
+            beta = np.linalg.solve(m, xs.T @ (wt[sub] * e[sub]))
+        except np.linalg.LinAlgError:
+            continue
+        crit = float(np.median((e - x @ beta) ** 2))
+        if crit < best:
+            best, beta_best = crit, beta
+    return beta_best
 
 
 def effective_planes(v: CovarianceOperator, x: np.ndarray) -> float:
