@@ -101,13 +101,13 @@ DEFAULT_STOCHASTIC_MODEL = "full"
 #: plane-level components, in the order of the estimation vector
 COMPONENT_NAMES = ("plane", "spatial", "unit_before", "unit_after")
 DENSE_MAX_PLANES = 1500  # dense V (Cholesky) up to this many planes, sparse + Woodbury beyond
-VCE_MAX_PLANES = 400  # REML on a spatially contiguous subset of planes beyond this
+VCE_MAX_PLANES = 200  # REML on a spatially contiguous subset of planes beyond this
 MIN_PLANES_VCE = 15  # fewer planes than this cannot pin the plane component down
 K_WEIGHT = 3.0  # |w| above which a plane is down-weighted (IGG-III)
 K_REJECT_MIN = 4.0  # |w| above which a plane is rejected (at least; Bonferroni may raise it)
 GROSS_MAD = 8.0  # first pass: misclosures beyond this many robust std are gross outliers
 VCE_MAX_ITER = 40
-VCE_TOL = 1e-4
+VCE_TOL = 2e-3  # relative change of the components at which REML stops
 N_RANGES = 6  # spatial ranges tried by profile REML
 _FLOOR = 1e-14  # m², numerical floor of a variance component
 
@@ -573,6 +573,7 @@ def estimate_components(
     seed: int = 0,
     prior_plane_var: float = 0.0,
     rt: Optional[np.ndarray] = None,
+    start: Optional[Estimate] = None,
 ) -> Estimate:
     """REML estimates of the plane-level components ``which`` (see the module docstring).
 
@@ -589,6 +590,9 @@ def estimate_components(
         Tilt information on the motion (scaled by the point-level factor).
     rt : (6,) float64, optional
         Its right-hand side (see :class:`PlaneGLS`; default 0).
+    start : Estimate, optional
+        A previous estimate of the same problem (the adjustment's last round): REML starts
+        from its components and tries only its range and the grid's neighbours of it.
     p : (k,) float64
         White variance of each misclosure (m², scaled).
     which : sequence of str
@@ -610,8 +614,8 @@ def estimate_components(
         # a spatially contiguous block (the planes nearest to a seeded random plane) keeps
         # the local density of plane pairs that the spatial component is estimated from
         c = model.centroids[idx]
-        start = int(np.random.default_rng(seed).integers(k))
-        _, near = cKDTree(c).query(c[start], k=VCE_MAX_PLANES)
+        first = int(np.random.default_rng(seed).integers(k))
+        _, near = cKDTree(c).query(c[first], k=VCE_MAX_PLANES)
         sub = np.sort(np.asarray(near))
     es, xs, ps = e[sub], x[sub], p[sub]
     inf_s = None if inflation is None else inflation[sub]
@@ -640,14 +644,20 @@ def estimate_components(
                 "side like the motion and cannot be estimated; give it as a fixed component"
             )
     few = k < MIN_PLANES_VCE
-    start = max(float(np.mean(es * es) - np.mean(ps)), float(np.median(ps)), _FLOOR)
-    theta0 = {n: start / max(len(free), 1) for n in free}
+    start_var = max(float(np.mean(es * es) - np.mean(ps)), float(np.median(ps)), _FLOOR)
+    theta0 = {n: start_var / max(len(free), 1) for n in free}
+    if start is not None:
+        theta0 = {n: max(start.theta.get(n, 0.0), 1e-3 * start_var) for n in free}
     ranges = [float("nan")]
     if "spatial" in free or "spatial" in fixed_var:
         if "spatial_range_m" in fixed:
             ranges = [float(fixed["spatial_range_m"])]
         else:
             ranges = list(_candidate_ranges(model.centroids[ids], subset=sub.size < k))
+            hint = None if start is None else start.range_m
+            if ranges and hint is not None and hint == hint:
+                step = (ranges[-1] / ranges[0]) ** (1.0 / max(len(ranges) - 1, 1))
+                ranges = [hint / step, hint, hint * step]
             if not ranges:
                 free = [n for n in free if n != "spatial"]
                 theta["spatial"], source["spatial"] = 0.0, "off"
