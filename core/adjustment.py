@@ -1055,7 +1055,6 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         est = _stoch.estimate_components(
             cfg.model, idx, e, xd, t_s, p_s, which=which, fixed=fixed,
             inflation=cfg.inflation[idx], prior_plane_var=PRIOR_PLANE_SHARE**2 * apri, rt=rt_s,
-            start=est,
         )  # fmt: skip
         cfg.theta = {n: v for n, v in est.theta.items() if v > 0}
         cfg.range_m = est.range_m
