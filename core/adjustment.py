@@ -553,7 +553,6 @@ class _PlaneLevel:
         self.t = 0.5 * (self.t + self.t.T)
         self.rt = (g_vec[:, :6] - c * (q / dd)[:, None]).sum(0)
         self.n_white = g_mat[:, :6, :6].sum(0)
-        self.r_white = g_vec[:, :6].sum(0)
 
 
 class _StochasticConfig:
@@ -574,10 +573,14 @@ class _StochasticConfig:
             self.model, idx, self.s0sq * p, self.theta, self.range_m, self.inflation[idx]
         )
 
-    def v_operator(self, active: np.ndarray, p: np.ndarray) -> _stoch.CovarianceOperator:
+    def v_operator(
+        self, active: np.ndarray, p: np.ndarray, inflated: bool = True
+    ) -> _stoch.CovarianceOperator:
+        """``V`` of the active planes; ``inflated=False`` leaves out the down-weighting."""
         idx = np.flatnonzero(active)
+        infl = self.inflation[idx] if inflated else None
         return _stoch.CovarianceOperator(
-            self.model, idx, self.s0sq * p, self.theta, self.range_m, self.inflation[idx]
+            self.model, idx, self.s0sq * p, self.theta, self.range_m, infl
         )
 
 
@@ -724,6 +727,13 @@ def _check_singular(nred: np.ndarray) -> None:
 # --------------------------------------------------------------------------- driver
 
 
+def _both_epochs_centroids(epochs) -> np.ndarray:
+    """(b, 3) centroid of each plane's points of both epochs (centred frame)."""
+    e0, e1 = epochs
+    tot = np.maximum(e0.count + e1.count, 1)[:, None]
+    return (e0.g * e0.count[:, None] + e1.g * e1.count[:, None]) / tot
+
+
 def _initial_planes(epochs, b):
     """Plane (n, d) per plane (centred frame) from the before points (both epochs if fewer
     than 3 before points), smallest-eigenvalue normal of the scatter."""
@@ -735,8 +745,7 @@ def _initial_planes(epochs, b):
     few = c0 < 3
     if np.any(few):
         v1, v2 = _moments(e1.idx, e1.u, None, b) if e1.U1 is None else (e1.U1, e1.U2)
-        tot = c0 + e1.count
-        gc = (e0.g * c0[:, None] + e1.g * e1.count[:, None]) / np.maximum(tot, 1)[:, None]
+        gc = _both_epochs_centroids(epochs)
         both = np.zeros((b, 3, 3))
         for ep, m1, m2 in ((e0, u1, u2), (e1, v1, v2)):
             dg = ep.g - gc
@@ -812,8 +821,8 @@ def _run(
     model = _stoch.check_stochastic_model(stochastic_model)
     fixed = _stoch.check_components(components)
     units = [
-        _check_units(unit_before, before_plane, "before"),
-        _check_units(unit_after, after_plane, "after"),
+        _stoch.check_units(unit_before, before_plane.shape[0], "unit_before"),
+        _stoch.check_units(unit_after, after_plane.shape[0], "unit_after"),
     ]
     b = int(max(before_plane.max(initial=-1), after_plane.max(initial=-1))) + 1
     if centre is None:
@@ -867,9 +876,7 @@ def _run(
         stoch = None
     else:
         shares = [_unit_shares(ep, u, b) for ep, u in zip(epochs, units)]
-        gc = (epochs[0].g * c0[:, None] + epochs[1].g * c1[:, None]) / np.maximum(c0 + c1, 1)[
-            :, None
-        ]
+        gc = _both_epochs_centroids(epochs)
         cfg = _StochasticConfig(PlaneModel(gc, n0.copy(), shares[0], shares[1]), b)
         out, stoch = _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit,
                                  rejected, reject_outlier_planes, min_planes, opts)  # fmt: skip
@@ -879,22 +886,6 @@ def _run(
         state, epochs, active, b, centre, it, converged, nred, qxx, s0, redundancy, n_cond,
         rejected, n0, d0, before_plane, after_plane, progress, cov, model, stoch,
     )  # fmt: skip
-
-
-def _check_units(unit, labels, name):
-    """(N,) int64 acquisition unit per point (PointSourceId, trajectory segment, TLS setup),
-    or None."""
-    if unit is None:
-        return None
-    u = np.asarray(unit)
-    if u.shape != labels.shape:
-        raise InputDataError(
-            f"unit_{name} must have one acquisition unit per point, shape {labels.shape}; "
-            f"got {u.shape}"
-        )
-    if u.size and not np.issubdtype(u.dtype, np.integer):
-        raise InputDataError(f"unit_{name} must hold integer unit ids, got {u.dtype}")
-    return u.astype(np.int64, copy=False)
 
 
 def _unit_shares(ep: _Epoch, unit, b: int):
@@ -967,8 +958,8 @@ def _can_drop(state, epochs, trial, b, planes) -> bool:
 
 def _point_factor(state, epochs, active, b):
     """Point-level a-posteriori variance factor with each plane's offset δ removed, the white
-    model's factor at the same solution, their redundancies, conditions and the after-epoch
-    mean misclosures (f1 - f0) per plane."""
+    model's factor at the same solution, the former's redundancy, the conditions and the
+    after-epoch mean misclosures (f1 - f0) per plane."""
     c0, c1 = epochs[0].count, epochs[1].count
     _, _, vpv_b, stats = _blocks(state, epochs, b)
     (w0, f0), (w1, f1) = stats
@@ -983,7 +974,7 @@ def _point_factor(state, epochs, active, b):
     s0d = float(vpv_d[active].sum()) / red_d if red_d > 0 else float("nan")
     with np.errstate(invalid="ignore"):
         mis = f1 - f0
-    return s0d, s0w, red_d, red_w, n_cond, mis
+    return s0d, s0w, red_d, n_cond, mis
 
 
 def _with_cfg(step, cfg, state, epochs, active, b):
@@ -1013,7 +1004,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             state, epochs, active, b, functools.partial(_with_cfg, step, cfg if outer else None),
             max_iterations, tolerance, progress, 0.05 + 0.1 * outer / MAX_OUTER,
         )  # fmt: skip
-        s0d, s0w, red_d, red_w, n_cond, mis = _point_factor(state, epochs, active, b)
+        s0d, _, _, _, mis = _point_factor(state, epochs, active, b)
         cfg.s0sq = s0d if s0d == s0d and s0d > 0 else 1.0
         g_mat, g_vec, _ = _reduce(state, epochs, active, b)
         pl = _PlaneLevel(g_mat, g_vec)
@@ -1035,7 +1026,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             drop = drop[: max(0, int(MAX_REJECTED_SHARE * n_start) - n_out)]
             if not drop:
                 gross_done = True
-            if drop:
+            else:
                 trial = active.copy()
                 trial[drop] = False
                 if int(trial.sum()) >= max(min_planes, 3) and _can_drop(
@@ -1060,10 +1051,8 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         cfg.range_m = est.range_m
         changed = False
         if reject and idx.size > min_planes:
-            infl0 = cfg.inflation.copy()
-            cfg.inflation[:] = 0.0  # the test is against the model, not the last weights
-            vop = cfg.v_operator(active, pl.p)
-            cfg.inflation = infl0
+            # the test is against the model, not the last weights
+            vop = cfg.v_operator(active, pl.p, inflated=False)
             if vop.sparse:
                 w = _stoch.w_statistics_large(vop, e, xd, t_s, rt_s)
             else:
@@ -1113,7 +1102,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         state, epochs, active, b, functools.partial(_with_cfg, step, cfg), max_iterations,
         tolerance, progress, 0.9,
     )  # fmt: skip
-    s0d, s0w, red_d, red_w, n_cond, mis = _point_factor(state, epochs, active, b)
+    _, s0w, red_d, n_cond, mis = _point_factor(state, epochs, active, b)
     g_mat, g_vec, _ = _reduce(state, epochs, active, b)
     pl = _PlaneLevel(g_mat, g_vec)
     idx = np.flatnonzero(active)

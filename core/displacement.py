@@ -26,7 +26,12 @@ from .fault import FaultTrace, fault_geometry, mean_strike_rad, side_masks, trac
 from .matching import PlaneMatches, match_planes
 from .planes import PlaneSet, segment_planes
 from .progress import ProgressCallback, report, scaled
-from .stochastic import DEFAULT_STOCHASTIC_MODEL, check_components, check_stochastic_model
+from .stochastic import (
+    DEFAULT_STOCHASTIC_MODEL,
+    check_components,
+    check_stochastic_model,
+    check_units,
+)
 
 log = logging.getLogger(__name__)
 
@@ -432,17 +437,15 @@ def _positive(name: str, value) -> float:
     return v
 
 
-def _stochastic_kw(stochastic: Optional[dict], kb, ka) -> dict:
-    """adjust_rigid's stochastic-model keywords with the unit arrays cut by ``kb``/``ka``."""
+def _stochastic_kw(stochastic: Optional[dict]) -> dict:
+    """adjust_rigid's stochastic-model keywords from the options of a run or subset."""
     st = dict(stochastic or {})
-    out = {
+    return {
         "stochastic_model": st.get("stochastic_model", DEFAULT_STOCHASTIC_MODEL),
         "components": st.get("components"),
+        "unit_before": st.get("unit_before"),
+        "unit_after": st.get("unit_after"),
     }
-    for name, k in (("unit_before", kb), ("unit_after", ka)):
-        u = st.get(name)
-        out[name] = None if u is None else (np.asarray(u) if k is None else np.asarray(u)[k])
-    return out
 
 
 def _sub_stochastic(stochastic: Optional[dict], mb, ma, components=None) -> dict:
@@ -471,7 +474,7 @@ def _adjust_labelled(
         la[ka],
         sigma_before=_per_point(sigma_before, kb),
         sigma_after=_per_point(sigma_after, ka),
-        **_stochastic_kw(stochastic, kb, ka),
+        **_stochastic_kw(_sub_stochastic(stochastic, kb, ka)),
     )
     r = rigid.residuals_after
     ok = np.isfinite(r)
@@ -656,9 +659,7 @@ def _register_side_tiled(
                         la[sa] - first,
                         sigma_before=_per_point(sigma_before, sb),
                         sigma_after=_per_point(sigma_after, sa),
-                        **_stochastic_kw(
-                            _sub_stochastic(stochastic, sb, sa, tile_fixed), None, None
-                        ),
+                        **_stochastic_kw(_sub_stochastic(stochastic, sb, sa, tile_fixed)),
                     )
                     d, c = r.displacement, r.displacement_covariance
                     if not np.all(np.isfinite(c)) or np.linalg.matrix_rank(c) < 3:
@@ -735,9 +736,15 @@ def _honest_tile_covariance(tiles, mean, cov, joint_cov):
         birge = chi2 / (3.0 * (n - 1))
         if birge > 1.0:
             cov = cov * birge
-    ev, evec = np.linalg.eigh(joint_cov - cov)
-    cov = cov + (evec * np.clip(ev, 0.0, None)) @ evec.T
-    return 0.5 * (cov + cov.T)
+    return cov + _positive_part(joint_cov - cov)
+
+
+def _positive_part(m: np.ndarray) -> np.ndarray:
+    """The positive semi-definite part of a symmetric matrix (negative eigenvalues set to 0),
+    symmetrised."""
+    ev, evec = np.linalg.eigh(m)
+    out = (evec * np.clip(ev, 0.0, None)) @ evec.T
+    return 0.5 * (out + out.T)
 
 
 def _side_points(before, after, trace, buffer_m):
@@ -875,21 +882,12 @@ def estimate_slip(
 def _stochastic_options(before, after, model, unit_before, unit_after, components) -> dict:
     """Validated stochastic-model options of a whole run."""
     check_stochastic_model(model)
-    out = {"stochastic_model": model, "components": check_components(components)}
-    for name, u, pts in (("unit_before", unit_before, before), ("unit_after", unit_after, after)):
-        if u is None:
-            out[name] = None
-            continue
-        a = np.asarray(u)
-        if a.shape != (np.asarray(pts).shape[0],):
-            raise InputDataError(
-                f"{name} must hold one acquisition unit per point ({np.asarray(pts).shape[0]}), "
-                f"got shape {a.shape}"
-            )
-        if a.size and not np.issubdtype(a.dtype, np.integer):
-            raise InputDataError(f"{name} must hold integer unit ids, got {a.dtype}")
-        out[name] = a
-    return out
+    return {
+        "stochastic_model": model,
+        "components": check_components(components),
+        "unit_before": check_units(unit_before, np.asarray(before).shape[0], "unit_before"),
+        "unit_after": check_units(unit_after, np.asarray(after).shape[0], "unit_after"),
+    }
 
 
 # --------------------------------------------------------------------------- strips
@@ -1079,9 +1077,7 @@ def _difference_covariance(c, ref_c, side: str, stochastic: dict) -> np.ndarray:
     ``C / 4`` (in the positive semi-definite order: ``C/4 + max(¾ C − C_left, 0)``)."""
     if stochastic["stochastic_model"] == "white" or side != "left":
         return c + ref_c
-    ev, evec = np.linalg.eigh(0.75 * c - ref_c)
-    out = 0.25 * c + (evec * np.clip(ev, 0.0, None)) @ evec.T
-    return 0.5 * (out + out.T)
+    return 0.25 * c + _positive_part(0.75 * c - ref_c)
 
 
 def _mask(idx: np.ndarray, n: int) -> np.ndarray:
@@ -1289,7 +1285,7 @@ def window_field(
                     sigma_before=_per_point(d["sb"], kb),
                     sigma_after=_per_point(d["sa"], ka),
                     min_planes=min_planes,
-                    **_stochastic_kw(d["st"], kb, ka),
+                    **_stochastic_kw(_sub_stochastic(d["st"], kb, ka)),
                 )
             except InputDataError as exc:
                 log.debug("window (%d, %d) not adjusted: %s", r, c, exc)

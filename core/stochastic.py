@@ -78,7 +78,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.spatial import cKDTree
 
-from .errors import InvalidParameterError
+from .errors import InputDataError, InvalidParameterError
 
 log = logging.getLogger(__name__)
 
@@ -143,6 +143,21 @@ def check_components(components: Optional[Mapping[str, float]], *, option: str =
             )
         out[k] = f
     return out
+
+
+def check_units(unit, n: int, name: str) -> Optional[np.ndarray]:
+    """(n,) int64 acquisition unit per point (PointSourceId, trajectory segment, TLS setup),
+    or None; ``name`` is the option as the caller spells it."""
+    if unit is None:
+        return None
+    u = np.asarray(unit)
+    if u.shape != (n,):
+        raise InputDataError(
+            f"{name} must have one acquisition unit per point, shape ({n},); got {u.shape}"
+        )
+    if u.size and not np.issubdtype(u.dtype, np.integer):
+        raise InputDataError(f"{name} must hold integer unit ids, got {u.dtype}")
+    return u.astype(np.int64, copy=False)
 
 
 def spherical_correlation(h: np.ndarray, range_m: float) -> np.ndarray:
@@ -483,21 +498,23 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
     names = [n for n in bases if n not in fixed]
     theta = dict(theta0)
     converged = False
-    it = 0
     sd = {n: float("nan") for n in names}
     v0 = np.diag(p + (0.0 if inflation is None else inflation))
     for n, t_fixed in fixed.items():
         if n in bases and t_fixed > 0:
             v0 = v0 + t_fixed * bases[n]
     free = list(names)
-    gls = None
-    it = 0
-    while it < VCE_MAX_ITER:
-        it += 1
+
+    def gls_at() -> PlaneGLS:
         v = v0.copy()
         for n in free:
             v += max(theta.get(n, 0.0), 0.0) * bases[n]
-        gls = PlaneGLS(v, x, t, rt)
+        return PlaneGLS(v, x, t, rt)
+
+    it = 0
+    while it < VCE_MAX_ITER:
+        it += 1
+        gls = gls_at()
         if not free:
             converged = True
             break
@@ -536,11 +553,7 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
             converged = True
             break
     # final likelihood at the estimate
-    v = v0.copy()
-    for n in free:
-        v += max(theta.get(n, 0.0), 0.0) * bases[n]
-    gls = PlaneGLS(v, x, t, rt)
-    return theta, sd, it, converged, gls.reml(e)
+    return theta, sd, it, converged, gls_at().reml(e)
 
 
 def _candidate_ranges(c: np.ndarray, subset: bool = False) -> np.ndarray:
@@ -573,7 +586,6 @@ def estimate_components(
     seed: int = 0,
     prior_plane_var: float = 0.0,
     rt: Optional[np.ndarray] = None,
-    start: Optional[Estimate] = None,
 ) -> Estimate:
     """REML estimates of the plane-level components ``which`` (see the module docstring).
 
@@ -590,11 +602,6 @@ def estimate_components(
         Tilt information on the motion (scaled by the point-level factor).
     rt : (6,) float64, optional
         Its right-hand side (see :class:`PlaneGLS`; default 0).
-    start : Estimate, optional
-        A previous estimate of the same problem: REML starts from its components and tries
-        only its range and the grid's neighbours of it. The adjustment does not use it: in
-        the calibration (docs/accuracy.md) warm starts settled on worse fixed points (a
-        spatial component of 25 mm where a cold start found 4 mm).
     p : (k,) float64
         White variance of each misclosure (m², scaled).
     which : sequence of str
@@ -647,19 +654,15 @@ def estimate_components(
             )
     few = k < MIN_PLANES_VCE
     start_var = max(float(np.mean(es * es) - np.mean(ps)), float(np.median(ps)), _FLOOR)
+    # a cold start every time: warm starts from the adjustment's last round settled on worse
+    # fixed points in the calibration (a spatial component of 25 mm where this found 4 mm)
     theta0 = {n: start_var / max(len(free), 1) for n in free}
-    if start is not None:
-        theta0 = {n: max(start.theta.get(n, 0.0), 1e-3 * start_var) for n in free}
     ranges = [float("nan")]
     if "spatial" in free or "spatial" in fixed_var:
         if "spatial_range_m" in fixed:
             ranges = [float(fixed["spatial_range_m"])]
         else:
             ranges = list(_candidate_ranges(model.centroids[ids], subset=sub.size < k))
-            hint = None if start is None else start.range_m
-            if ranges and hint is not None and hint == hint:
-                step = (ranges[-1] / ranges[0]) ** (1.0 / max(len(ranges) - 1, 1))
-                ranges = [hint / step, hint, hint * step]
             if not ranges:
                 free = [n for n in free if n != "spatial"]
                 theta["spatial"], source["spatial"] = 0.0, "off"
@@ -744,16 +747,10 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
     fit that still holds several renovated buildings is pulled by decimetres, and a MAD of
     its residuals then masks them), and the planes whose standardised residual exceeds
     ``k_gross``. Returns (bool (k,) gross, robust plane sigma s (m))."""
-    k = e.size
-    w = np.ones(k)
     r = e - x @ _lms_start(e, x, p)
     rt = np.zeros(x.shape[1]) if rt is None else rt
-    s2 = 0.0
     for _ in range(10):
-        med = np.median(r)
-        mad = 1.4826 * float(np.median(np.abs(r - med)))
-        s2 = max(mad * mad - float(np.median(p)), 0.0)
-        z = r / np.sqrt(p + s2 + _FLOOR)
+        s2, z = _mad_scale(r, p)
         w = igg3_weight(z, 2.0, max(k_gross, 3.0))
         wt = w / (p + s2 + _FLOOR)
         m = x.T @ (wt[:, None] * x) + t
@@ -763,11 +760,16 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
             r = r_new
             break
         r = r_new
-    med = np.median(r)
-    mad = 1.4826 * float(np.median(np.abs(r - med)))
-    s2 = max(mad * mad - float(np.median(p)), 0.0)
-    z = r / np.sqrt(p + s2 + _FLOOR)
+    s2, z = _mad_scale(r, p)
     return np.abs(z) > k_gross, math.sqrt(s2)
+
+
+def _mad_scale(r: np.ndarray, p: np.ndarray):
+    """Robust plane-level variance ``s²`` (MAD of the residuals less the median white part)
+    and the residuals standardised by ``√(p + s²)``."""
+    mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    s2 = max(mad * mad - float(np.median(p)), 0.0)
+    return s2, r / np.sqrt(p + s2 + _FLOOR)
 
 
 LMS_SUBSETS = 500  # random elemental subsets of the least-median-of-squares start
