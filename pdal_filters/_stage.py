@@ -1,15 +1,21 @@
 """Shared plumbing of SlipMap's PDAL ``filters.python`` stages.
 
-PDAL compiles each stage script on its own (not as part of this package), so the scripts first
-make ``slipmap`` importable (see :func:`add_slipmap_path`, which each script repeats in a few
-lines because it cannot import this module before) and then import this module as
-``slipmap.pdal_filters._stage``.
+PDAL loads one script, ``pdal_filters/slipmap_stages.py``: it finds the ``slipmap`` package
+(the only place ``slipmap_path`` is handled) and hands each call to :func:`run_stage` with the
+script's globals, where PDAL has put ``pdalargs``, ``spatialreference``, ``schema`` and
+``metadata``. The stages themselves (``planes``, ``roughness``, ``accuracy``,
+``displacement`` in this package) are ordinary modules with ``STAGE``, ``TABLE``,
+``outputs(opts)`` and ``run(ins, outs, *, opts, inputs)``.
 
 What lives here:
 
 * :class:`Option` / :class:`OptionTable`: each stage's options (name, type, default, help) in
   one table; ``pdalargs`` (a dict, or the JSON text PDAL may pass) is parsed once against it
   and cached by its raw value; unknown or invalid options raise :class:`StageError` naming them.
+* :class:`StageInputs` and :func:`srs_wkt`: what PDAL injects, read as PDAL 2.8 passes it
+  (``spatialreference`` is a dict ``{"srs": {"wkt": ..., ...}}``, empty strings without an SRS).
+* :func:`run_stage`: the one call path (options, core errors -> :class:`StageError`, output
+  checks, ``out_metadata``).
 * :func:`points_from`, :func:`set_output`, :func:`metadata_node`: input and output shaping.
 
 No science here: the stages call ``slipmap.core``.
@@ -17,49 +23,24 @@ No science here: the stages call ``slipmap.core``.
 
 from __future__ import annotations
 
-import importlib.util
 import json
+import logging
 import math
-import os
-import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
+from slipmap.core.errors import SlipMapError
+from slipmap.summaries import json_safe
+
+log = logging.getLogger(__name__)
+
 TYPES = ("float", "int", "bool", "str", "choice", "object", "vector3", "names", "keyvalues")
 
 
-class StageError(RuntimeError):
+class StageError(SlipMapError, RuntimeError):
     """A SlipMap PDAL stage cannot run; the message names the option or dimension at fault."""
-
-
-# --------------------------------------------------------------------------- sys.path
-
-
-def add_slipmap_path(path: Any) -> None:
-    """Make ``slipmap`` importable from ``path`` (the ``slipmap_path`` option).
-
-    ``path`` is either the directory that *contains* the ``slipmap`` package (it is put first
-    on ``sys.path``) or the package's own root (a directory with ``__init__.py`` and ``core/``,
-    whatever its name, e.g. a git checkout), which is then loaded under the name ``slipmap``.
-    Does nothing when ``path`` is empty or ``slipmap`` is already imported.
-    """
-    if not path or "slipmap" in sys.modules:
-        return
-    p = os.path.abspath(os.path.expanduser(str(path)))
-    if not os.path.isdir(p):
-        raise StageError(f"option 'slipmap_path': {p!r} is not a directory")
-    init = os.path.join(p, "__init__.py")
-    if os.path.isfile(init) and os.path.isdir(os.path.join(p, "core")):
-        spec = importlib.util.spec_from_file_location(
-            "slipmap", init, submodule_search_locations=[p]
-        )
-        module = importlib.util.module_from_spec(spec)
-        sys.modules["slipmap"] = module
-        spec.loader.exec_module(module)
-    elif p not in sys.path:
-        sys.path.insert(0, p)
 
 
 # --------------------------------------------------------------------------- options
@@ -217,8 +198,8 @@ SLIPMAP_PATH = Option(
     "slipmap_path",
     "str",
     None,
-    "Directory holding the `slipmap` package, or the package root itself (a checkout); "
-    "added to `sys.path` when `slipmap` is not installed.",
+    "Where `slipmap` is when it is not installed in PDAL's Python: the folder holding the "
+    "`slipmap` package, or the package root itself (a checkout, whatever its folder name).",
 )
 
 
@@ -319,17 +300,27 @@ def set_output(
 
 
 def metadata_node(name: str, value: Any, description: str = "", children=()) -> Dict[str, Any]:
-    """One node of ``out_metadata`` (the dict form filters.python reads back)."""
-    if isinstance(value, bool):
-        typ, val = "boolean", value
+    """One node of ``out_metadata`` in the form filters.python reads back.
+
+    PDAL reads ``name``, ``value`` (through ``str()``), ``type`` and ``description`` of each
+    node and a ``children`` list. Values are written as text of the type PDAL is told:
+    booleans as ``true``/``false``, floats at full precision (``repr``), a non-finite float
+    and any dict/list as ``type: "json"`` (JSON text, NaN as null), which ``pdal pipeline
+    --metadata`` and ``pipeline.metadata`` show as JSON values, not as strings.
+    """
+    if isinstance(value, (bool, np.bool_)):
+        typ, val = "boolean", "true" if value else "false"
     elif isinstance(value, (int, np.integer)):
-        typ, val = "integer", int(value)
+        typ, val = "integer", str(int(value))
     elif isinstance(value, (float, np.floating)):
-        typ, val = "double", float(value)
+        if math.isfinite(float(value)):
+            typ, val = "double", repr(float(value))
+        else:
+            typ, val = "json", "null"
     elif isinstance(value, str):
         typ, val = "string", value
     else:
-        typ, val = "string", json.dumps(value, default=_json_default)
+        typ, val = "json", json.dumps(json_safe(value), allow_nan=False, default=_listed)
     return {
         "name": name,
         "value": val,
@@ -339,19 +330,120 @@ def metadata_node(name: str, value: Any, description: str = "", children=()) -> 
     }
 
 
-def _json_default(o: Any) -> Any:
+def _listed(o: Any) -> Any:
+    """json.dumps fallback: arrays as lists, anything else as its text."""
     if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
+        return json_safe(o.tolist())
     return str(o)
 
 
-def wrap_errors(stage: str, exc: BaseException) -> StageError:
-    """A :class:`StageError` carrying a core error's message, prefixed by the stage name."""
-    if isinstance(exc, StageError):
-        return exc
-    return StageError(f"{stage}: {exc}")
+# --------------------------------------------------------------------------- PDAL's globals
+
+
+def srs_wkt(spatialreference: Any) -> Optional[str]:
+    """The view's SRS as WKT, or None when the view has none.
+
+    PDAL 2.8's filters.python passes ``spatialreference`` as the SRS metadata dict
+    ``{"srs": {"wkt": ..., "compoundwkt": ..., "horizontal": ..., "proj4": ..., ...}}`` with
+    empty strings when the view has no SRS; older bindings passed the WKT text. Both are read;
+    the compound WKT (horizontal + vertical) is preferred.
+    """
+    if spatialreference is None:
+        return None
+    if isinstance(spatialreference, str):
+        return spatialreference.strip() or None
+    if isinstance(spatialreference, Mapping):
+        srs = spatialreference.get("srs", spatialreference)
+        if isinstance(srs, Mapping):
+            for key in ("compoundwkt", "wkt", "horizontal"):
+                text = srs.get(key)
+                if isinstance(text, str) and text.strip():
+                    return text.strip()
+        return None
+    raise StageError(
+        f"spatialreference from PDAL has an unknown form ({type(spatialreference).__name__}); "
+        "please report the PDAL and pdal-plugins versions"
+    )
+
+
+@dataclass(frozen=True)
+class StageInputs:
+    """What filters.python puts into the script's globals before each call.
+
+    ``pdalargs``: the stage's ``pdalargs`` (dict, JSON text or None); ``spatialreference``:
+    as PDAL passes it (see :func:`srs_wkt`); ``schema``: ``{"schema": {"dimensions": [...]}}``;
+    ``metadata``: the pipeline's metadata tree (dict).
+    """
+
+    pdalargs: Any = None
+    spatialreference: Any = None
+    schema: Mapping[str, Any] = field(default_factory=dict)
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_globals(cls, g: Mapping[str, Any]) -> StageInputs:
+        return cls(
+            pdalargs=g.get("pdalargs"),
+            spatialreference=g.get("spatialreference"),
+            schema=g.get("schema") or {},
+            metadata=g.get("metadata") or {},
+        )
+
+    @property
+    def wkt(self) -> Optional[str]:
+        """The view's SRS as WKT, None without one."""
+        return srs_wkt(self.spatialreference)
+
+    def crs(self, stage: str):
+        """The view's SRS as a ``pyproj.CRS`` (None without one)."""
+        text = self.wkt
+        if text is None:
+            return None
+        import pyproj
+
+        try:
+            return pyproj.CRS.from_user_input(text)
+        except pyproj.exceptions.CRSError as e:
+            raise StageError(
+                f"{stage}: the point view's spatial reference cannot be read ({e}); set or "
+                "override it with the reader's spatialreference / override_srs option"
+            ) from None
+
+
+def run_stage(stage: Any, ins: Dict[str, np.ndarray], outs: Dict[str, np.ndarray], g) -> dict:
+    """Run one stage module on one point view; returns its ``out_metadata`` node.
+
+    ``stage`` is one of this package's stage modules, ``g`` the globals PDAL filled. Options are
+    parsed against ``stage.TABLE``; errors of ``slipmap.core`` become :class:`StageError`
+    prefixed with the stage name; every written output is checked against ``stage.outputs``.
+    """
+    inputs = StageInputs.from_globals(g)
+    opts = stage.TABLE.parse(inputs.pdalargs)
+    n = n_points(ins)
+    try:
+        node = stage.run(ins, outs, opts=opts, inputs=inputs)
+    except StageError:
+        raise
+    except SlipMapError as e:
+        raise StageError(f"{stage.STAGE}: {e}") from e
+    declared = {k: np.dtype(v) for k, v in stage.outputs(opts).items()}
+    for name, arr in outs.items():
+        if name not in declared or arr.dtype != declared[name] or arr.shape != (n,):
+            raise StageError(  # pragma: no cover - programming error
+                f"{stage.STAGE}: internal: output {name!r} {arr.dtype}{arr.shape} does not "
+                f"match the declared {declared.get(name)} ({n},)"
+            )
+    return node
+
+
+def stage_node(value: Any, description: str, children=()) -> Dict[str, Any]:
+    """The root ``out_metadata`` node of a stage.
+
+    PDAL 2.8 + pdal-plugins 1.6 file the root as ``"<name>": value`` in the stage's metadata
+    and its children under a sibling key ``"children"``; the root is named ``slipmap`` with the
+    stage's job as value, so ``metadata["filters.python"]["slipmap"] == "displacement"``.
+    """
+    return metadata_node("slipmap", value, description, children)
 
 
 # --------------------------------------------------------------------------- fault trace

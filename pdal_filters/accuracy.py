@@ -1,9 +1,9 @@
-"""PDAL ``filters.python`` stage: per-point accuracy ``SigmaX/SigmaY/SigmaZ`` (double, metres).
+"""PDAL stage ``accuracy``: per-point accuracy ``SigmaX/SigmaY/SigmaZ`` (double, metres).
 
-Pipeline stage::
+Pipeline stage (the script is ``slipmap_stages.py``, see :mod:`slipmap.pdal_filters`)::
 
-    {"type": "filters.python", "script": "pdal_filters/accuracy.py",
-     "module": "slipmap_accuracy", "function": "run",
+    {"type": "filters.python", "script": "pdal_filters/slipmap_stages.py",
+     "module": "slipmap_accuracy", "function": "accuracy",
      "add_dimension": ["SigmaX", "SigmaY", "SigmaZ"],
      "pdalargs": {"model": "propagated", "trajectory": "sbet.out",
                   "trajectory_accuracy": "smrmsg.out", "scanner": "riegl-vz400"}}
@@ -13,13 +13,14 @@ columns, georeferencing propagation with the beam-footprint term), chosen and fe
 ``slipmap accuracy`` does (:mod:`slipmap.pointaccuracy`). With ``full_covariance`` the six
 entries ``CovXX CovYY CovZZ CovXY CovXZ CovYZ`` (m²) are written too; declare them in
 ``add_dimension``. The propagated model reads ``GpsTime`` and ``ScanAngleRank`` (degrees,
-PDAL's name) from the view and the view's spatial reference. Options: :func:`options_table`,
-docs/pdal.md.
+PDAL's name) from the view and the view's spatial reference (``spatialreference``).
+Options: :func:`options_table`, docs/pdal.md.
 """
 
-import json
-import os
-import sys
+import numpy as np
+
+from slipmap.pdal_filters import _stage
+from slipmap.pdal_filters._stage import Option, OptionTable
 
 STAGE = "slipmap accuracy"
 SIGMAS = ("SigmaX", "SigmaY", "SigmaZ")
@@ -32,46 +33,8 @@ def outputs(options):
     return {name: "float64" for name in names}
 
 
-out_metadata = {}
-
-
-def _bootstrap():
-    """Make ``slipmap`` importable: PDAL compiles this file standalone (cf. _stage)."""
-    if "slipmap" in sys.modules:
-        return
-    args = globals().get("pdalargs")
-    if isinstance(args, str):
-        try:
-            args = json.loads(args) if args.strip() else {}
-        except ValueError:
-            args = {}
-    path = args.get("slipmap_path") if isinstance(args, dict) else None
-    if path:
-        p = os.path.abspath(os.path.expanduser(str(path)))
-        init = os.path.join(p, "__init__.py")
-        if os.path.isfile(init) and os.path.isdir(os.path.join(p, "core")):
-            import importlib.util
-
-            spec = importlib.util.spec_from_file_location(
-                "slipmap", init, submodule_search_locations=[p]
-            )
-            module = importlib.util.module_from_spec(spec)
-            sys.modules["slipmap"] = module
-            spec.loader.exec_module(module)
-        elif p not in sys.path:
-            sys.path.insert(0, p)
-    try:
-        import slipmap  # noqa: F401
-    except ImportError as e:
-        raise RuntimeError(
-            f"{STAGE}: cannot import slipmap ({e}); install it in PDAL's Python "
-            '(pip install slipmap) or pass pdalargs {"slipmap_path": "/dir/containing/slipmap"}'
-        ) from None
-
-
-def options_table():
-    from slipmap.pdal_filters._stage import Option, OptionTable
-
+def options_table() -> OptionTable:
+    """The stage's options (docs/pdal.md)."""
     return OptionTable(
         STAGE,
         [
@@ -148,7 +111,7 @@ def options_table():
     )
 
 
-_TABLE = []
+TABLE = options_table()
 
 
 def _settings(opts):
@@ -166,7 +129,7 @@ def _settings(opts):
     return {k: opts[k] for k in keys if opts[k] is not None}
 
 
-def _cloud(ins, pts):
+def _cloud(ins, pts, inputs):
     """The view as a core.io PointCloud (PDAL names; ScanAngleRank is PDAL's scan angle)."""
     from pathlib import Path
 
@@ -175,43 +138,25 @@ def _cloud(ins, pts):
     attrs = {k: v for k, v in ins.items() if k not in ("X", "Y", "Z")}
     if "ScanAngle" not in attrs and "ScanAngleRank" in attrs:
         attrs["ScanAngle"] = attrs["ScanAngleRank"]
-    crs = None
-    wkt = globals().get("spatialreference") or ""
-    if isinstance(wkt, str) and wkt.strip():
-        import pyproj
-
-        crs = pyproj.CRS.from_user_input(wkt)
+    crs = inputs.crs(STAGE)
     return PointCloud(pts, attributes=attrs, crs=crs, source=Path("PDAL point view"))
 
 
-def run(ins, outs):
-    """filters.python entry point: adds SigmaX/SigmaY/SigmaZ (and Cov* with full_covariance)."""
-    global out_metadata
-    _bootstrap()
-    import numpy as np
-
-    from slipmap.pdal_filters import _stage
-
-    if not _TABLE:
-        _TABLE.append(options_table())
-    opts = _TABLE[0].parse(globals().get("pdalargs"))
+def run(ins, outs, *, opts, inputs):
+    """SigmaX/SigmaY/SigmaZ (and Cov* with full_covariance) into ``outs``; the metadata node."""
     n = _stage.n_points(ins)
     sig = np.full((n, 3), np.nan)
     six = np.full((n, 6), np.nan)
-    children = [_stage.metadata_node("n_points", n)]
+    children = [_stage.metadata_node("n_points", n), _stage.metadata_node("model", opts["model"])]
     if n > 0:
         from slipmap.core.accuracy import covariance_to_sigmas, covariance_to_six
-        from slipmap.core.errors import SlipMapError
         from slipmap.pointaccuracy import covariance_matrices
 
         pts = _stage.points_from(ins, STAGE)
-        try:
-            cov = covariance_matrices(_cloud(ins, pts), None, _settings(opts))
-            sig = covariance_to_sigmas(cov)
-            if opts["full_covariance"]:
-                six = covariance_to_six(cov)
-        except SlipMapError as e:
-            raise _stage.wrap_errors(STAGE, e) from e
+        cov = covariance_matrices(_cloud(ins, pts, inputs), None, _settings(opts))
+        sig = covariance_to_sigmas(cov)
+        if opts["full_covariance"]:
+            six = covariance_to_six(cov)
         med = np.median(sig, axis=0)
         children += [
             _stage.metadata_node(f"median_{k.lower()}_m", float(v)) for k, v in zip(SIGMAS, med)
@@ -221,7 +166,4 @@ def run(ins, outs):
     if opts["full_covariance"]:
         for k, name in enumerate(COVS):
             _stage.set_output(outs, name, six[:, k], np.float64, n, STAGE)
-    out_metadata = _stage.metadata_node(
-        "slipmap_accuracy", opts["model"], "SlipMap per-point accuracy (m)", children
-    )
-    return True
+    return _stage.stage_node("accuracy", "SlipMap per-point accuracy (m)", children)

@@ -1,4 +1,4 @@
-"""PDAL ``filters.python`` stage: fault slip between two merged epochs.
+"""PDAL stage ``displacement``: fault slip between two merged epochs.
 
 The two epochs arrive as one point view, tagged by an epoch dimension (``Epoch``: 1 = before,
 2 = after, e.g. from ``filters.assign`` on each reader followed by ``filters.merge``).
@@ -11,62 +11,31 @@ the epochs; the summary (``SlipResult.to_dict()``) goes to ``out_metadata`` and 
 * ``Residual`` (double, metres): signed orthogonal distance of the point to that plane
   (``n . p + d``); NaN where ``PlaneId`` is -1.
 
-Pipeline stage::
+Pipeline stage (the script is ``slipmap_stages.py``, see :mod:`slipmap.pdal_filters`)::
 
-    {"type": "filters.python", "script": "pdal_filters/displacement.py",
-     "module": "slipmap_displacement", "function": "run",
+    {"type": "filters.python", "script": "pdal_filters/slipmap_stages.py",
+     "module": "slipmap_displacement", "function": "displacement",
      "add_dimension": ["PlaneId=int32", "Residual"],
      "pdalargs": {"trace": "LINESTRING (500 0, 500 1000)", "buffer_m": 10}}
 
 Options: :func:`options_table`, docs/pdal.md.
 """
 
-import json
+import logging
 import os
-import sys
+
+import numpy as np
+
+from slipmap.pdal_filters import _stage
+from slipmap.pdal_filters._stage import Option, OptionTable
 
 STAGE = "slipmap displacement"
 OUTPUTS = {"PlaneId": "int32", "Residual": "float64"}
-out_metadata = {}
+log = logging.getLogger(__name__)
 
 
-def _bootstrap():
-    """Make ``slipmap`` importable: PDAL compiles this file standalone (cf. _stage)."""
-    if "slipmap" in sys.modules:
-        return
-    args = globals().get("pdalargs")
-    if isinstance(args, str):
-        try:
-            args = json.loads(args) if args.strip() else {}
-        except ValueError:
-            args = {}
-    path = args.get("slipmap_path") if isinstance(args, dict) else None
-    if path:
-        p = os.path.abspath(os.path.expanduser(str(path)))
-        init = os.path.join(p, "__init__.py")
-        if os.path.isfile(init) and os.path.isdir(os.path.join(p, "core")):
-            import importlib.util
-
-            spec = importlib.util.spec_from_file_location(
-                "slipmap", init, submodule_search_locations=[p]
-            )
-            module = importlib.util.module_from_spec(spec)
-            sys.modules["slipmap"] = module
-            spec.loader.exec_module(module)
-        elif p not in sys.path:
-            sys.path.insert(0, p)
-    try:
-        import slipmap  # noqa: F401
-    except ImportError as e:
-        raise RuntimeError(
-            f"{STAGE}: cannot import slipmap ({e}); install it in PDAL's Python "
-            '(pip install slipmap) or pass pdalargs {"slipmap_path": "/dir/containing/slipmap"}'
-        ) from None
-
-
-def options_table():
-    from slipmap.pdal_filters._stage import Option, OptionTable
-
+def options_table() -> OptionTable:
+    """The stage's options (docs/pdal.md)."""
     return OptionTable(
         STAGE,
         [
@@ -172,10 +141,15 @@ def options_table():
     )
 
 
-_TABLE = []
+TABLE = options_table()
 
 
-def _trace(opts, _stage):
+def outputs(opts):
+    """{dimension: dtype} written (declare them in add_dimension)."""
+    return OUTPUTS
+
+
+def _trace(opts, inputs):
     from slipmap.core.fault import fault_trace
 
     text = opts["trace"]
@@ -188,21 +162,19 @@ def _trace(opts, _stage):
         )
     from slipmap.core.io.vector import read_fault_trace
 
-    srs = globals().get("spatialreference") or None
-    return read_fault_trace(path, target_crs=srs, layer=opts["trace_layer"])
+    crs = inputs.crs(STAGE)
+    if crs is None:
+        log.warning(
+            "%s: the point view has no spatial reference; the trace %s is read in its own CRS, "
+            "not reprojected (set the readers' spatialreference if the two differ)",
+            STAGE,
+            path,
+        )
+    return read_fault_trace(path, target_crs=crs, layer=opts["trace_layer"])
 
 
-def run(ins, outs):
-    """filters.python entry point: slip summary to out_metadata, PlaneId and Residual."""
-    global out_metadata
-    _bootstrap()
-    import numpy as np
-
-    from slipmap.pdal_filters import _stage
-
-    if not _TABLE:
-        _TABLE.append(options_table())
-    opts = _TABLE[0].parse(globals().get("pdalargs"))
+def run(ins, outs, *, opts, inputs):
+    """Slip summary as the metadata node; PlaneId and Residual into ``outs``."""
     if opts["before"] == opts["after"]:
         raise _stage.StageError(f"{STAGE}: options 'before' and 'after' must differ")
     n = _stage.n_points(ins)
@@ -211,15 +183,12 @@ def run(ins, outs):
     if n == 0:
         _stage.set_output(outs, "PlaneId", labels, np.int32, n, STAGE)
         _stage.set_output(outs, "Residual", residual, np.float64, n, STAGE)
-        out_metadata = _stage.metadata_node("slipmap_displacement", "", "empty point view")
-        return True
+        return _stage.stage_node("displacement", "empty point view")
 
     from slipmap.core.displacement import estimate_slip
-    from slipmap.core.errors import SlipMapError
-    from slipmap.core.fault import fault_geometry, side_masks
-    from slipmap.summaries import json_safe, stochastic_outputs
+    from slipmap.summaries import stochastic_outputs
 
-    stochastic = _stochastic_options(opts, _stage)
+    stochastic = _stochastic_options(opts)
 
     dim = opts["epoch_dimension"]
     if dim not in ins:
@@ -239,54 +208,38 @@ def run(ins, outs):
                 f"{STAGE}: no point has {dim} == {opts[key]} (option {key!r}); "
                 f"values present: {np.unique(epoch)[:10].tolist()}"
             )
-    try:
-        trace = _trace(opts, _stage)
-        before, after = pts[idx["before"]], pts[idx["after"]]
-        sigma = {"before": opts["sigma_before"], "after": opts["sigma_after"]}
-        names = opts["sigma_dimensions"]
-        if names is not None:
-            missing = [d for d in names if d not in ins]
-            if missing:
-                raise _stage.StageError(
-                    f"{STAGE}: option 'sigma_dimensions': the view has no {missing} "
-                    "dimension(s); add them with the slipmap accuracy stage before this one"
-                )
-            per_point = np.column_stack([np.asarray(ins[d], dtype=np.float64) for d in names])
-            sigma = {key: per_point[ix] for key, ix in idx.items()}
-        units = _units(opts, ins, idx, stochastic["stochastic_model"])
-        res = estimate_slip(
-            before,
-            after,
-            trace,
-            buffer_m=opts["buffer_m"],
-            sigma_before=sigma["before"],
-            sigma_after=sigma["after"],
-            plane_options=opts["plane_options"] or None,
-            match_options=opts["match_options"] or None,
-            tile_size_m=opts["tile_size_m"],
-            combine=opts["combine"],
-            unit_before=units["before"].units,
-            unit_after=units["after"].units,
-            **stochastic,
-        )
-        for key, cloud in (("before", before), ("after", after)):
-            left, right = side_masks(fault_geometry(cloud[:, :2], trace), buffer_m=opts["buffer_m"])
-            for side, mask in (("left", left), ("right", right)):
-                ps = getattr(getattr(res, side), "planes_" + key)
-                ix = idx[key][mask]
-                lab = np.asarray(ps.labels, dtype=np.int32)
-                if lab.shape != ix.shape:
-                    raise _stage.StageError(
-                        f"{STAGE}: internal: {side}/{key} has {lab.size} labels for {ix.size} "
-                        "points"
-                    )
-                labels[ix] = lab
-                on = lab >= 0
-                k = lab[on]
-                p = cloud[mask][on]
-                residual[ix[on]] = np.einsum("ij,ij->i", p, ps.normals[k]) + ps.offsets[k]
-    except SlipMapError as e:
-        raise _stage.wrap_errors(STAGE, e) from e
+    trace = _trace(opts, inputs)
+    before, after = pts[idx["before"]], pts[idx["after"]]
+    sigma = {"before": opts["sigma_before"], "after": opts["sigma_after"]}
+    names = opts["sigma_dimensions"]
+    if names is not None:
+        missing = [d for d in names if d not in ins]
+        if missing:
+            raise _stage.StageError(
+                f"{STAGE}: option 'sigma_dimensions': the view has no {missing} "
+                "dimension(s); add them with the slipmap accuracy stage before this one"
+            )
+        per_point = np.column_stack([np.asarray(ins[d], dtype=np.float64) for d in names])
+        sigma = {key: per_point[ix] for key, ix in idx.items()}
+    units = _units(opts, ins, idx, stochastic["stochastic_model"])
+    res = estimate_slip(
+        before,
+        after,
+        trace,
+        buffer_m=opts["buffer_m"],
+        sigma_before=sigma["before"],
+        sigma_after=sigma["after"],
+        plane_options=opts["plane_options"] or None,
+        match_options=opts["match_options"] or None,
+        tile_size_m=opts["tile_size_m"],
+        combine=opts["combine"],
+        unit_before=units["before"].units,
+        unit_after=units["after"].units,
+        **stochastic,
+    )
+    _per_point(
+        res, {"before": before, "after": after}, idx, trace, opts["buffer_m"], labels, residual
+    )
     _stage.set_output(outs, "PlaneId", labels, np.int32, n, STAGE)
     _stage.set_output(outs, "Residual", residual, np.float64, n, STAGE)
     summary = res.to_dict()
@@ -295,19 +248,24 @@ def run(ins, outs):
         **{key: u.to_dict() for key, u in units.items()},
     }
     rel = summary["relative"]
-    summary = json_safe(summary)  # NaN -> null: the metadata holds standard JSON
-    out_metadata = _stage.metadata_node(
-        "slipmap_displacement",
-        "",
+    slip, sig = rel.get("right_lateral_slip"), rel.get("sigma_fault_parallel")
+    headline = (
+        f"right-lateral slip {1e3 * slip:.2f} ± {1e3 * sig:.2f} mm"
+        if slip is not None and sig is not None and np.isfinite(slip) and np.isfinite(sig)
+        else "no slip estimate"
+    )
+    return _stage.stage_node(
+        "displacement",
         "SlipMap relative displacement across the fault (right minus left), metres",
         [
-            _stage.metadata_node("summary", summary, "SlipResult.to_dict() as JSON"),
+            _stage.metadata_node("headline", headline, "fault-parallel slip ± 1 sigma"),
+            *(_stage.metadata_node(k, v) for k, v in rel.items()),
             _stage.metadata_node(
                 "stochastic_model", stochastic["stochastic_model"], "white, plane or full"
             ),
             _stage.metadata_node(
                 "variance_components",
-                json_safe(stochastic_outputs(summary)),
+                stochastic_outputs(summary),
                 "per side: n_eff, the spatial range and each component's sigma (m) and "
                 "source; the fault-parallel sigma of the model and of the white model",
             ),
@@ -316,13 +274,32 @@ def run(ins, outs):
                 summary["parameters"]["acquisition_unit_sources"],
                 "per epoch: where the units came from and how many",
             ),
-            *(_stage.metadata_node(k, float(v)) for k, v in rel.items()),
+            _stage.metadata_node("summary", summary, "SlipResult.to_dict()"),
         ],
     )
-    return True
 
 
-def _stochastic_options(opts, _stage):
+def _per_point(res, clouds, idx, trace, buffer_m, labels, residual):
+    """Each point's plane (its epoch and side's segmentation) and signed distance to it."""
+    from slipmap.core.fault import fault_geometry, side_masks
+
+    for key, cloud in clouds.items():
+        left, right = side_masks(fault_geometry(cloud[:, :2], trace), buffer_m=buffer_m)
+        for side, mask in (("left", left), ("right", right)):
+            ps = getattr(getattr(res, side), "planes_" + key)
+            ix = idx[key][mask]
+            lab = np.asarray(ps.labels, dtype=np.int32)
+            if lab.shape != ix.shape:
+                raise _stage.StageError(  # pragma: no cover - programming error
+                    f"{STAGE}: internal: {side}/{key} has {lab.size} labels for {ix.size} points"
+                )
+            labels[ix] = lab
+            on = lab >= 0
+            k = lab[on]
+            residual[ix[on]] = np.einsum("ij,ij->i", cloud[mask][on], ps.normals[k]) + ps.offsets[k]
+
+
+def _stochastic_options(opts):
     """estimate_slip's ``stochastic_model`` and ``components`` from the options."""
     from slipmap.core.errors import InvalidParameterError
     from slipmap.stochasticmodel import parse_fixed_components

@@ -1,10 +1,10 @@
-"""PDAL ``filters.python`` stage: plane segmentation (``PlaneId`` int32, ``Planarity`` double).
+"""PDAL stage ``planes``: plane segmentation (``PlaneId`` int32, ``Planarity`` double).
 
-Pipeline stage::
+Pipeline stage (the script is ``slipmap_stages.py``, see :mod:`slipmap.pdal_filters`)::
 
-    {"type": "filters.python", "script": "pdal_filters/planes.py", "module": "slipmap_planes",
-     "function": "run", "add_dimension": ["PlaneId=int32", "Planarity"],
-     "pdalargs": {"min_plane_points": 50}}
+    {"type": "filters.python", "script": "pdal_filters/slipmap_stages.py",
+     "module": "slipmap_planes", "function": "planes",
+     "add_dimension": ["PlaneId=int32", "Planarity"], "pdalargs": {"min_plane_points": 50}}
 
 Each point view is segmented on its own with :func:`slipmap.core.planes.segment_planes`;
 ``PlaneId`` is the plane of each point (-1: none), ``Planarity`` the fraction of the point's
@@ -13,52 +13,17 @@ octree leaf within the planarity threshold (NaN where the leaf was too small to 
 :func:`options_table` (and docs/pdal.md).
 """
 
-import json
-import os
-import sys
+import numpy as np
+
+from slipmap.pdal_filters import _stage
+from slipmap.pdal_filters._stage import Option, OptionTable
 
 STAGE = "slipmap planes"
 OUTPUTS = {"PlaneId": "int32", "Planarity": "float64"}
-out_metadata = {}
 
 
-def _bootstrap():
-    """Make ``slipmap`` importable: PDAL compiles this file standalone (cf. _stage)."""
-    if "slipmap" in sys.modules:
-        return
-    args = globals().get("pdalargs")
-    if isinstance(args, str):
-        try:
-            args = json.loads(args) if args.strip() else {}
-        except ValueError:
-            args = {}
-    path = args.get("slipmap_path") if isinstance(args, dict) else None
-    if path:
-        p = os.path.abspath(os.path.expanduser(str(path)))
-        init = os.path.join(p, "__init__.py")
-        if os.path.isfile(init) and os.path.isdir(os.path.join(p, "core")):
-            import importlib.util
-
-            spec = importlib.util.spec_from_file_location(
-                "slipmap", init, submodule_search_locations=[p]
-            )
-            module = importlib.util.module_from_spec(spec)
-            sys.modules["slipmap"] = module
-            spec.loader.exec_module(module)
-        elif p not in sys.path:
-            sys.path.insert(0, p)
-    try:
-        import slipmap  # noqa: F401
-    except ImportError as e:
-        raise RuntimeError(
-            f"{STAGE}: cannot import slipmap ({e}); install it in PDAL's Python "
-            '(pip install slipmap) or pass pdalargs {"slipmap_path": "/dir/containing/slipmap"}'
-        ) from None
-
-
-def options_table():
-    from slipmap.pdal_filters._stage import Option, OptionTable
-
+def options_table() -> OptionTable:
+    """The stage's options (docs/pdal.md)."""
     return OptionTable(
         STAGE,
         [
@@ -136,47 +101,37 @@ def options_table():
     )
 
 
-_TABLE = []
+TABLE = options_table()
 
 
-def run(ins, outs):
-    """filters.python entry point: adds PlaneId and Planarity to the view."""
-    global out_metadata
-    _bootstrap()
-    import numpy as np
+def outputs(opts):
+    """{dimension: dtype} written (declare them in add_dimension)."""
+    return OUTPUTS
 
-    from slipmap.pdal_filters import _stage
 
-    if not _TABLE:
-        _TABLE.append(options_table())
-    opts = _TABLE[0].parse(globals().get("pdalargs"))
+def run(ins, outs, *, opts, inputs):
+    """Segment the view; PlaneId and Planarity into ``outs``; returns the metadata node."""
     n = _stage.n_points(ins)
     labels = np.full(n, -1, dtype=np.int32)
     planarity = np.full(n, np.nan)
     n_planes = 0
     params = {}
     if n > 0:
-        from slipmap.core.errors import SlipMapError
         from slipmap.core.planes import segment_planes
 
         pts = _stage.points_from(ins, STAGE)
         kw = {k: v for k, v in opts.items() if k != "slipmap_path" and v is not None}
-        try:
-            ps = segment_planes(pts, **kw)
-        except SlipMapError as e:
-            raise _stage.wrap_errors(STAGE, e) from e
+        ps = segment_planes(pts, **kw)
         labels, planarity = ps.labels, ps.planarity
         n_planes, params = len(ps), ps.parameters.to_dict()
     _stage.set_output(outs, "PlaneId", labels, np.int32, n, STAGE)
     _stage.set_output(outs, "Planarity", planarity, np.float64, n, STAGE)
-    out_metadata = _stage.metadata_node(
-        "slipmap_planes",
-        "",
+    return _stage.stage_node(
+        "planes",
         "SlipMap plane segmentation",
         [
             _stage.metadata_node("n_points", n),
             _stage.metadata_node("n_planes", n_planes),
-            _stage.metadata_node("parameters", params, "segment_planes parameters (JSON)"),
+            _stage.metadata_node("parameters", params, "segment_planes parameters"),
         ],
     )
-    return True

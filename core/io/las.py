@@ -30,7 +30,10 @@ from typing import (
     Union,
 )
 
-import laspy
+try:
+    import laspy
+except ImportError:  # PDAL's Python may lack it: PointCloud itself works without laspy
+    laspy = None
 import numpy as np
 
 from ..errors import DependencyError, InvalidParameterError, SlipMapError, SlipMapFileError
@@ -265,7 +268,16 @@ def _not_readable(p: Path, exc: BaseException) -> SlipMapError:
     return SlipMapFileError(f"{p} is not a readable LAS/LAZ file ({type(exc).__name__}: {msg})")
 
 
+def _require_laspy(what: str) -> None:
+    if laspy is None:
+        raise DependencyError(
+            f"{what} needs the 'laspy' and 'lazrs' packages; install them: "
+            "python -m pip install laspy lazrs"
+        )
+
+
 def _open_reader(p: Path) -> laspy.LasReader:
+    _require_laspy(f"reading {p}")
     try:
         return laspy.open(p, mode="r")
     except Exception as exc:  # laspy raises LaspyException, ValueError, OSError, ...
@@ -298,6 +310,7 @@ def available_attributes(point_format: Union[laspy.PointFormat, int]) -> List[st
         PDAL names of the standard dimensions, ``"ScanAngle"`` (degrees, derived), then the
         extra-bytes dimensions by name.
     """
+    _require_laspy("listing a point format's dimensions")
     pf = (
         point_format
         if isinstance(point_format, laspy.PointFormat)
@@ -911,6 +924,7 @@ def write_las(
         Unreadable source, or output that cannot be written.
     """
     out = Path(path)
+    _require_laspy(f"writing {out}")
     if isinstance(source, PointCloud):
         check_not_input(out, [*(inputs or []), source.source])
         cloud = source
@@ -996,6 +1010,7 @@ def write_las_chunked(
         ``path``.
     """
     out = Path(path)
+    _require_laspy(f"writing {out}")
     iterator = iter(chunks)
 
     def split(item: Any) -> Tuple[PointCloud, Mapping[str, Any] | None]:

@@ -1,14 +1,25 @@
-"""Run a SlipMap stage script the way PDAL's filters.python does, without PDAL.
+"""Run SlipMap's stage script the way PDAL 2.8's filters.python does, without PDAL.
 
-filters.python reads the script, compiles it under its file name into a fresh module named by
-the "module" option, injects ``pdalargs`` / ``schema`` / ``spatialreference`` / ``metadata``
-as module globals, calls ``function(ins, outs)`` once per point view (``ins``: copies of the
-view's dimensions; ``outs``: starts empty) and reads ``out_metadata`` back.
+What real PDAL (2.8.4, pdal-plugins 1.6.5) does, and this stand-in copies (tests/pdal_stages/
+test_real_pdal.py checks the copy against real PDAL where it is installed):
+
+* reads the script and compiles it with ``Py_CompileString(source, <module name>)`` and
+  ``PyImport_ExecCodeModule(<module name>)``: the module is registered in ``sys.modules``
+  under the ``module`` option, and ``__file__`` is that name, not the script's path;
+* before each call puts into the module's globals ``pdalargs`` (the option parsed as JSON: a
+  dict, also when the pipeline gives JSON text; None without the option), ``schema``
+  (``{"schema": {"dimensions": [{"name", "size", "type"}, ...]}}``), ``spatialreference``
+  (the view's SRS metadata ``{"srs": {"wkt": ..., "compoundwkt": ..., ...}}``, empty strings
+  without an SRS) and ``metadata`` (the pipeline's metadata tree);
+* calls ``function(ins, outs)`` per view (``ins``: copies of every dimension, PDAL-typed;
+  ``outs`` starts empty) and reads ``out_metadata`` back with :func:`read_back`'s rules.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import sys
 import types
 from pathlib import Path
 
@@ -16,6 +27,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 STAGE_DIR = ROOT / "pdal_filters"
+SCRIPT = STAGE_DIR / "slipmap_stages.py"
 PIPELINE_DIR = STAGE_DIR / "pipelines"
 
 # PDAL's types for the LAS dimensions the stages may see
@@ -31,7 +43,7 @@ PDAL_TYPES = {
     "UserData": np.uint8,
     "PointSourceId": np.uint16,
     "GpsTime": np.float64,
-    "Epoch": np.float64,  # filters.assign on a dimension added as double
+    "Epoch": np.float64,  # filters.ferry "=>Epoch" creates a double
 }
 
 # add_dimension "Name" (no type) gives a double; "Name=type" that type
@@ -59,17 +71,84 @@ def parse_add_dimension(value) -> dict:
     return out
 
 
-def load_stage(script: Path, module_name: str, pdalargs=None, spatialreference: str = ""):
-    """Compile and exec ``script`` as filters.python does; returns the module."""
-    source = Path(script).read_text()
-    code = compile(source, str(script), "exec")
-    module = types.ModuleType(module_name)
-    if pdalargs is not None:
-        module.pdalargs = pdalargs
-    module.schema = {"schema": {"dimensions": []}}
-    module.spatialreference = spatialreference
-    module.metadata = {}
+def srs_metadata(wkt: str | None = None) -> dict:
+    """``spatialreference`` as PDAL 2.8 passes it: ``{"srs": {...}}``; empty without an SRS."""
+    if not wkt:
+        return {
+            "srs": {
+                "compoundwkt": "",
+                "horizontal": "",
+                "isgeocentric": False,
+                "isgeographic": False,
+                "json": {},
+                "prettycompoundwkt": "",
+                "prettywkt": "",
+                "proj4": "",
+                "units": {"horizontal": "unknown", "vertical": ""},
+                "vertical": "",
+                "wkt": "",
+            }
+        }
+    import pyproj
+
+    crs = pyproj.CRS.from_user_input(wkt)
+    horizontal = crs.sub_crs_list[0] if crs.is_compound else crs
+    vertical = crs.sub_crs_list[1].to_wkt() if crs.is_compound else ""
+    text = crs.to_wkt(pyproj.enums.WktVersion.WKT1_GDAL) or crs.to_wkt()
+    return {
+        "srs": {
+            "compoundwkt": text,
+            "horizontal": horizontal.to_wkt(pyproj.enums.WktVersion.WKT1_GDAL) or "",
+            "isgeocentric": bool(crs.is_geocentric),
+            "isgeographic": bool(crs.is_geographic),
+            "json": crs.to_json_dict(),
+            "prettycompoundwkt": crs.to_wkt(pretty=True),
+            "prettywkt": crs.to_wkt(pretty=True),
+            "proj4": _proj4(crs),
+            "units": {"horizontal": "metre", "vertical": ""},
+            "vertical": vertical,
+            "wkt": text,
+        }
+    }
+
+
+def _schema(ins: dict) -> dict:
+    kinds = {"f": "floating", "u": "unsigned", "i": "signed"}
+    return {
+        "schema": {
+            "dimensions": [
+                {"name": k, "size": int(v.dtype.itemsize), "type": kinds[v.dtype.kind]}
+                for k, v in ins.items()
+            ]
+        }
+    }
+
+
+def load_stage(job: str, pdalargs=None, spatialreference=None, module_name: str | None = None):
+    """Compile the stage script as filters.python does; ``call`` then runs ``job`` on a view.
+
+    ``pdalargs`` is the pipeline's option (dict or JSON text, as written in the pipeline);
+    ``spatialreference`` a WKT (converted to PDAL's dict) or an already PDAL-shaped dict.
+    """
+    name = module_name or f"slipmap_{job}"
+    code = compile(SCRIPT.read_text(), name, "exec")  # Py_CompileString(source, module)
+    module = sys.modules.get(name)
+    if not isinstance(module, types.ModuleType) or getattr(module, "__file__", None) != name:
+        module = types.ModuleType(name)
+        module.__file__ = name  # PyImport_ExecCodeModule sets it from co_filename
+        sys.modules[name] = module
     exec(code, module.__dict__)
+    module.__dict__.pop("out_metadata", None)
+    module.out_metadata = {}
+    module._harness = {
+        "job": job,
+        "pdalargs": _parsed(pdalargs),
+        "spatialreference": (
+            spatialreference
+            if isinstance(spatialreference, dict)
+            else srs_metadata(spatialreference)
+        ),
+    }
     return module
 
 
@@ -90,10 +169,16 @@ def make_ins(points: np.ndarray, **extra) -> dict:
     return ins
 
 
-def call(module, ins: dict, declared: dict, function: str = "run") -> dict:
-    """Call the stage on one view and check the filters.python output contract."""
+def call(module, ins: dict, declared: dict, function: str | None = None) -> dict:
+    """Call the stage on one view as PDAL does and check the filters.python output contract."""
+    h = module._harness
+    g = module.__dict__
+    g["metadata"] = {"name": "root", "value": "", "type": "", "description": "", "children": []}
+    g["pdalargs"] = h["pdalargs"]
+    g["schema"] = _schema(ins)
+    g["spatialreference"] = h["spatialreference"]
     outs: dict = {}
-    r = getattr(module, function)({k: v.copy() for k, v in ins.items()}, outs)
+    r = getattr(module, function or h["job"])({k: v.copy() for k, v in ins.items()}, outs)
     assert type(r) is bool and r is True, f"{function} returned {r!r}"
     n = len(next(iter(ins.values()))) if ins else 0
     for name, arr in outs.items():
@@ -102,11 +187,79 @@ def call(module, ins: dict, declared: dict, function: str = "run") -> dict:
         assert isinstance(arr, np.ndarray), name
         assert arr.dtype == want, (name, arr.dtype, want)
         assert arr.shape == (n,), (name, arr.shape, n)
-    json.dumps(getattr(module, "out_metadata", {}))  # PDAL must be able to read it back
+    read_back(module)  # PDAL must be able to read it back
     return outs
+
+
+def _typed(value: str, typ: str):
+    if typ == "json":
+        return json.loads(value)
+    if typ == "double":
+        v = float(value)
+        assert math.isfinite(v), value
+        return v
+    if typ in ("integer", "nonNegativeInteger"):
+        return int(value)
+    if typ == "boolean":
+        assert value in ("true", "false"), value
+        return value == "true"
+    assert typ == "string", typ
+    return value
+
+
+def read_back(module) -> dict:
+    """``out_metadata`` as ``pdal pipeline --metadata`` shows it under the stage.
+
+    pdal-plugins 1.6 (``addMetadata``) adds the root node to the stage's metadata as
+    ``name: value`` and the root's children as ``name: value`` entries of a sibling node
+    named ``children``; values are read with ``str()`` and typed by ``type``.
+    """
+    md = getattr(module, "out_metadata", None)
+    assert isinstance(md, dict), "out_metadata must be a dict"
+    if not md.get("name"):
+        return {}
+    for key in ("name", "value", "type", "description"):
+        assert isinstance(md[key], str), (key, md[key])
+    out = {md["name"]: _typed(md["value"], md["type"])}
+    children = md.get("children", [])
+    assert isinstance(children, list), "children must be a list"
+    if children:
+        kids = {}
+        for c in children:
+            for key in ("name", "value", "type", "description"):
+                assert isinstance(c[key], str), (c.get("name"), key, c[key])
+            assert not c.get("children"), "grandchildren are filed under 'children' by PDAL"
+            assert c["name"] not in kids, f"duplicate metadata node {c['name']!r}"
+            kids[c["name"]] = _typed(c["value"], c["type"])
+        out["children"] = kids
+    return out
+
+
+def nodes(module) -> dict:
+    """The stage's metadata values by name (``read_back(module)["children"]``)."""
+    return read_back(module).get("children", {})
 
 
 def pipeline_stages(path: Path) -> list:
     doc = json.loads(Path(path).read_text())
     stages = doc["pipeline"] if isinstance(doc, dict) else doc
     return [s if isinstance(s, dict) else {"type": "readers.las", "filename": s} for s in stages]
+
+
+def _proj4(crs) -> str:
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "you will likely lose information"
+        return crs.to_proj4() or ""
+
+
+def _parsed(pdalargs):
+    """PDAL parses the option as JSON (text that is not JSON: PDAL itself refuses the pipeline,
+    so the stand-in passes the text on for the stage to refuse)."""
+    if isinstance(pdalargs, str):
+        try:
+            return json.loads(pdalargs)
+        except ValueError:
+            return pdalargs
+    return pdalargs

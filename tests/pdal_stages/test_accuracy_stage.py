@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pyproj
 import pytest
-from pdal_harness import STAGE_DIR, call, load_stage, make_ins, parse_add_dimension
+from pdal_harness import call, load_stage, make_ins, nodes, parse_add_dimension
 
 from slipmap.core.accuracy import (
     SCANNERS,
@@ -28,7 +28,7 @@ UTM = pyproj.CRS.from_epsg(32610)
 
 
 def stage(pdalargs=None, srs=""):
-    return load_stage(STAGE_DIR / "accuracy.py", "slipmap_accuracy", pdalargs, spatialreference=srs)
+    return load_stage("accuracy", pdalargs, spatialreference=srs)
 
 
 def _sigmas(outs):
@@ -185,15 +185,14 @@ def test_accuracy_then_displacement_uses_per_point_sigmas():
     ins.update(acc)
     (x0, y0), (x1, y1) = (map(float, v) for v in fp.trace_xy)  # plain floats for the WKT
     disp = load_stage(
-        STAGE_DIR / "displacement.py",
-        "slipmap_displacement",
+        "displacement",
         {
             "trace": f"LINESTRING ({x0!r} {y0!r}, {x1!r} {y1!r})",
             "sigma_dimensions": "SigmaX,SigmaY,SigmaZ",
         },
     )
     call(disp, ins, parse_add_dimension(["PlaneId=int32", "Residual"]))
-    summary = json.loads(disp.out_metadata["children"][0]["value"])
+    summary = nodes(disp)["summary"]
     core = estimate_slip(
         fp.before.points,
         fp.after.points,
@@ -207,8 +206,7 @@ def test_accuracy_then_displacement_uses_per_point_sigmas():
     assert summary == json_safe(core.to_dict())
     with pytest.raises(StageError, match="sigma_dimensions"):
         bad = load_stage(
-            STAGE_DIR / "displacement.py",
-            "slipmap_displacement",
+            "displacement",
             {"trace": f"LINESTRING ({x0!r} {y0!r}, {x1!r} {y1!r})", "sigma_dimensions": "A,B,C"},
         )
         call(bad, ins, parse_add_dimension(["PlaneId=int32", "Residual"]))

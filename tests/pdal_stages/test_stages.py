@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 import pytest
-from pdal_harness import STAGE_DIR, call, load_stage, make_ins, parse_add_dimension
+from pdal_harness import call, load_stage, make_ins, nodes, parse_add_dimension
 
 from slipmap.core.displacement import estimate_slip
 from slipmap.core.fault import fault_trace
@@ -20,7 +20,7 @@ ORIGIN = (500000.0, 4200000.0, 10.0)
 
 
 def stage(name, pdalargs=None, **kw):
-    return load_stage(STAGE_DIR / f"{name}.py", f"slipmap_{name}", pdalargs, **kw)
+    return load_stage(name, pdalargs, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -56,8 +56,7 @@ def test_planes_equal_core(scene, as_json):
     assert set(outs) == {"PlaneId", "Planarity"}
     np.testing.assert_array_equal(outs["PlaneId"], core.labels)
     np.testing.assert_array_equal(outs["Planarity"], core.planarity.astype(np.float64))
-    md = mod.out_metadata
-    assert md["children"][1]["value"] == len(core) > 0
+    assert nodes(mod)["n_planes"] == len(core) > 0
 
 
 def test_planes_no_pdalargs_and_empty_view():
@@ -119,21 +118,20 @@ def test_displacement_summary_equals_core(slip_run):
     from slipmap.summaries import json_safe
 
     mod, outs, core = slip_run
-    md = mod.out_metadata
-    summary = json.loads(md["children"][0]["value"])
+    md = nodes(mod)
+    summary = md["summary"]
     units = summary["parameters"].pop("acquisition_unit_sources")
     assert summary == json_safe(core.to_dict())
-    nodes = {c["name"]: c["value"] for c in md["children"]}
-    assert nodes["right_lateral_slip"] == pytest.approx(0.0181, abs=0.002)
+    assert md["right_lateral_slip"] == pytest.approx(0.0181, abs=0.002)
     # the default model is full; the view has no PointSourceId: no units
-    assert nodes["stochastic_model"] == "full" == summary["parameters"]["stochastic_model"]
+    assert md["stochastic_model"] == "full" == summary["parameters"]["stochastic_model"]
     assert units["units_option"] == "auto"
     assert units["before"] == {
         "source": "none",
         "n_units": 0,
         "note": "auto: no PointSourceId dimension",
     }
-    vc = json.loads(nodes["variance_components"])
+    vc = md["variance_components"]
     assert vc["model"] == "full"
     assert vc["sigma_fault_parallel"] == pytest.approx(core.components()["sigma_fault_parallel"])
     assert vc["sigma_fault_parallel_white"] < vc["sigma_fault_parallel"]
@@ -180,6 +178,81 @@ def test_displacement_multilinestring_wkt():
     assert parse_wkt_lines("LINESTRING(1 2,3 4)")[0].tolist() == [[1, 2], [3, 4]]
 
 
+def test_displacement_trace_file_reprojected_to_the_views_srs(pair, slip_run, tmp_path):
+    """A WGS 84 trace file with the view's SRS as PDAL 2.8 passes it (a dict): the stage
+    reprojects the trace and gives the slip of the same trace in WKT."""
+    import pyproj
+
+    utm = pyproj.CRS.from_epsg(32611)
+    to_ll = pyproj.Transformer.from_crs(utm, "EPSG:4326", always_xy=True)
+    lon, lat = to_ll.transform(pair.trace_xy[:, 0], pair.trace_xy[:, 1])
+    geo = {
+        "type": "FeatureCollection",
+        "features": [
+            {
+                "type": "Feature",
+                "properties": {},
+                "geometry": {
+                    "type": "LineString",
+                    "coordinates": [[a, b] for a, b in zip(lon, lat)],
+                },
+            }
+        ],
+    }
+    path = tmp_path / "trace.geojson"
+    path.write_text(json.dumps(geo))
+    pytest.importorskip("osgeo")
+    pts, tag = _epochs(pair)
+    args = {"trace": str(path), "sigma_before": 0.02, "sigma_after": 0.02}
+    mod = stage("displacement", args, spatialreference=utm.to_wkt())
+    assert isinstance(mod._harness["spatialreference"], dict)  # what real PDAL passes
+    call(mod, make_ins(pts, Epoch=tag), DISP)
+    ref, _, core = slip_run
+    got = nodes(mod)["right_lateral_slip"]
+    assert got == pytest.approx(core.components()["right_lateral_slip"], abs=1e-6)
+
+
+def test_srs_wkt_reads_pdal_forms():
+    from pdal_harness import srs_metadata
+
+    from slipmap.pdal_filters._stage import StageError, srs_wkt
+
+    assert srs_wkt(srs_metadata(None)) is None and srs_wkt(None) is None and srs_wkt(" ") is None
+    full = srs_metadata("EPSG:32611")
+    assert "32611" in srs_wkt(full) or "UTM zone 11N" in srs_wkt(full)
+    assert srs_wkt("PROJCS[...]") == "PROJCS[...]"
+    full["srs"]["compoundwkt"] = "COMPD_CS[...]"
+    assert srs_wkt(full) == "COMPD_CS[...]"  # horizontal + vertical when there is one
+    with pytest.raises(StageError, match="unknown form"):
+        srs_wkt(42)
+
+
+def test_slipmap_path_without_a_package_names_the_option(tmp_path, monkeypatch):
+    """The script's one bootstrap: a slipmap_path holding no slipmap is refused by name."""
+    import sys
+
+    monkeypatch.delitem(sys.modules, "slipmap")  # as in a PDAL whose Python lacks slipmap
+    mod = stage("roughness", {"slipmap_path": str(tmp_path)})
+    with pytest.raises(RuntimeError, match="option 'slipmap_path'.*holds no slipmap package"):
+        call(mod, make_ins(np.zeros((5, 3))), ROUGH)
+
+
+def test_metadata_nodes_typed_as_pdal_reads_them():
+    from pdal_harness import _typed
+
+    from slipmap.pdal_filters._stage import metadata_node
+
+    for value in (True, 3, np.int32(7), 0.1 + 0.2, np.float32(1.5), "text", {"a": [1.0, np.nan]}):
+        node = metadata_node("x", value)
+        assert isinstance(node["value"], str)
+        back = _typed(node["value"], node["type"])
+        if isinstance(value, dict):
+            assert back == {"a": [1.0, None]}
+        else:
+            assert back == value
+    assert metadata_node("x", float("nan"))["type"] == "json"  # null, not the text "nan"
+
+
 @pytest.fixture(scope="module")
 def drift_pair():
     """A small pair with 3 mm of MLS trajectory drift, PointSourceId and GpsTime per epoch."""
@@ -219,7 +292,7 @@ def test_displacement_units_equal_core(drift_pair, units):
     args = {"trace": _trace_wkt(fp), "sigma_before": 0.02, "sigma_after": 0.02, "units": units}
     mod = stage("displacement", {**args, "gps_gap_s": 2.0})
     call(mod, _drift_ins(fp), DISP)
-    nodes = {c["name"]: c["value"] for c in mod.out_metadata["children"]}
+    md = nodes(mod)
     if units == "auto":
         ub, ua = fp.source_before, fp.source_after
         source = "PointSourceId"
@@ -227,7 +300,7 @@ def test_displacement_units_equal_core(drift_pair, units):
         ub = gps_time_segments(fp.gps_time_before, 2.0)
         ua = gps_time_segments(fp.gps_time_after, 2.0)
         source = "GpsTime"
-    acq = json.loads(nodes["acquisition_units"])
+    acq = md["acquisition_units"]
     assert acq["units_option"] == ("auto" if units == "auto" else "GpsTime")
     assert acq["before"]["source"] == source
     assert acq["before"]["n_units"] == int(np.unique(ub).size)
@@ -241,7 +314,7 @@ def test_displacement_units_equal_core(drift_pair, units):
         unit_before=ub,
         unit_after=ua,
     )
-    summary = json.loads(nodes["summary"])
+    summary = md["summary"]
     assert summary["relative"]["right_lateral_slip"] == pytest.approx(
         core.components()["right_lateral_slip"], abs=1e-9
     )
@@ -259,7 +332,7 @@ def test_displacement_fixed_components_and_white(drift_pair):
     base = {"trace": _trace_wkt(fp), "sigma_before": 0.02, "sigma_after": 0.02}
     mod = stage("displacement", {**base, "fixed_components": "plane=0.002, spatial=0"})
     call(mod, _drift_ins(fp), DISP)
-    summary = json.loads(mod.out_metadata["children"][0]["value"])
+    summary = nodes(mod)["summary"]
     for side in ("left", "right"):
         comps = summary[side]["variance_components"]["components"]
         assert comps["plane"]["source"] == "fixed"
@@ -267,19 +340,18 @@ def test_displacement_fixed_components_and_white(drift_pair):
     assert summary["parameters"]["components"] == {"plane": 0.002, "spatial": 0.0}
     mod = stage("displacement", {**base, "stochastic_model": "white", "units": "PointSourceId"})
     call(mod, _drift_ins(fp), DISP)
-    nodes = {c["name"]: c["value"] for c in mod.out_metadata["children"]}
-    summary = json.loads(nodes["summary"])
-    assert nodes["stochastic_model"] == "white"
+    md = nodes(mod)
+    summary = md["summary"]
+    assert md["stochastic_model"] == "white"
     assert "variance_components" not in summary["left"]
     assert "sigma_fault_parallel_white" not in summary["relative"]
-    assert json.loads(nodes["acquisition_units"])["before"]["source"] == "none"
+    assert md["acquisition_units"]["before"]["source"] == "none"
 
 
 def test_displacement_stochastic_options_parse():
-    from slipmap.pdal_filters import _stage
+    from slipmap.pdal_filters import displacement as mod
 
-    mod = stage("displacement", {})
-    table = mod.options_table()
+    table = mod.TABLE
     opts = table.parse(
         {
             "trace": "LINESTRING (0 0, 1 1)",
@@ -290,16 +362,16 @@ def test_displacement_stochastic_options_parse():
     )
     assert opts["units"] == "PointSourceId" and opts["stochastic_model"] == "plane"
     assert opts["gps_gap_s"] == 1.0
-    assert mod._stochastic_options(opts, _stage) == {
+    assert mod._stochastic_options(opts) == {
         "stochastic_model": "plane",
         "components": {"plane": 0.002, "spatial_range_m": 30.0},
     }
     opts = table.parse({"trace": "x", "fixed_components": {"unit_after": 0.003}})
     assert opts["units"] == "auto" and opts["stochastic_model"] == "full"
-    assert mod._stochastic_options(opts, _stage)["components"] == {"unit_after": 0.003}
+    assert mod._stochastic_options(opts)["components"] == {"unit_after": 0.003}
     opts = table.parse('{"trace": "x", "fixed_components": "{\\"plane\\": 0.001}"}')
-    assert mod._stochastic_options(opts, _stage)["components"] == {"plane": 0.001}
-    assert mod._stochastic_options(table.parse({"trace": "x"}), _stage)["components"] is None
+    assert mod._stochastic_options(opts)["components"] == {"plane": 0.001}
+    assert mod._stochastic_options(table.parse({"trace": "x"}))["components"] is None
 
 
 def test_displacement_gps_time_units_need_the_dimension(drift_pair):
@@ -361,8 +433,9 @@ def test_core_errors_become_stage_errors():
 
 
 def test_options_parsed_once_per_raw_value(monkeypatch):
-    mod = stage("roughness", {"cell": 1.0})
-    table = mod.options_table()
+    from slipmap.pdal_filters.roughness import options_table
+
+    table = options_table()
     a = table.parse('{"cell": 1}')
     calls = []
     monkeypatch.setattr(
@@ -394,9 +467,9 @@ def test_slipmap_path_makes_a_checkout_importable(tmp_path):
         except ImportError:
             pass
         sys.path.insert(0, {str(ROOT / "tests" / "pdal_stages")!r})
-        from pdal_harness import load_stage, make_ins, call, STAGE_DIR
+        from pdal_harness import load_stage, make_ins, call
         import numpy as np
-        mod = load_stage(STAGE_DIR / 'roughness.py', 'r', {{"slipmap_path": {str(ROOT)!r}}})
+        mod = load_stage('roughness', {{"slipmap_path": {str(ROOT)!r}}}, module_name='r')
         pts = np.random.default_rng(0).uniform(0, 5, (300, 3))
         out = call(mod, make_ins(pts), {{"Roughness": np.dtype(np.float64)}})
         print('ok', out['Roughness'].shape)
