@@ -40,13 +40,21 @@ log = logging.getLogger(__name__)
 _U3 = np.uint64(3)
 NOISE_SAMPLE_POINTS = 200_000  # points used to estimate the noise (whole nodes, Morton-spread)
 
-TARGET_LEAF_POINTS = 40  # points per leaf the automatic node size aims at
+TARGET_LEAF_POINTS = 30  # points per leaf the automatic node size aims at
 NOISE_QUANTILE = 25.0  # percentile of leaf residual scales taken as the noise (robust to clutter)
 NOISE_QUANTILE_BIAS = 1.12  # that percentile is ~0.89 sigma for 40-point Gaussian leaves
 PLANARITY_SIGMAS = 3.0  # planarity threshold = 3 noise sigmas
+PLANARITY_RATIO = 0.9  # Algorithm 1's share of a leaf within the threshold, less the clutter
+MIN_PLANARITY_RATIO = 0.6  # ... but never below this
+RELEASE_THRESHOLDS = 2.0  # labelled points beyond this many thresholds of their plane go
+SURFACE_CORE_SHARE = 0.5  # of the points within 3 sigmas of a plane, those within 1 sigma
+REFIT_FLATNESS = 0.5  # failing leaves refitted when sqrt(l0) <= this * sqrt(l1) (not blobs)
+CLUTTER_RATIO_FACTOR = 3.0  # leaves hold up to ~3x the median clutter share of surface cells
 CONTAMINATED = 0.98  # planar nodes with fewer inliers than this share are refitted on inliers
 ADAPTIVE_LEVELS = 2  # automatic max node size = min node size * 2**ADAPTIVE_LEVELS
 MIN_PLANE_LEAVES = 3  # automatic min_plane_points = this many typical leaves
+REFINE_RMS_SIGMAS = 1.3  # one plane: its inlier points' RMS is at most this many noise sigmas
+SPLIT_RMS_SIGMAS = 1.5  # segments whose inlier RMS exceeds this many sigmas are split
 
 
 @dataclass(frozen=True)
@@ -68,13 +76,16 @@ class SegmentationParameters:
     point_spacing_m: float
     noise_m: float
     automatic: Tuple[str, ...] = ()
+    scale_node_size_m: float = float("nan")
+    surface_share: float = float("nan")
+    scale_method: str = ""
 
     def to_dict(self) -> Dict[str, object]:
         d = asdict(self)
         d["automatic"] = list(self.automatic)
         for k, v in d.items():
             if isinstance(v, float):
-                d[k] = float(f"{v:.6g}")
+                d[k] = float(f"{v:.6g}") if math.isfinite(v) else None
         return d
 
 
@@ -287,6 +298,55 @@ def node_fit_reference(
     return mean, evals, normal, n_within, within
 
 
+def _refit_robust(kernels, sub, starts, counts, nodes, thr, mean, evals, normal, n_within, within):
+    """Robust planes for ``nodes`` (indices into ``starts``/``counts``), in place; returns the
+    share (K,) of each node's points within ``thr`` of its plane that lie within ``thr / 3``.
+
+    Twice: residuals to the current plane, points within max(k sqrt(l0), ``thr``) refitted,
+    k = 2 then 3 (clutter inflates the first l0, so the first band is narrower; the
+    refitted plane is no longer tilted by it, so the second band holds the surface's noise
+    and sheds the clutter). No sort: a median per node cost more than the whole planarity
+    test. A refit is kept where it puts
+    at least as many points within ``thr`` as the plane before (so clean corners keep the old
+    behaviour: the inliers' plane). Uses only the backend's kernels, so both backends agree.
+    """
+    cnt = counts[nodes]
+    pos = _ranges_to_index(starts[nodes], cnt)
+    pts = np.take(sub, pos, axis=0)
+    st = np.cumsum(cnt) - cnt
+    owner = np.repeat(np.arange(nodes.size), cnt)
+    m, e, nrm = mean[nodes].copy(), evals[nodes].copy(), normal[nodes].copy()
+    for width in (2.0, 3.0):
+        r = np.abs(np.einsum("ij,ij->i", pts - m[owner], nrm[owner]))
+        band = np.maximum(width * np.sqrt(np.maximum(e[:, 0], 0.0)), thr)
+        keep = r <= band[owner]
+        nk = np.bincount(owner, weights=keep, minlength=nodes.size).astype(np.int64)
+        ok = nk >= 3
+        if not ok.any():
+            break
+        sel = np.flatnonzero(keep & ok[owner])
+        c2 = nk[ok]
+        m2, e2, n2, _, _ = kernels.node_fit(pts[sel], np.cumsum(c2) - c2, c2, thr)
+        m[ok], e[ok], nrm[ok] = m2, e2, n2
+    nw, w = kernels.plane_within(pts, st, cnt, m, nrm, thr)
+    better = nw >= n_within[nodes]
+    take = nodes[better]
+    mean[take], evals[take], normal[take], n_within[take] = (
+        m[better],
+        e[better],
+        nrm[better],
+        nw[better],
+    )
+    within[pos[better[owner]]] = w[better[owner]]
+    # share of the points within the threshold that lie within a third of it (one sigma):
+    # 0.68 for a surface (a Gaussian cut at 3 sigma), 0.33 for clutter filling the band evenly
+    r = np.abs(np.einsum("ij,ij->i", pts - mean[nodes][owner], normal[nodes][owner]))
+    inband = within[pos]
+    core = np.bincount(owner, weights=inband & (r <= thr / 3.0), minlength=nodes.size)
+    den = np.bincount(owner, weights=inband, minlength=nodes.size)
+    return core / np.maximum(den, 1.0)
+
+
 def get_kernels(backend: str):
     """The kernel set for ``backend`` ('numpy', 'opencl' or 'auto')."""
     if backend == "numpy":
@@ -420,6 +480,341 @@ def _estimate_noise(
     return float(np.percentile(scale, NOISE_QUANTILE) * NOISE_QUANTILE_BIAS), typical
 
 
+# --------------------------------------------------------------------------- scales
+
+
+SCALE_SAMPLE_POINTS = 30_000  # points analysed for spacing and noise (whole blocks)
+SCALE_BLOCK_POINTS = 2_000  # points per sampled block (a few leaves of every scale)
+SURFACE_FLATNESS = 0.15  # a node is surface-like when sqrt(l0) <= this * sqrt(l1) ...
+SURFACE_SPREAD = 0.15  # ... and sqrt(l1) >= this * its edge (spread across it, not a line)
+NOISE_FLATNESS = 0.25  # nodes whose residual scale enters the noise median
+SURFACE_SHARE_OF_BEST = 0.7  # the finest scale holding this share of the best scale's share
+MIN_SCALE_NODE_POINTS = 12  # nodes fitted in the scale analysis
+MIN_SURFACE_NODES = 30  # surface-like nodes a level needs to count ...
+MIN_SURFACE_NODES_SMALL = 8  # ... or a tenth of its fitted nodes, at least this many
+NOISE_CLEARANCE_SIGMAS = 3.0  # noise nodes: their plane this far from the node's faces
+
+
+@dataclass(frozen=True)
+class ScaleLevel:
+    """One octree level of the scale analysis (on the sampled blocks).
+
+    ``surface_share``: fraction of the sampled points in surface-like nodes (locally planar
+    with the points spread across the node); ``median_points``: median points per
+    surface-like node; ``noise_m``: median residual scale of near-planar nodes (metres).
+    """
+
+    node_size_m: float
+    n_nodes: int
+    n_surface_nodes: int
+    n_fitted_nodes: int
+    surface_share: float
+    median_points: float
+    noise_m: float
+
+
+@dataclass(frozen=True)
+class ScaleEstimate:
+    """Point spacing and noise of a cloud's surfaces, from local neighbourhoods.
+
+    ``point_spacing_m`` (metres between neighbouring points on a surface), ``noise_m``
+    (1 sigma across the surface), the node edge they were read at, the share of sampled
+    points in surface-like nodes there (``1 - surface_share`` is clutter, edges and curved
+    ground at that scale), ``method`` ("surface nodes", or "occupancy" when no surface was
+    found) and every level examined.
+    """
+
+    point_spacing_m: float
+    noise_m: float
+    node_size_m: float
+    surface_share: float
+    n_sampled: int
+    method: str
+    outlier_share: float = float("nan")
+    levels: Tuple[ScaleLevel, ...] = ()
+
+    def describe(self) -> str:
+        return (
+            f"point spacing {self.point_spacing_m:.3g} m and noise {self.noise_m:.3g} m from "
+            f"{self.method} of {self.node_size_m:.3g} m ({self.surface_share:.0%} of "
+            f"{self.n_sampled} sampled points in surface-like nodes, "
+            f"{self.outlier_share:.1%} outliers in them)"
+        )
+
+
+@dataclass(frozen=True)
+class _RobustFit:
+    """Plane fits of point groups with their clutter set aside (see :func:`_robust_fit`)."""
+
+    mean: np.ndarray  # (K, 3)
+    normal: np.ndarray  # (K, 3)
+    scales: np.ndarray  # (K, 3) square roots of the ascending eigenvalues
+    n_inliers: np.ndarray  # (K,) int64
+    ok: np.ndarray  # (K,) bool: at least MIN_SCALE_NODE_POINTS inliers
+    inlier: np.ndarray  # (n,) bool per point
+
+
+def _robust_fit(p: np.ndarray, counts: np.ndarray, kern) -> _RobustFit:
+    """Least-squares planes of consecutive groups of ``p``, refitted on their inliers.
+
+    Twice: points within k sqrt(l0) of the current plane are refitted, k = 2 then 3, so
+    clutter (vegetation, noise points) neither tilts a group's plane nor inflates its scale
+    (the first l0 is inflated by the clutter, hence the narrower first band). Groups left
+    with fewer than ``MIN_SCALE_NODE_POINTS`` inliers are not ``ok``.
+    """
+    starts = np.cumsum(counts) - counts
+    mean, evals, normal, _, _ = kern.node_fit(p, starts, counts, 0.0)
+    owner = np.repeat(np.arange(counts.size), counts)
+    n_in = counts.astype(np.int64)
+    inlier = np.ones(p.shape[0], dtype=bool)
+    ok = n_in >= MIN_SCALE_NODE_POINTS
+    for width in (2.0, 3.0):
+        r = np.abs(np.einsum("ij,ij->i", p - mean[owner], normal[owner]))
+        inlier = r <= width * np.sqrt(np.maximum(evals[:, 0], 1e-24))[owner]
+        n_in = np.bincount(owner, weights=inlier, minlength=counts.size).astype(np.int64)
+        ok = n_in >= MIN_SCALE_NODE_POINTS
+        if not ok.any():
+            break
+        sel = np.flatnonzero(inlier & ok[owner])
+        c2 = n_in[ok]
+        m2, e2, n2, _, _ = kern.node_fit(p[sel], np.cumsum(c2) - c2, c2, 0.0)
+        mean, evals, normal = mean.copy(), evals.copy(), normal.copy()
+        mean[ok], evals[ok], normal[ok] = m2, e2, n2
+    return _RobustFit(mean, normal, np.sqrt(np.maximum(evals, 0.0)), n_in, ok, inlier)
+
+
+def _noise_at(pts: np.ndarray, size: float, origin: np.ndarray, kern) -> Tuple[float, float]:
+    """Noise (metres) and outlier share from cubic cells of edge ``size`` on two grids.
+
+    Each cell with enough points gets a least-squares plane, then a robust one: points within
+    3 MAD-sigmas of the first plane are refitted, so clutter in the cell (vegetation, noise
+    points) neither tilts the plane nor inflates its scale. Near-planar cells (robust
+    sqrt(l0) <= 0.25 sqrt(l1), spread across the cell) give the noise, their median robust
+    scale times sqrt(m / (m - 3)) for m-point fits, and the outlier share, the median share of
+    their points beyond 3 sigmas. A surface lying along a cell face leaves one side of its
+    noise distribution in the cell (a flat floor on the octree's mid-plane: the half-normal's
+    scale is 0.6 sigma), so cells whose plane lies within 3 sigmas of their faces along its
+    normal do not count; the grid shifted by half a cell holds such a surface in mid-cell.
+    The grids are the octree's (``origin`` its root corner), so the estimate is as invariant
+    as the octree (translations, quarter turns). NaN, NaN without any near-planar cell.
+    """
+    lo = np.asarray(origin, dtype=np.float64) - size  # one cell of margin: indices >= 0
+    scales, shares = [], []
+    for offset in (0.0, 0.5 * size):
+        ijk = np.floor((pts - lo + offset) / size).astype(np.int64)
+        dims = ijk.max(axis=0) + 1
+        key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+        order = np.argsort(key, kind="stable")
+        cells, starts, counts = run_boundaries(key[order])
+        fit = counts >= MIN_SCALE_NODE_POINTS
+        if not fit.any():
+            continue
+        st, ct = starts[fit], counts[fit]
+        p = pts[order[_ranges_to_index(st, ct)]]
+        fitq = _robust_fit(p, ct, kern)
+        ev = fitq.scales
+        near = fitq.ok & (ev[:, 1] >= SURFACE_SPREAD * size) & (2 * fitq.n_inliers >= ct)
+        near &= ev[:, 0] <= NOISE_FLATNESS * ev[:, 1]
+        c = cells[fit]
+        corner = (
+            lo
+            - offset
+            + size
+            * np.column_stack([c // (dims[1] * dims[2]), (c // dims[2]) % dims[1], c % dims[2]])
+        )
+        room = _room_along_normal(fitq.mean, fitq.normal, corner, size)
+        good = near & (room >= NOISE_CLEARANCE_SIGMAS * ev[:, 0])
+        m = fitq.n_inliers[good]
+        scales.append(ev[good, 0] * np.sqrt(m / np.maximum(m - 3.0, 1.0)))
+        # outliers of each good cell: beyond 3 sigmas of its robust plane
+        owner = np.repeat(np.arange(ct.size), ct)
+        d = np.abs(np.einsum("ij,ij->i", p - fitq.mean[owner], fitq.normal[owner]))
+        far = np.bincount(owner, weights=d > 3.0 * ev[owner, 0], minlength=ct.size)
+        shares.append(far[good] / ct[good])
+    both = np.concatenate(scales) if scales else np.empty(0)
+    if not both.size:
+        return float("nan"), float("nan")
+    return float(np.median(both)), float(np.median(np.concatenate(shares)))
+
+
+def _room_along_normal(
+    mean: np.ndarray, normal: np.ndarray, lo: np.ndarray, size: float
+) -> np.ndarray:
+    """Distance (K,) from each node's centroid to its box's faces along its normal, the nearer
+    way (``lo`` (K, 3) the boxes' lower corners, ``size`` their edge)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        up = np.where(normal > 0, (lo + size - mean) / normal, (lo - mean) / normal)
+        down = np.where(normal > 0, (mean - lo) / normal, (mean - lo - size) / normal)
+    up = np.where(np.abs(normal) > 1e-12, up, np.inf).min(axis=1)
+    down = np.where(np.abs(normal) > 1e-12, down, np.inf).min(axis=1)
+    return np.minimum(up, down)
+
+
+def _sample_blocks(
+    tree: Octree, target: int = SCALE_SAMPLE_POINTS, block_points: int = SCALE_BLOCK_POINTS
+) -> Tuple[np.ndarray, int]:
+    """Sorted positions of whole octree blocks spread through the cloud (all points when few),
+    and the blocks' level (0 for the whole cloud): coarser levels say nothing of the cloud.
+
+    Blocks are the nodes of the deepest level whose typical block (point-weighted median)
+    holds at least ``block_points``; about ``target`` points in all. They
+    are chosen by a hash of their point count, so the sample does not depend on the input
+    order, and a translation or quarter turn of the cloud (which maps the octree onto itself)
+    picks the same blocks.
+    """
+    n = tree.keys.size
+    if n <= target:
+        return np.arange(n, dtype=np.int64), 0
+    guess = tree.root_size_m * math.sqrt(16.0 / n)  # ~16 points per node on a surface
+    level = min(tree.depth, max(1, tree.level_for_size(guess) + 1))
+    keys, starts, counts = tree.nodes(level)  # one pass over the keys, then aggregate
+    while level > 1 and _weighted_median(counts) < block_points:
+        keys, first, _ = run_boundaries(keys >> _U3)
+        counts = np.add.reduceat(counts, first)
+        starts = starts[first]
+        level -= 1
+    frac = target / n
+    mixed = counts.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing
+    take = (mixed >> np.uint64(40)) < np.uint64(int(frac * (1 << 24)))
+    if counts[take].sum() < 0.5 * target:  # few distinct counts: every k-th block
+        take = np.zeros(counts.size, dtype=bool)
+        take[:: max(1, int(round(1.0 / frac)))] = True
+    return _ranges_to_index(starts[take], counts[take]), level
+
+
+def _weighted_median(counts: np.ndarray) -> float:
+    """The node count of the median point (point-weighted median of node counts)."""
+    c = np.sort(counts)
+    return float(c[np.searchsorted(np.cumsum(c), 0.5 * c.sum())])
+
+
+def _scale_levels(
+    tree: Octree, keys: np.ndarray, pts: np.ndarray, kern, *, first_level: int = 1
+) -> List[ScaleLevel]:
+    """The scale analysis of one sample (sorted ``keys`` and ``pts``), level by level from
+    ``first_level`` (the level below the sampled blocks) down."""
+    from .octree import run_boundaries as _runs
+
+    levels: List[ScaleLevel] = []
+    for lv in range(max(1, first_level), tree.depth + 1):
+        _, starts, counts = _runs(keys >> np.uint64(3 * (tree.depth - lv)))
+        fit = counts >= MIN_SCALE_NODE_POINTS
+        if not fit.any():
+            break
+        if counts.size == 1 and lv < tree.depth:
+            continue  # one block: too coarse to say anything
+        st, ct = starts[fit], counts[fit]
+        fitq = _robust_fit(pts[_ranges_to_index(st, ct)], ct, kern)
+        ev, n_in = fitq.scales, fitq.n_inliers
+        a = tree.cell_size_m(lv)
+        # surface-like: flat and spread across the node once its clutter is set aside, and
+        # most of its points on that plane
+        spread = fitq.ok & (ev[:, 1] >= SURFACE_SPREAD * a) & (2 * n_in >= ct)
+        surface = spread & (ev[:, 0] <= SURFACE_FLATNESS * ev[:, 1])
+        near = spread & (ev[:, 0] <= NOISE_FLATNESS * ev[:, 1])
+        share = float(n_in[surface].sum()) / max(keys.size, 1)
+        med = float(np.median(n_in[surface])) if surface.any() else float("nan")
+        if near.any():
+            m = float(np.median(n_in[near]))
+            noise = float(np.median(ev[near, 0])) * math.sqrt(m / max(m - 3.0, 1.0))
+        else:
+            noise = float("nan")
+        levels.append(
+            ScaleLevel(a, int(counts.size), int(surface.sum()), int(ct.size), share, med, noise)
+        )
+        if float(np.max(counts)) < 4 * MIN_SCALE_NODE_POINTS:
+            break  # deeper nodes are too small to fit
+    return levels
+
+
+def _speaks(level: ScaleLevel) -> bool:
+    """Enough surface-like nodes: 30, or in a small sample a twentieth of the fitted (>= 8)."""
+    need = min(MIN_SURFACE_NODES, max(MIN_SURFACE_NODES_SMALL, 0.05 * level.n_fitted_nodes))
+    return level.n_surface_nodes >= need
+
+
+def estimate_scales(
+    tree: Octree, ps: np.ndarray, *, grid_origin: Optional[np.ndarray] = None
+) -> ScaleEstimate:
+    """Point spacing and noise of the surfaces in a cloud, robust to clutter.
+
+    ``ps`` are the tree's points in sorted order, in the tree's coordinates shifted so that
+    the root corner is at ``grid_origin`` (default ``tree.origin``: unshifted).
+
+    Whole blocks of the cloud are sampled (:func:`_sample_blocks`). At every octree level
+    from the blocks down, each node with at least 12 points gets a plane fit (eigenvalues
+    l0 <= l1 <= l2 of its covariance); it is *surface-like* when sqrt(l0) <= 0.15 sqrt(l1)
+    and sqrt(l1) >= 0.15 of its edge. Clutter (vegetation, noise points) and nodes smaller
+    than the noise are not surface-like, so the analysis reads the surfaces, not the clutter,
+    whatever the clutter's share, and at several scales: the level used is the finest whose
+    surface share reaches 70 % of the best level's (levels with fewer than 30 surface-like
+    nodes, or in a small sample a twentieth of the fitted ones and at least 8, do not count). There
+
+    * spacing = edge / sqrt(median points of the surface-like nodes) (a surface crossing a
+      node of edge a holds about a² / s² points);
+    * noise = median sqrt(l0) of the near-planar nodes (sqrt(l0) <= 0.25 sqrt(l1)) whose
+      plane lies at least 3 sqrt(l0) from the node's faces along its normal (a plane along a
+      face leaves half its noise distribution in the node), with the small-sample factor
+      sqrt(m / (m - 3)) of an m-point plane fit.
+
+    Written by hand: nearest-neighbour statistics on a k-d tree of the whole cloud cost more
+    than the segmentation itself at millions of points, while the octree is already sorted;
+    the numpy kernel is used whatever the backend, so both backends get the same parameters.
+    """
+
+    kern = NumpyKernels()
+    target = SCALE_SAMPLE_POINTS
+    while True:
+        grow = target // SCALE_SAMPLE_POINTS  # bigger samples of bigger blocks
+        idx, block_level = _sample_blocks(tree, target, SCALE_BLOCK_POINTS * grow)
+        keys, pts = tree.keys[idx], np.take(ps, idx, axis=0)
+        levels = _scale_levels(tree, keys, pts, kern, first_level=block_level + 1)
+        eligible = [k for k, v in enumerate(levels) if _speaks(v)]
+        raw = [v.surface_share for v in levels]
+        best_raw = int(np.argmax(raw)) if raw else 0
+        best_ok = max((levels[k].surface_share for k in eligible), default=0.0)
+        # surfaces seen clearly only at a scale with too few nodes in the sample, or not at
+        # all (dense and noisy clouds: a node must be ~25 noise sigmas wide): sample more
+        # points in bigger blocks
+        unclear = not eligible or (best_raw not in eligible and raw[best_raw] > 1.3 * best_ok)
+        if raw and unclear and idx.size < tree.keys.size and target < 16 * SCALE_SAMPLE_POINTS:
+            target *= 4
+            continue
+        break
+    # a level speaks only with enough surface-like nodes (a few big nodes say little)
+    shares = np.array([lvl.surface_share if _speaks(lvl) else 0.0 for lvl in levels])
+    if shares.size == 0 or shares.max() < 0.02:
+        nan = float("nan")
+        return ScaleEstimate(nan, nan, nan, 0.0, int(idx.size), "occupancy", levels=tuple(levels))
+    good = np.flatnonzero(shares >= SURFACE_SHARE_OF_BEST * shares.max())
+    k = int(good.max())  # the finest such level
+    chosen = levels[k]
+    spacing = chosen.node_size_m / math.sqrt(max(chosen.median_points, 1.0))
+    corner = tree.origin if grid_origin is None else np.asarray(grid_origin, np.float64)
+    noise, outliers = _noise_at(pts, chosen.node_size_m, corner, kern)
+    if not np.isfinite(noise):
+        noise = chosen.noise_m
+    if not np.isfinite(noise):
+        noise = float(np.nanmedian([lvl.noise_m for lvl in levels]))
+    return ScaleEstimate(
+        point_spacing_m=float(spacing),
+        noise_m=float(noise),
+        node_size_m=float(chosen.node_size_m),
+        surface_share=float(chosen.surface_share),
+        n_sampled=int(idx.size),
+        method="surface-like nodes",
+        outlier_share=float(outliers),
+        levels=tuple(levels),
+    )
+
+
+def _typical_leaf_points(tree: Octree, level: int, min_points: int) -> float:
+    """Median points per fitted node (at least ``min_points``, and 6) at ``level``."""
+    _, _, counts = tree.nodes(level)
+    ok = counts[counts >= max(min_points, 6)]
+    return float(np.median(ok)) if ok.size else float("nan")
+
+
 # --------------------------------------------------------------------------- main function
 
 
@@ -446,7 +841,7 @@ def segment_planes(
     min_node_size_m : float, optional
         Smallest octree leaf edge, metres (leaves are ``root / 2**k``, so the edge used lies in
         ``[min_node_size_m, 2 * min_node_size_m)``). Default: from the point spacing, so that a
-        leaf on a surface holds about 40 points.
+        leaf on a surface holds about 30 points.
     max_node_size_m : float, optional
         Largest leaf edge, metres: nodes are tested from this size down. Default 4x the leaf.
     planarity_threshold_m : float, optional
@@ -487,10 +882,7 @@ def segment_planes(
     kernels = get_kernels(backend)
     automatic: List[str] = []
 
-    if planarity_ratio is None:
-        planarity_ratio = 0.9
-        automatic.append("planarity_ratio")
-    if not 0.0 < planarity_ratio <= 1.0:
+    if planarity_ratio is not None and not 0.0 < planarity_ratio <= 1.0:
         raise InvalidParameterError(f"planarity_ratio must be in (0, 1], got {planarity_ratio}")
     if min_leaf_points is None:
         min_leaf_points = 10
@@ -528,8 +920,11 @@ def segment_planes(
 
     # ---- parameters
     t0 = time.perf_counter()
-    occupancy = occupancy_by_level(tree)
-    spacing = estimate_point_spacing(tree, occupancy)
+    scales = estimate_scales(tree, ps, grid_origin=tree.origin - centre)
+    if scales.method == "occupancy":  # no surface-like node anywhere: the old estimate
+        spacing = estimate_point_spacing(tree, occupancy_by_level(tree))
+    else:
+        spacing = scales.point_spacing_m
     if min_node_size_m is None:
         target = spacing * math.sqrt(TARGET_LEAF_POINTS)
         level = int(round(math.log2(tree.root_size_m / target)))
@@ -537,17 +932,27 @@ def segment_planes(
         automatic.append("min_node_size_m")
     else:
         leaf_level = max(1, tree.level_for_size(min_node_size_m))
-    noise, typical_n = _estimate_noise(tree, ps, leaf_level, min_leaf_points, kernels)
+    noise = scales.noise_m
+    if not np.isfinite(noise):
+        noise, _ = _estimate_noise(tree, ps, leaf_level, min_leaf_points, kernels)
     if min_node_size_m is None and np.isfinite(noise):
         # a leaf must be wide compared with the noise, or its normal is meaningless
         while leaf_level > 1 and tree.cell_size_m(leaf_level) < 8.0 * noise:
             leaf_level -= 1
-            noise, typical_n = _estimate_noise(tree, ps, leaf_level, min_leaf_points, kernels)
     leaf_size = tree.cell_size_m(leaf_level)
+    typical_n = _typical_leaf_points(tree, leaf_level, min_leaf_points)
     if not np.isfinite(noise):
         noise = 0.01 * leaf_size
         typical_n = float(min_leaf_points)
         log.warning("too few points per leaf to estimate the noise; assuming %.3g m", noise)
+    log.info("%s; leaf %.3g m", scales.describe(), leaf_size)
+    if planarity_ratio is None:
+        # clutter inside surface leaves (vegetation, noise points) must not fail them
+        share = scales.outlier_share if np.isfinite(scales.outlier_share) else 0.0
+        planarity_ratio = float(
+            np.clip(PLANARITY_RATIO - CLUTTER_RATIO_FACTOR * share, MIN_PLANARITY_RATIO, 0.9)
+        )
+        automatic.append("planarity_ratio")
     if planarity_threshold_m is None:
         planarity_threshold_m = max(PLANARITY_SIGMAS * noise, 1e-4 * leaf_size)
         automatic.append("planarity_threshold_m")
@@ -580,6 +985,9 @@ def segment_planes(
         point_spacing_m=float(spacing),
         noise_m=float(noise),
         automatic=tuple(automatic),
+        scale_node_size_m=float(scales.node_size_m),
+        surface_share=float(scales.surface_share),
+        scale_method=scales.method,
     )
     log.debug("segmentation parameters: %s", params.to_dict())
     timings["parameters"] = time.perf_counter() - t0
@@ -608,24 +1016,27 @@ def segment_planes(
         # planar: enough points within the threshold, and spread in two directions (not a line)
         planar = fitted & (n_within >= planarity_ratio * counts)
         planar &= np.sqrt(np.maximum(evals[:, 1], 0.0)) > thr
-        # Refit contaminated planar nodes on their inliers, so the up to (1 - ratio) points of
-        # another surface (at corners and edges) do not tilt the plane; then test again.
-        pl = np.flatnonzero(planar & (n_within < CONTAMINATED * counts))
+        # Refit contaminated nodes robustly, so the up to (1 - ratio) points of another surface
+        # (at corners and edges) or of clutter (vegetation, noise points) do not tilt the
+        # plane; then test again.
+        # Above the leaf level only nodes with a majority on their first plane: the others
+        # split anyway, and their leaves get the robust refit.
+        last = level == leaf_level
+        flat = evals[:, 0] <= (REFIT_FLATNESS**2) * evals[:, 1]  # not a blob of clutter
+        pl = np.flatnonzero(
+            fitted
+            & (n_within < CONTAMINATED * counts)
+            & (planar | (2 * n_within >= counts) | (last & flat))
+        )
         if pl.size:
-            pts_pl = _ranges_to_index(starts[pl], counts[pl])
-            inl = pts_pl[within[pts_pl]]
-            in_starts = np.cumsum(n_within[pl]) - n_within[pl]
-            m2, e2, n2, _, _ = kernels.node_fit(
-                np.take(sub, inl, axis=0), in_starts, n_within[pl], thr
+            core = _refit_robust(
+                kernels, sub, starts, counts, pl, thr, mean, evals, normal, n_within, within
             )
-            pl_starts = np.cumsum(counts[pl]) - counts[pl]
-            nw2, w2 = kernels.plane_within(
-                np.take(sub, pts_pl, axis=0), pl_starts, counts[pl], m2, n2, thr
-            )
-            mean[pl], evals[pl], normal[pl], n_within[pl] = m2, e2, n2, nw2
-            within[pts_pl] = w2
-            planar[pl] = (nw2 >= planarity_ratio * counts[pl]) & (
-                np.sqrt(np.maximum(e2[:, 1], 0)) > thr
+            planar[pl] = (
+                (n_within[pl] >= planarity_ratio * counts[pl])
+                & (np.sqrt(np.maximum(evals[pl, 1], 0)) > thr)
+                # a surface, not clutter filling the band (vegetation at a low ratio)
+                & (core >= SURFACE_CORE_SHARE)
             )
         ratio = np.where(fitted, n_within / counts, np.nan)
         last = level == leaf_level
@@ -683,23 +1094,104 @@ def segment_planes(
     seg_of_leaf = np.full(n_leaves, -1, dtype=np.int32)
     planar_ids = np.flatnonzero(planar_leaf)
     roots, seg = np.unique(root[planar_ids], return_inverse=True)
+    nseg = roots.size
     seg_of_leaf[planar_ids] = seg
-    lab_sorted = np.repeat(seg_of_leaf, leaf_count)
-    lab_sorted[~inlier] = -1
-    _assign_boundaries(ps, lab_sorted, inlier, lv, seg_of_leaf, ni, nj, thr)
+    timings["segments"] = time.perf_counter() - t0
+    report(progress, 0.78, "segment refinement")
+
+    # ---- segment refinement: a segment no plane fits is split; touching segments one plane
+    # fits are merged (both judged by the RMS of their inlier points against the noise);
+    # segments with too little support drop
+    t0 = time.perf_counter()
+    tol = REFINE_RMS_SIGMAS * params.noise_m
+    w_seg, m_seg, c_seg = _segment_moments(
+        ps, _inlier_labels(seg_of_leaf, leaf_count, inlier), nseg
+    )
+    rms_seg = np.sqrt(np.maximum(np.linalg.eigvalsh(c_seg)[:, 0], 0.0))
+    bad = np.flatnonzero(rms_seg > SPLIT_RMS_SIGMAS * params.noise_m)
+    n_split = 0
+    if bad.size and np.isfinite(tol):
+        before = nseg
+        nseg, pieces = _split_segments(ps, inlier, lv, seg_of_leaf, ni, nj, bad, nseg, tol)
+        n_split = nseg - before
+        if pieces:
+            w_seg = np.concatenate([w_seg, np.zeros(n_split)])
+            m_seg = np.concatenate([m_seg, np.zeros((n_split, 3))])
+            c_seg = np.concatenate([c_seg, np.zeros((n_split, 3, 3))])
+            for sid, (wp, mp, cp) in pieces.items():
+                w_seg[sid], m_seg[sid], c_seg[sid] = wp, mp, cp
+    seg = seg_of_leaf[planar_ids].astype(np.int64)
+    group, g_mean, g_cov = _merge_coplanar(seg_of_leaf, ni, nj, w_seg, m_seg, c_seg, tol)
+    # support = inliers of the plane's planar leaves; boundary points do not make a plane
+    sizes = np.bincount(seg, weights=lv["n_within"][planar_ids], minlength=nseg)
+    group_size = np.bincount(group, weights=sizes, minlength=nseg)
+    roots_kept = (group == np.arange(nseg)) & (group_size >= params.min_plane_points)
+    # final ids in Morton order of each group's first leaf
+    first_leaf = np.full(nseg, n_leaves, dtype=np.int64)
+    np.minimum.at(first_leaf, group[seg], planar_ids)
+    kept = np.flatnonzero(roots_kept)
+    kept = kept[np.argsort(first_leaf[kept], kind="stable")]
+    final_of_root = np.full(nseg, -1, dtype=np.int32)
+    final_of_root[kept] = np.arange(kept.size, dtype=np.int32)
+    n_merged = int(nseg - np.unique(group).size)
+    seg_of_leaf_before_final = seg_of_leaf.copy()
+    seg_of_leaf[planar_ids] = final_of_root[group[seg]]
+    timings["refinement"] = time.perf_counter() - t0
+    report(progress, 0.8, "boundaries")
+
+    # ---- boundaries: unlabelled points (and those of dropped fragments) join a touching plane
+    t0 = time.perf_counter()
+    lab_sorted = _inlier_labels(seg_of_leaf, leaf_count, inlier)
+    # the candidates are measured against their segment's plane (not a neighbour leaf's,
+    # whose extension can reach points far from the surface)
+    on = planar_ids[seg_of_leaf[planar_ids] >= 0]
+    root_of_leaf = group[seg_of_leaf_before_final[on]]
+    seg_plane = {
+        "mean": lv["mean"].copy(),
+        "normal": lv["normal"].copy(),
+        "count": leaf_count,
+        "start": lv["start"],
+    }
+    seg_plane["mean"][on] = g_mean[root_of_leaf]
+    seg_plane["normal"][on] = np.linalg.eigh(g_cov[root_of_leaf])[1][:, :, 0]
+    _assign_boundaries(ps, lab_sorted, lab_sorted >= 0, seg_plane, seg_of_leaf, ni, nj, thr)
+    # every labelled point lies within two thresholds of its segment's plane: inliers of a
+    # leaf that joined at an angle, and far from the leaf, are let go (two, not one: the noise
+    # is one figure for the cloud, and a cloud noisier in parts than the estimate must not
+    # have its residuals cut at 3 estimated sigmas). And a plane is a
+    # surface when its points crowd its middle like noise does: of those within 3 sigmas,
+    # 68 % lie within 1 sigma for Gaussian noise, 33 % for clutter filling the band evenly (a
+    # vegetation patch that passed leaf by leaf); such planes are let go.
+    on = np.flatnonzero(lab_sorted >= 0)
+    k_mean, k_normal = g_mean[kept], np.linalg.eigh(g_cov[kept])[1][:, :, 0]
+    f = lab_sorted[on]
+    dist = np.abs(np.einsum("ij,ij->i", ps[on] - k_mean[f], k_normal[f]))
+    far = dist > RELEASE_THRESHOLDS * thr
+    lab_sorted[on[far]] = -1
+    near_f = f[~far]
+    close = dist[~far] <= thr / PLANARITY_SIGMAS
+    share = np.bincount(near_f, weights=close, minlength=kept.size) / np.maximum(
+        np.bincount(near_f, minlength=kept.size), 1
+    )
+    clutter = share < SURFACE_CORE_SHARE
+    if clutter.any():
+        renum = np.full(kept.size + 1, -1, dtype=np.int32)
+        renum[:-1][~clutter] = np.arange(int((~clutter).sum()), dtype=np.int32)
+        lab_sorted = renum[lab_sorted]
+        kept = kept[~clutter]
     timings["boundaries"] = time.perf_counter() - t0
     report(progress, 0.85, "plane fits")
 
-    # ---- drop small segments, renumber in Morton order of their first leaf, refit
+    # ---- least-squares planes of the final segments
     t0 = time.perf_counter()
-    nseg = roots.size
-    # support = inliers of the plane's planar leaves; boundary points do not make a plane
-    sizes = np.bincount(seg, weights=lv["n_within"][planar_ids], minlength=nseg)
-    keep_seg = sizes >= params.min_plane_points
-    new_id = np.full(nseg + 1, -1, dtype=np.int32)  # index -1 (unlabelled) maps to -1
-    new_id[:nseg][keep_seg] = np.arange(int(keep_seg.sum()), dtype=np.int32)
-    lab_sorted = new_id[lab_sorted]
-    planes = _fit_planes(ps, lab_sorted, int(keep_seg.sum()), centre)
+    log.debug(
+        "%d segments after %d splits, %d merged into others, %d kept",
+        nseg,
+        n_split,
+        n_merged,
+        kept.size,
+    )
+    planes = _fit_planes(ps, lab_sorted, int(kept.size), centre)
     labels = np.empty(n, dtype=np.int32)
     labels[tree.order] = lab_sorted
     planarity = np.empty(n, dtype=np.float32)
@@ -718,6 +1210,219 @@ def segment_planes(
         timings_s=timings,
         **planes,
     )
+
+
+def _segment_moments(
+    ps: np.ndarray, lab: np.ndarray, nseg: int
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Count (S,), mean (S, 3) and centred covariance (S, 3, 3) of the points of each label.
+
+    ``lab`` in Morton order (labels come in runs: sums per run, then per label); two passes
+    (mean, then centred products) for precision.
+    """
+    if nseg == 0 or lab.size == 0:
+        return np.zeros(nseg), np.zeros((nseg, 3)), np.zeros((nseg, 3, 3))
+    run_lab, starts, run_n = run_boundaries(lab)
+    ok = run_lab >= 0
+    rl = run_lab[ok]
+    cnt = np.bincount(rl, weights=run_n[ok], minlength=nseg).astype(np.float64)
+    safe = np.maximum(cnt, 1.0)
+
+    def per(values: np.ndarray) -> np.ndarray:
+        sums = np.add.reduceat(values, starts)[ok]
+        return np.bincount(rl, weights=sums, minlength=nseg).astype(np.float64)
+
+    mean = np.stack([per(np.ascontiguousarray(ps[:, a])) for a in range(3)], axis=1)
+    mean /= safe[:, None]
+    table = np.vstack([mean, np.zeros((1, 3))])  # label -1 -> the zero row (ignored)
+    d = [ps[:, a] - table[lab, a] for a in range(3)]
+    cov = np.empty((nseg, 3, 3))
+    for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
+        v = per(d[a] * d[b]) / safe
+        cov[:, a, b] = v
+        cov[:, b, a] = v
+    return cnt, mean, cov
+
+
+def _inlier_labels(seg_of_leaf: np.ndarray, leaf_count: np.ndarray, inlier: np.ndarray):
+    """Segment of each sorted point that is an inlier of a planar leaf, else -1."""
+    lab = np.repeat(seg_of_leaf, leaf_count)
+    lab[~inlier] = -1
+    return lab
+
+
+def _leaf_moments(
+    ps: np.ndarray, inlier: np.ndarray, lv: Dict[str, np.ndarray], leaves: np.ndarray
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Inlier count (K,), mean (K, 3) and centred covariance (K, 3, 3) of the given leaves."""
+    pos = _ranges_to_index(lv["start"][leaves], lv["count"][leaves])
+    owner = np.repeat(np.arange(leaves.size), lv["count"][leaves])
+    keep = inlier[pos]
+    pos, owner = pos[keep], owner[keep]
+    k = leaves.size
+    cnt = np.bincount(owner, minlength=k).astype(np.float64)
+    safe = np.maximum(cnt, 1.0)
+    pts = np.take(ps, pos, axis=0)
+    mean = np.stack([np.bincount(owner, weights=pts[:, a], minlength=k) for a in range(3)], 1)
+    mean /= safe[:, None]
+    d = pts - mean[owner]
+    cov = np.empty((k, 3, 3))
+    for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
+        v = np.bincount(owner, weights=d[:, a] * d[:, b], minlength=k) / safe
+        cov[:, a, b] = v
+        cov[:, b, a] = v
+    return cnt, mean, cov
+
+
+def _union(w, m, c, i: int, j: int) -> None:
+    """Moments of set i := set i united with set j (in place)."""
+    wi, wj = w[i], w[j]
+    mu = (wi * m[i] + wj * m[j]) / (wi + wj)
+    di, dj = m[i] - mu, m[j] - mu
+    c[i] = (wi * (c[i] + np.outer(di, di)) + wj * (c[j] + np.outer(dj, dj))) / (wi + wj)
+    m[i], w[i] = mu, wi + wj
+
+
+def _split_segments(
+    ps: np.ndarray,
+    inlier: np.ndarray,
+    lv: Dict[str, np.ndarray],
+    seg_of_leaf: np.ndarray,
+    ni: np.ndarray,
+    nj: np.ndarray,
+    bad: np.ndarray,
+    nseg: int,
+    tolerance_m: float,
+) -> int:
+    """Split segments that are not one plane into pieces that are (``seg_of_leaf`` in place).
+
+    Region growing compares each leaf with its neighbour only, so a curved surface (ground,
+    a vault, a cone) or a ridge strip can chain into one segment that no plane fits. Each
+    segment of ``bad`` is grown again from its best leaf (most inliers): a touching leaf of
+    the segment joins the piece when one plane still fits all the piece's inlier points
+    with an RMS of at most ``tolerance_m``; then the next piece starts from the best leaf left.
+    Pieces get new segment ids from ``nseg`` on (the first keeps the segment's); returns the
+    new number of segments and ``{segment id: (inlier count, mean, centred covariance)}`` of
+    every piece, from the leaves' moments (no pass over the points).
+    """
+    pieces: Dict[int, Tuple[float, np.ndarray, np.ndarray]] = {}
+    for s in bad:
+        leaves = np.flatnonzero(seg_of_leaf == s)
+        if leaves.size < 2:
+            continue
+        w, m, c = _leaf_moments(ps, inlier, lv, leaves)
+        local = {int(g): k for k, g in enumerate(leaves)}
+        sel = np.isin(ni, leaves) & np.isin(nj, leaves)
+        adj: Dict[int, List[int]] = {}
+        for x, y in zip(ni[sel].tolist(), nj[sel].tolist()):
+            adj.setdefault(local[x], []).append(local[y])
+        left = np.ones(leaves.size, dtype=bool)
+        order = np.argsort(-w, kind="stable")
+        first = True
+        for seed in order:
+            if not left[seed]:
+                continue
+            left[seed] = False
+            pw, pm, pc = (
+                w[seed : seed + 1].copy(),
+                m[seed : seed + 1].copy(),
+                c[seed : seed + 1].copy(),
+            )
+            members, queue = [seed], list(adj.get(seed, []))
+            while queue:
+                j = queue.pop(0)
+                if not left[j]:
+                    continue
+                tw = np.r_[pw, w[j]]
+                tm, tc = np.vstack([pm, m[j : j + 1]]), np.concatenate([pc, c[j : j + 1]])
+                _union(tw, tm, tc, 0, 1)
+                if math.sqrt(max(np.linalg.eigvalsh(tc[0])[0], 0.0)) > tolerance_m:
+                    continue  # another neighbour may still bring it in later
+                pw, pm, pc = tw[:1], tm[:1], tc[:1]
+                left[j] = False
+                members.append(j)
+                queue.extend(adj.get(j, []))
+            if first:
+                pieces[int(s)] = (pw[0], pm[0], pc[0])
+            else:
+                seg_of_leaf[leaves[members]] = nseg
+                pieces[nseg] = (pw[0], pm[0], pc[0])
+                nseg += 1
+            first = False
+    return nseg, pieces
+
+
+def _merge_coplanar(
+    seg_of_leaf: np.ndarray,
+    ni: np.ndarray,
+    nj: np.ndarray,
+    counts: np.ndarray,
+    means: np.ndarray,
+    covs: np.ndarray,
+    tolerance_m: float,
+) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge touching segments that are one plane.
+
+    Returns each segment's group (its root, (S,) int64) and the groups' inlier means and
+    centred covariances at their roots ((S, 3), (S, 3, 3)).
+
+    A surface is split into fragments where leaf normals, noisy over one leaf, disagree by
+    more than the angle threshold. Two touching segments (a leaf of one is a neighbour of a
+    leaf of the other) are one plane when a single plane fits the inlier points of both with
+    an RMS of at most ``tolerance_m``, computed exactly from the segments' moments (``counts``
+    (S,), ``means`` (S, 3), centred ``covs`` (S, 3, 3)). Pairs are merged greedily from the
+    best fit, always testing the whole groups, so a small fragment at a corner joins the wall
+    that fits it and never chains two walls together. Backend independent.
+    """
+    nseg = counts.size
+    group = np.arange(nseg, dtype=np.int64)
+    if nseg < 2 or not np.isfinite(tolerance_m):
+        return group, means, covs
+    a_seg, b_seg = seg_of_leaf[ni].astype(np.int64), seg_of_leaf[nj].astype(np.int64)
+    touch = (a_seg >= 0) & (b_seg >= 0) & (a_seg < b_seg)
+    if not touch.any():
+        return group, means, covs
+    pair = np.unique(a_seg[touch] * nseg + b_seg[touch])
+    pa, pb = pair // nseg, pair % nseg
+    w, m, c = counts.astype(np.float64).copy(), means.copy(), covs.copy()
+    ok = (w[pa] > 0) & (w[pb] > 0)
+    pa, pb = pa[ok], pb[ok]
+    rms = _merged_rms(w[pa], m[pa], c[pa], w[pb], m[pb], c[pb])
+    cand = np.flatnonzero(rms <= tolerance_m)
+    cand = cand[np.argsort(rms[cand], kind="stable")]
+
+    def find(i: int) -> int:
+        while group[i] != i:
+            group[i] = group[group[i]]
+            i = int(group[i])
+        return i
+
+    for k in cand:
+        ra, rb = find(int(pa[k])), find(int(pb[k]))
+        if ra == rb:
+            continue
+        lo, hi = min(ra, rb), max(ra, rb)
+        r = _merged_rms(w[[lo]], m[[lo]], c[[lo]], w[[hi]], m[[hi]], c[[hi]])[0]
+        if r > tolerance_m:
+            continue
+        _union(w, m, c, lo, hi)
+        group[hi] = lo
+    return np.array([find(i) for i in range(nseg)], dtype=np.int64), m, c
+
+
+def _merged_rms(wa, ma, ca, wb, mb, cb) -> np.ndarray:
+    """RMS about the best plane of two weighted point sets given by their moments.
+
+    ``w`` (K,) weights, ``m`` (K, 3) means, ``c`` (K, 3, 3) centred covariances (/ w).
+    """
+    w = wa + wb
+    m = (wa[:, None] * ma + wb[:, None] * mb) / w[:, None]
+    da, db = ma - m, mb - m
+    cov = (
+        wa[:, None, None] * (ca + da[:, :, None] * da[:, None, :])
+        + wb[:, None, None] * (cb + db[:, :, None] * db[:, None, :])
+    ) / w[:, None, None]
+    return np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, 0], 0.0))
 
 
 def _assign_boundaries(

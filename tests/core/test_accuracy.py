@@ -435,9 +435,12 @@ def test_effect_heteroscedastic_slip():
     err, sig, s0 = res["pa"]
     assert np.all(np.abs(err) / sig < 3.0)
     assert np.all(np.abs(err) < 1e-3)
-    # the matching model is statistically consistent: sigma0² close to 1, closer than constant
+    # the matching model is statistically consistent: sigma0² close to 1 on both sides, and
+    # closer than the constant model's wherever that one is off (by more than 0.1)
     assert all(abs(v - 1.0) < 0.1 for v in s0)
-    for v_pa, v_c in zip(s0, res["constant"][2]):
+    off = [(v_pa, v_c) for v_pa, v_c in zip(s0, res["constant"][2]) if abs(v_c - 1.0) > 0.1]
+    assert off  # the constant model is wrong somewhere in this scene
+    for v_pa, v_c in off:
         assert abs(v_pa - 1.0) < abs(v_c - 1.0)
 
 
