@@ -492,6 +492,7 @@ SURFACE_SHARE_OF_BEST = 0.7  # the finest scale holding this share of the best s
 MIN_SCALE_NODE_POINTS = 12  # nodes fitted in the scale analysis
 MIN_SURFACE_NODES = 30  # surface-like nodes a level needs to count ...
 MIN_SURFACE_NODES_SMALL = 8  # ... or a tenth of its fitted nodes, at least this many
+MIN_SURFACE_SHARE = 0.02  # ... and hold this share of the sampled points
 NOISE_CLEARANCE_SIGMAS = 3.0  # noise nodes: their plane this far from the node's faces
 
 
@@ -728,9 +729,10 @@ def _scale_levels(
 
 
 def _speaks(level: ScaleLevel) -> bool:
-    """Enough surface-like nodes: 30, or in a small sample a twentieth of the fitted (>= 8)."""
+    """Enough surface-like nodes: 30, or in a small sample a twentieth of the fitted (>= 8),
+    holding at least 2 % of the sampled points."""
     need = min(MIN_SURFACE_NODES, max(MIN_SURFACE_NODES_SMALL, 0.05 * level.n_fitted_nodes))
-    return level.n_surface_nodes >= need
+    return level.n_surface_nodes >= need and level.surface_share >= MIN_SURFACE_SHARE
 
 
 def estimate_scales(
@@ -777,13 +779,15 @@ def estimate_scales(
         # all (dense and noisy clouds: a node must be ~25 noise sigmas wide): sample more
         # points in bigger blocks
         unclear = not eligible or (best_raw not in eligible and raw[best_raw] > 1.3 * best_ok)
+        # the best scale at the coarsest level the blocks hold: it may lie beyond them
+        unclear |= block_level > 0 and bool(raw) and best_raw == 0
         if raw and unclear and idx.size < tree.keys.size and target < 16 * SCALE_SAMPLE_POINTS:
             target *= 4
             continue
         break
     # a level speaks only with enough surface-like nodes (a few big nodes say little)
     shares = np.array([lvl.surface_share if _speaks(lvl) else 0.0 for lvl in levels])
-    if shares.size == 0 or shares.max() < 0.02:
+    if shares.size == 0 or shares.max() < MIN_SURFACE_SHARE:
         nan = float("nan")
         return ScaleEstimate(nan, nan, nan, 0.0, int(idx.size), "occupancy", levels=tuple(levels))
     good = np.flatnonzero(shares >= SURFACE_SHARE_OF_BEST * shares.max())
