@@ -297,6 +297,28 @@ def test_segment_planes_same_as_numpy(ocl):
     assert pa == pb
 
 
+@pytest.mark.parametrize(
+    "case",
+    ["two-walls", "d50-n0.01-s10-c0.6", "d300-n0.05-s10-c0.6", "d4-n0.002-s100-c0.3"],
+)
+def test_same_labels_on_clutter_and_refinement(ocl, case):
+    """The clutter paths (robust leaf refits, split, merge, released and dropped planes) give
+    both backends the same labels (issue #16)."""
+    from slipmap.core.planetruth import make_plane_case, make_two_walls_case
+
+    if case == "two-walls":
+        pts = make_two_walls_case(seed=0).points
+    else:
+        d, n, sz, c = (float(v[1:]) for v in case.split("-"))
+        pts = make_plane_case(
+            density_pts_m2=d, noise_m=n, size_m=sz, clutter_fraction=c, seed=0
+        ).points
+    a = segment_planes(pts, backend="numpy")
+    b = segment_planes(pts, backend="opencl")
+    assert len(a) == len(b) >= 2
+    np.testing.assert_array_equal(a.labels, b.labels)
+
+
 def test_segment_planes_auto_uses_opencl(ocl):
     res = segment_planes(_scene(3)[:6000], backend="auto")
     assert res.parameters.backend == "opencl"
