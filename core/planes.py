@@ -298,36 +298,56 @@ def node_fit_reference(
     return mean, evals, normal, n_within, within
 
 
+def _band_refit(fit, pts, counts, mean, evals, normal, *, floor, tiny, min_points):
+    """Planes of consecutive groups of ``pts`` refitted twice on the points near them.
+
+    Each time the points within max(k sqrt(max(l0, ``tiny``)), ``floor``) of the current plane
+    are refitted with ``fit`` (a kernel's ``node_fit``), k = 2 then 3: clutter inflates the
+    first l0, so the first band is narrower; the refitted plane is no longer tilted by it, so
+    the second band holds the surface's noise and sheds the clutter. Groups left with fewer
+    than ``min_points`` in a band keep their previous plane. No sort: a median per group cost
+    more than the whole planarity test.
+
+    Returns mean, evals, normal (copies, updated), the inliers per group and per point of the
+    last band, whether each group was refitted there (``ok``) and each point's group.
+    """
+    owner = np.repeat(np.arange(counts.size), counts)
+    mean, evals, normal = mean.copy(), evals.copy(), normal.copy()
+    n_in = counts.astype(np.int64)
+    inlier = np.ones(pts.shape[0], dtype=bool)
+    ok = n_in >= min_points
+    for width in (2.0, 3.0):
+        r = np.abs(np.einsum("ij,ij->i", pts - mean[owner], normal[owner]))
+        band = np.maximum(width * np.sqrt(np.maximum(evals[:, 0], tiny)), floor)
+        inlier = r <= band[owner]
+        n_in = np.bincount(owner, weights=inlier, minlength=counts.size).astype(np.int64)
+        ok = n_in >= min_points
+        if not ok.any():
+            break
+        sel = np.flatnonzero(inlier & ok[owner])
+        c2 = n_in[ok]
+        m2, e2, n2, _, _ = fit(pts[sel], np.cumsum(c2) - c2, c2, floor)
+        mean[ok], evals[ok], normal[ok] = m2, e2, n2
+    return mean, evals, normal, n_in, ok, inlier, owner
+
+
 def _refit_robust(kernels, sub, starts, counts, nodes, thr, mean, evals, normal, n_within, within):
     """Robust planes for ``nodes`` (indices into ``starts``/``counts``), in place; returns the
     share (K,) of each node's points within ``thr`` of its plane that lie within ``thr / 3``.
 
-    Twice: residuals to the current plane, points within max(k sqrt(l0), ``thr``) refitted,
-    k = 2 then 3 (clutter inflates the first l0, so the first band is narrower; the
-    refitted plane is no longer tilted by it, so the second band holds the surface's noise
-    and sheds the clutter). No sort: a median per node cost more than the whole planarity
-    test. A refit is kept where it puts
-    at least as many points within ``thr`` as the plane before (so clean corners keep the old
-    behaviour: the inliers' plane). Uses only the backend's kernels, so both backends agree.
+    The bands of :func:`_band_refit`, never narrower than ``thr``. A refit is kept where it
+    puts at least as many points within ``thr`` as the plane before (so clean corners keep the
+    old behaviour: the inliers' plane). Uses only the backend's kernels, so both backends
+    agree.
     """
     cnt = counts[nodes]
     pos = _ranges_to_index(starts[nodes], cnt)
     pts = np.take(sub, pos, axis=0)
     st = np.cumsum(cnt) - cnt
-    owner = np.repeat(np.arange(nodes.size), cnt)
-    m, e, nrm = mean[nodes].copy(), evals[nodes].copy(), normal[nodes].copy()
-    for width in (2.0, 3.0):
-        r = np.abs(np.einsum("ij,ij->i", pts - m[owner], nrm[owner]))
-        band = np.maximum(width * np.sqrt(np.maximum(e[:, 0], 0.0)), thr)
-        keep = r <= band[owner]
-        nk = np.bincount(owner, weights=keep, minlength=nodes.size).astype(np.int64)
-        ok = nk >= 3
-        if not ok.any():
-            break
-        sel = np.flatnonzero(keep & ok[owner])
-        c2 = nk[ok]
-        m2, e2, n2, _, _ = kernels.node_fit(pts[sel], np.cumsum(c2) - c2, c2, thr)
-        m[ok], e[ok], nrm[ok] = m2, e2, n2
+    m, e, nrm, _, _, _, owner = _band_refit(
+        kernels.node_fit, pts, cnt, mean[nodes], evals[nodes], normal[nodes],
+        floor=thr, tiny=0.0, min_points=3,
+    )  # fmt: skip
     nw, w = kernels.plane_within(pts, st, cnt, m, nrm, thr)
     better = nw >= n_within[nodes]
     take = nodes[better]
@@ -558,29 +578,16 @@ class _RobustFit:
 def _robust_fit(p: np.ndarray, counts: np.ndarray, kern) -> _RobustFit:
     """Least-squares planes of consecutive groups of ``p``, refitted on their inliers.
 
-    Twice: points within k sqrt(l0) of the current plane are refitted, k = 2 then 3, so
-    clutter (vegetation, noise points) neither tilts a group's plane nor inflates its scale
-    (the first l0 is inflated by the clutter, hence the narrower first band). Groups left
-    with fewer than ``MIN_SCALE_NODE_POINTS`` inliers are not ``ok``.
+    The bands of :func:`_band_refit`, so clutter (vegetation, noise points) neither tilts a
+    group's plane nor inflates its scale. Groups left with fewer than
+    ``MIN_SCALE_NODE_POINTS`` inliers are not ``ok``.
     """
     starts = np.cumsum(counts) - counts
     mean, evals, normal, _, _ = kern.node_fit(p, starts, counts, 0.0)
-    owner = np.repeat(np.arange(counts.size), counts)
-    n_in = counts.astype(np.int64)
-    inlier = np.ones(p.shape[0], dtype=bool)
-    ok = n_in >= MIN_SCALE_NODE_POINTS
-    for width in (2.0, 3.0):
-        r = np.abs(np.einsum("ij,ij->i", p - mean[owner], normal[owner]))
-        inlier = r <= width * np.sqrt(np.maximum(evals[:, 0], 1e-24))[owner]
-        n_in = np.bincount(owner, weights=inlier, minlength=counts.size).astype(np.int64)
-        ok = n_in >= MIN_SCALE_NODE_POINTS
-        if not ok.any():
-            break
-        sel = np.flatnonzero(inlier & ok[owner])
-        c2 = n_in[ok]
-        m2, e2, n2, _, _ = kern.node_fit(p[sel], np.cumsum(c2) - c2, c2, 0.0)
-        mean, evals, normal = mean.copy(), evals.copy(), normal.copy()
-        mean[ok], evals[ok], normal[ok] = m2, e2, n2
+    mean, evals, normal, n_in, ok, inlier, _ = _band_refit(
+        kern.node_fit, p, counts, mean, evals, normal,
+        floor=0.0, tiny=1e-24, min_points=MIN_SCALE_NODE_POINTS,
+    )  # fmt: skip
     return _RobustFit(mean, normal, np.sqrt(np.maximum(evals, 0.0)), n_in, ok, inlier)
 
 
@@ -694,11 +701,9 @@ def _scale_levels(
 ) -> List[ScaleLevel]:
     """The scale analysis of one sample (sorted ``keys`` and ``pts``), level by level from
     ``first_level`` (the level below the sampled blocks) down."""
-    from .octree import run_boundaries as _runs
-
     levels: List[ScaleLevel] = []
     for lv in range(max(1, first_level), tree.depth + 1):
-        _, starts, counts = _runs(keys >> np.uint64(3 * (tree.depth - lv)))
+        _, starts, counts = run_boundaries(keys >> np.uint64(3 * (tree.depth - lv)))
         fit = counts >= MIN_SCALE_NODE_POINTS
         if not fit.any():
             break
@@ -1043,7 +1048,6 @@ def segment_planes(
                 & (core >= SURFACE_CORE_SHARE)
             )
         ratio = np.where(fitted, n_within / counts, np.nan)
-        last = level == leaf_level
         leaf = planar | ~fitted | last
         gstart = starts if active is None else active[starts]
         for k, v in (
@@ -1138,8 +1142,9 @@ def segment_planes(
     final_of_root = np.full(nseg, -1, dtype=np.int32)
     final_of_root[kept] = np.arange(kept.size, dtype=np.int32)
     n_merged = int(nseg - np.unique(group).size)
-    seg_of_leaf_before_final = seg_of_leaf.copy()
     seg_of_leaf[planar_ids] = final_of_root[group[seg]]
+    # the kept planes (from their inliers' moments), in final order
+    k_mean, k_normal = g_mean[kept], np.linalg.eigh(g_cov[kept])[1][:, :, 0]
     timings["refinement"] = time.perf_counter() - t0
     report(progress, 0.8, "boundaries")
 
@@ -1149,15 +1154,14 @@ def segment_planes(
     # the candidates are measured against their segment's plane (not a neighbour leaf's,
     # whose extension can reach points far from the surface)
     on = planar_ids[seg_of_leaf[planar_ids] >= 0]
-    root_of_leaf = group[seg_of_leaf_before_final[on]]
     seg_plane = {
         "mean": lv["mean"].copy(),
         "normal": lv["normal"].copy(),
         "count": leaf_count,
         "start": lv["start"],
     }
-    seg_plane["mean"][on] = g_mean[root_of_leaf]
-    seg_plane["normal"][on] = np.linalg.eigh(g_cov[root_of_leaf])[1][:, :, 0]
+    seg_plane["mean"][on] = k_mean[seg_of_leaf[on]]
+    seg_plane["normal"][on] = k_normal[seg_of_leaf[on]]
     _assign_boundaries(ps, lab_sorted, lab_sorted >= 0, seg_plane, seg_of_leaf, ni, nj, thr)
     # every labelled point lies within two thresholds of its segment's plane: inliers of a
     # leaf that joined at an angle, and far from the leaf, are let go (two, not one: the noise
@@ -1167,7 +1171,6 @@ def segment_planes(
     # 68 % lie within 1 sigma for Gaussian noise, 33 % for clutter filling the band evenly (a
     # vegetation patch that passed leaf by leaf); such planes are let go.
     on = np.flatnonzero(lab_sorted >= 0)
-    k_mean, k_normal = g_mean[kept], np.linalg.eigh(g_cov[kept])[1][:, :, 0]
     f = lab_sorted[on]
     dist = np.abs(np.einsum("ij,ij->i", ps[on] - k_mean[f], k_normal[f]))
     far = dist > RELEASE_THRESHOLDS * thr
@@ -1216,20 +1219,28 @@ def segment_planes(
     )
 
 
+def _label_runs(lab: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Runs of equal labels in Morton-ordered ``lab``: the labels of the labelled runs, every
+    run's start, which runs are labelled, and the labelled runs' lengths."""
+    run_lab, starts, run_n = run_boundaries(lab)
+    ok = run_lab >= 0
+    return run_lab[ok], starts, ok, run_n[ok]
+
+
 def _segment_moments(
-    ps: np.ndarray, lab: np.ndarray, nseg: int
+    ps: np.ndarray, lab: np.ndarray, nseg: int, runs=None
 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Count (S,), mean (S, 3) and centred covariance (S, 3, 3) of the points of each label.
 
-    ``lab`` in Morton order (labels come in runs: sums per run, then per label); two passes
-    (mean, then centred products) for precision.
+    ``lab`` in Morton order, where labels come in long runs: sums are taken per run
+    (``reduceat``) and then per label (``bincount``), so no sort of the points is needed; two
+    passes (mean, then centred products) for precision. ``runs``: :func:`_label_runs` of
+    ``lab`` when the caller has them.
     """
     if nseg == 0 or lab.size == 0:
         return np.zeros(nseg), np.zeros((nseg, 3)), np.zeros((nseg, 3, 3))
-    run_lab, starts, run_n = run_boundaries(lab)
-    ok = run_lab >= 0
-    rl = run_lab[ok]
-    cnt = np.bincount(rl, weights=run_n[ok], minlength=nseg).astype(np.float64)
+    rl, starts, ok, run_n = runs if runs is not None else _label_runs(lab)
+    cnt = np.bincount(rl, weights=run_n, minlength=nseg).astype(np.float64)
     safe = np.maximum(cnt, 1.0)
 
     def per(values: np.ndarray) -> np.ndarray:
@@ -1278,13 +1289,24 @@ def _leaf_moments(
     return cnt, mean, cov
 
 
+def _combine(wa, ma, ca, wb, mb, cb) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weight (K,), mean (K, 3) and centred covariance (K, 3, 3) of two weighted point sets
+    united, from theirs (parallel-axis theorem; covariances are scatter / weight)."""
+    w = wa + wb
+    m = (wa[:, None] * ma + wb[:, None] * mb) / w[:, None]
+    da, db = ma - m, mb - m
+    cov = (
+        wa[:, None, None] * (ca + da[:, :, None] * da[:, None, :])
+        + wb[:, None, None] * (cb + db[:, :, None] * db[:, None, :])
+    ) / w[:, None, None]
+    return w, m, cov
+
+
 def _union(w, m, c, i: int, j: int) -> None:
     """Moments of set i := set i united with set j (in place)."""
-    wi, wj = w[i], w[j]
-    mu = (wi * m[i] + wj * m[j]) / (wi + wj)
-    di, dj = m[i] - mu, m[j] - mu
-    c[i] = (wi * (c[i] + np.outer(di, di)) + wj * (c[j] + np.outer(dj, dj))) / (wi + wj)
-    m[i], w[i] = mu, wi + wj
+    w[i : i + 1], m[i : i + 1], c[i : i + 1] = _combine(
+        w[i : i + 1], m[i : i + 1], c[i : i + 1], w[j : j + 1], m[j : j + 1], c[j : j + 1]
+    )
 
 
 def _split_segments(
@@ -1297,7 +1319,7 @@ def _split_segments(
     bad: np.ndarray,
     nseg: int,
     tolerance_m: float,
-) -> int:
+) -> Tuple[int, Dict[int, Tuple[float, np.ndarray, np.ndarray]]]:
     """Split segments that are not one plane into pieces that are (``seg_of_leaf`` in place).
 
     Region growing compares each leaf with its neighbour only, so a curved surface (ground,
@@ -1337,12 +1359,10 @@ def _split_segments(
                 j = queue.pop(0)
                 if not left[j]:
                     continue
-                tw = np.r_[pw, w[j]]
-                tm, tc = np.vstack([pm, m[j : j + 1]]), np.concatenate([pc, c[j : j + 1]])
-                _union(tw, tm, tc, 0, 1)
+                tw, tm, tc = _combine(pw, pm, pc, w[j : j + 1], m[j : j + 1], c[j : j + 1])
                 if math.sqrt(max(np.linalg.eigvalsh(tc[0])[0], 0.0)) > tolerance_m:
                     continue  # another neighbour may still bring it in later
-                pw, pm, pc = tw[:1], tm[:1], tc[:1]
+                pw, pm, pc = tw, tm, tc
                 left[j] = False
                 members.append(j)
                 queue.extend(adj.get(j, []))
@@ -1419,13 +1439,7 @@ def _merged_rms(wa, ma, ca, wb, mb, cb) -> np.ndarray:
 
     ``w`` (K,) weights, ``m`` (K, 3) means, ``c`` (K, 3, 3) centred covariances (/ w).
     """
-    w = wa + wb
-    m = (wa[:, None] * ma + wb[:, None] * mb) / w[:, None]
-    da, db = ma - m, mb - m
-    cov = (
-        wa[:, None, None] * (ca + da[:, :, None] * da[:, None, :])
-        + wb[:, None, None] * (cb + db[:, :, None] * db[:, None, :])
-    ) / w[:, None, None]
+    cov = _combine(wa, ma, ca, wb, mb, cb)[2]
     return np.sqrt(np.maximum(np.linalg.eigvalsh(cov)[:, 0], 0.0))
 
 
@@ -1488,11 +1502,7 @@ def _assign_boundaries(
 
 
 def _fit_planes(ps: np.ndarray, lab: np.ndarray, nplanes: int, centre: np.ndarray) -> dict:
-    """Least-squares planes of the labelled points (two-pass centred moments).
-
-    ``lab`` is in Morton order, where labels come in long runs: sums are taken per run
-    (``reduceat``) and then per plane (``bincount``), so no sort of the points is needed.
-    """
+    """Least-squares planes of the labelled points (moments: :func:`_segment_moments`)."""
     if nplanes == 0:
         z3 = np.empty((0, 3))
         return dict(
@@ -1505,31 +1515,18 @@ def _fit_planes(ps: np.ndarray, lab: np.ndarray, nplanes: int, centre: np.ndarra
             extent_min=z3,
             extent_max=z3,
         )
-    run_lab, starts, run_n = run_boundaries(lab)
-    ok = run_lab >= 0
-    rl = run_lab[ok]
-
-    def per_plane(values: np.ndarray) -> np.ndarray:
-        return np.bincount(rl, weights=np.add.reduceat(values, starts)[ok], minlength=nplanes)
-
-    counts = np.bincount(rl, weights=run_n[ok], minlength=nplanes)
-    cols = [np.ascontiguousarray(ps[:, a]) for a in range(3)]
-    mean = np.stack([per_plane(c) for c in cols], axis=1) / counts[:, None]
-    table = np.vstack([mean, np.zeros((1, 3))])  # label -1 -> row nplanes (ignored)
-    d = [cols[a] - table[lab, a] for a in range(3)]
-    cov = np.empty((nplanes, 3, 3))
-    for a, b in ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)):
-        c = per_plane(d[a] * d[b]) / counts
-        cov[:, a, b] = c
-        cov[:, b, a] = c
+    runs = _label_runs(lab)
+    rl, starts, ok, _ = runs
+    counts, mean, cov = _segment_moments(ps, lab, nplanes, runs)
     evals, evecs = np.linalg.eigh(cov)
     normals = orient_normals(evecs[:, :, 0])
     centroids = mean + centre
     ext_min = np.full((nplanes, 3), np.inf)
     ext_max = np.full((nplanes, 3), -np.inf)
     for a in range(3):
-        np.minimum.at(ext_min[:, a], rl, np.minimum.reduceat(cols[a], starts)[ok])
-        np.maximum.at(ext_max[:, a], rl, np.maximum.reduceat(cols[a], starts)[ok])
+        col = np.ascontiguousarray(ps[:, a])
+        np.minimum.at(ext_min[:, a], rl, np.minimum.reduceat(col, starts)[ok])
+        np.maximum.at(ext_max[:, a], rl, np.maximum.reduceat(col, starts)[ok])
     return dict(
         normals=normals,
         offsets=-np.einsum("ij,ij->i", normals, centroids),
