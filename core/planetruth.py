@@ -867,22 +867,11 @@ def make_plane_case(
         origin=org,
         rng=rng,
     )
-    extents = np.array([p.min_extent for p in prepared])
-    resolvable = resolvable_surfaces(
-        n_points=counts, min_extent_m=extents, density_pts_m2=density, noise_m=noise
-    )
     if notes:
         log.info("plane case: %s", "; ".join(notes))
-    return PlaneCase(
-        points=points,
-        labels=labels,
-        normals=normals,
-        offsets=offsets,
-        areas_m2=np.array([p.area for p in prepared]),
-        n_points=counts,
-        min_extent_m=extents,
-        resolvable=resolvable,
-        kinds=tuple(p.kind for p in prepared),
+    return _plane_case(
+        prepared,
+        (points, labels, normals, offsets, counts),
         density_pts_m2=density,
         noise_m=noise,
         size_m=size,
@@ -892,6 +881,32 @@ def make_plane_case(
         footprint_m=np.array(box, dtype=np.float64),
         subsampled_area=reduced,
         notes="; ".join(notes),
+    )
+
+
+def _plane_case(prepared, assembled, *, density_pts_m2, noise_m, **meta) -> PlaneCase:
+    """A :class:`PlaneCase` from the prepared surfaces and :func:`_assemble`'s arrays: areas,
+    extents, kinds and the resolvable rule from the surfaces, the rest from ``meta``."""
+    points, labels, normals, offsets, counts = assembled
+    extents = np.array([p.min_extent for p in prepared])
+    return PlaneCase(
+        points=points,
+        labels=labels,
+        normals=normals,
+        offsets=offsets,
+        areas_m2=np.array([p.area for p in prepared]),
+        n_points=counts,
+        min_extent_m=extents,
+        resolvable=resolvable_surfaces(
+            n_points=counts,
+            min_extent_m=extents,
+            density_pts_m2=density_pts_m2,
+            noise_m=noise_m,
+        ),
+        kinds=tuple(p.kind for p in prepared),
+        density_pts_m2=density_pts_m2,
+        noise_m=noise_m,
+        **meta,
     )
 
 
@@ -937,19 +952,9 @@ def make_two_walls_case(
         origin=org,
         rng=np.random.default_rng([seed, 3]),
     )
-    extents = np.array([p.min_extent for p in prepared])
-    return PlaneCase(
-        points=points,
-        labels=labels,
-        normals=normals,
-        offsets=offsets,
-        areas_m2=np.array([p.area for p in prepared]),
-        n_points=counts,
-        min_extent_m=extents,
-        resolvable=resolvable_surfaces(
-            n_points=counts, min_extent_m=extents, density_pts_m2=density, noise_m=noise
-        ),
-        kinds=("wall", "wall"),
+    return _plane_case(
+        prepared,
+        (points, labels, normals, offsets, counts),
         density_pts_m2=density,
         noise_m=noise,
         size_m=10.0,

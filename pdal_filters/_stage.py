@@ -24,7 +24,6 @@ No science here: the stages call ``slipmap.core``.
 from __future__ import annotations
 
 import json
-import logging
 import math
 from dataclasses import dataclass, field
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
@@ -33,8 +32,6 @@ import numpy as np
 
 from slipmap.core.errors import SlipMapError
 from slipmap.summaries import json_safe
-
-log = logging.getLogger(__name__)
 
 TYPES = ("float", "int", "bool", "str", "choice", "object", "vector3", "names", "keyvalues")
 

@@ -122,8 +122,11 @@ def _run_command(pdal_command, pipeline: Path, *args: str, cwd=ROOT):
     return r
 
 
-def _same_python(pdal_command, tmp_path):
-    """Skip a CLI comparison when PDAL's Python is not this interpreter's numpy."""
+@pytest.fixture(scope="module")
+def same_python(pdal_command, tmp_path_factory):
+    """The `pdal` command, once checked to run this interpreter's numpy (a CLI comparison is
+    skipped otherwise: it would cross numpy versions)."""
+    tmp_path = tmp_path_factory.mktemp("probe")
     script = tmp_path / "probe.py"
     script.write_text(PROBE)
     md = tmp_path / "probe.json"
@@ -141,7 +144,7 @@ def _same_python(pdal_command, tmp_path):
             f"PDAL's Python has numpy {seen['numpy']}, this one {np.__version__}: the CLI "
             "comparison would cross numpy versions"
         )
-    return seen
+    return pdal_command
 
 
 def _slipmap_path(args: dict) -> dict:
@@ -251,9 +254,8 @@ def _pipeline_doc(name: str, files: dict, pdalargs: dict | None = None) -> str:
     return json.dumps(doc)
 
 
-def test_planes_pipeline_equals_cli(pdal_py, pdal_command, demo_pair, tmp_path):
+def test_planes_pipeline_equals_cli(pdal_py, same_python, demo_pair, tmp_path):
     """planes_buildings on the demo epoch: identical PlaneId, by bindings and by command."""
-    _same_python(pdal_command, tmp_path)
     src = demo_pair / "demo_before.laz"
     _cli("planes", str(src), "--classes", "6", "--min-points", "50", "--out", str(tmp_path))
     cli = _las(tmp_path / "demo_before_planes.laz")
@@ -262,7 +264,7 @@ def test_planes_pipeline_equals_cli(pdal_py, pdal_command, demo_pair, tmp_path):
     assert ref.max() > 10  # the demo town's roofs and walls
     args = _slipmap_path({"min_plane_points": 50, "backend": "numpy"})
     _run_command(
-        pdal_command,
+        same_python,
         PIPELINE_DIR / "planes_buildings.json",
         f"--readers.las.filename={src}",
         f"--writers.las.filename={tmp_path / 'cmd.laz'}",
@@ -283,13 +285,12 @@ def test_planes_pipeline_equals_cli(pdal_py, pdal_command, demo_pair, tmp_path):
     assert md["children"]["n_planes"] == len(np.unique(ref[ref >= 0]))
 
 
-def test_roughness_pipeline_equals_cli(pdal_command, tmp_path):
+def test_roughness_pipeline_equals_cli(same_python, tmp_path):
     """roughness_outcrop on lone-star: the CLI on the points that reached the stage agrees."""
-    _same_python(pdal_command, tmp_path)
     out = tmp_path / "rough.laz"
     md = tmp_path / "md.json"
     _run_command(
-        pdal_command,
+        same_python,
         PIPELINE_DIR / "roughness_outcrop.json",
         f"--readers.las.filename={DATA / 'lone-star.laz'}",
         f"--writers.las.filename={out}",
@@ -320,13 +321,12 @@ def test_roughness_pipeline_equals_cli(pdal_command, tmp_path):
     ],
     ids=["constant", "axis"],
 )
-def test_accuracy_pipeline_equals_cli(pdal_command, tmp_path, args, cli_args):
+def test_accuracy_pipeline_equals_cli(same_python, tmp_path, args, cli_args):
     """accuracy_propagation on autzen_trim with the constant and axis models."""
-    _same_python(pdal_command, tmp_path)
     src = DATA / "autzen_trim.laz"
     out = tmp_path / "acc.laz"
     _run_command(
-        pdal_command,
+        same_python,
         PIPELINE_DIR / "accuracy_propagation.json",
         f"--readers.las.filename={src}",
         f"--writers.las.filename={out}",
@@ -353,13 +353,12 @@ def _assert_cli_slip(relative: dict, demo_pair):
     assert abs(relative["right_lateral_slip"] - 0.0181) < 4 * relative["sigma_fault_parallel"]
 
 
-def test_displacement_pipeline_command_equals_cli(pdal_command, demo_pair, tmp_path):
+def test_displacement_pipeline_command_equals_cli(same_python, demo_pair, tmp_path):
     """The two-reader slip pipeline by the `pdal` command on the georeferenced demo pair; the
     WGS 84 trace file is reprojected to the views' SRS (PDAL passes it as a dict)."""
-    _same_python(pdal_command, tmp_path)
     md = tmp_path / "slip.json"
     _run_command(
-        pdal_command,
+        same_python,
         PIPELINE_DIR / "displacement_fault.json",
         f"--stage.epoch1.filename={demo_pair / 'demo_before.laz'}",
         f"--stage.epoch2.filename={demo_pair / 'demo_after.laz'}",
