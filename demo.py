@@ -58,7 +58,7 @@ def run_planes_demo(
     """Write a synthetic scene, segment it through the CLI path and score it against truth."""
     import pyproj
 
-    from .cli import run_planes_on_cloud
+    from .cli.legacy import run_planes_on_cloud
     from .core.evaluation import score_segmentation
     from .core.io.atomic import ensure_output_dir
     from .core.io.las import PointCloud, read_las, write_las
@@ -187,11 +187,11 @@ def run_slip_demo(
 
     import pyproj
 
+    from .app.summaries import side_component_line
     from .cli import main as cli_main
     from .core.io.atomic import ensure_output_dir, write_text_atomic
     from .core.io.las import PointCloud, write_las
     from .core.synthetic import SurveyError, make_fault_pair
-    from .summaries import side_component_line
 
     out_dir = ensure_output_dir(out_dir)
     truth = 0.0181

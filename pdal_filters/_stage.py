@@ -30,8 +30,9 @@ from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
+from slipmap.app.options import OptionError
+from slipmap.app.summaries import json_safe
 from slipmap.core.errors import SlipMapError
-from slipmap.summaries import json_safe
 
 TYPES = ("float", "int", "bool", "str", "choice", "object", "vector3", "names", "keyvalues")
 
@@ -191,6 +192,44 @@ class Option:
         return self.type
 
 
+@dataclass(frozen=True)
+class _SpecOption(Option):
+    """A PDAL option backed by a job option of the application layer (same conversion)."""
+
+    spec_option: Any = None
+
+    @classmethod
+    def of(cls, o) -> _SpecOption:
+        return cls(
+            o.name_in("pdal"),
+            "str",
+            o.default,
+            o.help,
+            choices=tuple(map(str, o.choices)),
+            required=o.required,
+            unset_text=o.unset_text,
+            spec_option=o,
+        )
+
+    def convert(self, stage: str, value: Any) -> Any:
+        from slipmap.app.options import OptionError
+
+        if value is None:
+            if self.required:
+                raise StageError(f"{stage}: option {self.name!r} is required")
+            return None
+        try:
+            return self.spec_option.convert(value)
+        except OptionError as exc:
+            raise StageError(f"{stage}: option {self.name!r} {exc.text}") from None
+
+    def default_text(self) -> str:
+        return self.spec_option.default_text()
+
+    def type_text(self) -> str:
+        return self.spec_option.type_text()
+
+
 SLIPMAP_PATH = Option(
     "slipmap_path",
     "str",
@@ -235,6 +274,14 @@ class OptionTable:
             out[o.name] = o.convert(self.stage, args.get(o.name, o.default))
         self._cache[key] = out
         return dict(out)
+
+    @classmethod
+    def from_spec(cls, stage: str, spec, *, extra: Sequence[Option] = (), skip=()) -> OptionTable:
+        """The table of a job's options that PDAL shows (``pdal`` not None), plus ``extra``
+        PDAL-only options; values are converted by the job's own rules
+        (:meth:`slipmap.app.options.Option.convert`), errors as :class:`StageError`."""
+        rows = [_SpecOption.of(o) for o in spec.for_face("pdal") if o.key not in set(skip)]
+        return cls(stage, rows + list(extra))
 
     def markdown(self) -> str:
         """The option table as Markdown (the tables of docs/pdal.md)."""
@@ -421,6 +468,10 @@ def run_stage(stage: Any, ins: Dict[str, np.ndarray], outs: Dict[str, np.ndarray
         node = stage.run(ins, outs, opts=opts, inputs=inputs)
     except StageError:
         raise
+    except OptionError as e:
+        spec = getattr(stage, "SPEC", None)
+        text = spec.render_error(e, "pdal") if spec is not None else str(e)
+        raise StageError(f"{stage.STAGE}: option {text}") from e
     except SlipMapError as e:
         raise StageError(f"{stage.STAGE}: {e}") from e
     declared = {k: np.dtype(v) for k, v in stage.outputs(opts).items()}
@@ -431,6 +482,16 @@ def run_stage(stage: Any, ins: Dict[str, np.ndarray], outs: Dict[str, np.ndarray
                 f"match the declared {declared.get(name)} ({n},)"
             )
     return node
+
+
+def job_options(spec, opts: Mapping[str, Any]) -> Dict[str, Any]:
+    """The job's options by key from a stage's parsed ``opts`` (PDAL names), the options PDAL
+    does not show at their defaults, and the job's cross-option checks run."""
+    raw = {}
+    for o in spec.options:
+        name = o.name_in("pdal")
+        raw[o.key] = opts.get(name) if name is not None else None
+    return spec.parse(raw, face="pdal")
 
 
 def stage_node(value: Any, description: str, children=()) -> Dict[str, Any]:

@@ -10,7 +10,7 @@ Pipeline stage (the script is ``slipmap_stages.py``, see :mod:`slipmap.pdal_filt
 
 The point-accuracy models of :mod:`slipmap.core.accuracy` (constant, per-axis, per-point
 columns, georeferencing propagation with the beam-footprint term), chosen and fed exactly as
-``slipmap accuracy`` does (:mod:`slipmap.pointaccuracy`). With ``full_covariance`` the six
+``slipmap accuracy`` does (:mod:`slipmap.app.pointaccuracy`). With ``full_covariance`` the six
 entries ``CovXX CovYY CovZZ CovXY CovXZ CovYZ`` (m²) are written too; declare them in
 ``add_dimension``. The propagated model reads ``GpsTime`` and ``ScanAngleRank`` (degrees,
 PDAL's name) from the view and the view's spatial reference (``spatialreference``).
@@ -149,8 +149,8 @@ def run(ins, outs, *, opts, inputs):
     six = np.full((n, 6), np.nan)
     children = [_stage.metadata_node("n_points", n), _stage.metadata_node("model", opts["model"])]
     if n > 0:
+        from slipmap.app.pointaccuracy import covariance_matrices
         from slipmap.core.accuracy import covariance_to_sigmas, covariance_to_six
-        from slipmap.pointaccuracy import covariance_matrices
 
         pts = _stage.points_from(ins, STAGE)
         cov = covariance_matrices(_cloud(ins, pts, inputs), None, _settings(opts))

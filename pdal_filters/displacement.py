@@ -185,8 +185,8 @@ def run(ins, outs, *, opts, inputs):
         _stage.set_output(outs, "Residual", residual, np.float64, n, STAGE)
         return _stage.stage_node("displacement", "empty point view")
 
+    from slipmap.app.summaries import stochastic_outputs
     from slipmap.core.displacement import estimate_slip
-    from slipmap.summaries import stochastic_outputs
 
     stochastic = _stochastic_options(opts)
 
@@ -301,8 +301,8 @@ def _per_point(res, clouds, idx, trace, buffer_m, labels, residual):
 
 def _stochastic_options(opts):
     """estimate_slip's ``stochastic_model`` and ``components`` from the options."""
+    from slipmap.app.stochasticmodel import parse_fixed_components
     from slipmap.core.errors import InvalidParameterError
-    from slipmap.stochasticmodel import parse_fixed_components
 
     try:
         fixed = parse_fixed_components(
@@ -322,7 +322,7 @@ def _units(opts, ins, idx, model):
     """Acquisition units of each epoch (``EpochUnits``) from the view's dimensions."""
     import numpy as np
 
-    from slipmap.stochasticmodel import EpochUnits, epoch_units, log_units
+    from slipmap.app.stochasticmodel import EpochUnits, epoch_units, log_units
 
     out = {}
     for key, ix in idx.items():

@@ -15,90 +15,17 @@ octree leaf within the planarity threshold (NaN where the leaf was too small to 
 
 import numpy as np
 
+from slipmap.app.planes import SPEC, segment
 from slipmap.pdal_filters import _stage
-from slipmap.pdal_filters._stage import Option, OptionTable
+from slipmap.pdal_filters._stage import OptionTable
 
 STAGE = "slipmap planes"
 OUTPUTS = {"PlaneId": "int32", "Planarity": "float64"}
 
 
 def options_table() -> OptionTable:
-    """The stage's options (docs/pdal.md)."""
-    return OptionTable(
-        STAGE,
-        [
-            Option(
-                "min_node_size_m",
-                "float",
-                None,
-                "Smallest octree leaf edge (m).",
-                minimum=0,
-                exclusive=True,
-            ),
-            Option(
-                "max_node_size_m",
-                "float",
-                None,
-                "Largest leaf edge tested (m); default 4x the leaf.",
-                minimum=0,
-                exclusive=True,
-            ),
-            Option(
-                "planarity_threshold_m",
-                "float",
-                None,
-                "Distance to a leaf's plane counted as on it (m); default 3x the noise.",
-                minimum=0,
-                exclusive=True,
-            ),
-            Option(
-                "planarity_ratio",
-                "float",
-                None,
-                "Fraction of a leaf's points within the threshold; default 0.9.",
-                minimum=0,
-                exclusive=True,
-            ),
-            Option(
-                "angle_threshold_deg",
-                "float",
-                None,
-                "Largest angle between joined leaves' normals (degrees).",
-                minimum=0,
-                exclusive=True,
-            ),
-            Option(
-                "distance_threshold_m",
-                "float",
-                None,
-                "Largest leaf-centroid to neighbour-plane distance (m); default: the planarity "
-                "threshold.",
-                minimum=0,
-                exclusive=True,
-            ),
-            Option(
-                "min_plane_points",
-                "int",
-                None,
-                "Smallest reported plane (points); default 3 typical leaves, >= 30.",
-                minimum=1,
-            ),
-            Option(
-                "min_leaf_points",
-                "int",
-                None,
-                "Smallest leaf that is fitted; default 10.",
-                minimum=3,
-            ),
-            Option(
-                "backend",
-                "choice",
-                "numpy",
-                "Kernel implementation (same labels).",
-                choices=("numpy", "opencl", "auto"),
-            ),
-        ],
-    )
+    """The stage's options (docs/pdal.md): the planes job's segmentation options."""
+    return OptionTable.from_spec(STAGE, SPEC)
 
 
 TABLE = options_table()
@@ -117,11 +44,8 @@ def run(ins, outs, *, opts, inputs):
     n_planes = 0
     params = {}
     if n > 0:
-        from slipmap.core.planes import segment_planes
-
         pts = _stage.points_from(ins, STAGE)
-        kw = {k: v for k, v in opts.items() if k != "slipmap_path" and v is not None}
-        ps = segment_planes(pts, **kw)
+        ps = segment(pts, _stage.job_options(SPEC, opts))
         labels, planarity = ps.labels, ps.planarity
         n_planes, params = len(ps), ps.parameters.to_dict()
     _stage.set_output(outs, "PlaneId", labels, np.int32, n, STAGE)

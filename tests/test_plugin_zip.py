@@ -44,7 +44,7 @@ def test_top_folder_is_the_plugin(plugin_zip):
         "slipmap/qgis_plugin/provider.py",
         "slipmap/qgis_plugin/algorithms/displacement.py",
         "slipmap/core/__init__.py",
-        "slipmap/pointaccuracy.py",
+        "slipmap/app/pointaccuracy.py",
     ):
         assert required in names, required
     styles = [n for n in names if re.fullmatch(r"slipmap/qgis_plugin/styles/[^/]+\.qml", n)]

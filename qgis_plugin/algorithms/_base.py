@@ -41,16 +41,143 @@ def progress_callback(feedback):
 
 
 @contextlib.contextmanager
-def slipmap_errors():
-    """Turn SlipMap errors into ``QgsProcessingException`` with the same message."""
+def slipmap_errors(spec=None):
+    """Turn SlipMap errors into ``QgsProcessingException``; with ``spec`` (the job's
+    :class:`~slipmap.app.options.JobSpec`) an option error names the option by its dialog
+    label."""
+    from ...app.options import OptionError
     from ...core.errors import CancelledError, SlipMapError
 
     try:
         yield
     except CancelledError as exc:
-        raise QgsProcessingException(f"cancelled: {exc}") from exc
+        raise QgsProcessingException("Run cancelled.") from exc
+    except OptionError as exc:
+        text = spec.render_error(exc, "qgis") if spec is not None else str(exc)
+        raise QgsProcessingException(text) from exc
     except SlipMapError as exc:
         raise QgsProcessingException(str(exc)) from exc
+
+
+# --------------------------------------------------------------------------- job options
+
+
+def _parameter(opt):
+    """The Processing parameter of one job option (see ``slipmap.app.options``)."""
+    from qgis.core import (
+        QgsProcessingParameterBoolean,
+        QgsProcessingParameterCrs,
+        QgsProcessingParameterEnum,
+        QgsProcessingParameterFile,
+        QgsProcessingParameterNumber,
+        QgsProcessingParameterString,
+    )
+
+    name, label = opt.name_in("qgis"), opt.dialog_label
+    optional = not opt.required
+    t = opt.type
+    if t in ("float", "int"):
+        kind = (
+            QgsProcessingParameterNumber.Integer
+            if t == "int"
+            else QgsProcessingParameterNumber.Double
+        )
+        p = QgsProcessingParameterNumber(
+            name, label, kind, defaultValue=opt.default, optional=optional
+        )
+        if opt.minimum is not None:
+            lo = opt.minimum
+            if opt.exclusive and t == "int":
+                lo = int(opt.minimum) + 1
+            p.setMinimum(lo)
+        if opt.maximum is not None:
+            p.setMaximum(opt.maximum)
+    elif t == "bool":
+        p = QgsProcessingParameterBoolean(name, label, defaultValue=bool(opt.default))
+    elif t == "choice":
+        default = list(opt.choices).index(opt.default) if opt.default in opt.choices else None
+        p = QgsProcessingParameterEnum(
+            name,
+            label,
+            options=[str(c) for c in opt.choices],
+            defaultValue=default,
+            optional=optional or default is not None,
+        )
+    elif t == "path":
+        p = QgsProcessingParameterFile(
+            name, label, fileFilter=opt.file_filter or "", optional=optional
+        )
+    elif t == "crs":
+        p = QgsProcessingParameterCrs(name, label, optional=True)
+    else:  # lists, vector3, key=value text: a string the option's conversion reads
+        default = opt.default
+        if isinstance(default, (list, tuple)):
+            default = " ".join(str(v) for v in default)
+        elif isinstance(default, dict):
+            default = ",".join(f"{k}={v}" for k, v in default.items())
+        p = QgsProcessingParameterString(name, label, defaultValue=default, optional=optional)
+    p.setHelp(opt.help)
+    if opt.advanced:
+        p.setFlags(p.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
+    return p
+
+
+def add_parameters(alg, spec, *, skip=(), roles=("setting",)):
+    """Add the Processing parameters of ``spec``'s options that QGIS shows (``qgis`` not
+    None), skipping the keys in ``skip`` (the algorithm declares those itself)."""
+    for opt in spec.for_face("qgis", roles=roles):
+        if opt.key not in skip:
+            alg.addParameter(_parameter(opt))
+
+
+def options_from(alg, parameters, context, spec, *, extra=None, run_check=True):
+    """The job's options (converted, defaults in, cross-checks run) from ``parameters``.
+
+    ``extra`` gives values the algorithm reads itself (layers, destinations). Raises
+    ``QgsProcessingException`` naming the option by its dialog label.
+    """
+    from ...app.options import OptionError
+
+    raw = {}
+    for opt in spec.for_face("qgis"):
+        name = opt.name_in("qgis")
+        if not is_set(parameters, name):
+            continue
+        t = opt.type
+        if t in ("float", "int"):
+            value = (
+                alg.parameterAsInt(parameters, name, context)
+                if t == "int"
+                else alg.parameterAsDouble(parameters, name, context)
+            )
+        elif t == "bool":
+            value = alg.parameterAsBoolean(parameters, name, context)
+        elif t == "choice":
+            value = opt.choices[alg.parameterAsEnum(parameters, name, context)]
+        elif t == "path":
+            value = alg.parameterAsFile(parameters, name, context)
+        elif t == "crs":
+            crs = alg.parameterAsCrs(parameters, name, context)
+            value = crs.toWkt() if crs.isValid() else None
+        else:
+            value = alg.parameterAsString(parameters, name, context)
+            if not str(value).strip():
+                value = None
+        raw[opt.key] = value
+    raw.update(extra or {})
+    try:
+        return spec.parse(raw, face="qgis", run_check=run_check)
+    except OptionError as exc:
+        raise QgsProcessingException(spec.render_error(exc, "qgis")) from exc
+
+
+def check_options(alg, parameters, context, spec, *, extra=None):
+    """``checkParameterValues`` for a job: ``(ok, message)`` with the dialog's labels."""
+    try:
+        options_from(alg, parameters, context, spec, extra=extra)
+    except QgsProcessingException as exc:
+        return False, str(exc)
+    return True, ""
 
 
 def is_set(parameters, name):

@@ -18,7 +18,7 @@ from qgis.core import (
 )
 from qgis.PyQt.QtCore import QVariant
 
-from ...summaries import (  # noqa: F401  (re-exported for the field algorithms)
+from ...app.summaries import (  # noqa: F401  (re-exported for the field algorithms)
     finite,
     finite_stats,
     horizontal,

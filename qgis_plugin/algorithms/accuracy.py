@@ -1,7 +1,7 @@
 """``slipmap:pointaccuracy``: per-point accuracy written into a LAS copy, and the point-accuracy
 parameters shared with ``slipmap:displacement``.
 
-The parameters map one to one onto the settings dict of ``slipmap.pointaccuracy`` (the CLI's
+The parameters map one to one onto the settings dict of ``slipmap.app.pointaccuracy`` (the CLI's
 ``--pa`` flags and ``--pa-config`` file), which turns them into covariances.
 """
 
@@ -64,7 +64,7 @@ PA_HELP = (
 )
 
 
-#: the CLI flags that ``slipmap.pointaccuracy`` messages name, and the parameters here
+#: the CLI flags that ``slipmap.app.pointaccuracy`` messages name, and the parameters here
 FLAGS = (
     ("--trajectory-accuracy", "TRAJECTORY_ACCURACY"),
     ("--trajectory", "TRAJECTORY"),
@@ -196,7 +196,7 @@ def add_pa_parameters(alg, model_names, advanced_models=False):
 
 
 def pa_settings(alg, parameters, context, model_name, crs):
-    """The ``slipmap.pointaccuracy`` settings dict of the model chosen in ``model_name``.
+    """The ``slipmap.app.pointaccuracy`` settings dict of the model chosen in ``model_name``.
 
     ``crs`` is the point cloud's ``QgsCoordinateReferenceSystem`` (the scanner position is
     reprojected to it). Raises ``QgsProcessingException`` naming the parameter at fault.
@@ -252,7 +252,7 @@ def pa_config(alg, parameters, context):
     if not path:
         return None
     with pa_errors():
-        from ...pointaccuracy import load_config
+        from ...app.pointaccuracy import load_config
 
         return load_config(path)
 
@@ -312,10 +312,10 @@ class PointAccuracyAlgorithm(SlipMapAlgorithm):
         with slipmap_errors():
             import numpy as np
 
+            from ...app.pointaccuracy import covariance_matrices
             from ...core.accuracy import covariance_to_sigmas, covariance_to_six
             from ...core.io.atomic import check_not_input
             from ...core.io.las import write_las
-            from ...pointaccuracy import covariance_matrices
 
             check_not_input(out, [path])
             cloud = read_cloud(path)

@@ -33,8 +33,7 @@ from qgis.core import (
 )
 from qgis.PyQt.QtCore import QVariant
 
-from ...core.errors import InvalidParameterError
-from ...stochasticmodel import (
+from ...app.stochasticmodel import (
     DEFAULT_GPS_GAP_S,
     DEFAULT_MODEL,
     MODEL_HELP,
@@ -43,8 +42,8 @@ from ...stochasticmodel import (
     UNITS_HELP,
     parse_fixed_components,
 )
-from ...summaries import finite as _finite
-from ...summaries import (
+from ...app.summaries import finite as _finite
+from ...app.summaries import (
     json_safe,
     plane_fields,
     slip_summary_lines,
@@ -52,6 +51,7 @@ from ...summaries import (
     stochastic_tables,
     strip_rows,
 )
+from ...core.errors import InvalidParameterError
 from ._base import (
     LAS_FILTER,
     PLANES_CITATION,
@@ -513,11 +513,11 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
     # ------------------------------------------------------------------ core
 
     def _run(self, parameters, context, feedback, source, opts):
+        from ...app.pointaccuracy import covariances
         from ...core.displacement import estimate_slip, strip_profile, window_field
         from ...core.fault import fault_trace
         from ...core.io.crs import reproject_points, same_crs
         from ...core.progress import scaled
-        from ...pointaccuracy import covariances
 
         progress = progress_callback(feedback)
         first, second = read_cloud(opts["before"]), read_cloud(opts["after"])
@@ -619,7 +619,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
     def _units(opts, first, second, sel1, sel2, feedback):
         """Acquisition units of each epoch's selected points (full model only) and what was
         used, for the summary."""
-        from ...stochasticmodel import cloud_units
+        from ...app.stochasticmodel import cloud_units
 
         units = {"before": None, "after": None}
         record = {"units_option": opts["units"]}

@@ -411,7 +411,7 @@ def test_units_gps_time_segments_nest_in_the_passes(drift_files, tmp_path):
     """--units gps-time --gps-gap 2: the MLS passes are separated by turns of several
     seconds, so every GPS-time segment lies within one pass (ground-only stretches of a pass,
     left out, split it further); the result is the core's with those segments."""
-    from slipmap.stochasticmodel import gps_time_segments
+    from slipmap.app.stochasticmodel import gps_time_segments
 
     fp, paths, fault = drift_files
     out = tmp_path / "gps"

@@ -1,4 +1,4 @@
-"""The stochastic-model options shared by the faces (``slipmap.stochasticmodel``): fixed
+"""The stochastic-model options shared by the faces (``slipmap.app.stochasticmodel``): fixed
 components, acquisition units from PointSourceId and GPS time; known answers, no files."""
 
 import logging
@@ -6,7 +6,7 @@ import logging
 import numpy as np
 import pytest
 
-from slipmap import stochasticmodel as sm
+from slipmap.app import stochasticmodel as sm
 from slipmap.core.errors import InputDataError, InvalidParameterError
 
 
@@ -157,7 +157,7 @@ def _payload(model="full"):
 
 
 def test_slip_summary_lines_known_answer():
-    from slipmap.summaries import slip_summary_lines
+    from slipmap.app.summaries import slip_summary_lines
 
     lines = slip_summary_lines(_payload())
     assert lines[0] == "relative displacement (right − left), stochastic model full:"
@@ -174,8 +174,8 @@ def test_slip_summary_lines_known_answer():
 
 
 def test_stochastic_tables_and_html(tmp_path):
+    from slipmap.app.summaries import stochastic_tables
     from slipmap.core.report import write_html_report
-    from slipmap.summaries import stochastic_tables
 
     tables = stochastic_tables(_payload())
     head = tables["Stochastic model"]

@@ -200,7 +200,7 @@ def test_accuracy_then_displacement_uses_per_point_sigmas():
         sigma_before=s[:nb],
         sigma_after=s[nb:],
     )
-    from slipmap.summaries import json_safe
+    from slipmap.app.summaries import json_safe
 
     summary["parameters"].pop("acquisition_unit_sources")  # the stage's record of the units
     assert summary == json_safe(core.to_dict())

@@ -115,7 +115,7 @@ def slip_run(pair):
 
 
 def test_displacement_summary_equals_core(slip_run):
-    from slipmap.summaries import json_safe
+    from slipmap.app.summaries import json_safe
 
     mod, outs, core = slip_run
     md = nodes(mod)
@@ -286,7 +286,7 @@ def _drift_ins(fp):
 def test_displacement_units_equal_core(drift_pair, units):
     """units auto reads PointSourceId, GpsTime the segments of the GPS times: the slip and
     the components equal the core's with the same unit arrays."""
-    from slipmap.stochasticmodel import gps_time_segments
+    from slipmap.app.stochasticmodel import gps_time_segments
 
     fp = drift_pair
     args = {"trace": _trace_wkt(fp), "sigma_before": 0.02, "sigma_after": 0.02, "units": units}

@@ -474,8 +474,8 @@ def _accuracy(path, out, **params):
 
 
 def test_pointaccuracy_columns_equals_core(provider, small_cloud, tmp_path):
+    from slipmap.app.pointaccuracy import covariance_matrices
     from slipmap.core.io.las import read_las
-    from slipmap.pointaccuracy import covariance_matrices
 
     out = _accuracy(small_cloud, tmp_path / "c.las", MODEL=2, SIGMA_COLUMNS="SigmaA, SigmaB,SigmaC")
     cov = covariance_matrices(
@@ -487,8 +487,8 @@ def test_pointaccuracy_columns_equals_core(provider, small_cloud, tmp_path):
 
 
 def test_pointaccuracy_tls_reprojected_position_full_covariance(provider, small_cloud, tmp_path):
+    from slipmap.app.pointaccuracy import covariance_matrices
     from slipmap.core.io.las import read_las
-    from slipmap.pointaccuracy import covariance_matrices
 
     pos = np.array([ORIGIN[0] - 15.0, ORIGIN[1] + 10.0, ORIGIN[2] + 1.8])
     lon, lat = pyproj.Transformer.from_crs(UTM10, "EPSG:4326", always_xy=True).transform(
@@ -613,7 +613,7 @@ def test_stochastic_parameters(provider):
     } <= outputs
     assert "Stochastic model" in alg.shortHelpString()
     # one vocabulary with the core
-    from slipmap import stochasticmodel
+    from slipmap.app import stochasticmodel
     from slipmap.core import stochastic
 
     assert stochasticmodel.MODELS == stochastic.STOCHASTIC_MODELS

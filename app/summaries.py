@@ -31,6 +31,21 @@ def json_safe(obj: Any) -> Any:
     return obj
 
 
+def json_text(payload: Any) -> str:
+    """``payload`` as standard JSON text (NaN/inf as null, numpy values as Python), indented.
+
+    The one JSON policy of every face and job."""
+    import json
+
+    return json.dumps(json_safe(payload), indent=2, allow_nan=False, default=_plain) + "\n"
+
+
+def _plain(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
+    return str(obj)
+
+
 def finite_stats(values) -> Dict[str, float]:
     """n, mean, median, std, min, max of the finite values (``{"n": 0}`` when none)."""
     v = np.asarray(values, dtype=np.float64).ravel()

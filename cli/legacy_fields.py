@@ -14,7 +14,9 @@ from typing import Optional
 
 import numpy as np
 
-from .cli import (
+from ..app.summaries import finite_stats, horizontal, icp_summary, json_safe
+from ..core.errors import InputDataError, InvalidParameterError
+from .legacy import (
     _add_crs_argument,
     _check_output_dir,
     _have_matplotlib,
@@ -26,8 +28,6 @@ from .cli import (
     read_cloud,
     read_epoch_pair,
 )
-from .core.errors import InputDataError, InvalidParameterError
-from .summaries import finite_stats, horizontal, icp_summary, json_safe
 
 log = logging.getLogger("slipmap")
 
@@ -77,7 +77,7 @@ def _wkt(crs) -> Optional[str]:
 
 
 def _tif(path: Path, array, *, origin_xy, pixel_m, crs, names, metadata=None) -> str:
-    from .core.io.raster import write_geotiff
+    from ..core.io.raster import write_geotiff
 
     write_geotiff(
         path,
@@ -95,8 +95,8 @@ def _control(args, x, y, dx, dy, dz, *, spacing_m=None) -> Optional[dict]:
     """Compare a field with --control points; logged and returned as a dict."""
     if not getattr(args, "control", None):
         return None
-    from .core.fields import compare_with_control
-    from .core.io.table import read_control_points
+    from ..core.fields import compare_with_control
+    from ..core.io.table import read_control_points
 
     cxy, cd = read_control_points(args.control)
     comp = compare_with_control(x, y, dx, dy, dz, cxy, cd, spacing_m=spacing_m)
@@ -120,9 +120,9 @@ def _control(args, x, y, dx, dy, dz, *, spacing_m=None) -> Optional[dict]:
 
 @command("piv", "3D displacement field by PIV on gridded elevation (Aryal et al., 3.2.1)")
 def _run_piv(args: argparse.Namespace) -> int:
-    from .core.dem import common_grid, grid_elevation
-    from .core.io.table import write_csv_columns
-    from .core.piv import piv
+    from ..core.dem import common_grid, grid_elevation
+    from ..core.io.table import write_csv_columns
+    from ..core.piv import piv
 
     out = Path(args.out)
     _check_output_dir(out)
@@ -174,7 +174,7 @@ def _run_piv(args: argparse.Namespace) -> int:
             )
         )
     if _have_matplotlib():
-        from .core.report import hillshade, plot_vector_field
+        from ..core.report import hillshade, plot_vector_field
 
         extent = (grid.x_min, grid.x_max, grid.y_min, grid.y_max)
         plot_vector_field(
@@ -291,9 +291,9 @@ def _cell_polygons(res) -> list:
 
 @command("icp", "3D displacement field by windowed point-to-plane ICP (Aryal et al., 3.2.2)")
 def _run_icp(args: argparse.Namespace) -> int:
-    from .core.icp import windowed_icp
-    from .core.io.table import write_csv_columns
-    from .core.io.vector import VectorLayer, read_polygons, write_gpkg_layers
+    from ..core.icp import windowed_icp
+    from ..core.io.table import write_csv_columns
+    from ..core.io.vector import VectorLayer, read_polygons, write_gpkg_layers
 
     out = Path(args.out)
     _check_output_dir(out)
@@ -350,8 +350,8 @@ def _run_icp(args: argparse.Namespace) -> int:
         )
     )
     if _have_matplotlib():
-        from .core.dem import common_grid, grid_elevation
-        from .core.report import hillshade, plot_vector_field
+        from ..core.dem import common_grid, grid_elevation
+        from ..core.report import hillshade, plot_vector_field
 
         cell = max(res.cell_m / 20.0, 0.05)
         grid = common_grid(before, cell_m=cell, overlap="union")
@@ -438,7 +438,7 @@ def _icp_arguments(p: argparse.ArgumentParser) -> None:
 
 @command("dem-diff", "vertical change by DEM differencing (the simple baseline)")
 def _run_dem_diff(args: argparse.Namespace) -> int:
-    from .core.dem import dem_difference
+    from ..core.dem import dem_difference
 
     out = Path(args.out)
     _check_output_dir(out)
@@ -457,7 +457,7 @@ def _run_dem_diff(args: argparse.Namespace) -> int:
         )
     ]
     if _have_matplotlib():
-        from .core.report import plot_raster_panels
+        from ..core.report import plot_raster_panels
 
         extent = (g.x_min, g.x_max, g.y_min, g.y_max)
         plot_raster_panels(
@@ -500,11 +500,11 @@ def _dem_diff_arguments(p: argparse.ArgumentParser) -> None:
 
 def _field_from_file(args):
     """A GriddedField from piv.csv / icp.csv, or a dx GeoTIFF (+ --dy, or a 2-band file)."""
-    from .core.fields import GriddedField, field_from_columns
+    from ..core.fields import GriddedField, field_from_columns
 
     path = Path(args.field)
     if path.suffix.lower() in (".tif", ".tiff"):
-        from .core.io.raster import read_geotiff
+        from ..core.io.raster import read_geotiff
 
         arr, gt, wkt = read_geotiff(path)
         arr = np.asarray(arr, dtype=np.float64)
@@ -526,7 +526,7 @@ def _field_from_file(args):
             origin_xy=(gt[0], gt[3]), spacing_m=(gt[1], -gt[5]), dx=dx, dy=dy, dz=None
         )
         return field, (wkt or None)
-    from .core.io.table import read_csv_columns
+    from ..core.io.table import read_csv_columns
 
     cols = read_csv_columns(path, required=("x", "y", "dx", "dy"), optional=("dz", "valid"))
     valid = None
@@ -546,8 +546,8 @@ def _field_from_file(args):
 
 @command("strain", "horizontal strain from a displacement field (PIV/ICP CSV or GeoTIFFs)")
 def _run_strain(args: argparse.Namespace) -> int:
-    from .core.io.crs import parse_crs
-    from .core.strain import strain_field
+    from ..core.io.crs import parse_crs
+    from ..core.strain import strain_field
 
     out = Path(args.out)
     _check_output_dir(out)
@@ -570,7 +570,7 @@ def _run_strain(args: argparse.Namespace) -> int:
         )
     ]
     if _have_matplotlib():
-        from .core.report import plot_raster_panels
+        from ..core.report import plot_raster_panels
 
         x0, y0 = field.origin_xy
         extent = (x0, x0 + field.shape[1] * sx, y0 - field.shape[0] * sy, y0)
@@ -626,10 +626,10 @@ def _strain_arguments(p: argparse.ArgumentParser) -> None:
 
 @command("synth-lobe", "inject a known landslide lobe into a real cloud (validation pair)")
 def _run_synth_lobe(args: argparse.Namespace) -> int:
-    from .core.io.atomic import check_not_input
-    from .core.io.las import write_las
-    from .core.io.table import write_csv_columns
-    from .core.synthetic import make_lobe_pair
+    from ..core.io.atomic import check_not_input
+    from ..core.io.las import write_las
+    from ..core.io.table import write_csv_columns
+    from ..core.synthetic import make_lobe_pair
 
     out = Path(args.out)
     _check_output_dir(out)

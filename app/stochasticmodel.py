@@ -28,7 +28,7 @@ from typing import Any, Dict, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from .core.errors import InputDataError, InvalidParameterError
+from ..core.errors import InputDataError, InvalidParameterError
 
 log = logging.getLogger("slipmap.stochastic")
 

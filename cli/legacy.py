@@ -1,4 +1,4 @@
-"""The ``slipmap`` command line: one subcommand per job, a thin adapter over ``slipmap.core``.
+"""Commands not yet moved onto the application layer (being migrated: see app/).
 
 Exit codes: 0 success, 2 bad input or options (one-line message; ``--debug`` for the
 traceback), 1 unexpected failure, 130 interrupted.
@@ -9,77 +9,21 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 import time
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
-from ._version import __version__
-from .core.errors import CancelledError, InvalidParameterError, SlipMapError
-from .summaries import json_safe, slip_summary_lines, strip_rows
+from .._version import __version__
+from ..app.summaries import json_safe, slip_summary_lines, strip_rows
+from ..core.errors import InvalidParameterError, SlipMapError
+from ._args import ProgressBar as _ProgressBar
+from ._args import command
 
 log = logging.getLogger("slipmap")
 
-#: subcommand name -> (add_arguments(parser), run(args) -> int)
-_COMMANDS: Dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable]] = {}
-
-
-def command(name: str, help_text: str):
-    """Register ``add_arguments`` / ``run`` pairs: decorate the ``run`` function."""
-
-    def deco(run: Callable[[argparse.Namespace], int]):
-        def register(add_arguments: Callable[[argparse.ArgumentParser], None]):
-            _COMMANDS[name] = (help_text, add_arguments, run)
-            return add_arguments
-
-        run.arguments = register  # type: ignore[attr-defined]
-        return run
-
-    return deco
-
-
 # --------------------------------------------------------------------------- helpers
-
-
-class _ProgressBar:
-    """Maps SlipMap's progress callback onto a tqdm bar on stderr (hidden when not a TTY)."""
-
-    def __init__(self, description: str, *, enabled: bool = True):
-        self._bar = None
-        if enabled:
-            try:
-                from tqdm import tqdm
-            except ImportError:  # pragma: no cover - tqdm is a dependency
-                tqdm = None
-            if tqdm is not None:
-                self._bar = tqdm(
-                    total=1000,
-                    desc=description,
-                    unit="‰",
-                    disable=None,
-                    leave=False,
-                    file=sys.stderr,
-                )
-
-    def __call__(self, fraction: float, message: str = "") -> None:
-        if self._bar is None:
-            return
-        self._bar.n = int(round(1000 * fraction))
-        if message:
-            self._bar.set_postfix_str(message, refresh=False)
-        self._bar.refresh()
-
-    def close(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def _check_output_dir(directory: Path) -> None:
@@ -112,7 +56,7 @@ def _positive(kind: type, name: str):
 
 
 def _write_json(path: Path, payload: dict) -> None:
-    from .core.io.atomic import write_text_atomic
+    from ..core.io.atomic import write_text_atomic
 
     write_text_atomic(path, json.dumps(payload, indent=2, allow_nan=False) + "\n")
 
@@ -129,7 +73,7 @@ def _add_crs_argument(
 def parse_crs_option(value):
     """The ``pyproj.CRS`` of a ``--crs`` value (``None`` when not given); a bad value is an
     :class:`InvalidParameterError` naming ``--crs``."""
-    from .core.io.crs import parse_crs
+    from ..core.io.crs import parse_crs
 
     try:
         return parse_crs(value)
@@ -141,7 +85,7 @@ def read_cloud(path, crs=None):
     """One LAS/LAZ cloud, refused when empty. ``crs`` (``--crs``, a string or a CRS) replaces
     the file's CRS (for a file without one, or with a wrong one); nothing is reprojected and
     every output (LAS, GeoTIFF, GeoPackage, JSON) carries it."""
-    from .core.io.las import read_las
+    from ..core.io.las import read_las
 
     crs = parse_crs_option(crs)  # before the read: a bad value fails at once
     cloud = read_las(path)
@@ -274,9 +218,9 @@ def run_planes_on_cloud(cloud, args, out_dir: Path, *, progress=None):
     """
     import numpy as np
 
-    from .core.io.atomic import ensure_output_dir
-    from .core.io.las import write_las
-    from .core.planes import segment_planes
+    from ..core.io.atomic import ensure_output_dir
+    from ..core.io.las import write_las
+    from ..core.planes import segment_planes
 
     if len(cloud) == 0:
         raise SlipMapError(f"{cloud.source}: the file has no points")
@@ -324,30 +268,12 @@ def run_planes_on_cloud(cloud, args, out_dir: Path, *, progress=None):
     return planes, labels, payload
 
 
-@command("planes", "planar segmentation (octree + region growing) of one point cloud")
-def _run_planes(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    _check_output_dir(out)
-    cloud = read_cloud(args.input, args.crs)
-    run_planes_on_cloud(cloud, args, out)
-    return 0
-
-
-@_run_planes.arguments
-def _planes_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("input", help="LAS/LAZ point cloud")
-    p.add_argument("--out", required=True, help="output directory")
-    _add_crs_argument(p)
-    _add_selection_arguments(p)
-    _add_plane_arguments(p)
-
-
 # --------------------------------------------------------------------------- demo
 
 
 @command("demo", "run the main job (fault slip) on an embedded case and compare with the truth")
 def _run_demo(args: argparse.Namespace) -> int:
-    from .demo import run_planes_demo, run_slip_demo
+    from ..demo import run_planes_demo, run_slip_demo
 
     out = Path(args.out)
     _check_output_dir(out)
@@ -441,10 +367,10 @@ def _roughness_one_size(grid, plane, cloud, args, out_dir: Path, files: dict) ->
     """Write the CSV, GeoTIFF, figures and semivariogram of one cell size; Table-1 record."""
     import numpy as np
 
-    from .core import roughness as rg
-    from .core.errors import DependencyError
-    from .core.io.atomic import write_text_atomic
-    from .core.io.raster import write_geotiff
+    from ..core import roughness as rg
+    from ..core.errors import DependencyError
+    from ..core.io.atomic import write_text_atomic
+    from ..core.io.raster import write_geotiff
 
     label = _cell_label(grid.cell_size_m)
     summary = rg.summarize_roughness(grid)
@@ -533,7 +459,7 @@ def _roughness_one_size(grid, plane, cloud, args, out_dir: Path, files: dict) ->
     }
 
     if args.figures:
-        from .core import report
+        from ..core import report
 
         title = f"{label} m grid ({plane.name} map plane)"
         extent = raster.extent
@@ -569,8 +495,8 @@ def _roughness_one_size(grid, plane, cloud, args, out_dir: Path, files: dict) ->
 def _run_roughness(args: argparse.Namespace) -> int:
     import math
 
-    from .core import roughness as rg
-    from .core.io.atomic import ensure_output_dir
+    from ..core import roughness as rg
+    from ..core.io.atomic import ensure_output_dir
 
     if not 0.0 <= args.cutoff <= 1.0:
         raise InvalidParameterError(f"--cutoff must be within [0, 1], got {args.cutoff:g}")
@@ -642,7 +568,7 @@ def _run_roughness(args: argparse.Namespace) -> int:
             )
     semivariogram_png = None
     if panels and args.figures:
-        from .core import report
+        from ..core import report
 
         semivariogram_png = out / "semivariograms.png"
         report.plot_semivariograms(
@@ -654,7 +580,7 @@ def _run_roughness(args: argparse.Namespace) -> int:
     if args.points_out:
         grid = grids[0]
         values = rg.roughness_per_point(cloud.xyz, grid, value="theta_odr")
-        from .core.io.las import write_las
+        from ..core.io.las import write_las
 
         points_out = Path(args.points_out)
         write_las(points_out, cloud, extra_dims={"Roughness": values}, inputs=[cloud.source])
@@ -762,7 +688,7 @@ def read_epoch_pair(before, after, crs=None):
     ``crs`` (``--crs``) replaces the CRS of both files (for files without one, or with a wrong
     one): both are then taken to be in it and nothing is reprojected.
     """
-    from .core.io.crs import reproject_points, same_crs
+    from ..core.io.crs import reproject_points, same_crs
 
     crs = parse_crs_option(crs)
     first, second = read_cloud(before, crs), read_cloud(after, crs)
@@ -787,7 +713,7 @@ def _read_epochs(args):
 
 def _pa_settings(args) -> dict:
     """Point-accuracy settings of both epochs from the flags, or from --pa-config."""
-    from .pointaccuracy import check_settings, load_config
+    from ..app.pointaccuracy import check_settings, load_config
 
     if getattr(args, "pa_config", None):
         return load_config(args.pa_config)
@@ -883,7 +809,7 @@ _UNITS_SPELLING = {v: k for k, v in _UNITS.items()}
 
 def _fixed_component(text: str) -> Dict[str, float]:
     """argparse type of ``--fixed-component NAME=SIGMA_M`` (bad syntax or names: exit 2)."""
-    from .stochasticmodel import fixed_components_or_error
+    from ..app.stochasticmodel import fixed_components_or_error
 
     try:
         return fixed_components_or_error(text)
@@ -892,7 +818,7 @@ def _fixed_component(text: str) -> Dict[str, float]:
 
 
 def _add_stochastic_arguments(p: argparse.ArgumentParser) -> None:
-    from .stochasticmodel import DEFAULT_GPS_GAP_S, DEFAULT_MODEL, MODEL_HELP, MODELS
+    from ..app.stochasticmodel import DEFAULT_GPS_GAP_S, DEFAULT_MODEL, MODEL_HELP, MODELS
 
     g = p.add_argument_group(
         "stochastic model (the slip's σ; variance components estimated by REML)"
@@ -933,7 +859,7 @@ def _add_stochastic_arguments(p: argparse.ArgumentParser) -> None:
 
 def _stochastic_settings(args, first, second, sel1, sel2) -> dict:
     """estimate_slip's stochastic keywords from the options, and what was used (for the JSON)."""
-    from .stochasticmodel import cloud_units
+    from ..app.stochasticmodel import cloud_units
 
     model = args.stochastic_model
     fixed: Dict[str, float] = {}
@@ -983,8 +909,8 @@ def _stochastic_settings(args, first, second, sel1, sel2) -> dict:
 
 def _window_rasters(windows, crs, out_dir: Path) -> List[str]:
     """windows_dx.tif and windows_dy.tif (north-up, one pixel per window centre)."""
-    from .core.errors import DependencyError
-    from .core.io.raster import write_geotiff
+    from ..core.errors import DependencyError
+    from ..core.io.raster import write_geotiff
 
     half = 0.5 * windows.step_m
     files = []
@@ -1015,12 +941,12 @@ def _displacement_outputs(
     """Matched-plane GeoPackage, residual and normal plots, HTML page; returns file names.
 
     ``payload``: the JSON summary written (default ``result.to_dict()``), for the report."""
-    from .core.errors import DependencyError
-    from .summaries import plane_fields, stochastic_tables
+    from ..app.summaries import plane_fields, stochastic_tables
+    from ..core.errors import DependencyError
 
     files: List[str] = []
     try:
-        from .core.io.vector import VectorLayer, write_gpkg_layers
+        from ..core.io.vector import VectorLayer, write_gpkg_layers
 
         layers = []
         for side in (result.left, result.right):
@@ -1074,7 +1000,7 @@ def _displacement_outputs(
                 )
             )
         if strips:
-            from .core.fault import point_at_chainage
+            from ..core.fault import point_at_chainage
 
             layers.append(
                 VectorLayer(
@@ -1105,7 +1031,7 @@ def _displacement_outputs(
     except DependencyError as exc:
         log.warning("no GeoPackage written: %s", exc)
     try:
-        from .core.report import plot_normals_polar, plot_residual_histograms, write_html_report
+        from ..core.report import plot_normals_polar, plot_residual_histograms, write_html_report
 
         res = {f"{s.side} before": s.rigid.residuals_before for s in (result.left, result.right)}
         res.update(
@@ -1120,7 +1046,7 @@ def _displacement_outputs(
             },
             title="Matched plane normals",
         )
-        from .core.report import plot_plane_residual_polar
+        from ..core.report import plot_plane_residual_polar
 
         plot_plane_residual_polar(
             out_dir / "plane_residuals.png",
@@ -1131,7 +1057,7 @@ def _displacement_outputs(
         )
         files += ["residuals.png", "normals.png", "plane_residuals.png"]
         if strips:
-            from .core.report import plot_strip_profile
+            from ..core.report import plot_strip_profile
 
             plot_strip_profile(
                 out_dir / "strips.png",
@@ -1160,13 +1086,13 @@ def _displacement_outputs(
 
 @command("displacement", "fault slip between two epochs by planar registration on each side")
 def _run_displacement(args: argparse.Namespace) -> int:
-    from .core.displacement import estimate_slip
-    from .core.io.atomic import ensure_output_dir
-    from .core.io.vector import read_fault_trace
+    from ..core.displacement import estimate_slip
+    from ..core.io.atomic import ensure_output_dir
+    from ..core.io.vector import read_fault_trace
 
     out = Path(args.out)
     _check_output_dir(out)
-    from .pointaccuracy import covariances
+    from ..app.pointaccuracy import covariances
 
     first, second, sel1, sel2, before, after = _read_epochs(args)
     stoch = _stochastic_settings(args, first, second, sel1, sel2)
@@ -1206,13 +1132,13 @@ def _run_displacement(args: argparse.Namespace) -> int:
         )
         strips = windows = None
         if args.strip_width:
-            from .core.displacement import strip_profile
+            from ..core.displacement import strip_profile
 
             strips = strip_profile(
                 before, after, trace, result, strip_width_m=args.strip_width, **common
             )
         if args.window_size:
-            from .core.displacement import window_field
+            from ..core.displacement import window_field
 
             windows = window_field(
                 before,
@@ -1344,10 +1270,10 @@ def _displacement_arguments(p: argparse.ArgumentParser) -> None:
 
 @command("accuracy", "per-point accuracy (SigmaX/Y/Z, optionally full covariance) into a LAS copy")
 def _run_accuracy(args: argparse.Namespace) -> int:
-    from .core.accuracy import covariance_to_sigmas, covariance_to_six
-    from .core.io.atomic import check_not_input
-    from .core.io.las import write_las
-    from .pointaccuracy import covariance_matrices
+    from ..app.pointaccuracy import covariance_matrices
+    from ..core.accuracy import covariance_to_sigmas, covariance_to_six
+    from ..core.io.atomic import check_not_input
+    from ..core.io.las import write_las
 
     check_not_input(args.out, [args.input])
     cloud = read_cloud(args.input, args.crs)  # its CRS also places an SBET trajectory
@@ -1380,73 +1306,3 @@ def _accuracy_arguments(p: argparse.ArgumentParser) -> None:
         help="also write CovXX CovYY CovZZ CovXY CovXZ CovYZ (m²)",
     )
     _add_pa_arguments(p)
-
-
-# --------------------------------------------------------------------------- main
-
-
-def build_parser() -> argparse.ArgumentParser:
-    from . import cli_fields  # noqa: F401  (registers piv, icp, dem-diff, strain, synth-lobe)
-
-    parser = argparse.ArgumentParser(
-        prog="slipmap",
-        description="Fault slip, displacement fields and roughness from repeat LiDAR surveys.",
-    )
-    parser.add_argument("--version", action="version", version=f"slipmap {__version__}")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
-    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    sub.required = True
-    for name, (help_text, add_arguments, run) in _COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
-        add_arguments(p)
-        p.set_defaults(_run=run)
-    return parser
-
-
-def _configure_logging(debug: bool, quiet: bool) -> None:
-    level = logging.DEBUG if debug else (logging.WARNING if quiet else logging.INFO)
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("%(message)s" if not debug else "%(name)s: %(message)s"))
-    root = logging.getLogger("slipmap")
-    root.handlers[:] = [handler]
-    root.setLevel(level)
-    root.propagate = False
-    logging.captureWarnings(True)
-    warnings_logger = logging.getLogger("py.warnings")
-    warnings_logger.handlers[:] = [handler]
-
-
-def main(argv: Optional[List[str]] = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    _configure_logging(args.debug, args.quiet)
-    try:
-        return int(args._run(args) or 0)
-    except CancelledError:
-        log.error("slipmap: cancelled")
-        return 130
-    except SlipMapError as exc:
-        if args.debug:
-            log.exception("slipmap %s", args.command)
-        else:
-            log.error("slipmap %s: error: %s", args.command, exc)
-        return 2
-    except KeyboardInterrupt:
-        log.error("slipmap: interrupted")
-        return 130
-    except Exception as exc:  # noqa: BLE001 - last resort: one line unless --debug
-        if args.debug:
-            log.exception("slipmap %s: unexpected error", args.command)
-        else:
-            log.error(
-                "slipmap %s: unexpected error: %s: %s (run with --debug for the traceback)",
-                args.command,
-                type(exc).__name__,
-                exc,
-            )
-        return 1
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

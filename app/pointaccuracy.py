@@ -29,7 +29,7 @@ from typing import Any, Dict, Mapping, Optional
 
 import numpy as np
 
-from .core.errors import InputDataError, InvalidParameterError
+from ..core.errors import InputDataError, InvalidParameterError
 
 log = logging.getLogger("slipmap.accuracy")
 
@@ -78,7 +78,7 @@ def load_config(path: str) -> Dict[str, Dict[str, Any]]:
 
 
 def _scanner(value):
-    from .core.accuracy import SCANNERS, scanner_spec_from_dict
+    from ..core.accuracy import SCANNERS, scanner_spec_from_dict
 
     if value is None:
         raise InvalidParameterError(
@@ -103,7 +103,7 @@ def covariances(cloud, index: Optional[np.ndarray], settings: Mapping[str, Any])
     (n, 3, 3) covariance array (propagated), in the forms ``core.adjustment.adjust_rigid``
     accepts.
     """
-    from .core import accuracy as pa
+    from ..core import accuracy as pa
 
     s = check_settings(settings)
     idx = np.arange(len(cloud)) if index is None else np.asarray(index)
@@ -161,8 +161,8 @@ def covariance_matrices(cloud, index: Optional[np.ndarray], settings: Mapping[st
 def _propagated_mobile(cloud, idx, pts, s, spec):
     import pyproj
 
-    from .core import accuracy as pa
-    from .core.io.trajectory import read_trajectory, read_trajectory_accuracy
+    from ..core import accuracy as pa
+    from ..core.io.trajectory import read_trajectory, read_trajectory_accuracy
 
     if s.get("trajectory") is None or s.get("trajectory_accuracy") is None:
         raise InvalidParameterError(

@@ -1,0 +1,300 @@
+"""Output safety, in one place for every job and face.
+
+:class:`OutputPlan` is how a job writes files:
+
+1. Before anything runs, every output path is compared with every input path (the same file
+   on disk, or an input inside the output folder under the name of an output) and every
+   output's folder is checked writable: :meth:`OutputPlan.check`.
+2. While the job runs, it writes into a temporary folder beside each target
+   (:meth:`OutputPlan.path`), never into the target itself.
+3. At the end, :meth:`OutputPlan.commit` checks the staged names against the inputs once
+   more and moves every file into place; a failed or cancelled run removes the temporary
+   folder and leaves the output folder as it was.
+
+Use it as a context manager::
+
+    with OutputPlan(inputs={"before": path_a, "fault": trace}, out_dir=("out_m", out)) as plan:
+        plan.expect("displacement.json", "displacement.gpkg")
+        plan.check()
+        ... write to plan.path("displacement.json") ...
+    # committed here when the block succeeded, removed when it raised
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple, Union
+
+from ..core.errors import SlipMapFileError
+from .options import OptionError
+
+log = logging.getLogger("slipmap.app")
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+
+def _existing_ancestor(p: Path) -> Path:
+    p = p.absolute()
+    while not p.exists() and p.parent != p:
+        p = p.parent
+    return p
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return os.path.normcase(str(a.resolve())) == os.path.normcase(str(b.resolve()))
+
+
+class OutputPlan:
+    """Stage a run's outputs in a temporary folder and move them in at the end.
+
+    Parameters
+    ----------
+    inputs
+        ``{option key: path or list of paths}`` of every file the run reads (``None`` values
+        ignored). In-memory inputs (arrays, QGIS layers) are simply not listed.
+    out_dir
+        ``(option key, folder)`` when the run writes named files into one folder (the CLI's
+        ``--out``), or ``None``.
+    files
+        ``{option key: path}`` of single output files (QGIS file destinations,
+        ``accuracy --out``).
+    """
+
+    def __init__(
+        self,
+        *,
+        inputs: Mapping[str, object] = (),
+        out_dir: Optional[Tuple[str, PathLike]] = None,
+        files: Mapping[str, Optional[PathLike]] = (),
+    ):
+        self._inputs: List[Tuple[str, Path]] = []
+        for key, value in dict(inputs).items():
+            for v in value if isinstance(value, (list, tuple)) else [value]:
+                if isinstance(v, (str, os.PathLike)) and str(v):
+                    self._inputs.append((key, Path(v)))
+        self.out_key: Optional[str] = None
+        self.out_dir: Optional[Path] = None
+        if out_dir is not None:
+            self.out_key, d = out_dir[0], Path(out_dir[1])
+            if not str(out_dir[1]).strip():
+                raise OptionError(self.out_key, "is empty; give an output folder")
+            self.out_dir = d
+        self._files: Dict[str, Path] = {}
+        for key, p in dict(files).items():
+            if p is None:
+                continue
+            if not str(p).strip():
+                raise OptionError(key, "is empty; give an output file path")
+            self._files[key] = Path(p)
+        self._expected: List[str] = []
+        self._names: Dict[str, str] = {}
+        self._staging: Dict[Path, Path] = {}  # target folder -> its temporary folder
+        self._staged: Dict[Path, Path] = {}  # final path -> staged path
+        self.written: List[Path] = []
+
+    @classmethod
+    def for_outputs(
+        cls,
+        *,
+        inputs: Mapping[str, object],
+        outputs: Mapping[str, Optional[PathLike]],
+        default_names: Mapping[str, str],
+    ) -> OutputPlan:
+        """The plan of a job's outputs given either as ``{"out": folder}`` (every output under
+        its default name in that folder: the CLI) or as ``{output key: path or None}`` (QGIS
+        destinations; None: not wanted). Use :meth:`wants` and :meth:`file` with the keys."""
+        outputs = dict(outputs)
+        out_dir = outputs.pop("out", None)
+        if out_dir is not None:
+            plan = cls(inputs=inputs, out_dir=("out", out_dir))
+            plan._names = dict(default_names)
+            plan.expect(*default_names.values())
+        else:
+            plan = cls(inputs=inputs, files=outputs)
+            plan._names = {k: k for k, v in outputs.items() if v is not None}
+        return plan
+
+    def wants(self, key: str) -> bool:
+        """Whether the output ``key`` is to be written."""
+        return key in self._names
+
+    def file(self, key: str) -> Path:
+        """The temporary path of output ``key`` (see :meth:`for_outputs`)."""
+        return self.path(self._names[key])
+
+    def final(self, key: str) -> Path:
+        """Where output ``key`` ends up."""
+        name = self._names[key]
+        return self._files[name] if name in self._files else self.out_dir / name
+
+    # ------------------------------------------------------------------ planning
+
+    def expect(self, *names: str) -> None:
+        """Declare file names the run will write into ``out_dir`` (checked by :meth:`check`)."""
+        self._expected.extend(names)
+
+    def targets(self) -> List[Tuple[str, Path]]:
+        """``(option key, final path)`` of every declared output."""
+        out = [(k, p) for k, p in self._files.items()]
+        if self.out_dir is not None:
+            out += [(self.out_key, self.out_dir / n) for n in self._expected]
+        return out
+
+    def check(self) -> None:
+        """Refuse the run before anything is computed when an output would overwrite an input
+        or could not be written.
+
+        Raises
+        ------
+        OptionError
+            Naming the output option (and the input option in the text).
+        """
+        if self.out_dir is not None:
+            d = self.out_dir
+            if d.exists() and not d.is_dir():
+                raise OptionError(
+                    self.out_key, f"{str(d)!r} exists and is not a folder; give a folder"
+                )
+            for key, inp in self._inputs:
+                if _same_file(inp, d):
+                    raise OptionError(
+                        self.out_key,
+                        f"{str(d)!r} is the input given as {{{key}}}; choose another folder",
+                        also=(key,),
+                    )
+            self._check_writable(self.out_key, d)
+        for key, path in self._files.items():
+            if path.exists() and path.is_dir():
+                raise OptionError(key, f"{str(path)!r} is a folder; give a file name")
+            self._check_writable(key, path.parent)
+        for out_key, target in self.targets():
+            self._refuse_input(out_key, target)
+
+    def _refuse_input(self, out_key: str, target: Path) -> None:
+        for key, inp in self._inputs:
+            if _same_file(inp, target):
+                raise OptionError(
+                    out_key,
+                    f"would write {str(target)!r}, which is the input given as {{{key}}}; "
+                    "SlipMap never overwrites an input: choose another output or move the input",
+                    also=(key,),
+                )
+
+    @staticmethod
+    def _check_writable(key: str, folder: Path) -> None:
+        probe = _existing_ancestor(folder)
+        if not probe.is_dir():
+            raise OptionError(key, f"{str(probe)!r} exists and is not a folder")
+        if not os.access(probe, os.W_OK | os.X_OK):
+            raise OptionError(key, f"cannot write in {str(probe)!r}; choose a writable place")
+
+    # ------------------------------------------------------------------ staging
+
+    def path(self, name_or_key: str) -> Path:
+        """The temporary path to write an output to.
+
+        ``name_or_key`` is a file name inside ``out_dir`` or the key of a single-file output.
+        The temporary file keeps the final suffix, so writers that pick a format by
+        extension (laspy's LAZ, GDAL) behave as for the final name.
+        """
+        if name_or_key in self._files:
+            final = self._files[name_or_key]
+        elif self.out_dir is not None:
+            final = self.out_dir / name_or_key
+        else:
+            raise KeyError(f"no output {name_or_key!r} in this plan")  # programming error
+        staged = self._staged.get(final)
+        if staged is None:
+            folder = final.parent
+            tmp = self._staging.get(folder)
+            if tmp is None:
+                base = _existing_ancestor(folder)
+                try:
+                    tmp = Path(tempfile.mkdtemp(prefix=".slipmap-partial-", dir=base))
+                except OSError as exc:
+                    raise SlipMapFileError(
+                        f"cannot write in {str(base)!r}: {exc.strerror}; choose a writable place"
+                    ) from exc
+                self._staging[folder] = tmp
+            rel = final.relative_to(folder)
+            staged = tmp / rel
+            staged.parent.mkdir(parents=True, exist_ok=True)
+            self._staged[final] = staged
+        return staged
+
+    def commit(self) -> List[Path]:
+        """Move every staged file into place; returns the final paths written."""
+        finals = [f for f, s in self._staged.items() if s.exists()]
+        for final in finals:  # the last check, on what was really written
+            key = next((k for k, p in self._files.items() if p == final), self.out_key or "out")
+            self._refuse_input(key, final)
+        for final in finals:
+            final.parent.mkdir(parents=True, exist_ok=True)
+            staged = self._staged[final]
+            if final.is_dir() and not staged.is_dir():
+                raise SlipMapFileError(f"{str(final)!r} is a folder; cannot replace it by a file")
+            if staged.is_file():
+                _usual_permissions(staged)
+            os.replace(staged, final)
+            self.written.append(final)
+        self._cleanup()
+        return list(self.written)
+
+    def abort(self) -> None:
+        """Remove everything staged; the targets stay as they were."""
+        self._staged.clear()
+        self._cleanup()
+
+    def _cleanup(self) -> None:
+        for tmp in self._staging.values():
+            shutil.rmtree(tmp, ignore_errors=True)
+        self._staging.clear()
+
+    def __enter__(self) -> OutputPlan:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self.abort()
+
+
+def _usual_permissions(path: Path) -> None:
+    """mkstemp-made files are 0600; give outputs the usual permissions (umask applies)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    with contextlib.suppress(OSError):
+        os.chmod(path, 0o666 & ~umask)
+
+
+def input_paths(values: Mapping[str, object], keys: Iterable[str]) -> Dict[str, object]:
+    """``{key: values[key]}`` for the input keys that hold paths (helper for jobs)."""
+    return {k: values.get(k) for k in keys if values.get(k) is not None}
+
+
+def refuse_same_inputs(pairs: Sequence[Tuple[str, object]]) -> None:
+    """Refuse two inputs that are the same file (e.g. the same file as both epochs)."""
+    seen: List[Tuple[str, Path]] = []
+    for key, value in pairs:
+        if not isinstance(value, (str, os.PathLike)) or not str(value):
+            continue
+        p = Path(value)
+        for k0, p0 in seen:
+            if _same_file(p, p0):
+                raise OptionError(
+                    key,
+                    f"{str(p)!r} is the same file as {{{k0}}}; give two different surveys",
+                    also=(k0,),
+                )
+        seen.append((key, p))

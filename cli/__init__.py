@@ -1,0 +1,96 @@
+"""The ``slipmap`` command line: one subcommand per job, a thin face over :mod:`slipmap.app`.
+
+Each command module (``planes``, ``slip``, ``roughness``, ``accuracy``, ``fields``, ``demo``)
+maps its arguments onto a job of the application layer and the job's result onto the console.
+
+Exit codes: 0 success, 2 bad input or options (one line naming the option as the CLI spells
+it; ``--debug`` for the traceback), 1 unexpected failure, 130 interrupted or cancelled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from typing import List, Optional
+
+from .._version import __version__
+from ..app.options import OptionError
+from ..core.errors import CancelledError, SlipMapError
+from ._args import COMMANDS, cli_error
+
+log = logging.getLogger("slipmap")
+
+#: modules that register commands, in the order of ``slipmap --help``
+_MODULES = ("planes", "legacy", "legacy_fields")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    for mod in _MODULES:
+        importlib.import_module(f"{__name__}.{mod}")
+    parser = argparse.ArgumentParser(
+        prog="slipmap",
+        description="Fault slip, displacement fields and roughness from repeat LiDAR surveys.",
+    )
+    parser.add_argument("--version", action="version", version=f"slipmap {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name, (help_text, add_arguments, run, spec) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        add_arguments(p)
+        p.set_defaults(_run=run, _spec=spec)
+    return parser
+
+
+def _configure_logging(debug: bool, quiet: bool) -> None:
+    level = logging.DEBUG if debug else (logging.WARNING if quiet else logging.INFO)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(message)s" if not debug else "%(name)s: %(message)s"))
+    root = logging.getLogger("slipmap")
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    root.propagate = False
+    logging.captureWarnings(True)
+    warnings_logger = logging.getLogger("py.warnings")
+    warnings_logger.handlers[:] = [handler]
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _configure_logging(args.debug, args.quiet)
+    try:
+        return int(args._run(args) or 0)
+    except CancelledError:
+        log.error("slipmap %s: cancelled", args.command)
+        return 130
+    except SlipMapError as exc:
+        if args.debug:
+            log.exception("slipmap %s", args.command)
+        else:
+            text = str(exc)
+            if isinstance(exc, OptionError) and args._spec is not None:
+                text = cli_error(args._spec, exc)
+            log.error("slipmap %s: error: %s", args.command, text)
+        return 2
+    except KeyboardInterrupt:
+        log.error("slipmap: interrupted")
+        return 130
+    except Exception as exc:  # noqa: BLE001 - last resort: one line unless --debug
+        if args.debug:
+            log.exception("slipmap %s: unexpected error", args.command)
+        else:
+            log.error(
+                "slipmap %s: unexpected error: %s: %s (run with --debug for the traceback)",
+                args.command,
+                type(exc).__name__,
+                exc,
+            )
+        return 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
