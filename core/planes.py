@@ -375,7 +375,7 @@ def get_kernels(backend: str):
         try:
             from .opencl.backend import OpenCLKernels
 
-            return OpenCLKernels()
+            return OpenCLKernels(fallback=NumpyKernels())
         except Exception as exc:  # noqa: BLE001 - any OpenCL failure falls back for 'auto'
             if backend == "auto":
                 log.info("OpenCL unavailable (%s); using the numpy backend", exc)

@@ -216,8 +216,11 @@ class OpenCLKernels:
 
     name = "opencl"
 
-    def __init__(self) -> None:
+    def __init__(self, fallback: Any = None) -> None:
         self._rt = _runtime()
+        #: the numpy reference kernels, for the rare cases the device cannot take (given by
+        #: ``core.planes.get_kernels``, so this module does not import ``core.planes``)
+        self.fallback = fallback
 
     @property
     def device_name(self) -> str:
@@ -380,10 +383,13 @@ class OpenCLKernels:
             if arr.size and (arr.min() < 0 or arr.max() >= n):
                 raise InvalidParameterError(f"propagate_labels: {name} must lie in [0, {n})")
         if n > _INT32_MAX:  # 32-bit labels for atomic_min; never reached by real clouds
-            from ..planes import NumpyKernels
-
+            if self.fallback is None:
+                raise InvalidParameterError(
+                    f"propagate_labels: {n} nodes exceed the OpenCL kernel's 32-bit labels; "
+                    "use the numpy backend"
+                )
             log.debug("propagate_labels: %d nodes exceed 32-bit labels; using numpy", n)
-            return NumpyKernels().propagate_labels(indptr, indices, nodes, n)
+            return self.fallback.propagate_labels(indptr, indices, nodes, n)
         rt = self._rt
         cl = rt.cl
         changed = np.zeros(1, dtype=np.int32)
