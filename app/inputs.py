@@ -14,7 +14,7 @@ from typing import Any, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..core.errors import InputDataError, SlipMapError
+from ..core.errors import SlipMapError
 from .options import Option, OptionError
 
 log = logging.getLogger("slipmap.app")
@@ -214,9 +214,7 @@ def select_points(
     Raises
     ------
     OptionError
-        A class option on a cloud without Classification.
-    InputDataError
-        No point left.
+        A class option on a cloud without Classification, or no point left.
     """
     n = len(cloud)
     cls = cloud.attributes.get("Classification")
@@ -242,5 +240,11 @@ def select_points(
         )
     idx = np.flatnonzero(keep)
     if idx.size == 0:
-        raise InputDataError(f"{label}: no point left after the class selection")
+        present = ", ".join(str(int(c)) for c in np.unique(cls)[:20])
+        key = keys[0] if classes else keys[1]
+        raise OptionError(
+            key,
+            f"no point of {label} is left by the class selection (its classes: "
+            f"{present}); choose other classes",
+        )
     return idx
