@@ -32,6 +32,16 @@ class SlipMapProvider(QgsProcessingProvider):
     def versionInfo(self):  # noqa: N802 (QGIS API name)
         return __version__
 
+    def icon(self):
+        from qgis.PyQt.QtGui import QIcon
+
+        return QIcon(self.svgIconPath())
+
+    def svgIconPath(self):  # noqa: N802 (QGIS API name)
+        from pathlib import Path
+
+        return str(Path(__file__).resolve().parent / "icons" / "slipmap.svg")
+
     def loadAlgorithms(self):  # noqa: N802 (QGIS API name)
         # The algorithm modules import only qgis at load time: the provider loads without
         # laspy/lazrs, and each algorithm's canExecute() then says how to install them. An

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 
 from qgis.core import (
     QgsProcessingAlgorithm,
@@ -21,12 +22,20 @@ PLANES_CITATION = (
 )
 
 
-def progress_callback(feedback):
+def progress_callback(feedback, *, text_every_s=2.0):
     """A SlipMap ``callback(fraction, message)`` that drives ``feedback`` and cancels.
 
     Raises :class:`~slipmap.core.errors.CancelledError` as soon as ``feedback.isCanceled()``.
+    The progress bar follows every call; the progress *text* (a line in the Processing log)
+    is shown at most every ``text_every_s`` seconds and when the stage changes, so a loop over
+    90 windows writes a few lines, not 90.
     """
+    import re
+    import time
+
     from ...core.errors import CancelledError
+
+    state = {"t": -1e9, "stage": None}
 
     def callback(fraction, message=""):
         if feedback is None:
@@ -35,9 +44,72 @@ def progress_callback(feedback):
             raise CancelledError("cancelled by the user")
         feedback.setProgress(100.0 * float(fraction))
         if message:
-            feedback.setProgressText(str(message))
+            text = str(message)
+            stage = re.sub(r"[0-9.]+", "#", text)  # "window 3/90" and "window 4/90": one stage
+            now = time.monotonic()
+            if stage != state["stage"] or now - state["t"] >= text_every_s or fraction >= 1:
+                feedback.setProgressText(text)
+                state["t"], state["stage"] = now, stage
 
     return callback
+
+
+class _FeedbackHandler(logging.Handler):
+    """Routes the ``slipmap`` logger to the running algorithm's feedback: warnings to
+    ``pushWarning`` (the Processing log, in orange), errors to ``reportError``, info to
+    ``pushInfo`` and debug to ``pushDebugInfo``; nothing goes to QGIS's Python console."""
+
+    def __init__(self):
+        super().__init__(logging.DEBUG)
+        self.feedback = None
+
+    def emit(self, record):
+        fb = self.feedback
+        if fb is None:
+            return
+        try:
+            text = self.format(record)
+            if record.levelno >= logging.ERROR:
+                fb.reportError(text)
+            elif record.levelno >= logging.WARNING:
+                push = getattr(fb, "pushWarning", None) or fb.pushInfo  # pushWarning: 3.20+
+                push(text)
+            elif record.levelno >= logging.INFO:
+                fb.pushInfo(text)
+            else:
+                fb.pushDebugInfo(text)
+        except Exception:  # noqa: BLE001 - logging must never fail the algorithm
+            pass
+
+
+_HANDLER = _FeedbackHandler()
+
+
+def attach_feedback(feedback):
+    """Send the ``slipmap`` logger (and Python warnings) to ``feedback`` until the next call."""
+    import warnings
+
+    logger = logging.getLogger("slipmap")
+    if _HANDLER not in logger.handlers:
+        logger.addHandler(_HANDLER)
+        logger.setLevel(min(logger.level or logging.INFO, logging.INFO))
+    _HANDLER.feedback = feedback
+    if feedback is not None and warnings.showwarning is not _warning_to_feedback:
+        _ORIGINAL_SHOWWARNING[0] = warnings.showwarning
+        warnings.showwarning = _warning_to_feedback
+    return _HANDLER
+
+
+_ORIGINAL_SHOWWARNING = [None]
+_PACKAGE_DIR = str(__import__("pathlib").Path(__file__).resolve().parents[2])
+
+
+def _warning_to_feedback(message, category, filename, lineno, file=None, line=None):
+    """SlipMap's own Python warnings go to the Processing log; others where they went."""
+    if str(filename).startswith(_PACKAGE_DIR) and _HANDLER.feedback is not None:
+        logging.getLogger("slipmap.warnings").warning("%s", message)
+    elif _ORIGINAL_SHOWWARNING[0] is not None:
+        _ORIGINAL_SHOWWARNING[0](message, category, filename, lineno, file, line)
 
 
 @contextlib.contextmanager
@@ -230,13 +302,47 @@ def write_json(path, payload):
     write_text_atomic(path, json.dumps(payload, indent=2, default=str))
 
 
+#: group id -> icon file (qgis_plugin/icons); the provider's own icon is slipmap.svg
+GROUP_ICONS = {
+    "slip": "slip.svg",
+    "segmentation": "segmentation.svg",
+    "roughness": "roughness.svg",
+    "accuracy": "accuracy.svg",
+    "fields": "fields.svg",
+}
+#: words the Processing toolbox search finds every SlipMap algorithm by, plus per group
+COMMON_TAGS = ("slipmap", "lidar", "point cloud", "las", "laz", "geodesy")
+GROUP_TAGS = {
+    "slip": ("fault", "slip", "earthquake", "registration", "planes", "displacement", "offset"),
+    "segmentation": ("planes", "segmentation", "octree", "region growing", "buildings"),
+    "roughness": ("roughness", "odr", "surface", "texture"),
+    "accuracy": ("accuracy", "uncertainty", "covariance", "error", "trajectory", "tpu"),
+    "fields": ("displacement", "landslide", "piv", "icp", "strain", "deformation", "dem"),
+}
+HELP_URL = "https://github.com/slipmap/slipmap/blob/main/docs/qgis.md"
+
+
+def icon_path(name):
+    """Path of a bundled icon ``qgis_plugin/icons/<name>``."""
+    from pathlib import Path
+
+    return str(Path(__file__).resolve().parents[1] / "icons" / name)
+
+
 class SlipMapAlgorithm(QgsProcessingAlgorithm):
-    """Base of the SlipMap algorithms: no state is kept on ``self`` between runs."""
+    """Base of the SlipMap algorithms: no state is kept on ``self`` between runs.
+
+    Gives every algorithm its group's icon, search tags, a one-line description (the job's),
+    a help URL (docs/qgis.md, at the algorithm's section) and the ``slipmap`` logger routed
+    to the Processing log while it runs.
+    """
 
     _id = ""
     _name = ""
     _group = ""
     _group_id = ""
+    _tags = ()
+    spec = None  # the job's JobSpec, where the algorithm runs one
 
     def name(self):
         return self._id
@@ -255,6 +361,29 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
 
     def canExecute(self):  # noqa: N802 (QGIS API name)
         return can_execute()
+
+    def icon(self):
+        from qgis.PyQt.QtGui import QIcon
+
+        return QIcon(icon_path(GROUP_ICONS.get(self._group_id, "slipmap.svg")))
+
+    def svgIconPath(self):  # noqa: N802 (QGIS API name)
+        return icon_path(GROUP_ICONS.get(self._group_id, "slipmap.svg"))
+
+    def tags(self):
+        return list(dict.fromkeys(COMMON_TAGS + GROUP_TAGS.get(self._group_id, ()) + self._tags))
+
+    def shortDescription(self):  # noqa: N802 (QGIS API name)
+        if self.spec is not None:
+            return self.spec.description.split(". ")[0].rstrip(".") + "."
+        return self._name
+
+    def helpUrl(self):  # noqa: N802 (QGIS API name)
+        return f"{HELP_URL}#{self._id}"
+
+    def prepareAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
+        attach_feedback(feedback)
+        return True
 
 
 # --------------------------------------------------------------------------- styles
