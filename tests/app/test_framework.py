@@ -14,18 +14,26 @@ from slipmap.app.options import JobSpec, Option, OptionError
 from slipmap.app.outputs import OutputPlan, refuse_same_inputs
 from slipmap.app.resources import check_grid_memory
 
-CELL = Option("cell_m", "float", "cell size, metres", label="Cell size (m)", minimum=0,
-              exclusive=True)
+CELL = Option(
+    "cell_m", "float", "cell size, metres", label="Cell size (m)", minimum=0, exclusive=True
+)
 SPEC = JobSpec(
     "toy",
     "Toy",
     "A job for tests.",
     (
         CELL,
-        Option("tile_size_m", "float", "tile size, metres", label="Tile size (m)", minimum=0,
-               exclusive=True),
-        Option("combine", "choice", "how tiles combine", choices=("joint", "tiles"),
-               default="joint"),
+        Option(
+            "tile_size_m",
+            "float",
+            "tile size, metres",
+            label="Tile size (m)",
+            minimum=0,
+            exclusive=True,
+        ),
+        Option(
+            "combine", "choice", "how tiles combine", choices=("joint", "tiles"), default="joint"
+        ),
         Option("classes", "ints", "classes", nargs="+"),
         Option("name", "str", "a name"),
         Option("input", "path", "input", required=True, role="input", cli="input"),
@@ -36,8 +44,7 @@ SPEC = JobSpec(
 
 def _check(o):
     if o["combine"] == "tiles" and o["tile_size_m"] is None:
-        raise OptionError("combine", "'tiles' needs {tile_size_m}; give it",
-                          also=("tile_size_m",))
+        raise OptionError("combine", "'tiles' needs {tile_size_m}; give it", also=("tile_size_m",))
 
 
 # --------------------------------------------------------------------------- options
@@ -99,9 +106,7 @@ def test_cross_check_named_per_face():
     assert SPEC.render_error(e.value, "qgis") == (
         '"Combine": \'tiles\' needs "Tile size (m)"; give it'
     )
-    assert SPEC.render_error(e.value, "pdal") == (
-        "combine: 'tiles' needs tile_size_m; give it"
-    )
+    assert SPEC.render_error(e.value, "pdal") == ("combine: 'tiles' needs tile_size_m; give it")
 
 
 def test_face_names():
@@ -119,9 +124,7 @@ def _sha(path):
 
 
 def _listing(folder):
-    return sorted(
-        (str(p.relative_to(folder)), p.stat().st_size) for p in folder.rglob("*")
-    )
+    return sorted((str(p.relative_to(folder)), p.stat().st_size) for p in folder.rglob("*"))
 
 
 def test_input_under_an_output_name_is_refused_before_anything(tmp_path):
@@ -131,14 +134,17 @@ def test_input_under_an_output_name_is_refused_before_anything(tmp_path):
     fault.write_bytes(b"the user's fault trace")
     before = _listing(out)
     plan = OutputPlan.for_outputs(
-        inputs={"fault": fault}, outputs={"out": out},
+        inputs={"fault": fault},
+        outputs={"out": out},
         default_names={"vectors": "result.gpkg", "summary": "result.json"},
     )
     with pytest.raises(OptionError) as e:
         plan.check()
     assert e.value.key == "out" and "{fault}" in e.value.text
-    assert _listing(out) == before and _sha(fault) == hashlib.sha256(
-        b"the user's fault trace").hexdigest()
+    assert (
+        _listing(out) == before
+        and _sha(fault) == hashlib.sha256(b"the user's fault trace").hexdigest()
+    )
 
 
 def test_failed_run_leaves_nothing(tmp_path):
