@@ -196,7 +196,8 @@ def _axis_lattice(
         how = "given" if spacing is not None else "inferred"
         sign = -1.0 if axis == "y" else 1.0  # the y lattice is built on -y (rows run south)
         raise InputDataError(
-            f"The {axis} coordinates are not on a regular lattice: {axis} = {sign * u[worst]!r} "
+            f"The {axis} coordinates are not on a regular lattice: "
+            f"{axis} = {float(sign * u[worst])!r} "
             f"lies {abs(off[worst]):.3f} cells off the lattice of spacing {step:g} m ({how}) "
             f"through {axis} = {sign * start!r} (tolerance {tolerance:g} cells). Give the grid "
             "spacing with spacing_m, or check that the file holds one vector per cell centre "

@@ -288,8 +288,12 @@ def write_html_report(
     def cell(value) -> str:
         if value is None:
             return ""
-        if isinstance(value, float):
-            return f"{value:.6g}"
+        if isinstance(value, (float, np.floating)):
+            return f"{float(value):.6g}"
+        if isinstance(value, (list, tuple)):
+            # numpy scalars as Python numbers: under numpy 2 their repr is "np.float64(...)"
+            plain = [v.item() if isinstance(v, np.generic) else v for v in value]
+            value = plain if isinstance(value, list) else tuple(plain)
         return str(value)
 
     parts = [

@@ -209,8 +209,9 @@ def test_read_polygons_reprojects_rings_and_refuses_lines(tmp_path):
     to_geo = pyproj.Transformer.from_crs(utm, "EPSG:4326", always_xy=True)
     ring = np.array([[550000.0, 4180000.0], [550100.0, 4180000.0], [550100.0, 4180080.0]])
     lon, lat = to_geo.transform(ring[:, 0], ring[:, 1])
-    poly = "POLYGON ((" + ", ".join(f"{a!r} {b!r}" for a, b in zip(lon, lat))
-    poly += f", {lon[0]!r} {lat[0]!r}))"
+    # float(): under numpy 2 the repr of a numpy scalar is "np.float64(...)", not a number
+    poly = "POLYGON ((" + ", ".join(f"{float(a)!r} {float(b)!r}" for a, b in zip(lon, lat))
+    poly += f", {float(lon[0])!r} {float(lat[0])!r}))"
     multi = "MULTIPOLYGON (((0 0, 1 0, 1 1, 0 0)), ((5 5, 6 5, 6 6, 5 5)))"
     _write(tmp_path / "m.gpkg", "GPKG", [poly])
     rings = read_polygons(tmp_path / "m.gpkg", target_crs=utm)
