@@ -1,5 +1,7 @@
-"""Test-wide settings: reproducible, deadline-free property tests (CI machines are slow)."""
+"""Test-wide settings: reproducible, deadline-free property tests (CI machines are slow); the
+OpenCL tests skip, with the reason, when the OpenCL runtime cannot start."""
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 settings.register_profile(
@@ -9,3 +11,19 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.load_profile("slipmap")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip the ``opencl`` tests when the runtime cannot start. Some drivers abort the process
+    rather than raise (PoCL in a root without /sys), which would end the whole run, so the
+    runtime is first tried in a child process (once, only when an OpenCL test is collected)."""
+    opencl = [item for item in items if item.get_closest_marker("opencl")]
+    if not opencl:
+        return
+    from slipmap.core.opencl.backend import probe_runtime
+
+    reason = probe_runtime()
+    if reason is not None:
+        skip = pytest.mark.skip(reason=f"the OpenCL runtime cannot start: {reason}")
+        for item in opencl:
+            item.add_marker(skip)

@@ -170,6 +170,83 @@ def _runtime() -> _Runtime:
         return state
 
 
+# The probe's child: start the OpenCL runtime as the backend does (platforms, devices, a
+# context and a double-precision program on the first fp64 device); prints the device name.
+_PROBE_CHILD = r"""
+import pyopencl as cl
+devices = [d for p in cl.get_platforms() for d in p.get_devices()]
+usable = [d for d in devices if "cl_khr_fp64" in str(d.extensions).split()]
+if not usable:
+    raise SystemExit("no OpenCL device with double precision (cl_khr_fp64)")
+ctx = cl.Context([usable[0]])
+cl.CommandQueue(ctx)
+src = "__kernel void k(__global double *a) { a[get_global_id(0)] *= 2.0; }"
+cl.Program(ctx, "#pragma OPENCL EXTENSION cl_khr_fp64 : enable\n" + src).build()
+print(usable[0].name.strip())
+"""
+_probe_result: Dict[float, Optional[str]] = {}
+
+
+def probe_runtime(*, timeout_s: float = 300.0) -> Optional[str]:
+    """Whether the OpenCL runtime can start, tried in a child process.
+
+    Some OpenCL drivers abort the whole process instead of raising: PoCL in a root without
+    ``/sys`` (hwloc finds no CPU topology, then "Not enough memory to run on this device"
+    and SIGABRT). No ``try`` catches that, so the runtime is started once in a child with the
+    same interpreter, which takes the abort. The answer is cached for the process.
+
+    Parameters
+    ----------
+    timeout_s : float
+        Seconds the child may take (a first PoCL kernel build can take several).
+
+    Returns
+    -------
+    str or None
+        None when the runtime starts; otherwise one line saying why not (missing PyOpenCL,
+        no device, the signal or exit status and the driver's last message).
+    """
+    import signal
+    import subprocess
+    import sys
+
+    if timeout_s in _probe_result:
+        return _probe_result[timeout_s]
+    try:
+        import pyopencl  # noqa: F401 - only whether it imports
+    except ImportError as exc:
+        reason: Optional[str] = f"PyOpenCL cannot be imported ({exc})"
+    else:
+        try:
+            run = subprocess.run(
+                [sys.executable, "-c", _PROBE_CHILD],
+                capture_output=True,
+                text=True,
+                timeout=timeout_s,
+                check=False,
+            )
+        except subprocess.TimeoutExpired:
+            reason = f"starting the OpenCL runtime took more than {timeout_s:g} s"
+        else:
+            if run.returncode == 0:
+                reason = None
+                log.debug("OpenCL probe: %s starts", run.stdout.strip())
+            else:
+                lines = [ln.strip() for ln in (run.stderr + run.stdout).splitlines()]
+                last = "; ".join([ln for ln in lines if ln][-2:]) or "no message"
+                if run.returncode < 0:
+                    try:
+                        how = signal.Signals(-run.returncode).name
+                    except ValueError:
+                        how = f"signal {-run.returncode}"
+                    how = f"the OpenCL driver killed the process ({how})"
+                else:
+                    how = f"the OpenCL runtime did not start (exit {run.returncode})"
+                reason = f"{how}: {last}"
+    _probe_result[timeout_s] = reason
+    return reason
+
+
 def _grouped(
     sub: np.ndarray, starts: np.ndarray, counts: np.ndarray
 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
