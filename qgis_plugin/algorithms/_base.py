@@ -11,7 +11,7 @@ from qgis.core import (
     QgsProcessingParameterDefinition,
 )
 
-from ..compat import can_execute
+from ..compat import band_statistics, can_execute, renderer_band, set_renderer_band
 
 LAS_FILTER = "LAS/LAZ (*.las *.laz)"
 LAS_OUTPUT_FILTER = "LAS (*.las);;LAZ (*.laz)"
@@ -441,16 +441,14 @@ def symmetric_limits(layer, band=1):
     """
     import math
 
-    from qgis.core import QgsColorRampShader, QgsRasterBandStats, QgsSingleBandPseudoColorRenderer
+    from qgis.core import QgsColorRampShader, QgsSingleBandPseudoColorRenderer
 
     renderer = layer.renderer()
     if not isinstance(renderer, QgsSingleBandPseudoColorRenderer):
         return None
-    if band != renderer.band():
-        renderer.setBand(band)
-    stats = layer.dataProvider().bandStatistics(
-        band, QgsRasterBandStats.Min | QgsRasterBandStats.Max
-    )
+    if band != renderer_band(renderer):
+        set_renderer_band(renderer, band)
+    stats = band_statistics(layer.dataProvider(), band, ("Min", "Max"))
     m = max(abs(stats.minimumValue), abs(stats.maximumValue))
     if not math.isfinite(m) or m <= 0:
         return None

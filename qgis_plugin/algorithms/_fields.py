@@ -8,7 +8,6 @@ from qgis.core import (
     QgsCoordinateReferenceSystem,
     QgsFeature,
     QgsFeatureSink,
-    QgsField,
     QgsFields,
     QgsGeometry,
     QgsPointXY,
@@ -25,6 +24,7 @@ from ...app.summaries import (  # noqa: F401  (re-exported for the field algorit
     icp_summary,
     json_safe,
 )
+from ..compat import make_field
 from ._base import (  # noqa: F401  (advanced, apply_diverging_style_on_load re-exported)
     advanced,
     apply_diverging_style_on_load,
@@ -132,7 +132,7 @@ def write_point_sink(alg, parameters, name, context, crs, x, y, columns, kinds):
 def _write_sink(alg, parameters, name, context, crs, wkb, geometries, columns, kinds):
     fields = QgsFields()
     for key, kind in kinds:
-        fields.append(QgsField(key, kind))
+        fields.append(make_field(key, kind))
     sink, dest_id = alg.parameterAsSink(parameters, name, context, fields, wkb, crs)
     if sink is None:
         return None

@@ -8,7 +8,6 @@ import math
 from qgis.core import (
     QgsFeature,
     QgsFeatureSink,
-    QgsField,
     QgsFields,
     QgsGeometry,
     QgsMapLayerType,
@@ -52,6 +51,7 @@ from ...app.summaries import (
     strip_rows,
 )
 from ...core.errors import InvalidParameterError
+from ..compat import make_field
 from ._base import (
     LAS_FILTER,
     PLANES_CITATION,
@@ -192,7 +192,7 @@ def _with_help(param, text):
 def _fields(spec):
     fields = QgsFields()
     for name, kind in spec:
-        fields.append(QgsField(name, kind))
+        fields.append(make_field(name, kind))
     return fields
 
 

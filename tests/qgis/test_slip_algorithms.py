@@ -437,13 +437,14 @@ def test_window_style_loads(tiled_run):
     from qgis.core import QgsRasterLayer, QgsSingleBandPseudoColorRenderer
 
     from slipmap.qgis_plugin.algorithms._base import style_path
+    from slipmap.qgis_plugin.compat import renderer_band
 
     layer = QgsRasterLayer(tiled_run[0]["WINDOWS"], "windows")
     message, ok = layer.loadNamedStyle(style_path("diverging"))
     assert ok, message
     renderer = layer.renderer()
     assert isinstance(renderer, QgsSingleBandPseudoColorRenderer)
-    assert renderer.band() == 1
+    assert renderer_band(renderer) == 1
     assert renderer.classificationMin() == -renderer.classificationMax()
 
 
