@@ -302,6 +302,43 @@ class _Epoch:
         return np.bincount(self.idx, w, b), s1, s2
 
 
+class _MomentEpoch:
+    """One epoch given by its per-plane moments instead of its points (scalar or per-axis
+    sigma): the uniform branch of :class:`_Epoch` (see :func:`adjust_rigid_moments`).
+
+    count : (b,) points per plane; g : (b, 3) plane centroids (centred frame); U2 : (b, 3, 3)
+    scatter about the centroid; U1 is zero by construction. No per-point data (``idx``, ``u``
+    are None), so the result has no per-point residuals.
+    """
+
+    cov = None
+    packed = False
+    idx = None
+    u = None
+    all_valid = True
+    stale = False
+
+    def __init__(self, count, g, scatter, sigma, name):
+        self.count = np.asarray(count, dtype=np.float64)
+        self.g = np.asarray(g, dtype=np.float64)
+        self.U1 = np.zeros_like(self.g)
+        self.U2 = np.asarray(scatter, dtype=np.float64)
+        s = np.asarray(sigma, dtype=np.float64)
+        if s.ndim not in (0, 1):
+            raise InvalidParameterError(
+                f"sigma_{name}: planes given by their moments take a scalar or (3,) per-axis "
+                "sigma, not per-point sigmas"
+            )
+        self.var, _, _ = _parse_sigma(sigma, 0, None, True, name)
+
+    def weighted(self, bvec: np.ndarray, b: int):
+        w = 1.0 / ((bvec * bvec) @ self.var)
+        return self.count * w, self.U1 * w[:, None], self.U2 * w[:, None, None]
+
+    def refresh(self) -> None:
+        pass
+
+
 def _moments(idx, u, w, b):
     """Per-plane sum(w u) (b, 3) and sum(w u u^T) (b, 3, 3) (w=None: unit weights)."""
     s1 = np.empty((b, 3))
@@ -787,6 +824,20 @@ def _iterate(state, epochs, active, b, step, max_iterations, tolerance, progress
     return it, converged, nred, qxx
 
 
+def _check_options(max_iterations, tolerance, alpha, min_planes, stochastic_model, components):
+    """The adjustment's options checked; returns the stochastic model and fixed components."""
+    if int(max_iterations) < 1:
+        raise InvalidParameterError(f"max_iterations must be >= 1, got {max_iterations}")
+    if not (tolerance > 0):
+        raise InvalidParameterError(f"tolerance must be > 0, got {tolerance}")
+    if not (0 < alpha < 1):
+        raise InvalidParameterError(f"alpha must be in (0, 1), got {alpha}")
+    if int(min_planes) < 1:
+        raise InvalidParameterError(f"min_planes must be >= 1, got {min_planes}")
+    model = _stoch.check_stochastic_model(stochastic_model)
+    return model, _stoch.check_components(components)
+
+
 def _run(
     before,
     before_plane,
@@ -810,16 +861,9 @@ def _run(
 ):
     before, before_plane = _check_points(before, before_plane, "before")
     after, after_plane = _check_points(after, after_plane, "after")
-    if int(max_iterations) < 1:
-        raise InvalidParameterError(f"max_iterations must be >= 1, got {max_iterations}")
-    if not (tolerance > 0):
-        raise InvalidParameterError(f"tolerance must be > 0, got {tolerance}")
-    if not (0 < alpha < 1):
-        raise InvalidParameterError(f"alpha must be in (0, 1), got {alpha}")
-    if int(min_planes) < 1:
-        raise InvalidParameterError(f"min_planes must be >= 1, got {min_planes}")
-    model = _stoch.check_stochastic_model(stochastic_model)
-    fixed = _stoch.check_components(components)
+    model, fixed = _check_options(
+        max_iterations, tolerance, alpha, min_planes, stochastic_model, components
+    )
     units = [
         _stoch.check_units(unit_before, before_plane.shape[0], "unit_before"),
         _stoch.check_units(unit_after, after_plane.shape[0], "unit_after"),
@@ -841,6 +885,24 @@ def _run(
         _Epoch(before, before_plane, sigma_before, b, centre, "before"),
         _Epoch(after, after_plane, sigma_after, b, centre, "after"),
     )
+    shares = None
+    if model != "white":
+        shares = [_unit_shares(ep, u, b) for ep, u in zip(epochs, units)]
+    return _solve(
+        epochs, b, centre, shares, dense=dense, model=model, fixed=fixed,
+        max_iterations=max_iterations, tolerance=tolerance, alpha=alpha, min_planes=min_planes,
+        reject_outlier_planes=reject_outlier_planes, progress=progress,
+        labels=(before_plane, after_plane),
+    )  # fmt: skip
+
+
+def _solve(
+    epochs, b, centre, shares, *, dense, model, fixed, max_iterations, tolerance, alpha,
+    min_planes, reject_outlier_planes, progress, labels,
+):  # fmt: skip
+    """The adjustment of two epochs (:class:`_Epoch` or :class:`_MomentEpoch`); ``shares``:
+    each epoch's (b, U) acquisition-unit shares or None (stochastic models only)."""
+    before_plane, after_plane = labels
     if dense and 6 + 5 * b > DENSE_MAX_UNKNOWNS:
         raise InvalidParameterError(
             f"adjust_rigid_dense is a reference for small problems ({6 + 5 * b} unknowns); "
@@ -875,7 +937,6 @@ def _run(
                      min_planes, opts)  # fmt: skip
         stoch = None
     else:
-        shares = [_unit_shares(ep, u, b) for ep, u in zip(epochs, units)]
         gc = _both_epochs_centroids(epochs)
         cfg = _StochasticConfig(PlaneModel(gc, n0.copy(), shares[0], shares[1]), b)
         out, stoch = _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit,
@@ -1189,6 +1250,9 @@ def _finish(
     d = d / norm
     resid = []
     for ep, lab, after in zip(epochs, (before_plane, after_plane), (False, True)):
+        if ep.u is None:  # planes given by moments: no per-point residuals
+            resid.append(np.zeros(0))
+            continue
         st = _State(state.r, state.t, n, d)
         _, _, f0, bvec = _epoch_rows(st, ep.g, after)
         f = f0[ep.idx] + np.einsum("ij,ij->i", bvec[ep.idx], ep.u)

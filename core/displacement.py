@@ -639,6 +639,49 @@ def _register_side_tiled(
     )  # fmt: skip
     vc = rigid.variance_components
     tile_fixed = vc.fixed() if vc is not None else None
+
+    def adjust_tile(first, k):
+        sb = (lb >= first) & (lb < first + k)
+        sa = (la >= first) & (la < first + k)
+        return adjust_rigid(
+            before[sb],
+            lb[sb] - first,
+            after[sa],
+            la[sa] - first,
+            sigma_before=_per_point(sigma_before, sb),
+            sigma_after=_per_point(sigma_after, sa),
+            **_stochastic_kw(_sub_stochastic(stochastic, sb, sa, tile_fixed)),
+        )
+
+    tiles, comb_d, comb_c = tile_adjustments(
+        tile_info, adjust_tile, side=side, tile_size_m=t, combine=combine, joint=rigid
+    )
+    report(progress, 1.0, f"{side} side done")
+    res = SideResult(
+        side=side,
+        rigid=rigid,
+        planes_before=pb_all,
+        planes_after=pa_all,
+        matches=matches,
+        combined_displacement=comb_d,
+        combined_covariance=comb_c,
+        plane_mean_residual_m=mean_res,
+    )
+    return res, tuple(tiles)
+
+
+def tile_adjustments(tile_info, adjust_tile, *, side, tile_size_m, combine, joint):
+    """Per-tile adjustments of one side and, with ``combine="tiles"``, their combination.
+
+    ``tile_info``: ``[(ix, iy, first match id, n matches, status), ...]``;
+    ``adjust_tile(first, k)`` returns the :class:`RigidResult` of the tile's matches
+    ``first .. first + k - 1`` (with the side's components fixed) or raises InputDataError.
+    ``joint`` is the side's joint adjustment. Returns ``(tiles, combined displacement or None,
+    combined covariance or None)``. Shared by the in-memory tiles and the tiled reading of
+    :mod:`slipmap.app.tiled`.
+    """
+    t = tile_size_m
+    vc = joint.variance_components
     # per-tile adjustments (reporting for "joint", the estimate for "tiles")
     tiles: List[TileResult] = []
     nan3, nan33 = np.full(3, np.nan), np.full((3, 3), np.nan)
@@ -649,18 +692,8 @@ def _register_side_tiled(
             if k < 3:
                 status = f"skipped: {k} matched planes (need 3)"
             else:
-                sb = (lb >= first) & (lb < first + k)
-                sa = (la >= first) & (la < first + k)
                 try:
-                    r = adjust_rigid(
-                        before[sb],
-                        lb[sb] - first,
-                        after[sa],
-                        la[sa] - first,
-                        sigma_before=_per_point(sigma_before, sb),
-                        sigma_after=_per_point(sigma_after, sa),
-                        **_stochastic_kw(_sub_stochastic(stochastic, sb, sa, tile_fixed)),
-                    )
+                    r = adjust_tile(first, k)
                     d, c = r.displacement, r.displacement_covariance
                     if not np.all(np.isfinite(c)) or np.linalg.matrix_rank(c) < 3:
                         raise InputDataError("singular displacement covariance")
@@ -702,20 +735,9 @@ def _register_side_tiled(
         comb_c = 0.5 * (comb_c + comb_c.T)
         comb_d = comb_c @ vec
         if vc is not None:
-            comb_c = _honest_tile_covariance(ok, comb_d, comb_c, rigid.displacement_covariance)
+            comb_c = _honest_tile_covariance(ok, comb_d, comb_c, joint.displacement_covariance)
         log.info("%s side: %d tiles combined", side, len(ok))
-    report(progress, 1.0, f"{side} side done")
-    res = SideResult(
-        side=side,
-        rigid=rigid,
-        planes_before=pb_all,
-        planes_after=pa_all,
-        matches=matches,
-        combined_displacement=comb_d,
-        combined_covariance=comb_c,
-        plane_mean_residual_m=mean_res,
-    )
-    return res, tuple(tiles)
+    return tuple(tiles), comb_d, comb_c
 
 
 def _honest_tile_covariance(tiles, mean, cov, joint_cov):
