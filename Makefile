@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 NP2 := .venv-np2/bin/python
 PYTEST_ARGS ?=
 
-.PHONY: setup setup-main demo test test-main test-np2 lint format bench plugin-zip clean
+.PHONY: setup setup-main demo test test-main test-np2 test-debian13 lint format bench plugin-zip clean
 
 setup:
 	@bash scripts/setup_env.sh all
@@ -34,6 +34,12 @@ test-main:
 test-np2:
 	$(NP2) -c "import numpy; assert int(numpy.__version__.split('.')[0]) >= 2, numpy.__version__"
 	$(NP2) -m pytest -m "not qgis" $(PYTEST_ARGS)
+
+# The README's two commands again in a Debian 13 root (QGIS 3.40, numpy 2, Python 3.13), built
+# with debootstrap into ~/.cache/slipmap-debian13 (SLIPMAP_DEBIAN13_CACHE); needs root or sudo.
+# Not part of `make test`. scripts/debian13.sh shell|run CMD|clean for more.
+test-debian13:
+	PYTEST_ARGS="$(PYTEST_ARGS)" bash scripts/debian13.sh test
 
 bench: setup-main
 	$(PY) benchmarks/bench_planes.py --n 1000000

@@ -1,8 +1,12 @@
 #!/usr/bin/env bash
-# Set up everything SlipMap needs on Debian 12 (or any Debian-like Linux with QGIS).
+# Set up everything SlipMap needs on Debian 12 or 13 (or any Linux whose packages give QGIS,
+# GDAL and PyOpenCL to /usr/bin/python3).
 #  1. apt packages of design.md's recipe, only those missing (sudo when not root);
-#  2. .venv from /usr/bin/python3 with --system-site-packages (QGIS, GDAL, PyOpenCL from Debian),
-#     editable install with numpy<2 constrained;
+#  2. .venv from /usr/bin/python3 with --system-site-packages (QGIS, GDAL, PyOpenCL from the
+#     distribution), editable install; when the system's GDAL or QGIS bindings are there, numpy
+#     is pinned to the system's own version (whatever its major version: 1.24 on Debian 12,
+#     2.2 on Debian 13), read from the machine at set-up time, since those bindings are built
+#     against it;
 #  3. .venv-np2: a plain PyPI venv from the default python3 with numpy>=2, for the core/io tests
 #     (conda PDAL users run numpy 2).
 # A second run does nothing that is already done.
@@ -46,15 +50,39 @@ stamp_ok() {  # $1 = stamp file; up to date when newer than pyproject.toml and c
   [ -f "$1" ] && [ "$1" -nt pyproject.toml ] && [ "$1" -nt constraints.txt ]
 }
 
+# The pins the system's Python packages impose on .venv, one per line: numpy == the system's
+# numpy when the system's GDAL or QGIS bindings (compiled against that numpy) are importable;
+# nothing otherwise. Read from the machine, so any distribution release satisfies them.
+system_pins() {
+  [ -x /usr/bin/python3 ] || return 0
+  /usr/bin/python3 - <<'PY'
+import importlib.metadata as md
+import importlib.util as iu
+
+if any(iu.find_spec(m) is not None for m in ("osgeo", "qgis")):
+    try:
+        print(f"numpy=={md.version('numpy')}")
+    except md.PackageNotFoundError:
+        pass
+PY
+}
+
 install_venv() {
-  if stamp_ok .venv/.slipmap-installed; then return 0; fi
+  local pins
+  pins=$(system_pins)
+  if stamp_ok .venv/.slipmap-installed && [ "$pins" = "$(cat .venv/.slipmap-system-pins 2>/dev/null)" ]; then
+    return 0
+  fi
   [ -x .venv/bin/python ] || /usr/bin/python3 -m venv --system-site-packages .venv
   # Debian's pyproj looks for its PROJ database under sys.prefix: point the venv at the system one.
   if [ -f /usr/share/proj/proj.db ] && [ ! -e .venv/share/proj ]; then
     mkdir -p .venv/share && ln -s /usr/share/proj .venv/share/proj
   fi
+  printf '%s\n' "$pins" >.venv/.slipmap-system-pins
+  [ -n "$pins" ] && echo "setup: .venv keeps the system's $(echo "$pins" | paste -sd' ')"
   .venv/bin/python -m pip install -q --upgrade "pip>=23" -c constraints.txt
-  .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt -e '.[dev]'
+  .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt \
+    -c .venv/.slipmap-system-pins -e '.[dev]'
   touch .venv/.slipmap-installed
 }
 
