@@ -737,7 +737,8 @@ def _planes_tile(task: _PlaneTask):
     for d in range(3):
         np.minimum.at(lo[:, d], lab[m], pts[m, d])
         np.maximum.at(hi[:, d], lab[m], pts[m, d])
-    return n_own, (mom.take(idx), lo[idx], hi[idx])
+    fit = (ps.normals[idx], ps.offsets[idx], ps.centroids[idx])  # fits over tile + halo
+    return n_own, (mom.take(idx), lo[idx], hi[idx], fit)
 
 
 def _plane_fit(mom: PlaneMoments):
@@ -828,29 +829,45 @@ def planes_tiled(
     n_total = sum(res[0] for res in results)
     if n_total == 0:
         raise InputDataError("no point is left by the class selection; choose other classes")
-    moms, los, his, tile_of = [], [], [], []
+    moms, los, his, fits, tile_of = [], [], [], [], []
     for r, (_, part) in zip(regions, results):
         if part is None:
             continue
-        mom, lo_p, hi_p = part
+        mom, lo_p, hi_p, fit = part
         moms.append(mom)
         los.append(lo_p)
         his.append(hi_p)
+        fits.append(fit)
         tile_of.extend([(r.ix, r.iy)] * len(mom))
     if not moms:
         return _empty_planes(params, n_total)
     allm = PlaneMoments.concat(moms)
     lo_all, hi_all = np.concatenate(los), np.concatenate(his)
+    fit_all = tuple(np.concatenate([f[k] for f in fits]) for k in range(3))
     tile_of = np.asarray(tile_of, dtype=np.int64)
-    groups = _merge_groups(allm, lo_all, hi_all, tile_of, fixed)
+    groups = _merge_groups(allm, lo_all, hi_all, fit_all, tile_of, fixed)
     ng = int(groups.max()) + 1
     merged = allm.merge_planes(groups, ng)
+    # a fragment that no neighbour's plane took and that is too small on its own is let go
+    big = merged.count >= fixed["min_plane_points"]
+    keep_g = np.flatnonzero(big)
+    remap = np.full(ng, -1)
+    remap[keep_g] = np.arange(keep_g.size)
+    sel_p = remap[groups] >= 0
+    allm, lo_all, hi_all = allm.take(np.flatnonzero(sel_p)), lo_all[sel_p], hi_all[sel_p]
+    groups = remap[groups][sel_p]
+    ng = int(keep_g.size)
+    if ng == 0:
+        return _empty_planes(params, n_total)
+    merged = merged.take(keep_g)
     normals, offsets, cen, rms, cov = _plane_fit(merged)
     ext_lo = np.full((ng, 3), np.inf)
     ext_hi = np.full((ng, 3), -np.inf)
     np.minimum.at(ext_lo, groups, lo_all)
     np.maximum.at(ext_hi, groups, hi_all)
-    ntiles = np.bincount(groups, minlength=ng)
+    tile_kept = tile_of[sel_p]
+    pairs = np.unique(np.column_stack([groups, tile_kept]), axis=0)
+    ntiles = np.bincount(pairs[:, 0], minlength=ng)
     order = np.lexsort((cen[:, 1], cen[:, 0], -merged.count))  # biggest first, then position
     report(progress, 1.0, f"{ng} planes ({len(allm)} tile planes merged)")
     return TiledPlanes(
@@ -877,9 +894,13 @@ def _empty_planes(params, n_total) -> TiledPlanes:
     )  # fmt: skip
 
 
-def _merge_groups(mom: PlaneMoments, lo, hi, tile_of, p) -> np.ndarray:
-    """Union of tile planes that one plane fits (neighbouring tiles, touching extents)."""
-    normals, offsets, cen, rms, _ = _plane_fit(mom)
+def _merge_groups(mom: PlaneMoments, lo, hi, fit, tile_of, p) -> np.ndarray:
+    """Union of tile planes that one plane fits (neighbouring tiles, touching extents).
+
+    Angles and distances use each tile plane's fit over its tile and halo (``fit``: normals,
+    offsets, centroids), which is defined even for a fragment with a few owned points; the
+    merged RMS uses the owned points' moments."""
+    normals, offsets, cen = fit
     n = len(mom)
     parent = np.arange(n)
     cos_max = math.cos(math.radians(p["angle_threshold_deg"]))
