@@ -82,7 +82,7 @@ install_venv() {
   [ -n "$pins" ] && echo "setup: .venv keeps the system's $(echo "$pins" | paste -sd' ')"
   .venv/bin/python -m pip install -q --upgrade "pip>=23" -c constraints.txt
   .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt \
-    -c .venv/.slipmap-system-pins -e '.[dev]'
+    -c .venv/.slipmap-system-pins -e '.[dev,dask]'
   touch .venv/.slipmap-installed
 }
 
@@ -93,7 +93,7 @@ install_np2() {
   py=$(PATH=$(echo "$PATH" | tr ':' '\n' | grep -v "/\.venv" | paste -sd:) command -v python3)
   [ -x .venv-np2/bin/python ] || "$py" -m venv .venv-np2
   .venv-np2/bin/python -m pip install -q --upgrade "pip>=23"
-  .venv-np2/bin/python -m pip install -q -e '.[test]' "numpy>=2"
+  .venv-np2/bin/python -m pip install -q -e '.[test,dask]' "numpy>=2"
   touch .venv-np2/.slipmap-installed
 }
 
