@@ -20,6 +20,7 @@ from .job import JobResult, Progress, Timer, scaled
 from .options import JobSpec, Option
 from .outputs import OutputPlan
 from .summaries import json_text
+from .tiled import check_scale, is_tiled, run_planes_job, scale_options
 
 log = logging.getLogger("slipmap.app")
 
@@ -150,12 +151,16 @@ SPEC = JobSpec(
     ),
     options=(
         cloud_option(
-            "input", "LAS/LAZ point cloud in a projected CRS (metres)", "Input point cloud"
+            "input",
+            "LAS/LAZ point cloud in a projected CRS (metres); or tiles: a folder, a glob "
+            "(quoted) or files separated by commas (processed tile by tile, planes.json only)",
+            "Input point cloud",
         ),
         out_dir_option(),
         crs_option(),
         *_selection(ground_default=True),
         *plane_options(),
+        *scale_options(),
         Option(
             "labelled_cloud",
             "path",
@@ -178,6 +183,7 @@ SPEC = JobSpec(
             file_filter="JSON (*.json)",
         ),
     ),
+    check=check_scale,
     citation=CITATION,
 )
 
@@ -224,6 +230,8 @@ def run(
         An already-read :class:`~slipmap.core.io.las.PointCloud` (the demo); ``opts["input"]``
         then only names it.
     """
+    if cloud is None and is_tiled(opts, "input"):  # tiles, or Dask: app/tiled.py
+        return run_planes_job(opts, outputs, progress=progress)
     plan = OutputPlan.for_outputs(
         inputs={"input": opts.get("input")}, outputs=outputs, default_names=default_names(opts)
     )

@@ -935,3 +935,195 @@ def _merge_groups(mom: PlaneMoments, lo, hi, fit, tile_of, p) -> np.ndarray:
     roots = np.array([_find(parent, i) for i in range(n)])
     _, groups = np.unique(roots, return_inverse=True)
     return groups.ravel()
+
+
+# --------------------------------------------------------------------------- job wiring
+
+_SCALE = "scale: tiled inputs and Dask"
+
+
+def scale_options(*, tile_option: bool = True, group: str = _SCALE) -> tuple:
+    """The options every tiled job declares once: ``workers``, ``scheduler`` and (unless the
+    job has its own) the processing tile ``tile_size_m``.
+
+    QGIS runs in process or against a scheduler (an advanced parameter): it does not start
+    local clusters (its Python is the QGIS process), so ``workers`` is CLI/API only.
+    """
+    from .options import Option
+
+    opts = (
+        Option(
+            "workers",
+            "int",
+            "run the tiles on a local Dask cluster of this many worker processes (needs "
+            "dask[distributed]); the result is the same as in process",
+            label="Local Dask workers",
+            minimum=1,
+            advanced=True,
+            group=group,
+            qgis=None,
+            pdal=None,
+            metavar="N",
+            unset_text="in process",
+        ),
+        Option(
+            "scheduler",
+            "str",
+            "address of a running Dask scheduler (tcp://host:8786) to run the tiles on; its "
+            "workers must read the input files at the same paths",
+            label="Dask scheduler address (tcp://host:port)",
+            advanced=True,
+            group=group,
+            pdal=None,
+            metavar="ADDRESS",
+            unset_text="none",
+        ),
+    )
+    if tile_option:
+        opts += (
+            Option(
+                "tile_size_m",
+                "float",
+                "edge of the square processing tiles of a tiled or Dask run, metres (memory "
+                f"per task: one tile and its halo; default {DEFAULT_TILE_SIZE_M:g})",
+                label="Processing tile size (m)",
+                minimum=0,
+                exclusive=True,
+                advanced=True,
+                group=group,
+                pdal=None,
+                metavar="M",
+                unset_text=f"{DEFAULT_TILE_SIZE_M:g}",
+            ),
+        )
+    return opts
+
+
+def check_scale(opts) -> None:
+    """Cross-option check of :func:`scale_options` (for a JobSpec's ``check``)."""
+    from .options import OptionError
+
+    if opts.get("workers") is not None and opts.get("scheduler"):
+        raise OptionError(
+            "workers", "cannot be given with {scheduler}; give one of them", also=("scheduler",)
+        )
+    addr = opts.get("scheduler")
+    if addr and "://" not in str(addr):
+        raise OptionError("scheduler", f"{addr!r} is not an address; give e.g. tcp://host:8786")
+
+
+def split_inputs(value):
+    """An input option's value as a collection spec: a list as given; a text that names no
+    existing file and holds commas as several files; else the text (file, folder, glob)."""
+    if isinstance(value, (list, tuple)):
+        return list(value)
+    text = str(value)
+    from pathlib import Path
+
+    if "," in text and not Path(text).exists():
+        return [t.strip() for t in text.split(",") if t.strip()]
+    return text
+
+
+def is_tiled(opts, *keys: str) -> bool:
+    """Whether a run goes the tiled way: an input names several files (a folder, a glob, a
+    comma-separated list) or Dask is asked for."""
+    from ..core.io.tiles import is_collection_spec
+
+    if opts.get("workers") is not None or opts.get("scheduler"):
+        return True
+    return any(opts.get(k) is not None and is_collection_spec(split_inputs(opts[k])) for k in keys)
+
+
+def open_input(opts, key: str, *, what: str = "", crs=None) -> TileCollection:
+    """The tiles an input option names; errors as OptionError naming the option."""
+    from ..core.errors import SlipMapError
+    from ..core.io.tiles import open_collection
+    from .options import OptionError
+
+    try:
+        return open_collection(split_inputs(opts[key]), crs=crs, label=what or key)
+    except SlipMapError as exc:
+        raise OptionError(key, str(exc)) from exc
+
+
+def engine_from(opts) -> Engine:
+    """The engine the options ask for (close it after use: it is a context manager)."""
+    from ..core.errors import DependencyError, SlipMapError
+    from .engine import make_engine
+    from .options import OptionError
+
+    key = "scheduler" if opts.get("scheduler") else "workers"
+    try:
+        return make_engine(workers=opts.get("workers"), scheduler=opts.get("scheduler") or None)
+    except DependencyError as exc:
+        raise OptionError(key, str(exc)) from exc
+    except SlipMapError as exc:
+        if key == "scheduler":
+            raise OptionError(key, str(exc)) from exc
+        raise
+
+
+def run_planes_job(opts, outputs, *, progress: Optional[ProgressCallback] = None):
+    """The planes job (:mod:`.planes`) on tiled inputs: ``planes.json`` of the merged planes.
+
+    The labelled copy of the input is not written for tiled inputs (one file per tile would
+    be; the planes' records carry their extents and the tiles they span).
+    """
+    from .._version import __version__
+    from .job import JobResult, Timer
+    from .outputs import OutputPlan
+    from .planes import core_kwargs
+    from .summaries import json_text
+
+    outputs = dict(outputs)
+    if outputs.get("labelled_cloud") is not None:
+        log.warning("tiled input: the labelled point cloud is not written (planes.json only)")
+        outputs["labelled_cloud"] = None
+    coll = open_input(opts, "input", what="input", crs=opts.get("crs"))
+    plan = OutputPlan.for_outputs(
+        inputs={"input": [str(p) for p in coll.paths()]},
+        outputs=outputs,
+        default_names={"summary": "planes.json"},
+    )
+    plan.check()
+    sel = Selection(opts.get("classes"), opts.get("exclude_classes"), ground_default=True)
+    with plan:
+        with engine_from(opts) as eng, Timer() as t:
+            planes = planes_tiled(
+                coll,
+                options=core_kwargs(opts),
+                selection=sel,
+                tile_size_m=opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M,
+                engine=eng,
+                progress=progress,
+            )
+            how = eng.describe()
+        params = planes.parameters.to_dict()
+        n_lab = int(planes.n_points.sum())
+        summary = {
+            "planes": planes.to_records(),
+            "n_points": coll.n_points,
+            "n_selected": planes.n_points_total,
+            "n_labelled": n_lab,
+            "parameters": params,
+            "runtime_s": round(t.seconds, 4),
+            "input": [str(p) for p in coll.paths()],
+            "crs": coll.crs_wkt,
+            "tiles": {
+                "tile_size_m": opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M,
+                "files": len(coll),
+                "tile_planes_before_merge": planes.n_tile_planes,
+                "engine": how,
+            },
+            "slipmap_version": __version__,
+        }
+        if plan.wants("summary"):
+            plan.file("summary").write_text(json_text(summary), encoding="utf-8")
+    lines = [
+        f"{len(planes)} planes ({planes.n_tile_planes} in the tiles before merging), {n_lab} "
+        f"of {planes.n_points_total} selected points on a plane, {len(coll)} file(s), "
+        f"{t.seconds:.2f} s ({how})"
+    ]
+    written = {"summary": plan.final("summary")} if plan.wants("summary") else {}
+    return JobResult(summary, lines, written, data=(planes, None))
