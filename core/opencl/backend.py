@@ -62,6 +62,7 @@ class _Runtime:
             self.program = cl.Program(self.ctx, source).build()
         log.debug("OpenCL program built in %.2f s", time.perf_counter() - t0)
         i8, f8, i4 = np.int64, np.float64, np.int32
+        self._local: Dict[int, int] = {}
         self.k_encode = self._kernel("morton_encode", [None, f8, f8, f8, f8, f8, None, i8])
         self.k_moments = self._kernel("node_moments", [None, None, None, i8, None, None])
         self.k_within = self._kernel(
@@ -76,6 +77,16 @@ class _Runtime:
     def _kernel(self, name: str, dtypes: list) -> Any:
         k = self.cl.Kernel(self.program, name)
         k.set_scalar_arg_dtypes(dtypes)
+        # An explicit work-group size: left to the driver, PoCL 6 (Debian 13) takes up to 4096
+        # work-items per group, whose private stacks (node_moments keeps ~4 KB each) overflow
+        # its thread stack (SIGSEGV). _GROUP, or the largest power of two the kernel allows.
+        most = int(
+            k.get_work_group_info(self.cl.kernel_work_group_info.WORK_GROUP_SIZE, self.device)
+        )
+        local = _GROUP
+        while local > max(1, most):
+            local //= 2
+        self._local[id(k)] = local
         return k
 
     # buffers -----------------------------------------------------------------
@@ -93,7 +104,7 @@ class _Runtime:
 
     def run(self, kernel: Any, n: int, *args: Any) -> None:
         size = -(-int(n) // _GROUP) * _GROUP
-        kernel(self.queue, (size,), None, *args)
+        kernel(self.queue, (size,), (self._local[id(kernel)],), *args)
 
     def read(self, out: np.ndarray, buf: Any) -> np.ndarray:
         if out.nbytes:
