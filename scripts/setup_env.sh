@@ -46,8 +46,9 @@ install_apt() {
   $sudo apt-get install -y -q --no-install-recommends $missing
 }
 
-stamp_ok() {  # $1 = stamp file; up to date when newer than pyproject.toml and constraints.txt
-  [ -f "$1" ] && [ "$1" -nt pyproject.toml ] && [ "$1" -nt constraints.txt ]
+stamp_ok() {  # $1 = stamp file; up to date when newer than pyproject.toml, constraints.txt and
+  # this script (a new extra or pin here re-runs the install)
+  [ -f "$1" ] && [ "$1" -nt pyproject.toml ] && [ "$1" -nt constraints.txt ] && [ "$1" -nt "$0" ]
 }
 
 # The pins the system's Python packages impose on .venv, one per line: numpy == the system's
