@@ -68,8 +68,15 @@ if [ -z "$MIRROR" ]; then
 fi
 
 MOUNTS=()  # mount points inside the root, in mount order
+CHILD=""   # the process group running inside the root
 cleanup() {
   local i
+  if [ -n "$CHILD" ]; then  # stop what runs inside first: it holds the mounts
+    kill -TERM -- "-$CHILD" 2>/dev/null || true
+    sleep 1
+    kill -KILL -- "-$CHILD" 2>/dev/null || true
+    CHILD=""
+  fi
   for ((i = ${#MOUNTS[@]} - 1; i >= 0; i--)); do
     umount -R "${MOUNTS[$i]}" 2>/dev/null || umount -lR "${MOUNTS[$i]}" 2>/dev/null || true
   done
@@ -194,7 +201,14 @@ while IFS= read -r -d '' kv; do
 done < <(env -0)
 
 inside() {  # $1 = shell command line, run in the tree inside the root
-  chroot "$ROOT" /usr/bin/env -i "${ENV[@]}" /bin/bash -c "cd $DEST && $1"
+  # in its own process group, waited for in the background, so a signal to this script runs
+  # the trap at once and the trap can stop everything inside
+  setsid chroot "$ROOT" /usr/bin/env -i "${ENV[@]}" /bin/bash -c "cd $DEST && $1" &
+  CHILD=$!
+  local rc=0
+  wait "$CHILD" || rc=$?
+  CHILD=""
+  return "$rc"
 }
 
 case "$what" in
