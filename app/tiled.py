@@ -49,6 +49,7 @@ __all__ = [
     "Selection",
     "TiledPlanes",
     "planes_tiled",
+    "principal_frame_tiled",
     "roughness_tiled",
     "slip_tiled",
 ]
@@ -212,6 +213,39 @@ def _frame_tile(task: _FrameTask):
     return pts.shape[0], q.sum(axis=0), q.T @ q
 
 
+def principal_frame_tiled(
+    coll: TileCollection,
+    *,
+    selection: Selection = Selection(),
+    tile_size_m: float = DEFAULT_TILE_SIZE_M,
+    engine: Optional[Engine] = None,
+    progress: Optional[ProgressCallback] = None,
+):
+    """:func:`~slipmap.core.roughness.principal_frame` of a tiled cloud (one pass of sums)."""
+    from ..core import roughness as rough
+
+    eng = _engine(engine)
+    t = _check_tile(tile_size_m)
+    lo, hi = coll.bounds
+    regions = region_grid((lo, hi), t, collections=[coll])
+    ref = tuple(0.5 * (lo + hi))
+    tasks = [_FrameTask(coll, r, t, ref, selection) for r in regions]
+    parts = eng.map(_frame_tile, tasks, names=[r.name for r in regions], progress=progress)
+    n = sum(p[0] for p in parts)
+    if n == 0:
+        raise InputDataError("no point is left by the class selection; choose other classes")
+    s1 = np.sum([p[1] for p in parts], axis=0)
+    s2 = np.sum([p[2] for p in parts], axis=0)
+    mean = s1 / n
+    cov = s2 / n - np.outer(mean, mean)
+    evals, evecs = np.linalg.eigh(cov)
+    return rough.PrincipalFrame(
+        centroid_m=np.asarray(ref) + mean,
+        axes=rough._orient_largest(evecs[:, ::-1].T.copy()),
+        eigenvalues_m2=evals[::-1].copy(),
+    )
+
+
 def roughness_tiled(
     coll: TileCollection,
     *,
@@ -261,22 +295,10 @@ def roughness_tiled(
     names = [r.name for r in regions]
     sub = progress
     if isinstance(ols_axis, str) and ols_axis.lower() == "auto":
-        ref = tuple(0.5 * (lo + hi))
-        tasks = [_FrameTask(coll, r, t, ref, selection) for r in regions]
-        parts = eng.map(_frame_tile, tasks, names=names, progress=scaled(progress, 0, 0.3))
-        n = sum(p[0] for p in parts)
-        if n == 0:
-            raise InputDataError("no point is left by the class selection; choose other classes")
-        s1 = np.sum([p[1] for p in parts], axis=0)
-        s2 = np.sum([p[2] for p in parts], axis=0)
-        mean = s1 / n
-        cov = s2 / n - np.outer(mean, mean)
-        evals, evecs = np.linalg.eigh(cov)
-        frame = rough.PrincipalFrame(
-            centroid_m=np.asarray(ref) + mean,
-            axes=rough._orient_largest(evecs[:, ::-1].T.copy()),
-            eigenvalues_m2=evals[::-1].copy(),
-        )
+        frame = principal_frame_tiled(
+            coll, selection=selection, tile_size_m=t, engine=eng,
+            progress=scaled(progress, 0, 0.3),
+        )  # fmt: skip
         ols_axis = rough.resolve_ols_axis(frame, "auto")
         sub = scaled(progress, 0.3, 1.0)
     a = rough._axis_index(ols_axis)

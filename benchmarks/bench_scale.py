@@ -101,10 +101,10 @@ def _timed_engine():
 
         def map(self, fn, items, **kw):
             def timed(item):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 out = fn(item)
-                dt = time.perf_counter() - t0
-                self.records.append((fn.__name__, dt, len(pickle.dumps(out))))
+                dt, dc = time.perf_counter() - t0, time.process_time() - c0
+                self.records.append((fn.__name__, dt, len(pickle.dumps(out)), dc))
                 return out
 
             return super().map(timed, items, **kw)
@@ -152,6 +152,7 @@ def run(data: Path, copies: int, job: str, workers: int) -> dict:
         out["tiles"] = len([r for r in main if r[0] in ("_slip_tile", "_roughness_tile",
                                                         "_planes_tile")])  # fmt: skip
         out["task_seconds"] = sum(r[1] for r in main)
+        out["task_cpu_seconds"] = sum(r[3] for r in main)
         out["result_bytes"] = sum(r[2] for r in main)
         out["driver_peak_mb"] = _rss_mb()
         out["worker_peak_mb"] = []
@@ -219,16 +220,18 @@ def _projection(rows, total_points=4e9, workers=32) -> str:
         f"points | projected time on {workers} workers | driver memory for the results |",
         "|---|---:|---:|---:|---:|",
     ]
+    rows_out = []
     for job in TILES:
         rs = [r for r in rows if r["job"] == job and r["workers"] == 0]
         if not rs:
             continue
         r = max(rs, key=lambda x: x["n_points"])
-        s_per_m = r["task_seconds"] / (r["n_points"] / 1e6)
+        s_per_m = r["task_cpu_seconds"] / (r["n_points"] / 1e6)  # CPU: the machine is shared
         pts_per_tile = r["n_points"] / r["tiles"]
         tiles = total_points / pts_per_tile
         # the in-process run's driver part (reduce, adjustment) grows with the tiles' results
         driver_s = max(0.0, r["seconds"] - r["task_seconds"]) * total_points / r["n_points"]
+        rows_out.append((job, s_per_m, tiles, driver_s))
         t = total_points / 1e6 * s_per_m / workers + driver_s
         mem = r["result_bytes"] / r["tiles"] * tiles / 1e9
         out.append(f"| {job} | {s_per_m:.2f} | {tiles:,.0f} | {t / 3600:.1f} h | {mem:.1f} GB |")
@@ -271,6 +274,7 @@ def main(argv=None) -> int:
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "python": platform.python_version(),
     }
+    meta["load_average"] = os.getloadavg()
     print(_table(rows))
     print()
     print(_projection(rows))

@@ -1,0 +1,101 @@
+"""The jobs on tiled inputs through their faces: a folder, a glob or comma-separated files;
+``--workers`` / ``--scheduler``; errors naming the option or the tile; outputs untouched."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from slipmap.cli import main
+from slipmap.core.io.las import PointCloud, read_las, write_las
+from slipmap.core.synthetic import make_scene
+
+
+@pytest.fixture(scope="module")
+def tiles(tmp_path_factory):
+    """A 60 m scene as one file and as 4 tiles of 30 m."""
+    root = tmp_path_factory.mktemp("tiled_jobs")
+    scene = make_scene("mls", seed=5, n_buildings=2, extent_m=60.0, origin=(500000, 4200000, 10))
+    whole = root / "whole.laz"
+    write_las(whole, PointCloud(xyz=scene.points, attributes={}))
+    cloud = read_las(whole)
+    folder = root / "tiles"
+    folder.mkdir()
+    k = np.floor((cloud.xyz[:, :2] - [500000, 4200000]) / 30.0).astype(int)
+    for key in np.unique(k, axis=0):
+        write_las(folder / f"t{key[0]}{key[1]}.laz", cloud.subset(np.all(k == key, axis=1)))
+    return whole, folder
+
+
+def _cli(argv, capsys):
+    capsys.readouterr()
+    try:
+        rc = main(argv)
+    except SystemExit as e:
+        rc = e.code
+    err = capsys.readouterr().err.strip().splitlines()
+    return rc, err
+
+
+def _planes(path):
+    return json.loads((path / "planes.json").read_text())
+
+
+def test_planes_folder_glob_and_list_agree(tiles, tmp_path, capsys):
+    whole, folder = tiles
+    files = ",".join(str(p) for p in sorted(folder.iterdir()))
+    outs = []
+    for i, spec in enumerate((str(folder), str(folder / "t*.laz"), files)):
+        out = tmp_path / f"o{i}"
+        rc, err = _cli(["planes", spec, "--out", str(out), "--tile-size", "25"], capsys)
+        assert rc == 0, err
+        outs.append(_planes(out))
+        assert sorted(p.name for p in out.iterdir()) == ["planes.json"]
+    for o in outs[1:]:
+        assert o["planes"] == outs[0]["planes"]
+    assert outs[0]["tiles"]["files"] == 4 and outs[0]["n_points"] == len(read_las(whole))
+    # the same job on the one file, tiled because Dask is asked for: the same planes
+    pytest.importorskip("distributed", reason="dask.distributed is not installed")
+    out = tmp_path / "dask"
+    rc, err = _cli(
+        ["planes", str(whole), "--out", str(out), "--tile-size", "25", "--workers", "2"], capsys
+    )
+    assert rc == 0, err
+    got = _planes(out)
+    assert "dask" in got["tiles"]["engine"]
+    assert len(got["planes"]) == len(outs[0]["planes"])
+    for a, b in zip(got["planes"], outs[0]["planes"]):
+        assert a["n_points"] == b["n_points"]
+        assert np.allclose(a["centroid"], b["centroid"], rtol=0, atol=1e-9)
+
+
+def test_bad_scale_options_exit_2_and_write_nothing(tiles, tmp_path, capsys, snapshot):
+    whole, folder = tiles
+    out = tmp_path / "out"
+    out.mkdir()
+    snap = snapshot(out, folder)
+    rc, err = _cli(
+        ["planes", str(folder), "--out", str(out), "--workers", "2", "--scheduler", "tcp://a:1"],
+        capsys,
+    )
+    assert rc == 2 and len(err) == 1 and "--workers" in err[0] and "--scheduler" in err[0]
+    rc, err = _cli(["planes", str(folder), "--out", str(out), "--workers", "0"], capsys)
+    assert rc == 2 and "--workers" in err[-1]  # argparse: usage, then the line
+    missing = f"{sorted(folder.iterdir())[0]},{folder / 'gone.laz'}"
+    rc, err = _cli(["planes", missing, "--out", str(out)], capsys)
+    assert rc == 2 and len(err) == 1 and "gone.laz" in err[0] and "INPUT" in err[0].upper()
+    assert snap.unchanged()
+
+
+def test_output_inside_the_tiles_folder_over_a_tile_refused(tiles, tmp_path, capsys):
+    _, folder = tiles
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    for p in folder.iterdir():
+        (copy / p.name).write_bytes(p.read_bytes())
+    (copy / "planes.json").write_text("{}")  # not an input: may be replaced
+    rc, err = _cli(["planes", str(copy / "*.laz"), "--out", str(copy)], capsys)
+    assert rc == 0, err
+    assert "planes" in _planes(copy)
