@@ -229,7 +229,7 @@ def principal_frame_tiled(
     lo, hi = coll.bounds
     regions = region_grid((lo, hi), t, collections=[coll])
     ref = tuple(0.5 * (lo + hi))
-    tasks = [_FrameTask(coll, r, t, ref, selection) for r in regions]
+    tasks = [_FrameTask(coll.restricted(r, 1e-3 * t), r, t, ref, selection) for r in regions]
     parts = eng.map(_frame_tile, tasks, names=[r.name for r in regions], progress=progress)
     n = sum(p[0] for p in parts)
     if n == 0:
@@ -307,7 +307,8 @@ def roughness_tiled(
         tuple(tuple(float(v) for v in g[0]) for g in geos), tuple(g[1] for g in geos),
         mp, a, bool(signed), selection,
     )  # fmt: skip
-    tasks = [replace(task, region=r) for r in regions]
+    halo = 1.02 * max(sizes) + 1e-3 * t
+    tasks = [replace(task, region=r, coll=coll.restricted(r, halo)) for r in regions]
     results = eng.map(_roughness_tile, tasks, names=names, progress=sub)
     grids = []
     for k, (c, (origin, shape)) in enumerate(zip(sizes, geos)):
@@ -540,9 +541,11 @@ def slip_tiled(
     corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]])
     trace_in_data_check(trace, np.concatenate([centres, corners]), buffer_m=0.0)
     origin = tuple(float(v) for v in _reference(before, after))
+    h = 1e-3 * t  # the tasks read with a hair of halo: ownership is decided by floor(x / t)
     tasks = [
-        _SlipTask(before, after, r, t, trace, float(buffer_m), dict(plane_options or {}),
-                  dict(match_options or {}), selection, units != "none", origin)
+        _SlipTask(before.restricted(r, h), after.restricted(r, h), r, t, trace, float(buffer_m),
+                  dict(plane_options or {}), dict(match_options or {}), selection,
+                  units != "none", origin)
         for r in regions
     ]  # fmt: skip
     results = eng.map(
@@ -828,7 +831,8 @@ def planes_tiled(
     pilot_halo = halo_m if halo_m is not None else 2.0
     params = None
     for r in by_dist[:8]:
-        pilot = _PlaneTask(coll, r, t, pilot_halo, opts, selection, origin)
+        pilot = _PlaneTask(coll.restricted(r, pilot_halo), r, t, pilot_halo, opts, selection,
+                           origin)  # fmt: skip
         params = eng.map(_pilot_tile, [pilot], names=[f"pilot {r.name}"], what="pilot")[0]
         if params is not None:
             break
@@ -844,7 +848,9 @@ def planes_tiled(
     fixed["backend"] = opts.get("backend", "numpy")
     halo = halo_m if halo_m is not None else max(2.0, 2.0 * fixed["max_node_size_m"])
     report(progress, 0.05, "parameters from the pilot tile")
-    tasks = [_PlaneTask(coll, r, t, halo, fixed, selection, origin) for r in regions]
+    tasks = [
+        _PlaneTask(coll.restricted(r, halo), r, t, halo, fixed, selection, origin) for r in regions
+    ]
     results = eng.map(
         _planes_tile, tasks, names=[r.name for r in regions], progress=scaled(progress, 0.05, 0.9)
     )

@@ -245,9 +245,31 @@ class TileCollection:
     def paths(self) -> Tuple[Path, ...]:
         return tuple(f.path for f in self.files)
 
+    def _boxes(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(mins, maxs, non-empty)`` of the files as arrays (cached)."""
+        if "boxes" not in self._crs_cache:
+            lo = np.array([f.mins for f in self.files], dtype=np.float64).reshape(-1, 3)
+            hi = np.array([f.maxs for f in self.files], dtype=np.float64).reshape(-1, 3)
+            full = np.array([f.n_points > 0 for f in self.files], dtype=bool)
+            self._crs_cache["boxes"] = (lo, hi, full)
+        return self._crs_cache["boxes"]
+
     def overlapping(self, region: Region) -> Tuple[TileFile, ...]:
-        """The files whose header box meets ``region``."""
-        return tuple(f for f in self.files if f.n_points > 0 and f.overlaps(region))
+        """The files whose header box meets ``region`` (closed test, as TileFile.overlaps)."""
+        lo, hi, full = self._boxes()
+        hit = full & ~(
+            (hi[:, 0] < region.xmin)
+            | (lo[:, 0] >= region.xmax)
+            | (hi[:, 1] < region.ymin)
+            | (lo[:, 1] >= region.ymax)
+        )
+        return tuple(self.files[i] for i in np.flatnonzero(hit))
+
+    def restricted(self, region: Region, halo_m: float = 0.0) -> TileCollection:
+        """The same collection with only the files that a read of ``region`` (and halo)
+        opens: what a task needs to carry (not the index of the whole survey)."""
+        box = region.grown(halo_m) if halo_m else region
+        return TileCollection(files=self.overlapping(box), crs_wkt=self.crs_wkt, label=self.label)
 
     def read_region(
         self,
@@ -491,12 +513,22 @@ def region_grid(
             f"tile_size_m = {t:g} gives {n} tiles over the data; choose larger tiles"
         )
     colls = tuple(collections)
+    keep = None
+    if colls:  # the grid cells each file's box meets (closed test, as TileFile.overlaps)
+        keep = set()
+        for c in colls:
+            lo_f, hi_f, full = c._boxes()
+            for a, b in zip(lo_f[full], hi_f[full]):
+                j0 = np.floor((a[:2] - o) / t).astype(np.int64)
+                j1 = np.floor((b[:2] - o) / t).astype(np.int64)
+                for ix in range(int(j0[0]), int(j1[0]) + 1):
+                    for iy in range(int(j0[1]), int(j1[1]) + 1):
+                        keep.add((ix, iy))
     out = []
     for ix in range(int(i0[0]), int(i1[0]) + 1):
         for iy in range(int(i0[1]), int(i1[1]) + 1):
-            x0, y0 = o[0] + ix * t, o[1] + iy * t
-            r = Region(x0, y0, o[0] + (ix + 1) * t, o[1] + (iy + 1) * t, ix, iy)
-            if colls and not any(c.overlapping(r) for c in colls):
+            if keep is not None and (ix, iy) not in keep:
                 continue
-            out.append(r)
+            x0, y0 = o[0] + ix * t, o[1] + iy * t
+            out.append(Region(x0, y0, o[0] + (ix + 1) * t, o[1] + (iy + 1) * t, ix, iy))
     return out
