@@ -1,0 +1,171 @@
+"""Job ``dem-diff``: vertical change by DEM differencing (the simple baseline; Aryal 2014,
+chapter 3, section 3.1).
+
+Both epochs are gridded on one grid over their overlap (mean z per cell, no extrapolation)
+and ``dz = z_after - z_before`` is written as a 3-band GeoTIFF, a figure and
+``dem_diff.json``.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Dict, Mapping, Optional
+
+import numpy as np
+
+from .._version import __version__
+from .fields import (
+    JSON_FILTER,
+    PNG_FILTER,
+    TIF_FILTER,
+    common_grid_of,
+    figures,
+    output_option,
+    pair_options,
+    read_pair,
+    write_tif,
+)
+from .job import JobResult, Progress
+from .options import JobSpec, Option
+from .outputs import OutputPlan
+from .summaries import finite_stats, json_text
+
+log = logging.getLogger("slipmap.app")
+
+#: working memory per DEM cell (bytes): per epoch while gridding the counts, sums and means
+#: (24), the two DEMs and dz kept (24), dz's finite values (8), the 3-band stack written (24)
+BYTES_PER_CELL = 80
+BANDS = ("dz", "z_before", "z_after")
+
+SPEC = JobSpec(
+    name="dem-diff",
+    title="DEM difference",
+    description=(
+        "Vertical change between two epochs by DEM differencing: both clouds are gridded on "
+        "one grid over their overlap (mean z per cell, no extrapolation) and dz = z_after - "
+        "z_before. A vertical-only measure: it cannot resolve horizontal motion (use PIV or "
+        "windowed ICP)."
+    ),
+    options=(
+        *pair_options(),
+        Option(
+            "grid_m",
+            "float",
+            "DEM cell size, metres",
+            label="Grid size (m)",
+            default=0.25,
+            required=True,
+            minimum=0,
+            exclusive=True,
+            metavar="M",
+        ),
+        output_option(
+            "raster",
+            "dz, z_before, z_after GeoTIFF (dem_diff.tif)",
+            "DEM difference (dz, z_before, z_after)",
+            qgis="OUTPUT",
+            file_filter=TIF_FILTER,
+        ),
+        output_option(
+            "summary",
+            "summary (dem_diff.json)",
+            "DEM difference summary",
+            qgis="SUMMARY",
+            file_filter=JSON_FILTER,
+        ),
+        output_option(
+            "plot",
+            "figure (dem_diff.png)",
+            "DEM difference figure (PNG)",
+            qgis="PLOT",
+            file_filter=PNG_FILTER,
+        ),
+    ),
+)
+
+
+def default_names(opts: Mapping[str, Any]) -> Dict[str, str]:
+    return {"raster": "dem_diff.tif", "summary": "dem_diff.json", "plot": "dem_diff.png"}
+
+
+def run(
+    opts: Mapping[str, Any],
+    outputs: Mapping[str, Any],
+    *,
+    progress: Optional[Progress] = None,
+) -> JobResult:
+    """Read both epochs, grid and difference them, write.
+
+    ``outputs``: ``{"out": folder}`` or ``{"raster": path, "summary": path, "plot": path}``
+    (None: not written). ``data`` of the result: the
+    :class:`~slipmap.core.dem.DemDifference`.
+    """
+    from ..core.dem import dem_difference
+
+    plan = OutputPlan.for_outputs(
+        inputs={k: opts.get(k) for k in ("before", "after")},
+        outputs=outputs,
+        default_names=default_names(opts),
+    )
+    plan.check()
+    with plan:
+        if progress is not None:
+            progress(0.0, "reading both epochs")
+        before, after, crs = read_pair(opts)
+        grid = common_grid_of(
+            before, after, opts["grid_m"], key="grid_m", bytes_per_cell=BYTES_PER_CELL
+        )
+        if progress is not None:
+            progress(0.5, "gridding and differencing")
+        res = dem_difference(before, after, grid=grid)
+        del before, after
+        g = res.grid
+        if plan.wants("raster"):
+            write_tif(
+                plan.file("raster"),
+                np.stack([res.dz, res.z_before, res.z_after]),
+                origin_xy=g.origin_xy,
+                pixel_m=g.cell_m,
+                crs=crs,
+                names=BANDS,
+                metadata={"method": "DEM difference, dz = z_after - z_before"},
+            )
+        report = figures() if plan.wants("plot") else None
+        if report is not None:
+            report.plot_raster_panels(
+                plan.file("plot"),
+                {"dz = after - before (m)": res.dz, "z before (m)": res.z_before},
+                extent=(g.x_min, g.x_max, g.y_min, g.y_max),
+                diverging=("dz = after - before (m)",),
+                columns=2,
+            )
+        summary = {
+            "command": "dem-diff",
+            "before": str(opts["before"]),
+            "after": str(opts["after"]),
+            "grid_m": g.cell_m,
+            "shape": list(g.shape),
+            "origin_xy": list(g.origin_xy),
+            "dz_m": finite_stats(res.dz),
+            "files": [
+                plan.final(k).name
+                for k in ("raster", "plot")
+                if plan.wants(k) and plan.file(k).exists()
+            ],
+            "crs": None if crs is None else crs.to_wkt(),
+            "slipmap_version": __version__,
+        }
+        if plan.wants("summary"):
+            plan.file("summary").write_text(json_text(summary), encoding="utf-8")
+        if progress is not None:
+            progress(1.0, "DEM difference done")
+    lines = [
+        f"DEM difference: {res.n_valid} cells of {g.cell_m:g} m, mean dz {res.mean_m:+.4f} m "
+        f"(std {res.std_m:.4f} m)"
+    ]
+    files = {
+        k: plan.final(k)
+        for k in ("raster", "plot", "summary")
+        if plan.wants(k) and plan.final(k).exists()
+    }
+    return JobResult(summary, lines, files, data=res)

@@ -1,0 +1,363 @@
+"""Job ``icp``: 3D displacement field by windowed point-to-plane ICP (Aryal et al., section
+3.2.2).
+
+The after epoch is cut into square cells and each cell's points are registered onto the
+before surface (:func:`slipmap.core.icp.windowed_icp`); the cells are written as a CSV, a
+GeoPackage (cells and vectors), a multi-band GeoTIFF, a figure and ``icp.json``.
+
+To add an option of :func:`~slipmap.core.icp.windowed_icp`: declare it in :data:`SPEC` under
+the core's keyword and list the key in :data:`CORE_KEYS`. New result columns of
+``WindowedICPResult.to_columns()`` reach the CSV, the GeoPackage and the QGIS layers by
+themselves (:func:`layer_columns`).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Callable, Dict, List, Mapping, Optional
+
+import numpy as np
+
+from .._version import __version__
+from ..core.errors import SlipMapError
+from .fields import (
+    ARYAL,
+    JSON_FILTER,
+    PNG_FILTER,
+    compare_control,
+    control_option,
+    field_of_columns,
+    figures,
+    horizontal_columns,
+    output_option,
+    pair_options,
+    read_control,
+    read_pair,
+    write_tif,
+)
+from .job import JobResult, Progress
+from .options import JobSpec, Option, OptionError
+from .outputs import OutputPlan
+from .summaries import icp_summary, json_text
+
+log = logging.getLogger("slipmap.app")
+
+CITATION = (
+    f"{ARYAL}, section 3.2.2 (windowed ICP); point-to-plane ICP: Chen, Y. and Medioni, G. "
+    "(1992), Object modelling by registration of multiple range images, Image and Vision "
+    "Computing 10(3), 145-155"
+)
+_GROUP = "windowed ICP"
+#: bands of icp.tif
+BANDS = ("dx", "dy", "dz", "sigma_dx", "sigma_dy", "sigma_dz", "rmse", "n")
+
+
+def _opt(key, type_, help_, label, **kw):
+    return Option(key, type_, help_, label=label, group=_GROUP, **kw)
+
+
+SPEC = JobSpec(
+    name="icp",
+    title="Displacement field (windowed ICP)",
+    description=(
+        "3D displacement field by point-to-plane ICP in square cells: each cell of the after "
+        "epoch is registered rigidly onto the before surface; the cell's displacement is the "
+        "ground motion at its centre, with 1-sigma from the adjustment scaled by the field's "
+        "variance factor."
+    ),
+    options=(
+        *pair_options(),
+        _opt(
+            "cell_m",
+            "float",
+            "side of the square cells, metres (the study used 5)",
+            "Cell size (m)",
+            default=5.0,
+            minimum=0,
+            exclusive=True,
+            metavar="M",
+        ),
+        _opt(
+            "buffer_m",
+            "float",
+            "before-points this far around each cell are matched, metres (default half a "
+            "cell); must exceed the largest displacement",
+            "Buffer around each cell (m; default half a cell)",
+            minimum=0,
+            metavar="M",
+            advanced=True,
+        ),
+        _opt(
+            "min_points",
+            "int",
+            "cells with fewer after- or before-points are skipped",
+            "Smallest cell (points)",
+            default=100,
+            minimum=7,
+            metavar="N",
+            advanced=True,
+        ),
+        _opt(
+            "coarse_to_fine",
+            "int",
+            "coarser passes (cells 2x, 4x, ...) that start each cell from the coarser motion; "
+            "needed when the motion is not small against the cell (0: off)",
+            "Coarse-to-fine levels",
+            default=1,
+            minimum=0,
+            metavar="LEVELS",
+            advanced=True,
+        ),
+        _opt(
+            "formal_sigma",
+            "bool",
+            "report the cells' formal sigmas; by default they are multiplied by the field's "
+            "variance factor from the agreement of neighbouring cells (formal sigmas assume "
+            "independent point residuals and are 2-4x too small on real surfaces)",
+            "Formal sigmas only",
+            default=False,
+            advanced=True,
+        ),
+        Option(
+            "stable_mask",
+            "path",
+            "polygon file of the MOVING area: the after epoch is first aligned on the points "
+            "outside it (stable ground; the study's masked global alignment) and displacements "
+            "are relative to that stable frame",
+            label="Moving area (left out of the stable-ground pre-alignment)",
+            role="input",
+            group=_GROUP,
+            qgis=None,  # QGIS gives a polygon layer (the algorithm reads it)
+            pdal=None,
+            metavar="FILE",
+            unset_text="none",
+        ),
+        _opt(
+            "prealign",
+            "bool",
+            "align the after epoch on all points first (a global pre-alignment without a mask)",
+            "Pre-align on all points (no mask)",
+            default=False,
+            advanced=True,
+        ),
+        control_option(),
+        output_option("table", "the cells (icp.csv)", "ICP cells (CSV)"),
+        output_option("layers", "cells and vectors (icp.gpkg)", "ICP cells and vectors"),
+        output_option("raster", "bands dx ... n (icp.tif)", "ICP raster"),
+        output_option(
+            "summary", "summary (icp.json)", "ICP summary", qgis="SUMMARY", file_filter=JSON_FILTER
+        ),
+        output_option(
+            "plot", "figure (icp.png)", "ICP figure (PNG)", qgis="PLOT", file_filter=PNG_FILTER
+        ),
+    ),
+    citation=CITATION,
+)
+
+#: options passed to ``windowed_icp`` under their own key (add new core options here)
+CORE_KEYS = ("cell_m", "buffer_m", "min_points", "coarse_to_fine")
+_KEYS = ("table", "layers", "raster", "plot", "summary")
+
+
+def core_kwargs(opts: Mapping[str, Any]) -> Dict[str, Any]:
+    """``windowed_icp`` keywords of the options (unset ones left to the core's default)."""
+    kw = {k: opts[k] for k in CORE_KEYS if opts.get(k) is not None}
+    kw["sigma_scaling"] = "formal" if opts.get("formal_sigma") else "field"
+    return kw
+
+
+def default_names(opts: Mapping[str, Any]) -> Dict[str, str]:
+    return {
+        "table": "icp.csv",
+        "layers": "icp.gpkg",
+        "raster": "icp.tif",
+        "summary": "icp.json",
+        "plot": "icp.png",
+    }
+
+
+def layer_columns(res) -> Dict[str, np.ndarray]:
+    """The cells' attribute columns of every layer (GeoPackage, QGIS sinks): the result's
+    columns but the grid indices, then the horizontal magnitude and azimuth."""
+    cols = {k: np.asarray(v) for k, v in res.to_columns().items() if k not in ("row", "col")}
+    cols.update(horizontal_columns(res.dx, res.dy))
+    return cols
+
+
+def cell_rings(res) -> List[np.ndarray]:
+    """(5, 2) closed ring of every fitted cell (map units)."""
+    x0, y0 = res.origin_xy
+    s = res.cell_m
+    out = []
+    for r, c in zip(res.row.tolist(), res.col.tolist()):
+        left, top = x0 + c * s, y0 - r * s
+        out.append(
+            np.array(
+                [[left, top], [left + s, top], [left + s, top - s], [left, top - s], [left, top]]
+            )
+        )
+    return out
+
+
+def run(
+    opts: Mapping[str, Any],
+    outputs: Mapping[str, Any],
+    *,
+    stable_mask: Optional[Callable[[Any], List[np.ndarray]]] = None,
+    progress: Optional[Progress] = None,
+) -> JobResult:
+    """Read both epochs, run windowed ICP, compare with control points and write.
+
+    Parameters
+    ----------
+    opts
+        :data:`SPEC`'s options, parsed.
+    outputs
+        ``{"out": folder}`` or ``{output key: path or None}`` (``table``, ``layers``,
+        ``raster``, ``summary``, ``plot``).
+    stable_mask
+        ``f(crs) -> [ring (K, 2)]``: the moving-area polygons in the clouds' CRS (QGIS gives
+        its layer this way); default: read ``opts["stable_mask"]``.
+
+    Returns
+    -------
+    JobResult
+        ``data``: ``{"result": WindowedICPResult, "columns": layer_columns, "rings":
+        cell_rings, "crs": pyproj CRS or None}``.
+    """
+    from ..core.icp import windowed_icp
+
+    plan = OutputPlan.for_outputs(
+        inputs={k: opts.get(k) for k in ("before", "after", "control", "stable_mask")},
+        outputs=outputs,
+        default_names=default_names(opts),
+    )
+    plan.check()
+    with plan:
+        control = read_control(opts.get("control"))
+        before, after, crs = read_pair(opts)
+        exclude = None
+        if stable_mask is None and opts.get("stable_mask"):
+            stable_mask = _mask_reader(opts["stable_mask"])
+        if stable_mask is not None:
+            exclude = stable_mask(crs)
+        res = windowed_icp(
+            before,
+            after,
+            prealign=bool(exclude) or bool(opts.get("prealign")),
+            exclude_polygons=exclude,
+            progress=progress,
+            **core_kwargs(opts),
+        )
+        comparison = None
+        if control is not None:
+            field = field_of_columns(
+                res.x,
+                res.y,
+                res.dx,
+                res.dy,
+                res.dz,
+                spacing_m=res.cell_m,
+                key="control",
+                what="the ICP field",
+            )
+            comparison = compare_control(control, field)
+        summary = {
+            "command": "icp",
+            "before": str(opts["before"]),
+            "after": str(opts["after"]),
+            "buffer_m": opts.get("buffer_m"),
+            "min_points": opts["min_points"],
+            "coarse_to_fine": opts["coarse_to_fine"],
+            **icp_summary(res),
+            "control": comparison,
+            "crs": None if crs is None else crs.to_wkt(),
+            "slipmap_version": __version__,
+        }
+        columns = layer_columns(res)
+        rings = cell_rings(res)
+        _write(plan, res, columns, rings, crs, before)
+        summary["files"] = [
+            plan.final(k).name for k in _KEYS[:-1] if plan.wants(k) and plan.file(k).exists()
+        ]
+        if plan.wants("summary"):
+            plan.file("summary").write_text(json_text(summary), encoding="utf-8")
+    lines = [
+        f"windowed ICP: {len(res)} cells of {res.cell_m:g} m ({sum(res.skipped.values())} "
+        f"skipped), median horizontal {summary['horizontal_m'].get('median', float('nan')):.4f}"
+        f" m, median sigma {summary['sigma_horizontal_m'].get('median', float('nan')):.4f} m"
+    ]
+    if comparison is not None:
+        lines.append(
+            f"control points: {comparison['n_compared']} of {comparison['n_rows']} compared, "
+            f"horizontal RMSE {comparison['rmse_horizontal_m']:.4f} m"
+        )
+    files = {k: plan.final(k) for k in _KEYS if plan.wants(k) and plan.final(k).exists()}
+    data = {"result": res, "columns": columns, "rings": rings, "crs": crs}
+    return JobResult(summary, lines, files, data=data)
+
+
+def _mask_reader(path) -> Callable[[Any], List[np.ndarray]]:
+    def read(crs) -> List[np.ndarray]:
+        from ..core.io.vector import read_polygons
+
+        try:
+            rings = read_polygons(path, target_crs=crs)
+        except SlipMapError as exc:
+            raise OptionError(
+                "stable_mask", f"{exc}; give a polygon file of the moving area"
+            ) from exc
+        if not rings:
+            raise OptionError("stable_mask", f"{path} has no polygon; give the moving area")
+        return rings
+
+    return read
+
+
+def _write(plan: OutputPlan, res, columns, rings, crs, before) -> None:
+    if plan.wants("table"):
+        from ..core.io.table import write_csv_columns
+
+        write_csv_columns(plan.file("table"), res.to_columns())
+    if plan.wants("layers"):
+        from ..core.io.vector import VectorLayer, write_gpkg_layers
+
+        vectors = [
+            np.array([[x, y], [x + dx, y + dy]])
+            for x, y, dx, dy in zip(res.x, res.y, res.dx, res.dy)
+        ]
+        write_gpkg_layers(
+            plan.file("layers"),
+            [
+                VectorLayer("cells", "Polygon", [r[:-1] for r in rings], columns),
+                VectorLayer("vectors", "LineString", vectors, columns),
+            ],
+            crs=crs,
+        )
+    if plan.wants("raster"):
+        write_tif(
+            plan.file("raster"),
+            np.stack([res.to_grid(b) for b in BANDS]),
+            origin_xy=res.origin_xy,
+            pixel_m=res.cell_m,
+            crs=crs,
+            names=BANDS,
+            metadata={"method": "windowed point-to-plane ICP", "cell_m": f"{res.cell_m:g}"},
+        )
+    report = figures() if plan.wants("plot") else None
+    if report is not None:
+        from ..core.dem import common_grid, grid_elevation
+
+        cell = max(res.cell_m / 20.0, 0.05)
+        grid = common_grid(before, cell_m=cell, overlap="union")
+        report.plot_vector_field(
+            plan.file("plot"),
+            x=res.x,
+            y=res.y,
+            dx=res.dx,
+            dy=res.dy,
+            colour=res.dz,
+            background=report.hillshade(grid_elevation(before, grid=grid), cell_m=cell),
+            extent=(grid.x_min, grid.x_max, grid.y_min, grid.y_max),
+            title=f"windowed ICP, {res.cell_m:g} m cells",
+        )
