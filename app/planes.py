@@ -153,7 +153,7 @@ SPEC = JobSpec(
         cloud_option(
             "input",
             "LAS/LAZ point cloud in a projected CRS (metres); or tiles: a folder, a glob "
-            "(quoted) or files separated by commas (processed tile by tile, planes.json only)",
+            "(quoted) or files separated by commas (processed tile by tile; labelled per tile)",
             "Input point cloud",
         ),
         out_dir_option(),

@@ -763,7 +763,49 @@ def _planes_tile(task: _PlaneTask):
         np.minimum.at(lo[:, d], lab[m], pts[m, d])
         np.maximum.at(hi[:, d], lab[m], pts[m, d])
     fit = (ps.normals[idx], ps.offsets[idx], ps.centroids[idx])  # fits over tile + halo
-    return n_own, (mom.take(idx), lo[idx], hi[idx], fit)
+    return n_own, (mom.take(idx), lo[idx], hi[idx], fit, idx, k)
+
+
+_LABEL_ATTRIBUTES = (
+    "Classification", "Intensity", "ReturnNumber", "NumberOfReturns", "PointSourceId", "GpsTime",
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class _LabelTask:
+    plane: _PlaneTask
+    lut: np.ndarray  # tile plane id -> final plane id (-1: none); last entry for label -1
+    path: str
+
+
+def _label_tile(task: _LabelTask) -> int:
+    """Write a tile's own points with their final PlaneId (the tile segmented again: the same
+    points, parameters and order give the same labels as in the first pass)."""
+    from ..core.io.las import PointCloud, write_las
+    from ..core.planes import segment_planes
+
+    pt = task.plane
+    r, t = pt.region, pt.tile_size_m
+    attrs = tuple(dict.fromkeys(_LABEL_ATTRIBUTES))
+    cloud = pt.coll.read_region(r, halo_m=pt.halo_m, attributes=attrs)
+    own_all = _owned(cloud.xyz, r, t)
+    if not np.any(own_all):
+        return 0
+    sel = pt.selection.indices(cloud)
+    labels = np.full(len(cloud), -1, dtype=np.int32)
+    pts = cloud.xyz[sel]
+    if pts.shape[0] >= 3:
+        try:
+            local = segment_planes(pts, **pt.options).labels
+        except InputDataError:
+            local = np.full(pts.shape[0], -1)
+        lut = task.lut
+        labels[sel] = lut[np.where((local >= 0) & (local < lut.size - 1), local, lut.size - 1)]
+    out = PointCloud(
+        cloud.xyz[own_all], {k: v[own_all] for k, v in cloud.attributes.items()}, cloud.crs
+    )
+    write_las(task.path, out, extra_dims={"PlaneId": labels[own_all]})
+    return int(np.count_nonzero(own_all))
 
 
 def _plane_fit(mom: PlaneMoments):
@@ -794,6 +836,7 @@ def planes_tiled(
     selection: Selection = Selection(ground_default=True),
     tile_size_m: float = DEFAULT_TILE_SIZE_M,
     halo_m: Optional[float] = None,
+    labelled_path: Optional[Any] = None,
     engine: Optional[Engine] = None,
     progress: Optional[ProgressCallback] = None,
 ) -> TiledPlanes:
@@ -810,6 +853,11 @@ def planes_tiled(
     halo_m : float, optional
         Margin read around each tile for context (default twice the largest octree node,
         at least 2 m).
+    labelled_path : callable, optional
+        ``labelled_path(region)`` gives the path of a LAS/LAZ file to write the region's own
+        points to, with their final ``PlaneId`` (a second pass: each tile is segmented
+        again, with the same result); the workers write the files, so the path must be
+        reachable from them.
     """
     eng = _engine(engine)
     t = _check_tile(tile_size_m)
@@ -857,11 +905,12 @@ def planes_tiled(
     n_total = sum(res[0] for res in results)
     if n_total == 0:
         raise InputDataError("no point is left by the class selection; choose other classes")
-    moms, los, his, fits, tile_of = [], [], [], [], []
-    for r, (_, part) in zip(regions, results):
+    moms, los, his, fits, tile_of, local = [], [], [], [], [], {}
+    for i, (r, (_, part)) in enumerate(zip(regions, results)):
         if part is None:
             continue
-        mom, lo_p, hi_p, fit = part
+        mom, lo_p, hi_p, fit, idx, k = part
+        local[i] = (sum(len(m) for m in moms), idx, k)
         moms.append(mom)
         los.append(lo_p)
         his.append(hi_p)
@@ -882,6 +931,7 @@ def planes_tiled(
     remap = np.full(ng, -1)
     remap[keep_g] = np.arange(keep_g.size)
     sel_p = remap[groups] >= 0
+    n_orig = len(allm)
     allm, lo_all, hi_all = allm.take(np.flatnonzero(sel_p)), lo_all[sel_p], hi_all[sel_p]
     groups = remap[groups][sel_p]
     ng = int(keep_g.size)
@@ -897,6 +947,21 @@ def planes_tiled(
     pairs = np.unique(np.column_stack([groups, tile_kept]), axis=0)
     ntiles = np.bincount(pairs[:, 0], minlength=ng)
     order = np.lexsort((cen[:, 1], cen[:, 0], -merged.count))  # biggest first, then position
+    if labelled_path is not None:
+        final = np.full(n_orig, -1, dtype=np.int32)
+        rank = np.empty(ng, dtype=np.int32)
+        rank[order] = np.arange(ng)
+        final[np.flatnonzero(sel_p)] = rank[groups]
+        label_tasks = []
+        for i, task in enumerate(tasks):  # a tile without own points writes no file
+            lut = np.full(1, -1, dtype=np.int32)
+            if i in local:
+                start, idx, k = local[i]
+                lut = np.full(k + 1, -1, dtype=np.int32)
+                lut[idx] = final[start : start + idx.size]
+            label_tasks.append(_LabelTask(task, lut, str(labelled_path(task.region))))
+        eng.map(_label_tile, label_tasks, names=[x.plane.region.name for x in label_tasks],
+                progress=scaled(progress, 0.9, 1.0), what="labelled tile")  # fmt: skip
     report(progress, 1.0, f"{ng} planes ({len(allm)} tile planes merged)")
     return TiledPlanes(
         normals=normals[order],
@@ -1093,11 +1158,10 @@ def engine_from(opts) -> Engine:
 
 
 def run_planes_job(opts, outputs, *, progress: Optional[ProgressCallback] = None):
-    """The planes job (:mod:`.planes`) on tiled inputs: ``planes.json`` of the merged planes.
-
-    The labelled copy of the input is not written for tiled inputs (one file per tile would
-    be; the planes' records carry their extents and the tiles they span).
-    """
+    """The planes job (:mod:`.planes`) on tiled inputs: ``planes.json`` of the merged planes
+    and, into an output folder, one labelled LAZ per processing tile (``planes_IX_IY.laz``:
+    the tile's own points with the main dimensions and PlaneId). A single labelled-cloud
+    destination (QGIS) is not written for tiled inputs (a warning says so)."""
     from .._version import __version__
     from .job import JobResult, Timer
     from .outputs import OutputPlan
@@ -1106,8 +1170,12 @@ def run_planes_job(opts, outputs, *, progress: Optional[ProgressCallback] = None
 
     outputs = dict(outputs)
     if outputs.get("labelled_cloud") is not None:
-        log.warning("tiled input: the labelled point cloud is not written (planes.json only)")
+        log.warning(
+            "tiled input: the labelled point cloud is written only into an output folder "
+            "(one file per tile); here planes.json only"
+        )
         outputs["labelled_cloud"] = None
+    folder = outputs.get("out") is not None
     coll = open_input(opts, "input", what="input", crs=opts.get("crs"))
     plan = OutputPlan.for_outputs(
         inputs={"input": [str(p) for p in coll.paths()]},
@@ -1123,6 +1191,9 @@ def run_planes_job(opts, outputs, *, progress: Optional[ProgressCallback] = None
                 options=core_kwargs(opts),
                 selection=sel,
                 tile_size_m=opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M,
+                labelled_path=(lambda r: plan.path(f"planes_{r.ix}_{r.iy}.laz"))
+                if folder
+                else None,
                 engine=eng,
                 progress=progress,
             )
@@ -1154,4 +1225,8 @@ def run_planes_job(opts, outputs, *, progress: Optional[ProgressCallback] = None
         f"{t.seconds:.2f} s ({how})"
     ]
     written = {"summary": plan.final("summary")} if plan.wants("summary") else {}
+    tiles_written = [p for p in plan.written if p.suffix == ".laz"]
+    if tiles_written:
+        written["labelled_cloud"] = tiles_written[0].parent
+        lines.append(f"{len(tiles_written)} labelled tile(s) planes_IX_IY.laz")
     return JobResult(summary, lines, written, data=(planes, None))

@@ -52,7 +52,13 @@ def test_planes_folder_glob_and_list_agree(tiles, tmp_path, capsys):
         rc, err = _cli(["planes", spec, "--out", str(out), "--tile-size", "25"], capsys)
         assert rc == 0, err
         outs.append(_planes(out))
-        assert sorted(p.name for p in out.iterdir()) == ["planes.json"]
+        names = sorted(p.name for p in out.iterdir() if p.name != "planes.json")
+        assert names and all(n.startswith("planes_") and n.endswith(".laz") for n in names)
+        # the labelled tiles: every input point once, PlaneId counts = the summary's
+        lab = np.concatenate([read_las(out / n).attributes["PlaneId"] for n in names])
+        assert lab.size == outs[-1]["n_points"]
+        counts = np.bincount(lab[lab >= 0], minlength=len(outs[-1]["planes"]))
+        assert counts.tolist() == [p["n_points"] for p in outs[-1]["planes"]]
     for o in outs[1:]:
         assert o["planes"] == outs[0]["planes"]
     assert outs[0]["tiles"]["files"] == 4 and outs[0]["n_points"] == len(read_las(whole))
