@@ -1,35 +1,36 @@
-"""``slipmap:strain``: horizontal infinitesimal strain from a gridded displacement field."""
+"""``slipmap:strain``: the strain job (:mod:`slipmap.app.strain`) as a Processing algorithm;
+it reads the vectors of a point layer or a table itself (QGIS's features)."""
 
 from __future__ import annotations
 
 from qgis.core import (
     QgsProcessing,
     QgsProcessingException,
-    QgsProcessingParameterBoolean,
-    QgsProcessingParameterCrs,
     QgsProcessingParameterFeatureSource,
     QgsProcessingParameterFileDestination,
-    QgsProcessingParameterNumber,
     QgsProcessingParameterRasterDestination,
     QgsWkbTypes,
 )
 
-from ._base import SlipMapAlgorithm, optional_number, progress_callback, slipmap_errors, write_json
+from ...app import strain as job
+from ._base import (
+    SlipMapAlgorithm,
+    add_parameters,
+    check_options,
+    options_from,
+    progress_callback,
+    slipmap_errors,
+)
 from ._fields import (
-    ARYAL,
     FIELDS_GROUP,
-    advanced,
+    add_optional_file_output,
     apply_diverging_style_on_load,
-    finite_stats,
-    json_safe,
-    write_raster,
+    file_outputs,
+    help_text,
 )
 
-BAND_HELP = (
-    "exx, eyy, exy (tensor shear), rotation_rad (counter-clockwise), e1, e2 (principal, "
-    "e1 >= e2), e1_azimuth_deg (clockwise from north), max_shear = (e1 - e2)/2, dilatation "
-    "= exx + eyy"
-)
+_FILES = ("raster", "summary", "plot")
+_LABEL = f'"{job.SPEC["field"].dialog_label}"'
 
 
 def _number(value):
@@ -42,12 +43,12 @@ def _number(value):
         return float("nan")
 
 
-def read_vectors(source, valid_only):
-    """Columns x, y, dx, dy[, dz] (float64) of a point layer or a table with x, y columns.
+def read_vectors(source):
+    """Columns x, y, dx, dy[, dz, valid] (float64) of a point layer or a table with x, y.
 
     Positions come from the point geometry when the layer has one, else from the x and y
     attributes (e.g. ``piv.csv`` / ``icp.csv`` opened as a table). Field names are matched
-    case-insensitively; rows without a position are dropped.
+    case-insensitively; rows without a position are dropped (and counted in the log).
     """
     import numpy as np
 
@@ -56,7 +57,7 @@ def read_vectors(source, valid_only):
     geometry = QgsWkbTypes.geometryType(source.wkbType())
     if geometry not in (QgsWkbTypes.PointGeometry, QgsWkbTypes.NullGeometry):
         raise QgsProcessingException(
-            "FIELD must be a point layer or a table (CSV) of vectors, got "
+            f"{_LABEL} must be a point layer or a table (CSV) of vectors, got "
             f"{QgsWkbTypes.displayString(source.wkbType())}"
         )
     use_geometry = geometry == QgsWkbTypes.PointGeometry
@@ -64,23 +65,26 @@ def read_vectors(source, valid_only):
         missing += [k for k in ("x", "y") if k not in names]
     if missing:
         raise QgsProcessingException(
-            f"FIELD has no {', '.join(missing)} field(s): give the vectors output of "
+            f"{_LABEL} has no {', '.join(missing)} field(s): give the vectors output of "
             "slipmap:piv / slipmap:windowedicp or a CSV with x, y, dx, dy[, dz] columns "
             f"(fields found: {', '.join(f.name() for f in source.fields())})"
         )
     want = ["dx", "dy"] + [k for k in ("dz", "valid") if k in names]
     rows = {k: [] for k in ["x", "y", *want]}
+    dropped = 0
     for feature in source.getFeatures():
         attrs = feature.attributes()
         if use_geometry:
             geom = feature.geometry()
             if geom is None or geom.isEmpty():
+                dropped += 1
                 continue
             p = geom.constGet()
             x, y = p.x(), p.y()
         else:
             x, y = _number(attrs[names["x"]]), _number(attrs[names["y"]])
         if not (np.isfinite(x) and np.isfinite(y)):
+            dropped += 1
             continue
         rows["x"].append(x)
         rows["y"].append(y)
@@ -88,133 +92,80 @@ def read_vectors(source, valid_only):
             rows[k].append(_number(attrs[names[k]]))
     cols = {k: np.asarray(v, dtype=np.float64) for k, v in rows.items()}
     if not cols["x"].size:
-        raise QgsProcessingException("FIELD has no vector with a position")
-    valid = None
-    if valid_only and "valid" in cols:
-        valid = cols["valid"] > 0.5
-    return cols, valid
+        raise QgsProcessingException(f"{_LABEL} has no vector with a position")
+    return cols, dropped
 
 
 class StrainAlgorithm(SlipMapAlgorithm):
     _id = "strain"
     _name = "Strain from a displacement field"
     _group, _group_id = FIELDS_GROUP
+    spec = job.SPEC
 
     def shortHelpString(self):  # noqa: N802 (QGIS API name)
-        return (
-            "Horizontal infinitesimal strain of a gridded displacement field: the vectors are "
-            "put back on their regular grid, the displacement gradient is taken by central "
-            "differences (one-sided next to gaps and edges) and the strain tensor, rotation "
-            "and principal strains follow (extension positive).<br>"
-            "<b>Displacement field</b>: the vectors output of slipmap:piv or "
-            "slipmap:windowedicp (points with dx, dy[, dz] fields, m), or a CSV table "
-            "(piv.csv / icp.csv of the command line: columns x, y, dx, dy[, dz, valid]). "
-            "Positions must be in a projected CRS in metres and lie on a regular grid. "
-            "<b>Vector spacing</b> (m, optional): the grid spacing; default inferred from the "
-            "positions. <b>Valid vectors only</b> (advanced): leave out the vectors with "
-            "valid = 0 (missing or replaced outliers of PIV). <b>CRS</b> (optional): the "
-            "output CRS for a table without one.<br>"
-            "<b>Outputs</b>: a 9-band GeoTIFF on the field's grid (" + BAND_HELP + "; "
-            "dimensionless, NaN where the gradient is unknown), band 1 styled with a diverging "
-            "ramp centred on 0; a JSON summary with statistics per band.<br>"
-            "Strain fields from TLS displacement fields as in " + ARYAL + "."
+        return help_text(
+            job.SPEC,
+            "a 9-band GeoTIFF on the field's grid (" + job.BAND_HELP + "; dimensionless, NaN "
+            "where the gradient is unknown), band 1 styled with a diverging ramp centred on 0; "
+            "a JSON summary with statistics per band; optionally a figure (PNG). The field is "
+            "the vectors output of slipmap:piv or slipmap:windowedicp, or a CSV table "
+            "(piv.csv / icp.csv: columns x, y, dx, dy[, dz, valid]); positions in a projected "
+            "CRS in metres on a regular grid.",
         )
 
     def initAlgorithm(self, config=None):  # noqa: N802 (QGIS API name)
-        self.addParameter(
-            QgsProcessingParameterFeatureSource(
-                "FIELD",
-                "Displacement field (vectors layer or CSV)",
-                [QgsProcessing.TypeVectorPoint, QgsProcessing.TypeVector],
-            )
+        field = job.SPEC["field"]
+        p = QgsProcessingParameterFeatureSource(
+            "FIELD", field.dialog_label, [QgsProcessing.TypeVectorPoint, QgsProcessing.TypeVector]
         )
+        p.setHelp(field.help)
+        self.addParameter(p)
+        add_parameters(self, job.SPEC, roles=("input", "setting"))
         self.addParameter(
-            QgsProcessingParameterNumber(
-                "SPACING",
-                "Vector spacing (m; default inferred)",
-                QgsProcessingParameterNumber.Double,
-                optional=True,
-                minValue=1e-9,
-            )
+            QgsProcessingParameterRasterDestination("OUTPUT", job.SPEC["raster"].dialog_label)
         )
+        opt = job.SPEC["summary"]
         self.addParameter(
-            advanced(
-                QgsProcessingParameterBoolean(
-                    "VALID_ONLY", "Valid vectors only", defaultValue=False
-                )
-            )
+            QgsProcessingParameterFileDestination("SUMMARY", opt.dialog_label, opt.file_filter)
         )
-        self.addParameter(
-            advanced(QgsProcessingParameterCrs("CRS", "CRS of a table field", optional=True))
+        add_optional_file_output(self, job.SPEC, "plot")
+
+    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
+        ok, message = check_options(
+            self, parameters, context, job.SPEC, extra={"out": "-", "field": "-"}
         )
-        self.addParameter(QgsProcessingParameterRasterDestination("OUTPUT", "Strain"))
-        self.addParameter(
-            QgsProcessingParameterFileDestination("SUMMARY", "Strain summary", "JSON (*.json)")
-        )
+        if not ok:
+            return ok, message
+        return super().checkParameterValues(parameters, context)
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
-        import numpy as np
-
         source = self.parameterAsSource(parameters, "FIELD", context)
         if source is None:
-            raise QgsProcessingException("FIELD: the layer or table cannot be read")
-        spacing = optional_number(self, parameters, "SPACING", context)
-        valid_only = self.parameterAsBoolean(parameters, "VALID_ONLY", context)
-        crs = source.sourceCrs()
-        if not crs.isValid() or QgsWkbTypes.geometryType(source.wkbType()) == (
+            raise QgsProcessingException(f"{_LABEL}: the layer or table cannot be read")
+        name = source.sourceName() or "the field"
+        opts = options_from(self, parameters, context, job.SPEC, extra={"out": "-", "field": name})
+        outputs = file_outputs(self, parameters, context, job.SPEC, _FILES)
+        layer_crs = source.sourceCrs()
+        crs = None
+        if layer_crs.isValid() and QgsWkbTypes.geometryType(source.wkbType()) != (
             QgsWkbTypes.NullGeometry
         ):
-            crs = self.parameterAsCrs(parameters, "CRS", context)
-        if crs.isValid() and crs.isGeographic():
-            raise QgsProcessingException(
-                f"FIELD is in a geographic CRS ({crs.authid()}): strain needs positions in "
-                "metres; reproject the vectors to a projected CRS first"
-            )
-        out = self.parameterAsOutputLayer(parameters, "OUTPUT", context)
-        summary_path = self.parameterAsFileOutput(parameters, "SUMMARY", context)
-        with slipmap_errors():
             import pyproj
 
-            from ...core.fields import field_from_columns
-            from ...core.strain import strain_field
-
-            progress = progress_callback(feedback)
-            progress(0.0, "reading the vectors")
-            cols, valid = read_vectors(source, valid_only)
-            field = field_from_columns(
-                cols["x"],
-                cols["y"],
-                cols["dx"],
-                cols["dy"],
-                cols.get("dz"),
-                spacing_m=spacing,
-                valid=valid,
+            crs = pyproj.CRS.from_wkt(layer_crs.toWkt())
+        cols, dropped = read_vectors(source)
+        if dropped:
+            feedback.pushWarning(f"{name}: {dropped} feature(s) without a position left out")
+        with slipmap_errors(job.SPEC):
+            result = job.run(
+                opts,
+                outputs,
+                columns=cols,
+                crs=crs,
+                what=name,
+                progress=progress_callback(feedback),
             )
-            progress(0.5, "strain")
-            bands = strain_field(field).bands()
-            out_crs = pyproj.CRS.from_wkt(crs.toWkt()) if crs.isValid() else None
-            write_raster(
-                out,
-                np.stack(list(bands.values())),
-                field.origin_xy,
-                field.spacing_m,
-                out_crs,
-                list(bands),
-                {"strain": "infinitesimal, extension positive; max_shear = (e1-e2)/2"},
-            )
-            summary = {
-                "command": "strain",
-                "n_vectors": int(cols["x"].size),
-                "shape": list(field.shape),
-                "origin_xy": list(field.origin_xy),
-                "spacing_m": list(field.spacing_m),
-                "bands": {k: finite_stats(v) for k, v in bands.items()},
-            }
-            write_json(summary_path, json_safe(summary))
-            progress(1.0, "strain done")
-        apply_diverging_style_on_load(context, out, "strain")
-        feedback.pushInfo(
-            f"strain: {field.shape[0]} x {field.shape[1]} cells of "
-            f"{field.spacing_m[0]:g} x {field.spacing_m[1]:g} m"
-        )
-        return {"OUTPUT": out, "SUMMARY": summary_path}
+        for line in result.lines:
+            feedback.pushInfo(line)
+        apply_diverging_style_on_load(context, outputs["raster"], "strain")
+        return {"OUTPUT": outputs["raster"], "SUMMARY": outputs["summary"], "PLOT": outputs["plot"]}
