@@ -125,7 +125,12 @@ def read_control_points(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
     xy = np.column_stack([cols["x"], cols["y"]])
     if xy.shape[0] == 0:
         raise InputDataError(f"{path}: no control points (only a header)")
-    if not np.isfinite(xy).all():
-        raise InputDataError(f"{path}: control points need finite x and y")
+    bad = np.flatnonzero(~np.isfinite(xy).all(axis=1))
+    if bad.size:
+        rows = ", ".join(str(int(i) + 2) for i in bad[:10]) + (", ..." if bad.size > 10 else "")
+        raise InputDataError(
+            f"{path}: {bad.size} of {xy.shape[0]} control point(s) have no finite x, y (row(s) "
+            f"{rows}); give every row its position in metres"
+        )
     dz = cols.get("dz", np.full(xy.shape[0], np.nan))
     return xy, np.column_stack([cols["dx"], cols["dy"], dz])

@@ -48,6 +48,9 @@ def test_errors_name_file_row_and_column(tmp_path):
     p.write_text("x,y,dx,dy\n")
     with pytest.raises(InputDataError, match="no control points"):
         read_control_points(p)
+    p.write_text("x,y,dx,dy\n1,2,0,0\n,2,0,0\n")
+    with pytest.raises(InputDataError, match=r"1 of 2 control point.*row\(s\) 3\)"):
+        read_control_points(p)
     p.write_text("")
     with pytest.raises(InputDataError, match="empty"):
         read_control_points(p)
