@@ -120,6 +120,22 @@ def read_pair(opts: Mapping[str, Any]):
     return pair.before.xyz[sb], pair.after_xyz[sa], pair.crs
 
 
+def check_overlap(before, after) -> None:
+    """Refuse epochs whose x, y bounding boxes are disjoint (naming the after epoch and the
+    CRS option)."""
+    lo_b, hi_b = before[:, :2].min(axis=0), before[:, :2].max(axis=0)
+    lo_a, hi_a = after[:, :2].min(axis=0), after[:, :2].max(axis=0)
+    if np.any(np.maximum(lo_b, lo_a) > np.minimum(hi_b, hi_a)):
+        raise OptionError(
+            "after",
+            f"the epochs do not overlap in x, y (before x {lo_b[0]:.2f}..{hi_b[0]:.2f}, y "
+            f"{lo_b[1]:.2f}..{hi_b[1]:.2f}; after x {lo_a[0]:.2f}..{hi_a[0]:.2f}, y "
+            f"{lo_a[1]:.2f}..{hi_a[1]:.2f}): check that both are in the same CRS ({{crs}} "
+            "replaces a wrong one) and cover the same area",
+            also=("crs",),
+        )
+
+
 def common_grid_of(before, after, cell_m: float, *, key: str, bytes_per_cell: float):
     """The DEM grid both epochs share, refused when its working arrays would not fit in memory.
 
@@ -128,6 +144,7 @@ def common_grid_of(before, after, cell_m: float, *, key: str, bytes_per_cell: fl
     from ..core.dem import common_grid
     from .resources import check_grid_memory
 
+    check_overlap(before, after)
     grid = common_grid(before, after, cell_m=cell_m)
     check_grid_memory(
         key, grid.n_rows * grid.n_cols, bytes_per_cell=bytes_per_cell, what="DEM grid"

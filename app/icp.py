@@ -24,6 +24,7 @@ from .fields import (
     ARYAL,
     JSON_FILTER,
     PNG_FILTER,
+    check_overlap,
     compare_control,
     control_option,
     field_of_columns,
@@ -236,6 +237,7 @@ def run(
     with plan:
         control = read_control(opts.get("control"))
         before, after, crs = read_pair(opts)
+        check_overlap(before, after)
         exclude = None
         if stable_mask is None and opts.get("stable_mask"):
             stable_mask = _mask_reader(opts["stable_mask"])
