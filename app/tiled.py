@@ -1230,3 +1230,76 @@ def run_planes_job(opts, outputs, *, progress: Optional[ProgressCallback] = None
         written["labelled_cloud"] = tiles_written[0].parent
         lines.append(f"{len(tiles_written)} labelled tile(s) planes_IX_IY.laz")
     return JobResult(summary, lines, written, data=(planes, None))
+
+
+@dataclass(frozen=True)
+class TiledRoughness:
+    """What the roughness job needs of a tiled input (see :func:`roughness_for_job`)."""
+
+    grids: Tuple[Any, ...]
+    frame: Any
+    ols_axis: str
+    n_points: int
+    crs: Any
+    paths: Tuple[str, ...]
+    engine: str
+
+
+def roughness_for_job(
+    opts,
+    *,
+    cell_sizes_m: Sequence[float],
+    min_points: int,
+    ols_axis: str,
+    signed: bool,
+    selection: Selection = Selection(),
+    input_key: str = "input",
+    progress: Optional[ProgressCallback] = None,
+) -> TiledRoughness:
+    """The roughness job's computation on tiled inputs: the principal frame (one pass) and
+    the grids (exact), on the engine the options ask for; the job then writes its outputs
+    from the cells as for one file. Per-point outputs need the points in one place: the job
+    refuses them for tiled inputs."""
+    from ..core import roughness as rough
+
+    coll = open_input(opts, input_key, what="input", crs=opts.get("crs"))
+    t = opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M
+    with engine_from(opts) as eng:
+        frame = principal_frame_tiled(
+            coll, selection=selection, tile_size_m=t, engine=eng, progress=scaled(progress, 0, 0.2)
+        )
+        axis = rough.resolve_ols_axis(frame, ols_axis)
+        grids = roughness_tiled(
+            coll, cell_sizes_m=cell_sizes_m, min_points=min_points, ols_axis=axis, signed=signed,
+            selection=selection, tile_size_m=t, engine=eng, progress=scaled(progress, 0.2, 1.0),
+        )  # fmt: skip
+        how = eng.describe()
+    return TiledRoughness(
+        grids, frame, axis, coll.n_points, coll.crs, tuple(str(p) for p in coll.paths()), how
+    )
+
+
+def slip_for_job(
+    opts,
+    trace,
+    *,
+    keys: Tuple[str, str] = ("before", "after"),
+    selection: Selection = Selection(),
+    progress: Optional[ProgressCallback] = None,
+    **kw,
+):
+    """The slip job's computation on tiled inputs: both epochs' tiles, the engine the options
+    ask for, :func:`slip_tiled` with ``kw`` (sigmas, plane/match options, stochastic model,
+    units, components, combine). The study's tile size (``tile_size_m``) is the processing
+    tile; without it, :data:`DEFAULT_TILE_SIZE_M`."""
+    from .outputs import refuse_same_inputs
+
+    refuse_same_inputs([(keys[0], opts[keys[0]]), (keys[1], opts[keys[1]])])
+    before = open_input(opts, keys[0], what="before epoch", crs=opts.get("crs"))
+    after = open_input(opts, keys[1], what="after epoch", crs=opts.get("crs"))
+    t = opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M
+    with engine_from(opts) as eng:
+        return slip_tiled(
+            before, after, trace, tile_size_m=t, selection=selection, engine=eng,
+            progress=progress, **kw,
+        )  # fmt: skip
