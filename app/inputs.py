@@ -145,8 +145,26 @@ def read_cloud(path, *, key: str = "input", crs=None, what: str = ""):
     if len(cloud) == 0:
         raise OptionError(key, f"{label}{path}: the file has no points; give a non-empty file")
     if crs is not None:
+        _refuse_geographic_on_metres(cloud, crs, label)
         cloud.crs = crs
     return cloud
+
+
+def _refuse_geographic_on_metres(cloud, crs, label: str = "") -> None:
+    """A geographic CRS given for coordinates that cannot be degrees (|x| > 180 or |y| > 90)
+    is refused: the points are surely in a projected CRS (metres)."""
+    if not getattr(crs, "is_geographic", False) or len(cloud) == 0:
+        return
+    xyz = cloud.xyz
+    x_max = float(np.max(np.abs(xyz[:, 0])))
+    y_max = float(np.max(np.abs(xyz[:, 1])))
+    if x_max > 180.0 or y_max > 90.0:
+        raise OptionError(
+            "crs",
+            f"{crs.name} is a geographic CRS (degrees) but {label}{cloud.source} has "
+            f"coordinates up to |x| = {x_max:.6g}, |y| = {y_max:.6g}, which are not degrees; "
+            "give the projected CRS the coordinates are in (e.g. a UTM zone, EPSG:326xx)",
+        )
 
 
 @dataclass
