@@ -279,9 +279,18 @@ def _require_laspy(what: str) -> None:
 def _open_reader(p: Path) -> laspy.LasReader:
     _require_laspy(f"reading {p}")
     try:
-        return laspy.open(p, mode="r")
+        reader = laspy.open(p, mode="r")
     except Exception as exc:  # laspy raises LaspyException, ValueError, OSError, ...
         raise _not_readable(p, exc) from exc
+    scales = np.asarray(reader.header.scales, dtype=np.float64)
+    if not np.all(np.isfinite(scales) & (scales > 0)):
+        reader.close()
+        raise SlipMapFileError(
+            f"{p} is not a usable LAS/LAZ file: its header's scale factors "
+            f"{scales.tolist()} must be finite and > 0 (coordinates are integer * scale + "
+            "offset); rewrite the file with a valid scale (e.g. 0.001)"
+        )
+    return reader
 
 
 def _header_info(header: laspy.LasHeader) -> LasHeaderInfo:

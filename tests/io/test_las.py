@@ -480,3 +480,21 @@ def test_broken_crs_gives_warning_and_none(caplog: pytest.LogCaptureFixture) -> 
     good = laspy.LasHeader(version="1.4", point_format=6)
     good.add_crs(pyproj.CRS.from_epsg(32612))
     assert same_crs(crs_from_las(good), 32612)
+
+
+def test_header_with_scale_zero_is_refused_naming_the_file(tmp_path):
+    """A header whose scale factor is 0 (or not finite) cannot give coordinates: refused."""
+    import struct
+
+    from slipmap.core.errors import SlipMapFileError
+    from slipmap.core.io.las import read_las_header
+
+    path = tmp_path / "scale0.las"
+    write_las(path, PointCloud(xyz=np.arange(30, dtype=np.float64).reshape(10, 3)))
+    raw = bytearray(path.read_bytes())
+    raw[131:139] = struct.pack("<d", 0.0)  # X scale factor (LAS 1.x public header)
+    path.write_bytes(bytes(raw))
+    for reader in (read_las, read_las_header):
+        with pytest.raises(SlipMapFileError, match="scale") as raised:
+            reader(path)
+        assert str(path) in str(raised.value)
