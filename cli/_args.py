@@ -42,12 +42,14 @@ def command(name: str, help_text: str, spec: Optional[JobSpec] = None):
 def _parser_type(opt: Option, flag: str):
     """argparse ``type=``: the option's own conversion, its errors as argparse errors."""
     one = opt
-    if opt.is_list:
+    if opt.is_list or opt.type == "vector3":  # one token at a time
         from dataclasses import replace
 
         one = replace(
             opt,
-            type={"floats": "float", "ints": "int", "paths": "path"}.get(opt.type, "str"),
+            type={"floats": "float", "ints": "int", "paths": "path", "vector3": "float"}.get(
+                opt.type, "str"
+            ),
             nargs=None,
         )
 
