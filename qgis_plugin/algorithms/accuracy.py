@@ -1,44 +1,47 @@
-"""``slipmap:pointaccuracy``: per-point accuracy written into a LAS copy, and the point-accuracy
-parameters shared with ``slipmap:displacement``.
+"""``slipmap:pointaccuracy``: the accuracy job (:mod:`slipmap.app.accuracy`) as a Processing
+algorithm, and the point-accuracy parameters shared with ``slipmap:displacement``.
 
-The parameters map one to one onto the settings dict of ``slipmap.app.pointaccuracy`` (the CLI's
-``--pa`` flags and ``--pa-config`` file), which turns them into covariances.
+The point-accuracy options are declared once (:func:`slipmap.app.pointaccuracy.pa_options`);
+most become parameters as they are. Four are QGIS widgets of their own, mapped back onto the
+options' keys by :func:`pa_values`: the model enum (``MODEL``, or one per epoch), the per-axis
+sigmas (``SIGMA_X``/``SIGMA_Y``/``SIGMA_Z``), the scanner (a list of the built-in ones plus
+"JSON file" and ``SCANNER_FILE``) and the static scanner's position (a map point in any CRS,
+reprojected to the cloud's, plus ``SCANNER_HEIGHT``).
 """
 
 from __future__ import annotations
 
-import contextlib
-
 from qgis.core import (
+    QgsCoordinateReferenceSystem,
     QgsProcessingException,
-    QgsProcessingParameterBoolean,
     QgsProcessingParameterEnum,
     QgsProcessingParameterFile,
     QgsProcessingParameterFileDestination,
     QgsProcessingParameterNumber,
     QgsProcessingParameterPoint,
-    QgsProcessingParameterString,
 )
 
+from ...app import accuracy as job
+from ...app.options import JobSpec
+from ...app.pointaccuracy import MODELS, PA_KEYS, SCANNER_NAMES, pa_options
 from ._base import (
-    LAS_FILTER,
-    LAS_OUTPUT_FILTER,
     SlipMapAlgorithm,
+    add_parameters,
     advanced,
+    check_options,
     is_set,
+    options_from,
     progress_callback,
-    read_cloud,
     slipmap_errors,
 )
 
-MODELS = ("constant", "axis", "columns", "propagated")
-#: names of ``core.accuracy.SCANNERS`` (a test keeps them equal; not imported from the core,
-#: which would load numpy and scipy each time QGIS builds the algorithm)
-SCANNER_NAMES = ("leica-als60", "optech-orion", "riegl-vz400")
 SCANNER_FROM_FILE = "JSON file (Scanner specification file)"
-TRAJECTORY_FILTER = "Trajectory (*.sbet *.out *.csv *.txt);;All files (*.*)"
-ACCURACY_FILTER = "Trajectory accuracy (*.smrmsg *.csv *.txt);;All files (*.*)"
-COV_NAMES = ("CovXX", "CovYY", "CovZZ", "CovXY", "CovXZ", "CovYZ")
+COV_NAMES = job.COVS
+#: the point-accuracy options alone (their dialog labels in messages)
+PA_SPEC = JobSpec("pointaccuracy", "Point accuracy", "", pa_options())
+#: options QGIS shows as widgets of its own (see :func:`add_pa_parameters`)
+_OWN_WIDGETS = ("pa_model", "sigma_xyz_m", "scanner", "scanner_position")
+_SCANNER_FILE_LABEL = "Scanner specification file (JSON)"
 
 PA_HELP = (
     "<b>Point accuracy</b> (Kusari, Glennie, Brooks and Ericksen 2019, IEEE TGRS 57(6), "
@@ -56,116 +59,53 @@ PA_HELP = (
     "the built-in specifications or a <b>Scanner specification file</b> (JSON, units in the "
     "key names, e.g. range_sigma_m). <b>Beam footprint term</b>: add the incidence-angle "
     "footprint covariance (Schaer et al. 2007; default yes). "
-    "<b>Point-accuracy configuration</b>: a JSON file as "
-    'the CLI\'s --pa-config ({"before": {...}, "after": {...}} or one object for both, keys '
+    "<b>Point-accuracy configuration</b>: a JSON file "
+    '({"before": {...}, "after": {...}} or one object for both, keys '
     "model, sigma, sigma_xyz, columns, trajectory, trajectory_accuracy, scanner, "
     "scanner_position, footprint); when given it replaces all the other point-accuracy "
     "parameters."
 )
 
 
-#: the CLI flags that ``slipmap.app.pointaccuracy`` messages name, and the parameters here
-FLAGS = (
-    ("--trajectory-accuracy", "TRAJECTORY_ACCURACY"),
-    ("--trajectory", "TRAJECTORY"),
-    ("--sigma-columns", "SIGMA_COLUMNS"),
-    ("--sigma-xyz", "SIGMA_X/Y/Z"),
-    ("--scanner-spec", "SCANNER / SCANNER_FILE"),
-    ("--scanner-position", "SCANNER_POSITION"),
-    ("--pa-config", "PA_CONFIG"),
-    ("--pa ", "the point-accuracy model "),
-)
-
-
-@contextlib.contextmanager
-def pa_errors():
-    """:func:`slipmap_errors` with the CLI flags in point-accuracy messages replaced by the
-    names of these parameters."""
-    try:
-        with slipmap_errors():
-            yield
-    except QgsProcessingException as exc:
-        text = str(exc)
-        for flag, name in FLAGS:
-            text = text.replace(flag, name)
-        raise QgsProcessingException(text) from exc
-
-
-def _sigma(name, label, default, optional=False):
-    return QgsProcessingParameterNumber(
-        name,
-        label,
-        QgsProcessingParameterNumber.Double,
-        defaultValue=default,
-        minValue=1e-9,
-        optional=optional,
+def _sigma(name, label, default):
+    p = QgsProcessingParameterNumber(
+        name, label, QgsProcessingParameterNumber.Double, defaultValue=default, minValue=1e-9
     )
+    p.setHelp(PA_SPEC["sigma_xyz_m"].help)
+    return p
 
 
 def add_pa_parameters(alg, model_names, advanced_models=False):
     """The point-accuracy parameters: one model enum per name in ``model_names`` (e.g.
-    ``{"MODEL": "Model"}``), then the model settings shared by them (advanced except SIGMA)."""
+    ``{"MODEL": "Model"}``), then the settings shared by them (advanced except Sigma)."""
     for name, label in model_names.items():
         p = QgsProcessingParameterEnum(name, label, options=list(MODELS), defaultValue=0)
+        p.setHelp(PA_SPEC["pa_model"].help)
         alg.addParameter(advanced(p) if advanced_models else p)
-    alg.addParameter(_sigma("SIGMA", "Sigma, constant model (m)", 0.05))
+    add_parameters(alg, PA_SPEC, roles=("setting",), skip=_OWN_WIDGETS + ("footprint",))
     for axis in "XYZ":
         alg.addParameter(advanced(_sigma(f"SIGMA_{axis}", f"Sigma {axis}, axis model (m)", 0.05)))
-    alg.addParameter(
-        advanced(
-            QgsProcessingParameterString(
-                "SIGMA_COLUMNS",
-                "Sigma columns, columns model (X,Y,Z dimension names)",
-                defaultValue="SigmaX,SigmaY,SigmaZ",
-                optional=True,
-            )
-        )
+    add_parameters(alg, PA_SPEC, roles=("input",), skip=("pa_config",))
+    scanner = QgsProcessingParameterEnum(
+        "SCANNER",
+        PA_SPEC["scanner"].dialog_label,
+        options=list(SCANNER_NAMES) + [SCANNER_FROM_FILE],
+        defaultValue=0,
     )
-    alg.addParameter(
-        advanced(
-            QgsProcessingParameterFile(
-                "TRAJECTORY",
-                "Trajectory, propagated model (SBET or CSV)",
-                fileFilter=TRAJECTORY_FILTER,
-                optional=True,
-            )
-        )
-    )
+    scanner.setHelp(PA_SPEC["scanner"].help)
+    alg.addParameter(advanced(scanner))
     alg.addParameter(
         advanced(
             QgsProcessingParameterFile(
-                "TRAJECTORY_ACCURACY",
-                "Trajectory accuracy, propagated model (SMRMSG or CSV)",
-                fileFilter=ACCURACY_FILTER,
-                optional=True,
+                "SCANNER_FILE", _SCANNER_FILE_LABEL, fileFilter="JSON (*.json)", optional=True
             )
         )
     )
-    names = list(SCANNER_NAMES) + [SCANNER_FROM_FILE]
-    alg.addParameter(
-        advanced(
-            QgsProcessingParameterEnum(
-                "SCANNER", "Scanner, propagated model", options=names, defaultValue=0
-            )
-        )
+    position = QgsProcessingParameterPoint(
+        "SCANNER_POSITION", PA_SPEC["scanner_position"].dialog_label, optional=True
     )
-    alg.addParameter(
-        advanced(
-            QgsProcessingParameterFile(
-                "SCANNER_FILE",
-                "Scanner specification file (JSON)",
-                fileFilter="JSON (*.json)",
-                optional=True,
-            )
-        )
-    )
-    alg.addParameter(
-        advanced(
-            QgsProcessingParameterPoint(
-                "SCANNER_POSITION", "Scanner position, static (TLS) scan", optional=True
-            )
-        )
-    )
+    position.setHelp(PA_SPEC["scanner_position"].help)
+    alg.addParameter(advanced(position))
     alg.addParameter(
         advanced(
             QgsProcessingParameterNumber(
@@ -176,74 +116,53 @@ def add_pa_parameters(alg, model_names, advanced_models=False):
             )
         )
     )
-    alg.addParameter(
-        advanced(
-            QgsProcessingParameterBoolean(
-                "FOOTPRINT", "Beam footprint term, propagated model", defaultValue=True
-            )
-        )
+    add_parameters(
+        alg, PA_SPEC, roles=("setting",), skip=tuple(k for k in PA_KEYS if k != "footprint")
     )
-    alg.addParameter(
-        advanced(
-            QgsProcessingParameterFile(
-                "PA_CONFIG",
-                "Point-accuracy configuration (JSON, as the CLI's --pa-config)",
-                fileFilter="JSON (*.json)",
-                optional=True,
-            )
-        )
+    add_parameters(
+        alg, PA_SPEC, roles=("input",), skip=tuple(k for k in PA_KEYS if k != "pa_config")
     )
+
+
+def pa_values(alg, parameters, context, model_name, crs=None):
+    """The values of the point-accuracy options QGIS shows as its own widgets, by option key:
+    ``pa_model`` (from ``model_name``), ``sigma_xyz_m``, ``scanner``, ``scanner_position``
+    (reprojected to ``crs``, the cloud's ``QgsCoordinateReferenceSystem``)."""
+    model = MODELS[alg.parameterAsEnum(parameters, model_name, context)]
+    values = {
+        "pa_model": model,
+        "sigma_xyz_m": [alg.parameterAsDouble(parameters, f"SIGMA_{a}", context) for a in "XYZ"],
+    }
+    k = alg.parameterAsEnum(parameters, "SCANNER", context)
+    if k < len(SCANNER_NAMES):
+        values["scanner"] = SCANNER_NAMES[k]
+    else:
+        spec = alg.parameterAsFile(parameters, "SCANNER_FILE", context)
+        if spec:
+            values["scanner"] = spec
+        elif model == "propagated":
+            raise QgsProcessingException(
+                f'"{_SCANNER_FILE_LABEL}": choose a scanner specification JSON file, or pick a '
+                f'built-in "{PA_SPEC["scanner"].dialog_label}" ({", ".join(SCANNER_NAMES)})'
+            )
+    if is_set(parameters, "SCANNER_POSITION"):
+        crs = crs if crs is not None else QgsCoordinateReferenceSystem()
+        pt = alg.parameterAsPoint(parameters, "SCANNER_POSITION", context, crs)
+        z = alg.parameterAsDouble(parameters, "SCANNER_HEIGHT", context)
+        values["scanner_position"] = [pt.x(), pt.y(), z]
+    return values
 
 
 def pa_settings(alg, parameters, context, model_name, crs):
-    """The ``slipmap.app.pointaccuracy`` settings dict of the model chosen in ``model_name``.
+    """The ``slipmap.app.pointaccuracy`` settings dict of the model chosen in ``model_name``
+    (for algorithms not yet on a job). Raises ``QgsProcessingException`` naming the
+    parameter at fault by its label."""
+    from ...app.pointaccuracy import settings_from_options
 
-    ``crs`` is the point cloud's ``QgsCoordinateReferenceSystem`` (the scanner position is
-    reprojected to it). Raises ``QgsProcessingException`` naming the parameter at fault.
-    """
-    model = MODELS[alg.parameterAsEnum(parameters, model_name, context)]
-    s = {"model": model}
-    if model == "constant":
-        s["sigma"] = alg.parameterAsDouble(parameters, "SIGMA", context)
-    elif model == "axis":
-        s["sigma_xyz"] = [alg.parameterAsDouble(parameters, f"SIGMA_{a}", context) for a in "XYZ"]
-    elif model == "columns":
-        text = alg.parameterAsString(parameters, "SIGMA_COLUMNS", context) or ""
-        names = [c.strip() for c in text.split(",") if c.strip()]
-        if names and len(names) != 3:
-            raise QgsProcessingException(
-                f"SIGMA_COLUMNS: give three comma-separated dimension names (X,Y,Z), got {text!r}"
-            )
-        if names:
-            s["columns"] = names
-    else:
-        names = list(SCANNER_NAMES)
-        k = alg.parameterAsEnum(parameters, "SCANNER", context)
-        if k < len(names):
-            s["scanner"] = names[k]
-        else:
-            spec = alg.parameterAsFile(parameters, "SCANNER_FILE", context)
-            if not spec:
-                raise QgsProcessingException(
-                    "SCANNER_FILE: choose a scanner specification JSON file, or pick a built-in "
-                    f"SCANNER ({', '.join(names)})"
-                )
-            s["scanner"] = spec
-        s["footprint"] = alg.parameterAsBoolean(parameters, "FOOTPRINT", context)
-        if is_set(parameters, "SCANNER_POSITION"):
-            pt = alg.parameterAsPoint(parameters, "SCANNER_POSITION", context, crs)
-            z = alg.parameterAsDouble(parameters, "SCANNER_HEIGHT", context)
-            s["scanner_position"] = [pt.x(), pt.y(), z]
-        else:
-            traj = alg.parameterAsFile(parameters, "TRAJECTORY", context)
-            acc = alg.parameterAsFile(parameters, "TRAJECTORY_ACCURACY", context)
-            if not traj or not acc:
-                raise QgsProcessingException(
-                    f"{model_name} propagated: set TRAJECTORY and TRAJECTORY_ACCURACY (mobile or "
-                    "airborne survey) or SCANNER_POSITION (static scan)"
-                )
-            s["trajectory"], s["trajectory_accuracy"] = traj, acc
-    return s
+    extra = pa_values(alg, parameters, context, model_name, crs)
+    opts = options_from(alg, parameters, context, PA_SPEC, extra=extra)
+    with slipmap_errors(PA_SPEC):
+        return settings_from_options({**opts, "pa_config": None})["before"]
 
 
 def pa_config(alg, parameters, context):
@@ -251,19 +170,37 @@ def pa_config(alg, parameters, context):
     path = alg.parameterAsFile(parameters, "PA_CONFIG", context)
     if not path:
         return None
-    with pa_errors():
+    with slipmap_errors(PA_SPEC):
         from ...app.pointaccuracy import load_config
 
         return load_config(path)
 
 
+def pa_errors():
+    """Point-accuracy errors as ``QgsProcessingException`` naming the dialog labels."""
+    return slipmap_errors(PA_SPEC)
+
+
 def cloud_crs(cloud):
     """The ``QgsCoordinateReferenceSystem`` of a ``PointCloud`` (invalid when it has none)."""
-    from qgis.core import QgsCoordinateReferenceSystem
-
     if cloud.crs is None:
         return QgsCoordinateReferenceSystem()
     return QgsCoordinateReferenceSystem.fromWkt(cloud.crs.to_wkt())
+
+
+def _input_crs(alg, parameters, context):
+    """The CRS the points will be in: the CRS parameter, else the file's (header only)."""
+    if is_set(parameters, "CRS"):
+        crs = alg.parameterAsCrs(parameters, "CRS", context)
+        if crs.isValid():
+            return crs
+    try:
+        from ...core.io.las import read_las_header
+
+        _, crs = read_las_header(alg.parameterAsFile(parameters, "INPUT", context))
+    except Exception:  # noqa: BLE001 - the job reports an unreadable input by its label
+        return QgsCoordinateReferenceSystem()
+    return QgsCoordinateReferenceSystem.fromWkt(crs.to_wkt()) if crs is not None else None
 
 
 class PointAccuracyAlgorithm(SlipMapAlgorithm):
@@ -271,72 +208,52 @@ class PointAccuracyAlgorithm(SlipMapAlgorithm):
     _name = "Point accuracy"
     _group = "Accuracy"
     _group_id = "accuracy"
+    spec = job.SPEC
 
     def shortHelpString(self):  # noqa: N802 (QGIS API name)
         return (
-            "Writes a copy of a point cloud with the per-point accuracy dimensions SigmaX, "
-            "SigmaY, SigmaZ (m) and, optionally, the full covariance CovXX, CovYY, CovZZ, CovXY, "
-            "CovXZ, CovYZ (m²): the a-priori point accuracy that weights the planar "
-            "registration of <i>Fault slip</i> (as the CLI's <tt>slipmap accuracy</tt>).<br>"
+            f"{job.SPEC.description}<br>"
             "<b>Input point cloud</b>: LAS/LAZ in a projected CRS (metres). <b>Model</b>: "
             "constant, axis, columns or propagated. "
             + PA_HELP
             + "<br><b>Full covariance</b>: also write the six covariance entries (default no; "
             "the propagated model has correlated axes that SigmaX/Y/Z alone lose).<br>"
             "<b>Output</b>: LAS/LAZ copy with the extra-bytes dimensions (the input is not "
-            "modified)."
+            f"modified).<br>Method: {job.CITATION}."
         )
 
     def initAlgorithm(self, config=None):  # noqa: N802 (QGIS API name)
-        self.addParameter(
-            QgsProcessingParameterFile("INPUT", "Input point cloud", fileFilter=LAS_FILTER)
-        )
+        add_parameters(self, job.SPEC, roles=("input",), skip=PA_KEYS)
         add_pa_parameters(self, {"MODEL": "Model"})
-        self.addParameter(
-            QgsProcessingParameterBoolean(
-                "FULL_COVARIANCE", "Full covariance (CovXX..CovYZ, m²)", defaultValue=False
-            )
-        )
+        add_parameters(self, job.SPEC, roles=("setting",), skip=PA_KEYS)
         self.addParameter(
             QgsProcessingParameterFileDestination(
-                "OUTPUT", "Point cloud with SigmaX/Y/Z", LAS_OUTPUT_FILTER
+                "OUTPUT", job.SPEC["output_cloud"].dialog_label, "LAS (*.las);;LAZ (*.laz)"
             )
         )
+
+    def _extra(self, parameters, context, crs=None):
+        extra = pa_values(self, parameters, context, "MODEL", crs)
+        extra["output_cloud"] = self.parameterAsFileOutput(parameters, "OUTPUT", context)
+        return extra
+
+    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
+        try:
+            extra = self._extra(parameters, context)
+        except QgsProcessingException as exc:
+            return False, str(exc)
+        ok, message = check_options(self, parameters, context, job.SPEC, extra=extra)
+        if not ok:
+            return ok, message
+        return super().checkParameterValues(parameters, context)
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
-        path = self.parameterAsFile(parameters, "INPUT", context)
-        out = self.parameterAsFileOutput(parameters, "OUTPUT", context)
-        full = self.parameterAsBoolean(parameters, "FULL_COVARIANCE", context)
-        config = pa_config(self, parameters, context)
-        progress = progress_callback(feedback)
-        with slipmap_errors():
-            import numpy as np
-
-            from ...app.pointaccuracy import covariance_matrices
-            from ...core.accuracy import covariance_to_sigmas, covariance_to_six
-            from ...core.io.atomic import check_not_input
-            from ...core.io.las import write_las
-
-            check_not_input(out, [path])
-            cloud = read_cloud(path)
-            settings = (
-                config["before"]
-                if config is not None
-                else pa_settings(self, parameters, context, "MODEL", cloud_crs(cloud))
+        extra = self._extra(parameters, context, _input_crs(self, parameters, context))
+        opts = options_from(self, parameters, context, job.SPEC, extra=extra)
+        with slipmap_errors(job.SPEC):
+            result = job.run(
+                opts, {"output_cloud": extra["output_cloud"]}, progress=progress_callback(feedback)
             )
-            progress(0.2, f"point accuracy ({settings['model']})")
-            with pa_errors():
-                cov = covariance_matrices(cloud, None, settings)
-            sig = covariance_to_sigmas(cov)
-            progress(0.6, "writing")
-            extra = {"SigmaX": sig[:, 0], "SigmaY": sig[:, 1], "SigmaZ": sig[:, 2]}
-            if full:
-                six = covariance_to_six(cov)
-                extra.update({name: six[:, k] for k, name in enumerate(COV_NAMES)})
-            write_las(out, cloud, extra_dims=extra, inputs=[path])
-        med = np.median(sig, axis=0)
-        feedback.pushInfo(
-            f"point accuracy ({settings['model']}): median sigma x {med[0]:.4f}, "
-            f"y {med[1]:.4f}, z {med[2]:.4f} m; wrote {out}"
-        )
-        return {"OUTPUT": out}
+        for line in result.lines:
+            feedback.pushInfo(line)
+        return {"OUTPUT": str(result.files["output_cloud"])}

@@ -547,7 +547,7 @@ def test_pointaccuracy_scanner_file_missing_is_clear(provider, small_cloud, tmp_
                 "SCANNER_POSITION": f"{ORIGIN[0]},{ORIGIN[1]} [EPSG:32610]",
             },
         )
-    assert "SCANNER_FILE" in str(raised.value)
+    assert "Scanner specification file (JSON)" in str(raised.value)
 
 
 def test_point_cloud_layer_id_resolves_to_its_file(provider, monkeypatch, tmp_path):
