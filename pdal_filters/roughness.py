@@ -6,51 +6,25 @@ Pipeline stage (the script is ``slipmap_stages.py``, see :mod:`slipmap.pdal_filt
      "module": "slipmap_roughness", "function": "roughness", "add_dimension": "Roughness",
      "pdalargs": {"cell": 0.5, "method": "odr"}}
 
-Each point view gets :func:`slipmap.core.roughness.grid_roughness` on cubic cells of ``cell``
-metres, and each point its cell's value (:func:`slipmap.core.roughness.roughness_per_point`):
+The roughness job (:mod:`slipmap.app.roughness`) on each point view: the grid of cubic cells
+of ``cell`` metres (the first value when several are given) and each point its cell's value:
 ``theta_odr`` (``method`` "odr") or ``theta_ols`` ("ols"); NaN for points in cells with fewer
 than ``min_points`` points or degenerate cells. Options: :func:`options_table`, docs/pdal.md.
 """
 
 import numpy as np
 
+from slipmap.app.roughness import SPEC, compute, per_point
 from slipmap.pdal_filters import _stage
-from slipmap.pdal_filters._stage import Option, OptionTable
+from slipmap.pdal_filters._stage import OptionTable
 
 STAGE = "slipmap roughness"
 OUTPUTS = {"Roughness": "float64"}
 
 
 def options_table() -> OptionTable:
-    """The stage's options (docs/pdal.md)."""
-    return OptionTable(
-        STAGE,
-        [
-            Option("cell", "float", 0.5, "Cubic cell edge (m).", minimum=0, exclusive=True),
-            Option(
-                "method",
-                "choice",
-                "odr",
-                "Roughness written: ODR plane (Eq. 4) or OLS plane along `ols_axis`.",
-                choices=("odr", "ols"),
-            ),
-            Option(
-                "signed",
-                "bool",
-                False,
-                "false: std of absolute distances (as published); true: of signed distances.",
-            ),
-            Option("min_points", "int", 10, "Cells with fewer points get NaN.", minimum=3),
-            Option(
-                "ols_axis",
-                "choice",
-                "auto",
-                "Dependent axis of the OLS plane (`auto`: closest to the cloud's normal, as "
-                "the CLI and QGIS).",
-                choices=("x", "y", "z", "auto"),
-            ),
-        ],
-    )
+    """The stage's options (docs/pdal.md): the roughness job's."""
+    return OptionTable.from_spec(STAGE, SPEC)
 
 
 TABLE = options_table()
@@ -63,23 +37,17 @@ def outputs(opts):
 
 def run(ins, outs, *, opts, inputs):
     """Roughness per point into ``outs``; returns the metadata node."""
+    job_opts = _stage.job_options(SPEC, opts)
     n = _stage.n_points(ins)
     values = np.full(n, np.nan)
     children = [_stage.metadata_node("n_points", n)]
     if n > 0:
-        from slipmap.core.roughness import grid_roughness, roughness_per_point
-
         pts = _stage.points_from(ins, STAGE)
-        grid = grid_roughness(
-            pts,
-            cell_size_m=opts["cell"],
-            min_points=opts["min_points"],
-            ols_axis=opts["ols_axis"],
-            signed=opts["signed"],
-        )
-        values = roughness_per_point(pts, grid, value="theta_" + opts["method"])
+        res = compute(pts, {**job_opts, "cell_sizes_m": job_opts["cell_sizes_m"][:1]})
+        grid = res.grids[0]
+        values = per_point(pts, grid, job_opts["method"])
         children += [
-            _stage.metadata_node("method", opts["method"]),
+            _stage.metadata_node("method", job_opts["method"]),
             _stage.metadata_node("n_cells", len(grid)),
             _stage.metadata_node("n_cells_skipped", grid.n_cells_skipped),
             _stage.metadata_node("cell_size_m", float(grid.cell_size_m)),
