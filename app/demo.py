@@ -1,15 +1,16 @@
 """``slipmap demo``: the main job on an embedded case, compared with the truth.
 
 The default job (:func:`run_slip_demo`) writes two synthetic MLS epochs across a fault, with
-correlated survey error (trajectory drift), as LAZ files and runs ``slipmap displacement`` on
-them; ``--job planes`` (:func:`run_planes_demo`) runs planar segmentation on a seeded synthetic
-MLS-like scene (buildings with flat and gable roofs, ground, trees) placed at UTM coordinates,
-written as a LAZ file and read back as a user's file would be.
+correlated survey error (trajectory drift), as LAZ files and runs the slip job
+(:func:`slipmap.app.slip.run`) on them; ``--job planes`` (:func:`run_planes_demo`) runs the
+planes job (:func:`slipmap.app.planes.run`) on a seeded synthetic MLS-like scene (buildings
+with flat and gable roofs, ground, trees) placed at UTM coordinates, written as a LAZ file and
+read back as a user's file would be. Both call the jobs directly: a failure is an exception
+with its message, not an exit code.
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,13 +18,41 @@ from typing import List, Optional
 
 import numpy as np
 
-from .core.progress import ProgressCallback, scaled
+from ..core.progress import ProgressCallback, scaled
+from .options import JobSpec, Option
 
 log = logging.getLogger("slipmap.demo")
 
 DEMO_ORIGIN = (498_000.0, 4_234_000.0, 20.0)  # UTM zone 10N, near the Napa study area
 DEMO_EPSG = 32610
 DEMO_DRIFT_M = 0.003  # σ of the MLS trajectory drift of each epoch (correlated survey error)
+
+SPEC = JobSpec(
+    name="demo",
+    title="Demo",
+    description="run the main job (fault slip) on an embedded case and compare with the truth",
+    options=(
+        Option(
+            "out",
+            "path",
+            "output folder (created when missing)",
+            label="Output folder",
+            default="demo_output",
+            role="output",
+            metavar="DIR",
+            qgis=None,
+            pdal=None,
+        ),
+        Option("seed", "int", "seed of the synthetic scene", default=2019, minimum=0),
+        Option(
+            "job",
+            "choice",
+            "slip: two epochs across a fault; planes: segmentation of one scene",
+            default="slip",
+            choices=("slip", "planes"),
+        ),
+    ),
+)
 
 
 @dataclass
@@ -55,14 +84,14 @@ class DemoSummary:
 def run_planes_demo(
     out_dir: Path, *, seed: int = 2019, progress: Optional[ProgressCallback] = None
 ) -> DemoSummary:
-    """Write a synthetic scene, segment it through the CLI path and score it against truth."""
+    """Write a synthetic scene, segment it with the planes job and score it against truth."""
     import pyproj
 
-    from .cli.legacy import run_planes_on_cloud
-    from .core.evaluation import score_segmentation
-    from .core.io.atomic import ensure_output_dir
-    from .core.io.las import PointCloud, read_las, write_las
-    from .core.synthetic import make_scene
+    from ..core.evaluation import score_segmentation
+    from ..core.io.atomic import ensure_output_dir
+    from ..core.io.las import PointCloud, read_las, write_las
+    from ..core.synthetic import make_scene
+    from . import planes
 
     out_dir = ensure_output_dir(out_dir)
     scene = make_scene("mls", seed=seed, origin=DEMO_ORIGIN)
@@ -75,29 +104,22 @@ def run_planes_demo(
     write_las(scene_path, cloud, extra_dims={"TruthSurface": scene.labels.astype(np.int32)})
     log.info("wrote the synthetic scene to %s", scene_path)
 
-    args = argparse.Namespace(
-        classes=None,
-        exclude_classes=[],  # keep ground: it is a true plane of the scene
-        min_node_size=None,
-        planarity_threshold=None,
-        planarity_ratio=None,
-        angle_threshold=None,
-        distance_threshold=None,
-        min_points=None,
-        min_leaf_points=None,
-        backend="numpy",
-        quiet=progress is None,
+    # keep ground ("none" excluded): it is a true plane of the scene
+    opts = planes.SPEC.parse(
+        {"input": str(scene_path), "out": str(out_dir), "exclude_classes": "none"}
     )
     read = read_las(scene_path)
-    planes, labels, payload = run_planes_on_cloud(
-        read, args, out_dir, progress=scaled(progress, 0, 1)
-    )
+    result = planes.run(opts, {"out": out_dir}, cloud=read, progress=scaled(progress, 0, 1))
+    for line in result.lines:
+        log.info("%s", line)
+    found, labels = result.data
+    payload = result.summary
     truth = read.attributes["TruthSurface"]
     scores = score_segmentation(truth, labels)
     return DemoSummary(
         out_dir=out_dir,
         n_points=len(read),
-        n_planes=len(planes),
+        n_planes=len(found),
         recall=scores.recall,
         precision=scores.precision,
         purity=scores.purity,
@@ -176,22 +198,22 @@ class SlipDemoSummary:
 def run_slip_demo(
     out_dir: Path, *, seed: int = 2019, progress: Optional[ProgressCallback] = None
 ) -> SlipDemoSummary:
-    """Two epochs with 18.1 mm of dextral slip (the study's NLOD value), through the CLI path:
+    """Two epochs with 18.1 mm of dextral slip (the study's NLOD value), through the slip job:
     LAZ files and a fault trace in WGS 84 (reprojected on reading).
 
     Each epoch carries 3 mm of MLS trajectory drift (correlated along the drive path, an
     independent draw per epoch), so the recovered slip is off by a few millimetres: the
     full stochastic model's σ covers that, the white-noise σ beside it does not. The LAZ
-    files carry PointSourceId (the pass) and GpsTime, which ``--units auto`` reads."""
+    files carry PointSourceId (the pass) and GpsTime, which the units option (auto) reads."""
     import json
 
     import pyproj
 
-    from .app.summaries import side_component_line
-    from .cli import main as cli_main
-    from .core.io.atomic import ensure_output_dir, write_text_atomic
-    from .core.io.las import PointCloud, write_las
-    from .core.synthetic import SurveyError, make_fault_pair
+    from ..core.io.atomic import ensure_output_dir, write_text_atomic
+    from ..core.io.las import PointCloud, write_las
+    from ..core.synthetic import SurveyError, make_fault_pair
+    from . import slip
+    from .summaries import side_component_line
 
     out_dir = ensure_output_dir(out_dir)
     truth = 0.0181
@@ -213,7 +235,7 @@ def run_slip_demo(
         ("after", pair.after, pair.source_after, pair.gps_time_after),
     ):
         p = out_dir / f"demo_{name}.laz"
-        # PointSourceId = the MLS pass: `slipmap displacement --units auto` reads the units
+        # PointSourceId = the MLS pass: the slip job's units option (auto) reads the units
         attributes = {"Classification": scene.classification}
         if source is not None:
             attributes["PointSourceId"] = source
@@ -237,22 +259,20 @@ def run_slip_demo(
         ],
     }
     write_text_atomic(fault, json.dumps(geo))
-    argv = [
-        str(paths[0]),
-        str(paths[1]),
-        "--fault",
-        str(fault),
-        "--out",
-        str(out_dir),
-        "--sigma",
-        "0.02",
-    ]
-    rc = cli_main((["-q"] if progress is None else []) + ["displacement"] + argv)
-    if rc != 0:
-        from .core.errors import SlipMapError
-
-        raise SlipMapError(f"the displacement job failed (exit code {rc})")
-    summary = json.loads((out_dir / "displacement.json").read_text())
+    opts = slip.SPEC.parse(
+        {
+            "before": str(paths[0]),
+            "after": str(paths[1]),
+            "fault": str(fault),
+            "out": str(out_dir),
+            "sigma_m": 0.02,
+        }
+    )
+    result = slip.run(opts, {"out": out_dir}, progress=progress)
+    for line in result.lines:
+        log.info("%s", line)
+    log.info("wrote %s", ", ".join(p.name for p in result.files.values()))
+    summary = result.summary
     rel = summary["relative"]
     files = [paths[0], paths[1], fault, out_dir / "displacement.json"]
     files += [out_dir / f for f in ("displacement.gpkg", "report.html") if (out_dir / f).exists()]

@@ -225,6 +225,9 @@ class Option:
             for c in self.choices:  # case-insensitive; the choice as the table spells it
                 if v == str(c) or v.lower() == str(c).lower():
                     return c
+            for c in self.choices:  # "gps-time" or "gps_time" for GpsTime
+                if _squeezed(v) == _squeezed(str(c)):
+                    return c
             raise OptionError(
                 self.key, f"must be one of {', '.join(map(str, self.choices))}; got {value!r}"
             )
@@ -313,6 +316,11 @@ def _as_list(value: Any, key: str) -> list:
         return [value]
 
 
+def _squeezed(text: str) -> str:
+    """``text`` lower case without ``-`` and ``_`` (choices spelled as a face spells them)."""
+    return text.lower().replace("-", "").replace("_", "")
+
+
 def _check_crs(key: str, text: str) -> str:
     """``text`` if pyproj reads it as a CRS (the text is kept: faces store it as given)."""
     try:
@@ -346,6 +354,8 @@ def _key_values(key: str, value: Any, *, plain_text: bool) -> Dict[str, Any]:
                 name, sep, val = part.partition("=")
                 if not sep or not name.strip() or not val.strip():
                     raise OptionError(key, f"must be name=value pairs, got {value!r}")
+                if name.strip() in pairs:
+                    raise OptionError(key, f"{name.strip()} is given twice")
                 pairs[name.strip()] = val.strip()
             value = pairs
     if not isinstance(value, Mapping):

@@ -12,8 +12,8 @@ from typing import Mapping, Sequence, Tuple
 
 import numpy as np
 
-from .errors import DependencyError, InvalidParameterError
-from .io.atomic import PathLike, atomic_path
+from ..core.errors import DependencyError, InvalidParameterError
+from ..core.io.atomic import PathLike, atomic_path
 
 __all__ = [
     "plot_normals_polar",

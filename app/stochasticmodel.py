@@ -290,3 +290,144 @@ def log_units(epoch: str, units: EpochUnits) -> None:
         log.info("%s: no acquisition units (%s)", epoch, units.note)
     else:
         log.info("%s: %d acquisition unit(s) from %s", epoch, units.n_units, units.source)
+
+
+# --------------------------------------------------------------------------- job options
+
+GROUP = "stochastic model (the slip's σ; variance components estimated by REML)"
+#: how the CLI spells the unit sources (its historical flags); every face accepts any spelling
+CLI_UNITS = "{auto,point-source-id,gps-time,none}"
+
+
+def stochastic_options(*, group: str = GROUP) -> tuple:
+    """The stochastic-model options of the slip job, declared once for every face."""
+    from .options import Option
+
+    return (
+        Option(
+            "stochastic_model",
+            "choice",
+            "; ".join(f"{m}: {MODEL_HELP[m]}" for m in MODELS),
+            label="Stochastic model",
+            default=DEFAULT_MODEL,
+            choices=MODELS,
+            group=group,
+        ),
+        Option(
+            "units",
+            "choice",
+            UNITS_HELP,
+            label="Acquisition units",
+            default="auto",
+            choices=UNIT_SOURCES,
+            group=group,
+            metavar=CLI_UNITS,
+        ),
+        Option(
+            "gps_gap_s",
+            "float",
+            "with GpsTime units: a new unit starts where consecutive GPS times jump by more "
+            f"than this, seconds (default {DEFAULT_GPS_GAP_S:g})",
+            label="GPS gap between acquisition units (s)",
+            default=DEFAULT_GPS_GAP_S,
+            minimum=0,
+            exclusive=True,
+            group=group,
+            advanced=True,
+            metavar="S",
+        ),
+        Option(
+            "fixed_components",
+            "keyvalues",
+            "plane-level components held fixed instead of estimated, NAME=SIGMA_M: plane, "
+            "spatial, unit_before, unit_after (σ in metres) or spatial_range_m (metres), e.g. "
+            "plane=0.002,unit_after=0.003",
+            label="Fixed components (name=sigma_m, …)",
+            group=group,
+            advanced=True,
+            cli="--fixed-component",
+            qgis="FIXED_COMPONENTS",
+            metavar="NAME=SIGMA_M",
+            unset_text="none",
+        ),
+    )
+
+
+def check_stochastic(opts: Mapping[str, Any]) -> Dict[str, float]:
+    """Cross-option check of :func:`stochastic_options`; returns the fixed components
+    ``{name: metres}`` (empty when none).
+
+    Raises
+    ------
+    OptionError
+        Bad fixed components, or fixed components with the white model.
+    """
+    from .options import OptionError
+
+    value = opts.get("fixed_components")
+    try:
+        fixed = fixed_components_or_error(value) if value else {}
+    except ValueError as exc:
+        raise OptionError("fixed_components", str(exc)) from None
+    if fixed and opts.get("stochastic_model") == "white":
+        raise OptionError(
+            "fixed_components",
+            "the white model has no plane-level components; set {stochastic_model} to plane "
+            "or full",
+            also=("stochastic_model",),
+        )
+    return fixed
+
+
+def units_for_job(opts: Mapping[str, Any], epochs: Mapping[str, Any]) -> tuple:
+    """The acquisition units of each epoch for the slip job, and what was used (the JSON's
+    ``acquisition_unit_sources``).
+
+    Parameters
+    ----------
+    opts
+        The job's options (``stochastic_model``, ``units``, ``gps_gap_s``).
+    epochs
+        ``{"before": (label, PointSourceId or None, GpsTime or None), "after": ...}``: the
+        epoch as messages name it and its selected points' dimensions.
+
+    Returns
+    -------
+    (dict, dict)
+        ``{"before": EpochUnits, "after": EpochUnits}`` and the record.
+
+    Raises
+    ------
+    OptionError
+        An explicit source the epoch lacks, naming ``units`` and the epoch.
+    """
+    from .options import OptionError
+
+    model, how = opts.get("stochastic_model", DEFAULT_MODEL), opts.get("units", "auto")
+    record: Dict[str, Any] = {"units_option": how}
+    out: Dict[str, EpochUnits] = {}
+    if model != "full":
+        if how not in ("auto", "none"):
+            log.warning("the units option (%s) is not used by the %s model", how, model)
+        for epoch in epochs:
+            out[epoch] = EpochUnits(None, "none", 0, f"not used by the {model} model")
+        return out, record
+    if how == "GpsTime":
+        record["gps_gap_s"] = opts.get("gps_gap_s", DEFAULT_GPS_GAP_S)
+    for epoch, (label, psid, gps) in epochs.items():
+        try:
+            u = epoch_units(
+                how,
+                point_source_id=psid,
+                gps_time=gps,
+                gap_s=opts.get("gps_gap_s", DEFAULT_GPS_GAP_S),
+                epoch=label,
+                option="{units}",
+            )
+        except (InvalidParameterError, InputDataError) as exc:
+            text = str(exc).removeprefix("{units} ")
+            raise OptionError("units", text, also=("units",)) from None
+        log_units(label, u)
+        out[epoch] = u
+        record[epoch] = u.to_dict()
+    return out, record

@@ -23,7 +23,7 @@ from ._args import COMMANDS, cli_error
 log = logging.getLogger("slipmap")
 
 #: modules that register commands, in the order of ``slipmap --help``
-_MODULES = ("planes", "legacy", "roughness", "accuracy", "fields")
+_MODULES = ("planes", "slip", "roughness", "accuracy", "fields", "demo")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
@@ -37,6 +37,42 @@ log = logging.getLogger(__name__)
 
 SIDES = ("left", "right")
 COMBINE_MODES = ("joint", "tiles")
+
+
+def strike_axes(strike_rad: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit vectors (3,) of the fault frame: along the strike ``(sin s, cos s, 0)``, normal to
+    it towards the right side ``(cos s, -sin s, 0)``, and up ``(0, 0, 1)``."""
+    s, c = math.sin(strike_rad), math.cos(strike_rad)
+    return np.array([s, c, 0.0]), np.array([c, -s, 0.0]), np.array([0.0, 0.0, 1.0])
+
+
+def fault_frame(displacement, covariance, strike_rad: float) -> Dict[str, float]:
+    """A displacement in the fault frame, with its 1σ.
+
+    Parameters
+    ----------
+    displacement : (3,) float64
+        dx, dy, dz, metres.
+    covariance : (3, 3) float64
+        Its covariance, m².
+    strike_rad : float
+        Strike of the trace (clockwise from north), radians.
+
+    Returns
+    -------
+    dict
+        ``fault_parallel``, ``sigma_fault_parallel``, ``fault_normal``, ``sigma_fault_normal``,
+        ``dz``, ``sigma_dz`` (metres; NaN where the input is not finite).
+    """
+    d = np.asarray(displacement, dtype=np.float64)
+    c = np.asarray(covariance, dtype=np.float64)
+    out: Dict[str, float] = {}
+    for name, j in zip(("fault_parallel", "fault_normal", "dz"), strike_axes(strike_rad)):
+        v = float(j @ d)
+        var = float(j @ c @ j)
+        out[name] = v
+        out["sigma_" + name] = math.sqrt(max(var, 0.0)) if math.isfinite(var) else math.nan
+    return out
 
 
 @dataclass(frozen=True)
@@ -76,6 +112,22 @@ class TileResult:
     def adjusted(self) -> bool:
         return self.status == "ok"
 
+    def fault_frame(self, strike_rad: float) -> Dict[str, float]:
+        """The tile's own motion in the fault frame (:func:`fault_frame`); NaN when the tile
+        was not adjusted."""
+        if not self.adjusted:
+            return {k: math.nan for k in _FRAME_KEYS}
+        return fault_frame(self.displacement, self.covariance, strike_rad)
+
+
+_FRAME_KEYS = (
+    "fault_parallel",
+    "sigma_fault_parallel",
+    "fault_normal",
+    "sigma_fault_normal",
+    "dz",
+    "sigma_dz",
+)
 
 #: points enter the adjustment only from octree leaves with at least this share of points on
 #: their plane: leaves at edges and corners hold points of the adjoining surface, whose
@@ -100,6 +152,12 @@ class SideResult:
         With ``combine="tiles"``: the information-weighted mean of the tile displacements and
         its covariance (metres, m²); None otherwise. :attr:`displacement` returns it when set,
         else ``rigid.displacement``.
+    plane_mean_residual_m : (P,) float64 or None
+        Mean misclosure of each matched plane's after-epoch points, metres.
+    before_index, after_index : (K1,), (K2,) int64 or None
+        Indices of the side's points into the epochs given to :func:`estimate_slip` (the
+        points ``planes_before.labels`` / ``planes_after.labels`` label); None when the
+        result was not made from whole arrays (tiled inputs).
     """
 
     side: str
@@ -110,6 +168,8 @@ class SideResult:
     combined_displacement: Optional[np.ndarray] = None
     combined_covariance: Optional[np.ndarray] = None
     plane_mean_residual_m: Optional[np.ndarray] = None
+    before_index: Optional[np.ndarray] = None
+    after_index: Optional[np.ndarray] = None
 
     @property
     def displacement(self) -> np.ndarray:
@@ -273,6 +333,49 @@ class SlipResult:
             "relative_scale": abs(delta) / 2.0 / (s0 * norm) if norm > 0 else float("inf"),
         }
 
+    def point_planes(self, points: np.ndarray, epoch: str) -> Tuple[np.ndarray, np.ndarray]:
+        """Each point's plane and signed distance to it, for one epoch.
+
+        Parameters
+        ----------
+        points : (N, 3) float64
+            The epoch's points as given to :func:`estimate_slip`, metres.
+        epoch : {"before", "after"}
+
+        Returns
+        -------
+        labels : (N,) int32
+            The point's plane in its side's segmentation of this epoch (ids per side and
+            epoch: both sides start at 0); -1 for points in no plane or inside the buffer.
+        residual : (N,) float64
+            Signed orthogonal distance ``n . p + d`` to that plane, metres; NaN where the
+            label is -1.
+
+        Raises
+        ------
+        InvalidParameterError
+            ``epoch`` is neither, or the result holds no point indices (tiled inputs).
+        """
+        if epoch not in ("before", "after"):
+            raise InvalidParameterError(f"epoch must be 'before' or 'after', got {epoch!r}")
+        pts = np.asarray(points, dtype=np.float64)
+        n = pts.shape[0]
+        labels = np.full(n, -1, dtype=np.int32)
+        residual = np.full(n, np.nan)
+        for side in (self.left, self.right):
+            ix = getattr(side, f"{epoch}_index")
+            ps = getattr(side, f"planes_{epoch}")
+            if ix is None:
+                raise InvalidParameterError(
+                    "this slip result holds no per-point indices (tiled inputs)"
+                )
+            lab = np.asarray(ps.labels, dtype=np.int32)
+            labels[ix] = lab
+            on = lab >= 0
+            k = lab[on]
+            residual[ix[on]] = np.einsum("ij,ij->i", pts[ix[on]], ps.normals[k]) + ps.offsets[k]
+        return labels, residual
+
     def to_dict(self) -> Dict[str, object]:
         return {
             "left": self.left.to_dict(),
@@ -283,15 +386,20 @@ class SlipResult:
                 "buffer_m": float(self.buffer_m),
             },
             "parameters": dict(self.parameters),
-            **({"tiles": [_tile_dict(t) for t in self.tiles]} if self.tiles else {}),
+            **(
+                {"tiles": [_tile_dict(t, self.strike_rad) for t in self.tiles]}
+                if self.tiles
+                else {}
+            ),
             "note": "displacements in metres, rotations in radians; each side's displacement "
             "is the motion of the material at that side's centroid (first to second epoch)",
         }
 
 
-def _tile_dict(t: TileResult) -> Dict[str, object]:
+def _tile_dict(t: TileResult, strike_rad: float) -> Dict[str, object]:
     adjusted = t.status == "ok"
     sig = np.sqrt(np.diag(t.covariance)) if adjusted else np.full(3, np.nan)
+    frame = t.fault_frame(strike_rad)
     return {
         "side": t.side,
         "ix": int(t.ix),
@@ -304,6 +412,10 @@ def _tile_dict(t: TileResult) -> Dict[str, object]:
         "sigma_dx": float(sig[0]) if adjusted else None,
         "sigma_dy": float(sig[1]) if adjusted else None,
         "sigma_dz": float(sig[2]) if adjusted else None,
+        "fault_parallel": frame["fault_parallel"] if adjusted else None,
+        "sigma_fault_parallel": frame["sigma_fault_parallel"] if adjusted else None,
+        "fault_normal": frame["fault_normal"] if adjusted else None,
+        "sigma_fault_normal": frame["sigma_fault_normal"] if adjusted else None,
         "status": t.status,
     }
 
@@ -873,6 +985,11 @@ def estimate_slip(
                 before[mb], after[ma], tile_size_m=tile_size_m, combine=combine, **kw
             )
             tiles.extend(tl)
+    for side in SIDES:  # which input points each side's labels refer to
+        mb, ma = masks[side]
+        results[side] = replace(
+            results[side], before_index=np.flatnonzero(mb), after_index=np.flatnonzero(ma)
+        )
     left, right = results["left"], results["right"]
     rel = right.displacement - left.displacement
     cov = right.displacement_covariance + left.displacement_covariance
@@ -945,6 +1062,11 @@ class StripResult:
         two added (white model, right-side strips), or for a left-side strip under a
         stochastic model ``C_strip − C_left`` floored at ``C_strip / 4`` (see
         :func:`strip_profile`). NaN when skipped.
+    relative_displacement : (3,) float64
+        ``displacement`` minus the left side's global displacement, metres (NaN when
+        skipped).
+    strike_rad : float
+        The trace's mean strike, radians (the frame of :meth:`fault_frame`).
     """
 
     side: str
@@ -958,6 +1080,20 @@ class StripResult:
     sigma_fault_parallel: float
     status: str
     relative_covariance: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    relative_displacement: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    strike_rad: float = math.nan
+
+    def fault_frame(self) -> Dict[str, float]:
+        """The strip's motion relative to the left side's global motion in the fault frame
+        (:func:`fault_frame` of :attr:`relative_displacement` and
+        :attr:`relative_covariance`); ``fault_parallel`` and its σ are the strip's own
+        fields. NaN when skipped."""
+        if self.status != "ok" or not math.isfinite(self.strike_rad):
+            return {k: math.nan for k in _FRAME_KEYS}
+        out = fault_frame(self.relative_displacement, self.relative_covariance, self.strike_rad)
+        out["fault_parallel"] = float(self.fault_parallel)
+        out["sigma_fault_parallel"] = float(self.sigma_fault_parallel)
+        return out
 
 
 def _strike_vector(slip: SlipResult) -> np.ndarray:
@@ -1075,6 +1211,8 @@ def strip_profile(
                 sigma_fault_parallel=sfp,
                 status=status,
                 relative_covariance=rel_c,
+                relative_displacement=np.asarray(d, dtype=np.float64) - ref_d,
+                strike_rad=float(slip.strike_rad),
             )
         )
         report(progress, (n + 1) / len(jobs), f"strip {n + 1}/{len(jobs)}")
@@ -1139,6 +1277,10 @@ class WindowField:
         Matched planes whose before-epoch centroid lies in the window (of the centre's side).
     side : (ny, nx) int8
         Side of the window centre: -1 left, +1 right, 0 on the trace.
+    strike_rad : float
+        The trace's mean strike, radians (the direction of :attr:`fault_parallel`).
+    sigma_fault_parallel : (ny, nx) float64 or None
+        1σ of :attr:`fault_parallel` from the window's relative covariance, metres.
     """
 
     x0: float
@@ -1152,6 +1294,14 @@ class WindowField:
     sigma_dy: np.ndarray
     n_planes: np.ndarray
     side: np.ndarray
+    strike_rad: float = math.nan
+    sigma_fault_parallel: Optional[np.ndarray] = None
+
+    @property
+    def fault_parallel(self) -> np.ndarray:
+        """(ny, nx) component of (dx, dy) along the trace's mean strike, metres (negative =
+        dextral for right-side windows)."""
+        return math.sin(self.strike_rad) * self.dx + math.cos(self.strike_rad) * self.dy
 
     @property
     def shape(self) -> Tuple[int, int]:
@@ -1270,7 +1420,11 @@ def window_field(
     cside = fault_geometry(np.column_stack([cx.ravel(), cy.ravel()]), trace).side.reshape(ny, nx)
 
     shape = (ny, nx)
-    out = {k: np.full(shape, np.nan) for k in ("dx", "dy", "dz", "sigma_dx", "sigma_dy")}
+    out = {
+        k: np.full(shape, np.nan)
+        for k in ("dx", "dy", "dz", "sigma_dx", "sigma_dy", "sigma_fault_parallel")
+    }
+    jp = _strike_vector(slip)
     nplanes = np.zeros(shape, dtype=np.int64)
     ref_d, ref_c = slip.left.displacement, slip.left.displacement_covariance
     half = size / 2
@@ -1320,6 +1474,7 @@ def window_field(
             out["dx"][r, c], out["dy"][r, c], out["dz"][r, c] = disp
             out["sigma_dx"][r, c] = math.sqrt(max(rel_c[0, 0], 0.0))
             out["sigma_dy"][r, c] = math.sqrt(max(rel_c[1, 1], 0.0))
+            out["sigma_fault_parallel"][r, c] = math.sqrt(max(float(jp @ rel_c @ jp), 0.0))
     log.info(
         "window field: %d x %d windows of %g m stepped %g m, %d adjusted",
         ny,
@@ -1335,5 +1490,6 @@ def window_field(
         window_size_m=size,
         n_planes=nplanes,
         side=cside.astype(np.int8),
+        strike_rad=float(slip.strike_rad),
         **out,
     )

@@ -25,7 +25,7 @@ test oracle.
 
 Maps, histograms and semivariograms of the per-cell values are in this module too
 (:func:`choose_map_plane`, :func:`rasterize_cells`, :func:`semivariogram_raster`); writing them
-to files is the adapters' job (``core.io.raster``, ``core.report``).
+to files is the adapters' job (``core.io.raster``, ``app.report``).
 
 All coordinates are metres (or the input CRS unit); every covariance is computed on coordinates
 relative to the cell centre, so survey coordinates with 1e5-1e6 m offsets keep full precision.

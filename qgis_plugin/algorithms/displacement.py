@@ -655,7 +655,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         """The JSON summary and the HTML report (with PNG plots beside it when matplotlib is
         there); returns both paths."""
         from ...core.errors import DependencyError
-        from ...core.report import write_html_report
+        from ...app.report import write_html_report
 
         summary, payload, result = opts["summary"], run["payload"], run["result"]
         write_json(summary, payload)  # json_safe: NaN written as null
@@ -794,7 +794,7 @@ def _plots(stem, result, strips):
     """Residual, normal and strip-profile PNGs beside the report; their relative names."""
     import os
 
-    from ...core.report import (
+    from ...app.report import (
         plot_normals_polar,
         plot_plane_residual_polar,
         plot_residual_histograms,

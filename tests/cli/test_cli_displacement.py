@@ -418,7 +418,8 @@ def test_units_gps_time_segments_nest_in_the_passes(drift_files, tmp_path):
     assert _run(paths, fault, out, "--units", "gps-time", "--gps-gap", "2") == 0
     js = json.loads((out / "displacement.json").read_text())
     acq = js["parameters"]["acquisition_unit_sources"]
-    assert acq["units_option"] == "gps-time" and acq["gps_gap_s"] == 2.0
+    # the options' own spelling of the choice (every face records the same)
+    assert acq["units_option"] == "GpsTime" and acq["gps_gap_s"] == 2.0
     segs = []
     for p in paths:
         c = read_las(p)
@@ -451,7 +452,7 @@ def test_units_none_and_white_model(drift_files, tmp_path, capsys):
     assert js["parameters"]["stochastic_model"] == "white"
     assert "variance_components" not in js["left"]
     assert "sigma_fault_parallel_white" not in js["relative"]
-    assert "--units gps-time is not used by --stochastic-model white" in logs
+    assert "units option (GpsTime) is not used by the white model" in logs
     assert "white noise only" not in logs
     core, _, _ = _core_on_files(fault, paths, stochastic_model="white")
     assert js["relative"]["sigma_fault_parallel"] == pytest.approx(
@@ -485,7 +486,7 @@ def test_gps_time_units_on_a_file_without_gps_time_is_exit_2(drift_files, tmp_pa
     assert rc == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
-    assert "--units gps-time" in err[0] and "after epoch (after_pf0.las)" in err[0]
+    assert "--units: GpsTime" in err[0] and "after epoch (after_pf0.las)" in err[0]
     assert "no GpsTime dimension" in err[0]
     assert not (out / "displacement.json").exists()
 

@@ -11,7 +11,7 @@ import pytest
 from slipmap.core.errors import InputDataError
 from slipmap.core.fields import _axis_lattice
 from slipmap.core.io.table import write_csv_columns
-from slipmap.core.report import write_html_report
+from slipmap.app.report import write_html_report
 
 
 def test_csv_numbers_from_numpy_scalars(tmp_path):

@@ -1,0 +1,869 @@
+"""Job ``displacement``: fault slip between two epochs by planar registration on each side of a
+fault trace (Kusari et al. 2019, sections II-IV).
+
+The options are declared once in :data:`SPEC` (the CLI's ``slipmap displacement``, QGIS's
+``slipmap:displacement``, the PDAL ``displacement`` stage); :func:`compute` is the
+computation on arrays (used by PDAL), :func:`run` reads both epochs and the trace, selects
+the points, computes and writes ``displacement.json``, the GeoPackage, the window rasters,
+the figures and ``report.html`` through an :class:`~.outputs.OutputPlan`.
+
+The layers' columns (:func:`plane_columns`, :func:`tile_columns`, :func:`strip_columns`,
+:func:`window_bands`) carry the fault-frame components and their σ that
+:mod:`slipmap.core.displacement` gives, so every face writes the same attributes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
+
+import numpy as np
+
+from .._version import __version__
+from ..core.errors import SlipMapError
+from . import pointaccuracy as pa
+from .inputs import (
+    cloud_option,
+    crs_option,
+    out_dir_option,
+    read_epoch_pair,
+    select_points,
+    selection_options,
+)
+from .job import JobResult, Progress, scaled
+from .options import JobSpec, Option, OptionError
+from .outputs import OutputPlan
+from .planes import core_kwargs as plane_kwargs
+from .planes import plane_options
+from .stochasticmodel import check_stochastic, stochastic_options, units_for_job
+from .summaries import json_safe, slip_summary_lines, stochastic_tables, strip_rows
+
+log = logging.getLogger("slipmap.app")
+
+CITATION = (
+    "Kusari, Glennie, Brooks and Ericksen (2019), Precise registration of laser mapping data "
+    "by planar feature extraction for deformation monitoring, IEEE TGRS 57(6): sections II-III "
+    "(tiles, strips: Fig. 5; windows: Fig. 11)"
+)
+_TSW = "tiles, strips and windows"
+_MATCH = "plane matching"
+#: bands of the windows GeoTIFF (``windows.tif``; QGIS's WINDOWS output)
+WINDOW_BANDS = (
+    "fault_parallel_m",
+    "dx_m",
+    "dy_m",
+    "dz_m",
+    "sigma_dx_m",
+    "sigma_dy_m",
+    "n_planes",
+)
+
+
+def _length(key, help_, label, *, group=_TSW, **kw) -> Option:
+    return Option(
+        key, "float", help_, label=label, minimum=0, exclusive=True, group=group, metavar="M", **kw
+    )
+
+
+def _pa_rows() -> Tuple[Option, ...]:
+    """The point-accuracy options; in PDAL a per-epoch σ and per-point σ dimensions only (the
+    models that read files need the whole cloud)."""
+    rows = []
+    for o in pa.pa_options():
+        pdal = "sigma_dimensions" if o.key == "sigma_columns" else None
+        rows.append(replace(o, pdal=pdal))
+    return (
+        *rows,
+        Option(
+            "pa_model_after",
+            "choice",
+            "point-accuracy model of the after epoch when it differs from the before epoch's",
+            label="Point accuracy, after",
+            choices=pa.MODELS,
+            cli=None,
+            qgis=None,  # QGIS shows one model per epoch (PA_BEFORE, PA_AFTER)
+            pdal=None,
+            unset_text="the before epoch's",
+        ),
+        Option(
+            "sigma_before_m",
+            "float",
+            "point accuracy of the first epoch, 1 sigma (m)",
+            label="Sigma, before epoch (m)",
+            default=None,
+            minimum=0,
+            exclusive=True,
+            cli=None,
+            qgis=None,
+            pdal="sigma_before",
+            unset_text="0.05",
+        ),
+        Option(
+            "sigma_after_m",
+            "float",
+            "point accuracy of the second epoch, 1 sigma (m)",
+            label="Sigma, after epoch (m)",
+            default=None,
+            minimum=0,
+            exclusive=True,
+            cli=None,
+            qgis=None,
+            pdal="sigma_after",
+            unset_text="0.05",
+        ),
+    )
+
+
+def _output(key: str, help_: str, label: str) -> Option:
+    """An output (named in the output folder on the CLI; QGIS and PDAL map their own)."""
+    return Option(key, "path", help_, label=label, role="output", cli=None, qgis=None, pdal=None)
+
+
+def _check(opts: Mapping[str, Any]) -> None:
+    """Cross-option checks of :data:`SPEC` (every face, before anything is read)."""
+    from .tiled import check_scale
+
+    check_stochastic(opts)
+    if opts.get("combine") == "tiles" and opts.get("tile_size_m") is None:
+        raise OptionError(
+            "combine",
+            "tiles combines per-tile adjustments: give {tile_size_m} too, or combine joint",
+            also=("tile_size_m",),
+        )
+    if opts.get("window_step_m") is not None and opts.get("window_size_m") is None:
+        raise OptionError(
+            "window_step_m",
+            "is the step of the moving windows: give {window_size_m} too",
+            also=("window_size_m",),
+        )
+    _pa_check(opts)
+    check_scale(opts)
+
+
+def _pa_check(opts: Mapping[str, Any]) -> None:
+    o = _pa_opts(opts)
+    pa.check_options(o)
+    if o.get("pa_model_after") and not o.get("pa_config"):
+        try:
+            pa.check_options({**o, "pa_model": o["pa_model_after"]})
+        except OptionError as exc:
+            key = "pa_model_after" if exc.key == "pa_model" else exc.key
+            raise OptionError(key, f"(after epoch) {exc.text}", also=exc.also) from None
+
+
+def _pa_opts(opts: Mapping[str, Any]) -> Dict[str, Any]:
+    """The options with the model implied by per-point σ dimensions (PDAL's
+    ``sigma_dimensions``; ``--sigma-columns`` without ``--pa``)."""
+    o = dict(opts)
+    if o.get("pa_model") is None and o.get("sigma_columns") and o.get("sigma_xyz_m") is None:
+        o["pa_model"] = "columns"
+    return o
+
+
+SPEC = JobSpec(
+    name="displacement",
+    title="Fault slip (displacement)",
+    description=(
+        "Relative displacement across a fault between two LiDAR epochs: planes are extracted "
+        "on each side of the trace, matched between epochs and a rigid least-squares "
+        "adjustment (point-to-plane, Gauss-Helmert) gives each side's displacement; the "
+        "right-lateral slip is minus the fault-parallel component of right minus left, with "
+        "its σ under the stochastic model."
+    ),
+    options=(
+        cloud_option("before", "first epoch, LAS/LAZ in a projected CRS (metres)", "Before epoch"),
+        cloud_option(
+            "after",
+            "second epoch, LAS/LAZ (reprojected to the first's CRS when they differ)",
+            "After epoch",
+        ),
+        Option(
+            "fault",
+            "path",
+            "fault trace: any OGR line file, any CRS (reprojected to the epochs' CRS)",
+            label="Fault trace",
+            required=True,
+            role="input",
+            cli="--fault",
+            qgis=None,  # QGIS gives a line layer (the algorithm reads it)
+            pdal=None,  # PDAL gives the trace as WKT or a file (the stage reads it)
+            metavar="FILE",
+        ),
+        out_dir_option("output folder (created when missing)"),
+        crs_option(
+            "CRS of both epochs when the files lack one or declare a wrong one (e.g. "
+            "EPSG:32611): the trace is reprojected into it and the outputs carry it"
+        ),
+        Option(
+            "buffer_m",
+            "float",
+            "points closer than this to the trace are left out, metres (default 10, as the study)",
+            label="Buffer around the trace (m)",
+            default=10.0,
+            minimum=0,
+            metavar="M",
+        ),
+        _length(
+            "tile_size_m",
+            "extract planes in square tiles of this size, metres (the study: 20-100 m)",
+            "Tile size (m)",
+            unset_text="none",
+        ),
+        Option(
+            "combine",
+            "choice",
+            "joint: one adjustment per side on all matched planes (the study's approach); "
+            "tiles: information-weighted mean of the per-tile adjustments",
+            label="Combine tiles",
+            default="joint",
+            choices=("joint", "tiles"),
+            group=_TSW,
+            advanced=True,
+        ),
+        _length(
+            "strip_width_m",
+            "profile of the fault-parallel displacement in strips of this width along the "
+            "trace, metres (the study: 50-100 m)",
+            "Strip width (m)",
+            pdal=None,
+            unset_text="none",
+        ),
+        _length(
+            "window_size_m",
+            "moving-window displacement maps with windows of this size, metres (the study: 400 m)",
+            "Moving-window size (m)",
+            pdal=None,
+            unset_text="none",
+        ),
+        _length(
+            "window_step_m",
+            "step of the moving windows, metres (default a quarter of the size)",
+            "Moving-window step (m; default size / 4)",
+            pdal=None,
+            advanced=True,
+            unset_text="size / 4",
+        ),
+        Option(
+            "reference_slip_m",
+            "float",
+            "independent right-lateral slip (e.g. an alinement array), metres, positive "
+            "dextral: adds the study's Table X figures (scale, relative scale) to the summary",
+            label="Reference right-lateral slip (m)",
+            group=_TSW,
+            advanced=True,
+            pdal=None,
+            metavar="M",
+            unset_text="none",
+        ),
+        *_pa_rows(),
+        *stochastic_options(),
+        Option(
+            "match_angle_deg",
+            "float",
+            "largest angle between matched normals, degrees",
+            label="Match angle (degrees)",
+            default=3.0,
+            minimum=0,
+            exclusive=True,
+            group=_MATCH,
+            advanced=True,
+            metavar="DEG",
+        ),
+        Option(
+            "match_distance_m",
+            "float",
+            "largest centroid-to-plane distance of matched planes, metres, above the largest "
+            "expected displacement",
+            label="Match distance (m)",
+            default=0.5,
+            minimum=0,
+            exclusive=True,
+            group=_MATCH,
+            advanced=True,
+            metavar="M",
+        ),
+        *selection_options(ground_default=True),
+        *plane_options(),
+        _output("summary", "summary (displacement.json)", "Summary"),
+        _output("report", "HTML report (report.html)", "Report"),
+        _output("layers", "matched planes, tiles, strips, trace (displacement.gpkg)", "Layers"),
+        _output("windows", "moving windows, 7 bands (windows.tif)", "Moving windows"),
+        _output("windows_dx", "moving windows dx and its σ (windows_dx.tif)", "Windows dx"),
+        _output("windows_dy", "moving windows dy and its σ (windows_dy.tif)", "Windows dy"),
+        _output("tiles", "tiles layer", "Tiles"),
+        _output("strips", "strips layer", "Strips"),
+    ),
+    check=_check,
+    citation=CITATION,
+)
+
+#: the output keys :func:`run` writes (figures beside the report: see :func:`_figure_names`)
+FILE_KEYS = ("summary", "layers", "windows", "windows_dx", "windows_dy", "report")
+FIGURES = ("residuals", "normals", "plane_residuals", "strips")
+
+
+# --------------------------------------------------------------------------- settings
+
+
+def point_accuracy(opts: Mapping[str, Any]) -> Dict[str, Dict[str, Any]]:
+    """``{"before": settings, "after": settings}`` of :mod:`.pointaccuracy` from the options
+    (the ``pa_config`` file's when given)."""
+    o = _pa_opts(opts)
+    both = pa.settings_from_options(o)
+    if o.get("pa_config"):
+        return both
+    out = {}
+    for epoch in ("before", "after"):
+        s = dict(both[epoch])
+        if epoch == "after" and o.get("pa_model_after"):
+            s["model"] = o["pa_model_after"]
+        if o.get(f"sigma_{epoch}_m") is not None:
+            s["sigma"] = o[f"sigma_{epoch}_m"]
+        out[epoch] = pa.check_settings(s)
+    return out
+
+
+def core_options(opts: Mapping[str, Any]) -> Dict[str, Any]:
+    """The keywords every core call of the job shares (buffer, plane and match options,
+    stochastic model)."""
+    return {
+        "buffer_m": opts["buffer_m"],
+        "plane_options": plane_kwargs(opts),
+        "match_options": {
+            "angle_threshold_deg": opts["match_angle_deg"],
+            "distance_threshold_m": opts["match_distance_m"],
+        },
+        "stochastic_model": opts["stochastic_model"],
+    }
+
+
+def fixed_components(opts: Mapping[str, Any]) -> Optional[Dict[str, float]]:
+    return check_stochastic(opts) or None
+
+
+@dataclass(frozen=True)
+class SlipRun:
+    """What :func:`compute` gives: the slip, the strips and the windows (None when not asked
+    for)."""
+
+    result: Any
+    strips: Optional[Tuple[Any, ...]] = None
+    windows: Optional[Any] = None
+
+
+def compute(
+    before: np.ndarray,
+    after: np.ndarray,
+    trace,
+    opts: Mapping[str, Any],
+    *,
+    sigma_before=0.05,
+    sigma_after=0.05,
+    unit_before: Optional[np.ndarray] = None,
+    unit_after: Optional[np.ndarray] = None,
+    windows: bool = True,
+    progress: Optional[Progress] = None,
+) -> SlipRun:
+    """The slip, strips and windows of two epochs' points.
+
+    Parameters
+    ----------
+    before, after : (N1, 3), (N2, 3) float64
+        The selected points of each epoch in one projected CRS, metres.
+    trace : FaultTrace
+        In that CRS.
+    opts
+        :data:`SPEC`'s options, parsed.
+    sigma_before, sigma_after
+        Point accuracy: scalar, (3,), (N, 3) or (N, 3, 3), metres (see
+        :func:`point_accuracy` and :func:`.pointaccuracy.covariances`).
+    unit_before, unit_after : (N1,), (N2,) int, optional
+        Acquisition units (full model).
+    windows
+        Compute the moving windows when ``window_size_m`` is set (QGIS only when its output
+        is asked for).
+    """
+    from ..core.displacement import estimate_slip, strip_profile, window_field
+
+    common = dict(
+        core_options(opts),
+        sigma_before=sigma_before,
+        sigma_after=sigma_after,
+        unit_before=unit_before,
+        unit_after=unit_after,
+    )
+    want_strips = opts.get("strip_width_m") is not None
+    want_windows = windows and opts.get("window_size_m") is not None
+    n = 1 + want_strips + want_windows
+    parts = iter(scaled(progress, k / n, (k + 1) / n) for k in range(n))
+    result = estimate_slip(
+        before,
+        after,
+        trace,
+        tile_size_m=opts.get("tile_size_m"),
+        combine=opts.get("combine", "joint"),
+        components=fixed_components(opts),
+        progress=next(parts),
+        **common,
+    )
+    strips = wf = None
+    if want_strips:
+        strips = strip_profile(
+            before,
+            after,
+            trace,
+            result,
+            strip_width_m=opts["strip_width_m"],
+            progress=next(parts),
+            **common,
+        )
+    if want_windows:
+        wf = window_field(
+            before,
+            after,
+            trace,
+            result,
+            window_size_m=opts["window_size_m"],
+            window_step_m=opts.get("window_step_m") or opts["window_size_m"] / 4,
+            progress=next(parts),
+            **common,
+        )
+    return SlipRun(result, strips, wf)
+
+
+# --------------------------------------------------------------------------- columns
+
+
+def plane_columns(side) -> Dict[str, np.ndarray]:
+    """Attributes of a side's matched planes (one row per match, at the before-epoch plane
+    centroid): ids, points, unit normal, match angle and distance, and the stochastic model's
+    per-plane weight, w-test, predicted offset and misclosure."""
+    from .summaries import plane_fields
+
+    pb, m = side.planes_before, side.matches
+    return {
+        "side": np.array([side.side] * len(m), dtype=object),
+        "plane_before": m.before.astype(np.int64),
+        "plane_after": m.after.astype(np.int64),
+        "n_points": pb.n_points[m.before].astype(np.int64),
+        "normal_x": pb.normals[m.before, 0],
+        "normal_y": pb.normals[m.before, 1],
+        "normal_z": pb.normals[m.before, 2],
+        "angle_deg": np.degrees(m.angle_rad),
+        "distance_m": np.asarray(m.distance_m, dtype=np.float64),
+        **plane_fields(side),
+    }
+
+
+def tile_columns(result) -> Dict[str, np.ndarray]:
+    """Attributes of the tiles: the tile's own motion (dx, dy, dz and σ, m) and its
+    fault-parallel / fault-normal components and σ (``sigma_fp``, ``sigma_fn``); NaN for a
+    tile that was not adjusted."""
+    tiles = result.tiles
+    frames = [t.fault_frame(result.strike_rad) for t in tiles]
+    ok = np.array([t.adjusted for t in tiles], dtype=bool)
+    d = np.array([t.displacement for t in tiles], dtype=np.float64).reshape(-1, 3)
+    s = np.array([np.sqrt(np.abs(np.diag(t.covariance))) for t in tiles], dtype=np.float64).reshape(
+        -1, 3
+    )
+    d[~ok] = np.nan
+    s[~ok] = np.nan
+    return {
+        "side": np.array([t.side for t in tiles], dtype=object),
+        "ix": np.array([t.ix for t in tiles], dtype=np.int64),
+        "iy": np.array([t.iy for t in tiles], dtype=np.int64),
+        "n_planes": np.array([t.n_planes for t in tiles], dtype=np.int64),
+        "dx": d[:, 0],
+        "dy": d[:, 1],
+        "dz": d[:, 2],
+        "sigma_dx": s[:, 0],
+        "sigma_dy": s[:, 1],
+        "sigma_dz": s[:, 2],
+        "fault_parallel": np.array([f["fault_parallel"] for f in frames]),
+        "sigma_fp": np.array([f["sigma_fault_parallel"] for f in frames]),
+        "fault_normal": np.array([f["fault_normal"] for f in frames]),
+        "sigma_fn": np.array([f["sigma_fault_normal"] for f in frames]),
+        "status": np.array([t.status for t in tiles], dtype=object),
+    }
+
+
+def tile_rings(result) -> List[np.ndarray]:
+    """(4, 2) corners of every tile (map units)."""
+    out = []
+    for t in result.tiles:
+        x0, y0, x1, y1 = (float(v) for v in t.bounds)
+        out.append(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]))
+    return out
+
+
+def strip_columns(strips) -> Dict[str, np.ndarray]:
+    """Attributes of the strips: chainage range, planes, and the strip's motion relative to
+    the left side's global motion in the fault frame with σ (m)."""
+    frames = [st.fault_frame() for st in strips]
+
+    def col(name):
+        return np.array([f[name] for f in frames], dtype=np.float64)
+
+    return {
+        "side": np.array([st.side for st in strips], dtype=object),
+        "along_start_m": np.array([st.along_start_m for st in strips], dtype=np.float64),
+        "along_end_m": np.array([st.along_end_m for st in strips], dtype=np.float64),
+        "along_centre_m": np.array([st.along_centre_m for st in strips], dtype=np.float64),
+        "n_planes": np.array([st.n_planes for st in strips], dtype=np.int64),
+        "fault_parallel": col("fault_parallel"),
+        "sigma_fp": col("sigma_fault_parallel"),
+        "fault_normal": col("fault_normal"),
+        "sigma_fn": col("sigma_fault_normal"),
+        "dz": col("dz"),
+        "sigma_dz": col("sigma_dz"),
+        "status": np.array([st.status for st in strips], dtype=object),
+    }
+
+
+def strip_points(strips, trace) -> np.ndarray:
+    """(K, 2) point on the trace at each strip's centre chainage."""
+    from ..core.fault import point_at_chainage
+
+    return np.array([point_at_chainage(trace, st.along_centre_m) for st in strips]).reshape(-1, 2)
+
+
+def window_bands(windows) -> np.ndarray:
+    """(7, ny, nx) bands :data:`WINDOW_BANDS` of the windows (relative to the left side)."""
+    w = windows
+    bands = [w.fault_parallel, w.dx, w.dy, w.dz, w.sigma_dx, w.sigma_dy, w.n_planes]
+    return np.stack([np.asarray(b, dtype=np.float64) for b in bands])
+
+
+# --------------------------------------------------------------------------- the job
+
+
+def default_names(opts: Mapping[str, Any]) -> Dict[str, str]:
+    """File names of the outputs in an output folder (the CLI's ``--out``)."""
+    names = {
+        "summary": "displacement.json",
+        "layers": "displacement.gpkg",
+        "report": "report.html",
+        **{f"figure_{f}": f"{f}.png" for f in FIGURES if f != "strips"},
+    }
+    if opts.get("strip_width_m") is not None:
+        names["figure_strips"] = "strips.png"
+    if opts.get("window_size_m") is not None:
+        names.update(
+            windows="windows.tif", windows_dx="windows_dx.tif", windows_dy="windows_dy.tif"
+        )
+    return names
+
+
+def _with_figures(outputs: Mapping[str, Any]) -> Dict[str, Any]:
+    """File-by-file outputs (QGIS) plus the figures beside the report (``<stem>_<name>.png``)."""
+    out = {k: v for k, v in outputs.items()}
+    report = out.get("report")
+    for f in FIGURES:
+        key = f"figure_{f}"
+        if key not in out:
+            out[key] = None if not report else str(Path(report).with_suffix("")) + f"_{f}.png"
+    return out
+
+
+def input_paths(opts: Mapping[str, Any]) -> Dict[str, Any]:
+    keys = ("before", "after", "fault", "trajectory", "trajectory_accuracy", "pa_config")
+    return {k: opts.get(k) for k in keys}
+
+
+def read_trace(path, crs):
+    """The fault trace of a file, reprojected to ``crs``; errors name the ``fault`` option."""
+    from ..core.io.vector import read_fault_trace
+
+    try:
+        return read_fault_trace(path, target_crs=crs)
+    except OptionError:
+        raise
+    except SlipMapError as exc:
+        raise OptionError("fault", str(exc)) from exc
+
+
+def run(
+    opts: Mapping[str, Any],
+    outputs: Mapping[str, Any],
+    *,
+    trace: Optional[Callable[[Any], Any]] = None,
+    progress: Optional[Progress] = None,
+) -> JobResult:
+    """Read, select, compute and write.
+
+    Parameters
+    ----------
+    opts
+        :data:`SPEC`'s options, parsed (:meth:`JobSpec.parse`).
+    outputs
+        ``{"out": folder}`` for every output under :func:`default_names`; or
+        ``{key: path or None}`` of ``summary``, ``report``, ``layers``, ``windows``,
+        ``windows_dx``, ``windows_dy`` (figures go beside the report).
+    trace
+        ``f(crs) -> FaultTrace`` in the epochs' CRS (QGIS gives its layer this way); default:
+        read ``opts["fault"]``.
+
+    Returns
+    -------
+    JobResult
+        ``data``: ``{"run": SlipRun, "trace", "crs", "planes": {side: columns}, "tiles",
+        "strips", "strip_points", "tile_rings", "windows": bands or None}``.
+    """
+    from ..core.displacement import SIDES
+
+    outputs = dict(outputs)
+    folder = outputs.get("out") is not None
+    if not folder:
+        outputs = _with_figures(outputs)
+        if outputs.get("windows") is not None and opts.get("window_size_m") is None:
+            raise OptionError(
+                "windows",
+                "is asked for but no {window_size_m} is given: give it or leave the output out",
+                also=("window_size_m",),
+            )
+    plan = OutputPlan.for_outputs(
+        inputs=input_paths(opts), outputs=outputs, default_names=default_names(opts)
+    )
+    plan.check()
+    want_windows = folder or plan.wants("windows")
+    with plan:
+        pair = read_epoch_pair(opts["before"], opts["after"], crs=opts.get("crs"))
+        clouds = {"before": pair.before, "after": pair.after}
+        sel, label = {}, {}
+        for epoch, cloud in clouds.items():
+            label[epoch] = f"{epoch} epoch ({Path(str(cloud.source)).name})"
+            sel[epoch] = select_points(
+                cloud,
+                classes=opts.get("classes"),
+                exclude_classes=opts.get("exclude_classes"),
+                ground_default=True,
+                what=f"the {epoch} epoch",
+            )
+        settings = point_accuracy(opts)
+        sigma = {e: pa.covariances(clouds[e], sel[e], settings[e]) for e in clouds}
+        units, unit_record = units_for_job(
+            opts,
+            {
+                e: (
+                    label[e],
+                    _dim(clouds[e], "PointSourceId", sel[e]),
+                    _dim(clouds[e], "GpsTime", sel[e]),
+                )
+                for e in clouds
+            },
+        )
+        fault = trace(pair.crs) if trace is not None else read_trace(opts["fault"], pair.crs)
+        before = pair.before.xyz[sel["before"]]
+        after = pair.after_xyz[sel["after"]]
+        t0 = time.perf_counter()
+        slip = compute(
+            before,
+            after,
+            fault,
+            opts,
+            sigma_before=sigma["before"],
+            sigma_after=sigma["after"],
+            unit_before=units["before"].units,
+            unit_after=units["after"].units,
+            windows=want_windows,
+            progress=scaled(progress, 0.0, 0.95),
+        )
+        runtime = time.perf_counter() - t0
+        result = slip.result
+        payload = result.to_dict()
+        payload["parameters"].update(
+            {
+                "point_accuracy": settings,
+                "before": str(opts["before"]),
+                "after": str(opts["after"]),
+                **({"fault": str(opts["fault"])} if opts.get("fault") else {}),
+                "acquisition_unit_sources": unit_record,
+            }
+        )
+        payload["runtime_s"] = round(runtime, 3)
+        payload["slipmap_version"] = __version__
+        if opts.get("reference_slip_m") is not None:
+            payload["reference"] = result.reference_comparison(opts["reference_slip_m"])
+        if slip.strips is not None:
+            payload["strips"] = strip_rows(slip.strips)
+        payload = json_safe(payload)  # NaN (e.g. a component's sd) -> null: standard JSON
+        data = {
+            "run": slip,
+            "trace": fault,
+            "crs": pair.crs,
+            "planes": {s: plane_columns(getattr(result, s)) for s in SIDES},
+            "tiles": tile_columns(result) if result.tiles else None,
+            "tile_rings": tile_rings(result) if result.tiles else None,
+            "strips": strip_columns(slip.strips) if slip.strips is not None else None,
+            "strip_points": strip_points(slip.strips, fault) if slip.strips else None,
+            "windows": window_bands(slip.windows) if slip.windows is not None else None,
+        }
+        _write(plan, payload, data)
+        if progress is not None:
+            progress(1.0, "written")
+    lines = slip_summary_lines(payload)
+    ref = payload.get("reference")
+    if ref is not None:
+        lines.append(
+            f"against the reference slip {ref['reference_slip']:.4f} m: ΔD "
+            f"{ref['delta_displacement']:+.4f} m, scale {ref['scale']:.3f}, relative scale "
+            f"{ref['relative_scale']:.3f}"
+        )
+    files = {k: p for k in _all_keys(plan) if (p := plan.final(k)).exists()}
+    return JobResult(payload, lines, files, data=data)
+
+
+def _all_keys(plan: OutputPlan) -> List[str]:
+    keys = ["summary", "layers", *(f"figure_{f}" for f in FIGURES), "report", "windows"]
+    keys += ["windows_dx", "windows_dy"]
+    return [k for k in keys if plan.wants(k)]
+
+
+def _dim(cloud, name: str, sel) -> Optional[np.ndarray]:
+    values = cloud.attributes.get(name)
+    return None if values is None else np.asarray(values)[sel]
+
+
+def _write(plan: OutputPlan, payload: Dict[str, Any], data: Dict[str, Any]) -> None:
+    """Everything but the per-face sinks: JSON, GeoPackage, rasters, figures, report."""
+    from ..core.errors import DependencyError
+    from .summaries import json_text
+
+    slip = data["run"]
+    crs = data["crs"]
+    if plan.wants("summary"):
+        plan.file("summary").write_text(json_text(payload), encoding="utf-8")
+    if plan.wants("layers"):
+        try:
+            _write_layers(plan.file("layers"), slip.result, data, crs)
+        except DependencyError as exc:
+            log.warning("no GeoPackage written: %s", exc)
+    if slip.windows is not None:
+        try:
+            _write_windows(plan, slip.windows, data["windows"], crs)
+        except DependencyError as exc:
+            log.warning("no window GeoTIFF written: %s", exc)
+    images = _figures(plan, slip) if plan.wants("report") else []
+    if plan.wants("report"):
+        from .report import write_html_report
+
+        tables = {"relative (right - left), m": payload["relative"]}
+        for side in ("left", "right"):
+            tables[f"{side} side"] = {
+                k: v for k, v in payload[side].items() if not isinstance(v, (list, dict))
+            }
+        tables.update(stochastic_tables(payload))
+        if "reference" in payload:
+            tables["against the reference slip"] = payload["reference"]
+        write_html_report(plan.file("report"), "SlipMap displacement", tables, images)
+
+
+def _write_layers(path: Path, result, data: Dict[str, Any], crs) -> None:
+    from ..core.io.vector import VectorLayer, write_gpkg_layers
+
+    layers = []
+    for side in (result.left, result.right):
+        pb, m = side.planes_before, side.matches
+        layers.append(
+            VectorLayer(
+                name=f"planes_{side.side}",
+                geometry_type="Point",
+                geometries=[pb.centroids[i] for i in m.before],
+                fields=data["planes"][side.side],
+            )
+        )
+    if data["tiles"] is not None:
+        layers.append(VectorLayer("tiles", "Polygon", data["tile_rings"], data["tiles"]))
+    if data["strips"] is not None:
+        layers.append(VectorLayer("strips", "Point", list(data["strip_points"]), data["strips"]))
+    trace = data["trace"]
+    layers.append(
+        VectorLayer(
+            name="fault_trace",
+            geometry_type="LineString",
+            geometries=list(trace.parts),
+            fields={"part": np.arange(len(trace.parts), dtype=np.int64)},
+        )
+    )
+    write_gpkg_layers(path, layers, crs=crs)
+
+
+def _write_windows(plan: OutputPlan, w, bands: np.ndarray, crs) -> None:
+    """``windows`` (7 bands) and ``windows_dx`` / ``windows_dy`` (value and σ): north-up, one
+    pixel per window centre."""
+    from ..core.io.raster import write_geotiff
+
+    half = 0.5 * w.step_m
+    common = dict(
+        origin_xy=(w.x0 - half, w.y0 + half),
+        pixel_size_m=w.step_m,
+        crs_wkt=crs.to_wkt() if crs is not None else None,
+        metadata={"SLIPMAP_WINDOW_SIZE_M": f"{w.window_size_m:g}"},
+    )
+    if plan.wants("windows"):
+        write_geotiff(plan.file("windows"), bands, band_names=list(WINDOW_BANDS), **common)
+    for name, band, sig in (("dx", w.dx, w.sigma_dx), ("dy", w.dy, w.sigma_dy)):
+        if plan.wants(f"windows_{name}"):
+            write_geotiff(
+                plan.file(f"windows_{name}"),
+                np.stack([band, sig]).astype(np.float64),
+                band_names=[f"{name}_m (relative to the left side)", f"sigma_{name}_m"],
+                **common,
+            )
+
+
+def _figures(plan: OutputPlan, slip: SlipRun) -> List[str]:
+    """Residual, normal, plane-residual and strip-profile PNGs; their names beside the
+    report (none without matplotlib)."""
+    from ..core.errors import DependencyError
+
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        log.warning("matplotlib is not installed: no PNG figures (pip install matplotlib)")
+        return []
+    from . import report
+
+    result = slip.result
+    sides = (result.left, result.right)
+    written = []
+    try:
+        if plan.wants("figure_residuals") and all(
+            s.rigid.residuals_before is not None for s in sides
+        ):
+            res = {f"{s.side} before": s.rigid.residuals_before for s in sides}
+            res.update({f"{s.side} after": s.rigid.residuals_after for s in sides})
+            report.plot_residual_histograms(
+                plan.file("figure_residuals"), res, title="Point-to-plane residuals"
+            )
+            written.append("figure_residuals")
+        normals = {s.side: s.planes_before.normals[s.matches.before] for s in sides}
+        if plan.wants("figure_normals"):
+            report.plot_normals_polar(
+                plan.file("figure_normals"), normals, title="Matched plane normals"
+            )
+            written.append("figure_normals")
+        if plan.wants("figure_plane_residuals") and all(
+            s.plane_mean_residual_m is not None for s in sides
+        ):
+            report.plot_plane_residual_polar(
+                plan.file("figure_plane_residuals"),
+                {s.side: (normals[s.side], s.plane_mean_residual_m) for s in sides},
+            )
+            written.append("figure_plane_residuals")
+        if slip.strips and plan.wants("figure_strips"):
+            st = slip.strips
+            report.plot_strip_profile(
+                plan.file("figure_strips"),
+                [s.along_centre_m for s in st],
+                [s.fault_parallel for s in st],
+                [s.sigma_fault_parallel for s in st],
+                [s.side for s in st],
+            )
+            written.append("figure_strips")
+    except DependencyError as exc:
+        log.warning("no figures written: %s", exc)
+    return [plan.final(k).name for k in written]
