@@ -1,17 +1,27 @@
-"""``slipmap:roughness``: ODR roughness per grid cell, as a map-view GeoTIFF and a CSV."""
+"""``slipmap:roughness``: the roughness job (:mod:`slipmap.app.roughness`) as a Processing
+algorithm: one cell size, its GeoTIFF and cells' CSV (the job's writers), optionally the
+summary and the per-point copy."""
 
 from __future__ import annotations
 
 from qgis.core import (
-    QgsProcessingParameterFile,
     QgsProcessingParameterFileDestination,
     QgsProcessingParameterNumber,
     QgsProcessingParameterRasterDestination,
 )
 
-from ._base import LAS_FILTER, SlipMapAlgorithm, progress_callback, read_cloud, slipmap_errors
+from ...app import roughness as job
+from ._base import (
+    SlipMapAlgorithm,
+    add_parameters,
+    check_options,
+    options_from,
+    progress_callback,
+    slipmap_errors,
+)
 
-CSV_HEADER = "ix,iy,iz,x,y,z,n,theta_odr,theta_ols,e_ols,degenerate"
+_CELL = job.SPEC["cell_sizes_m"]
+_POINTS = job.SPEC["points_out"]
 
 
 class RoughnessAlgorithm(SlipMapAlgorithm):
@@ -19,105 +29,95 @@ class RoughnessAlgorithm(SlipMapAlgorithm):
     _name = "Surface roughness"
     _group = "Roughness"
     _group_id = "roughness"
+    spec = job.SPEC
 
     def shortHelpString(self):  # noqa: N802 (QGIS API name)
         return (
-            "Roughness of a point cloud on a regular 3D grid: in every cell an orthogonal "
-            "(ODR) plane is fitted and theta_ODR is the population standard deviation of the "
-            "absolute orthogonal point-to-plane distances (Pollyea and Fairley 2011, Estimating "
-            "surface roughness of terrestrial laser scan data using orthogonal distance "
-            "regression, Geology 39(7), Eq. 4).<br>"
+            f"{job.SPEC.description}<br>"
             "<b>Input point cloud</b>: LAS/LAZ in a projected CRS (metres). "
             "<b>Cell size</b> (m): edge of the grid cells and of the raster pixels (the study: "
             "1, 0.5, 0.25, 0.125). <b>Smallest cell</b> (points, at least 3): cells with fewer "
-            "points are skipped (default 10).<br>"
-            "<b>Outputs</b>: a GeoTIFF of theta_ODR (m) on the xy map plane in the point "
-            "cloud's CRS (cells stacked vertically are averaged; NaN = no data) and a CSV with "
-            "one row per cell (" + CSV_HEADER + ")."
+            "points are skipped.<br>"
+            "<b>Outputs</b>: a GeoTIFF on the map plane (bands "
+            + ", ".join(job.BANDS)
+            + "; the xy plane keeps the point cloud's CRS; cells stacked along the map normal "
+            "are averaged; NaN = no data), a CSV with one row per cell ("
+            + job.CSV_HEADER
+            + "), optionally the JSON summary (Table 1 per cell size) and a copy of the point "
+            f"cloud with a Roughness dimension.<br>Method: {job.CITATION}."
         )
 
     def initAlgorithm(self, config=None):  # noqa: N802 (QGIS API name)
-        self.addParameter(
-            QgsProcessingParameterFile("INPUT", "Input point cloud", fileFilter=LAS_FILTER)
+        add_parameters(self, job.SPEC, roles=("input",))
+        cell = QgsProcessingParameterNumber(
+            "CELL",
+            _CELL.dialog_label,
+            QgsProcessingParameterNumber.Double,
+            defaultValue=_CELL.default[0],
+            minValue=1e-6,
         )
-        self.addParameter(
-            QgsProcessingParameterNumber(
-                "CELL",
-                "Cell size (m)",
-                QgsProcessingParameterNumber.Double,
-                defaultValue=1.0,
-                minValue=1e-6,
-            )
-        )
-        self.addParameter(
-            QgsProcessingParameterNumber(
-                "MIN_POINTS",
-                "Smallest cell (points)",
-                QgsProcessingParameterNumber.Integer,
-                defaultValue=10,
-                minValue=3,
-            )
-        )
-        self.addParameter(
-            QgsProcessingParameterRasterDestination("OUTPUT", "Roughness theta_ODR (m)")
-        )
+        cell.setHelp(_CELL.help)
+        self.addParameter(cell)
+        add_parameters(self, job.SPEC, roles=("setting",))
+        self.addParameter(QgsProcessingParameterRasterDestination("OUTPUT", "Roughness (GeoTIFF)"))
         self.addParameter(
             QgsProcessingParameterFileDestination("CSV", "Roughness per cell", "CSV (*.csv)")
         )
+        self.addParameter(
+            QgsProcessingParameterFileDestination(
+                "SUMMARY",
+                "Roughness summary",
+                "JSON (*.json)",
+                optional=True,
+                createByDefault=False,
+            )
+        )
+        self.addParameter(
+            QgsProcessingParameterFileDestination(
+                "POINTS",
+                _POINTS.dialog_label,
+                _POINTS.file_filter,
+                optional=True,
+                createByDefault=False,
+            )
+        )
+
+    def _outputs(self, parameters, context):
+        def dest(name):
+            return self.parameterAsFileOutput(parameters, name, context) or None
+
+        return {
+            "geotiff": self.parameterAsOutputLayer(parameters, "OUTPUT", context),
+            "csv": dest("CSV"),
+            "summary": dest("SUMMARY"),
+            "points_out": dest("POINTS"),
+        }
+
+    def _extra(self, parameters, context):
+        return {
+            "cell_sizes_m": [self.parameterAsDouble(parameters, "CELL", context)],
+            "points_out": self._outputs(parameters, context)["points_out"],
+        }
+
+    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
+        extra = self._extra(parameters, context)
+        ok, message = check_options(self, parameters, context, job.SPEC, extra=extra)
+        if not ok:
+            return ok, message
+        return super().checkParameterValues(parameters, context)
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
-        path = self.parameterAsFile(parameters, "INPUT", context)
-        cell = self.parameterAsDouble(parameters, "CELL", context)
-        min_points = self.parameterAsInt(parameters, "MIN_POINTS", context)
-        out = self.parameterAsOutputLayer(parameters, "OUTPUT", context)
-        csv_path = self.parameterAsFileOutput(parameters, "CSV", context)
-        with slipmap_errors():
-            import numpy as np
-
-            from ...core import roughness as rg
-            from ...core.errors import InputDataError
-            from ...core.io.atomic import write_text_atomic
-            from ...core.io.raster import write_geotiff
-
-            cloud = read_cloud(path)
-            frame = rg.principal_frame(cloud.xyz)
-            grid = rg.grid_roughness(
-                cloud.xyz,
-                cell_size_m=cell,
-                min_points=min_points,
-                ols_axis=rg.resolve_ols_axis(frame, "auto"),
-                progress=progress_callback(feedback),
-            )
-            if len(grid) == 0:
-                raise InputDataError(f"no cell of {cell:g} m has {min_points} or more points")
-            table = np.column_stack(
-                [
-                    grid.index,
-                    grid.centre_m,
-                    grid.n_points,
-                    grid.theta_odr,
-                    grid.theta_ols,
-                    grid.e_ols,
-                    grid.degenerate.astype(np.int64),
-                ]
-            )
-            rows = [CSV_HEADER]
-            for r in table:
-                rows.append(
-                    ",".join([f"{int(v)}" for v in r[:3]] + [f"{v:.6f}" for v in r[3:6]])
-                    + f",{int(r[6])},{r[7]:.6g},{r[8]:.6g},{r[9]:.6g},{int(r[10])}"
-                )
-            write_text_atomic(csv_path, "\n".join(rows) + "\n")
-            plane = rg.choose_map_plane(frame, "xy")
-            raster = rg.rasterize_cells(grid.centre_m, grid.theta_odr, plane, pixel_size_m=cell)
-            write_geotiff(
-                out,
-                raster.values.astype(np.float32),
-                origin_xy=raster.origin_uv_m,
-                pixel_size_m=raster.pixel_size_m,
-                crs_wkt=cloud.crs.to_wkt() if cloud.crs is not None else None,
-                band_names=["theta_odr"],
-                metadata={"SLIPMAP_CELL_SIZE_M": f"{cell:g}", "SLIPMAP_MAP_PLANE": "xy"},
-            )
-        feedback.pushInfo(f"{len(grid)} cells; wrote {out} and {csv_path}")
-        return {"OUTPUT": out, "CSV": csv_path}
+        opts = options_from(
+            self, parameters, context, job.SPEC, extra=self._extra(parameters, context)
+        )
+        outputs = self._outputs(parameters, context)
+        with slipmap_errors(job.SPEC):
+            result = job.run(opts, outputs, progress=progress_callback(feedback))
+        for line in result.lines:
+            feedback.pushInfo(line)
+        return {
+            "OUTPUT": outputs["geotiff"],
+            "CSV": outputs["csv"],
+            "SUMMARY": outputs["summary"],
+            "POINTS": outputs["points_out"],
+        }
