@@ -28,7 +28,7 @@ from .options import JobSpec, Option, OptionError
 from .outputs import OutputPlan
 from .resources import check_grid_memory
 from .summaries import json_text
-from .tiled import check_scale, is_tiled, scale_options
+from .tiled import check_scale, input_files, is_tiled, scale_options
 
 log = logging.getLogger("slipmap.app")
 
@@ -521,7 +521,7 @@ def run(
     folder = outputs.pop("out", None)
     if folder is None and len(cells) != 1:
         raise OptionError("cell_sizes_m", "give one cell size when the outputs are named files")
-    inputs = {"input": opts.get("input")}
+    inputs = {"input": input_files(opts, "input") if is_tiled(opts, "input") else opts.get("input")}
     files = {"points_out": points_out}
     if folder is None:
         files.update(outputs)

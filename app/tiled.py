@@ -1303,3 +1303,19 @@ def slip_for_job(
             before, after, trace, tile_size_m=t, selection=selection, engine=eng,
             progress=progress, **kw,
         )  # fmt: skip
+
+
+def input_files(opts, key: str):
+    """The files an input option names (a file, a folder, a glob, comma-separated files), as
+    a list for :class:`~.outputs.OutputPlan`'s input checks; errors name the option."""
+    from ..core.errors import SlipMapError
+    from ..core.io.tiles import expand_paths
+    from .options import OptionError
+
+    value = opts.get(key)
+    if value is None:
+        return None
+    try:
+        return [str(p) for p in expand_paths(split_inputs(value))]
+    except SlipMapError as exc:
+        raise OptionError(key, str(exc)) from exc

@@ -43,6 +43,7 @@ __all__ = [
     "Region",
     "TileCollection",
     "TileFile",
+    "expand_paths",
     "is_collection_spec",
     "open_collection",
     "region_grid",
@@ -129,8 +130,9 @@ def is_collection_spec(value) -> bool:
     return Path(text).is_dir() or bool(_GLOB_CHARS & set(Path(text).name))
 
 
-def _expand(spec) -> List[Path]:
-    """The files a spec names, in a stable order (sorted within a folder or a glob)."""
+def expand_paths(spec) -> List[Path]:
+    """The files a spec names, in a stable order (sorted within a folder or a glob); no file
+    is opened. Raises SlipMapFileError for a missing file, an empty folder or glob."""
     items = list(spec) if isinstance(spec, (list, tuple)) else [spec]
     if not items:
         raise InvalidParameterError("no point-cloud file given; give files, a folder or a glob")
@@ -457,7 +459,7 @@ def open_collection(
         A file missing, unreadable, or with a CRS different from the first tile's (each
         message names the tile).
     """
-    paths = _expand(spec)
+    paths = expand_paths(spec)
     files = []
     first_crs = None
     first_path = None

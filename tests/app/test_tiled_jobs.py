@@ -105,3 +105,45 @@ def test_output_inside_the_tiles_folder_over_a_tile_refused(tiles, tmp_path, cap
     rc, err = _cli(["planes", str(copy / "*.laz"), "--out", str(copy)], capsys)
     assert rc == 0, err
     assert "planes" in _planes(copy)
+
+
+def _csv(path):
+    return np.genfromtxt(path, delimiter=",", names=True)
+
+
+def test_roughness_file_tiles_and_dask_agree(tiles, tmp_path, capsys):
+    whole, folder = tiles
+    runs = [[str(whole)], [str(folder)], [str(folder / "t*.laz"), "--tile-size", "17"]]
+    try:
+        import distributed  # noqa: F401
+    except ImportError:  # the in-process runs still compare
+        pass
+    else:
+        runs.append([str(whole), "--workers", "2"])
+    tables = []
+    for i, spec in enumerate(runs):
+        out = tmp_path / f"r{i}"
+        rc, err = _cli(["roughness", *spec, "--cell", "0.5", "--out", str(out)], capsys)
+        assert rc == 0, err
+        tables.append(_csv(out / "roughness_0.5.csv"))
+    ref = tables[0]
+    for got in tables[1:]:  # the tiled path: the whole cloud's cells, to rounding
+        for name in ("ix", "iy", "iz", "n", "degenerate"):
+            assert np.array_equal(got[name], ref[name])
+        ok = ref["degenerate"] == 0
+        for name in ("theta_odr", "theta_ols"):
+            assert np.allclose(got[name][ok], ref[name][ok], rtol=1e-9, atol=0)
+
+
+def test_roughness_points_out_refused_for_tiles(tiles, tmp_path, capsys, snapshot):
+    _, folder = tiles
+    out = tmp_path / "out"
+    out.mkdir()
+    snap = snapshot(out)
+    rc, err = _cli(
+        ["roughness", str(folder), "--cell", "0.5", "--out", str(out), "--points-out",
+         str(out / "p.laz")],
+        capsys,
+    )  # fmt: skip
+    assert rc == 2 and "--points-out" in err[-1]
+    assert snap.unchanged()
