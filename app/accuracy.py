@@ -34,7 +34,8 @@ LAS_SUFFIXES = (".las", ".laz")
 
 def _check(opts: Mapping[str, Any]) -> None:
     out = opts.get("output_cloud")
-    if out is not None and Path(str(out)).suffix.lower() not in LAS_SUFFIXES:
+    is_folder = out is not None and Path(str(out)).is_dir()  # the OutputPlan says so
+    if out is not None and not is_folder and Path(str(out)).suffix.lower() not in LAS_SUFFIXES:
         raise OptionError(
             "output_cloud",
             f"{str(out)!r} does not end in .las or .laz; the copy is a LAS/LAZ file: give a "
