@@ -568,6 +568,29 @@ def _with_figures(outputs: Mapping[str, Any]) -> Dict[str, Any]:
     return out
 
 
+#: outputs that need an option: output key -> the option
+_OUTPUT_NEEDS = {"tiles": "tile_size_m", "strips": "strip_width_m", "windows": "window_size_m"}
+
+
+def check_outputs(opts: Mapping[str, Any], wanted) -> None:
+    """Refuse an output asked for without the option that makes it (tiles without a tile
+    size, strips without a strip width, windows without a window size).
+
+    Raises
+    ------
+    OptionError
+        Naming the output and the option.
+    """
+    for key in wanted:
+        need = _OUTPUT_NEEDS.get(key)
+        if need is not None and opts.get(need) is None:
+            raise OptionError(
+                key,
+                f"is asked for but no {{{need}}} is given: give it or leave this output out",
+                also=(need,),
+            )
+
+
 def input_paths(opts: Mapping[str, Any]) -> Dict[str, Any]:
     keys = ("before", "after", "fault", "trajectory", "trajectory_accuracy", "pa_config")
     return {k: opts.get(k) for k in keys}
@@ -618,12 +641,7 @@ def run(
     folder = outputs.get("out") is not None
     if not folder:
         outputs = _with_figures(outputs)
-        if outputs.get("windows") is not None and opts.get("window_size_m") is None:
-            raise OptionError(
-                "windows",
-                "is asked for but no {window_size_m} is given: give it or leave the output out",
-                also=("window_size_m",),
-            )
+        check_outputs(opts, [k for k in ("windows",) if outputs.get(k) is not None])
     plan = OutputPlan.for_outputs(
         inputs=input_paths(opts), outputs=outputs, default_names=default_names(opts)
     )

@@ -411,6 +411,7 @@ def units_for_job(opts: Mapping[str, Any], epochs: Mapping[str, Any]) -> tuple:
             log.warning("the units option (%s) is not used by the %s model", how, model)
         for epoch in epochs:
             out[epoch] = EpochUnits(None, "none", 0, f"not used by the {model} model")
+            record[epoch] = out[epoch].to_dict()
         return out, record
     if how == "GpsTime":
         record["gps_gap_s"] = opts.get("gps_gap_s", DEFAULT_GPS_GAP_S)

@@ -1319,3 +1319,76 @@ def input_files(opts, key: str):
         return [str(p) for p in expand_paths(split_inputs(value))]
     except SlipMapError as exc:
         raise OptionError(key, str(exc)) from exc
+
+
+def slip_job_tiled(opts, trace=None, *, progress: Optional[ProgressCallback] = None):
+    """The slip job's (:mod:`.slip`) computation on tiled inputs or on Dask.
+
+    Returns ``(crs, fault trace, SlipRun, point-accuracy settings, units record, seconds)``,
+    what the job's writing part uses. What needs the points in one place is refused, naming
+    the option: strips and moving windows, per-point accuracy models, units from GPS time.
+    ``trace``: ``f(crs) -> FaultTrace`` (QGIS) or None to read the ``fault`` option.
+    """
+    import time
+
+    from .options import OptionError
+    from .slip import SlipRun, core_options, fixed_components, point_accuracy, read_trace
+
+    for key in ("strip_width_m", "window_size_m"):
+        if opts.get(key) is not None:
+            raise OptionError(
+                key, "needs the points in one place; it is not available for tiled inputs or Dask"
+            )
+    settings = point_accuracy(opts)
+    sigma = {}
+    for epoch, s in settings.items():
+        if s["model"] not in ("constant", "axis"):
+            raise OptionError(
+                "pa_model",
+                f"{s['model']} (per-point accuracy) needs the points in one place; tiled inputs "
+                "and Dask take a constant or per-axis sigma",
+            )
+        sigma[epoch] = (
+            float(s.get("sigma", 0.05))
+            if s["model"] == "constant"
+            else np.asarray(s["sigma_xyz"], dtype=np.float64)
+        )
+    model = opts.get("stochastic_model", "full")
+    how = opts.get("units", "auto") if model == "full" else "none"
+    if how == "GpsTime":
+        raise OptionError(
+            "units",
+            "GpsTime splits each epoch at time gaps, which needs the whole epoch in one place; "
+            "with tiled inputs or Dask use PointSourceId, auto or none",
+        )
+    before = open_input(opts, "before", what="before epoch", crs=opts.get("crs"))
+    crs = before.crs
+    fault = trace(crs) if trace is not None else read_trace(opts["fault"], crs)
+    core = core_options(opts)
+    t0 = time.perf_counter()
+    result = slip_for_job(
+        opts,
+        fault,
+        selection=Selection(opts.get("classes"), opts.get("exclude_classes"), ground_default=True),
+        progress=progress,
+        sigma_before=sigma["before"],
+        sigma_after=sigma["after"],
+        buffer_m=core["buffer_m"],
+        plane_options=core["plane_options"],
+        match_options=core["match_options"],
+        stochastic_model=core["stochastic_model"],
+        combine=opts.get("combine") or "joint",
+        units=how,
+        components=fixed_components(opts),
+    )
+    runtime = time.perf_counter() - t0
+    n_units = result.parameters.get("acquisition_units") or {}
+    record = {
+        "units_option": opts.get("units", "auto"),
+        **{
+            e: {"source": "PointSourceId" if n_units else "none", "n_units": n_units.get(e, 0)}
+            for e in ("before", "after")
+        },
+        "tiled": True,
+    }
+    return crs, fault, SlipRun(result), settings, record, runtime

@@ -174,8 +174,8 @@ def test_slip_summary_lines_known_answer():
 
 
 def test_stochastic_tables_and_html(tmp_path):
-    from slipmap.app.summaries import stochastic_tables
     from slipmap.app.report import write_html_report
+    from slipmap.app.summaries import stochastic_tables
 
     tables = stochastic_tables(_payload())
     head = tables["Stochastic model"]

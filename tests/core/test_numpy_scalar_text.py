@@ -8,10 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slipmap.app.report import write_html_report
 from slipmap.core.errors import InputDataError
 from slipmap.core.fields import _axis_lattice
 from slipmap.core.io.table import write_csv_columns
-from slipmap.app.report import write_html_report
 
 
 def test_csv_numbers_from_numpy_scalars(tmp_path):

@@ -202,8 +202,13 @@ def test_accuracy_then_displacement_uses_per_point_sigmas():
     )
     from slipmap.app.summaries import json_safe
 
-    summary["parameters"].pop("acquisition_unit_sources")  # the stage's record of the units
-    assert summary == json_safe(core.to_dict())
+    # the job records every option it passed (defaults spelled out); the results are the same
+    params = summary.pop("parameters")
+    expect = json_safe(core.to_dict())
+    core_params = expect.pop("parameters")
+    assert summary == expect
+    for key in ("buffer_m", "combine", "stochastic_model"):
+        assert params[key] == core_params[key]
     with pytest.raises(StageError, match="sigma_dimensions"):
         bad = load_stage(
             "displacement",

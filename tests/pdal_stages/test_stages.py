@@ -120,11 +120,16 @@ def test_displacement_summary_equals_core(slip_run):
     mod, outs, core = slip_run
     md = nodes(mod)
     summary = md["summary"]
-    units = summary["parameters"].pop("acquisition_unit_sources")
-    assert summary == json_safe(core.to_dict())
+    params = summary.pop("parameters")
+    units = params["acquisition_unit_sources"]
+    expect = json_safe(core.to_dict())
+    core_params = expect.pop("parameters")
+    assert summary == expect  # the job spells out default options in its record
+    for key in ("buffer_m", "combine", "stochastic_model"):
+        assert params[key] == core_params[key]
     assert md["right_lateral_slip"] == pytest.approx(0.0181, abs=0.002)
     # the default model is full; the view has no PointSourceId: no units
-    assert md["stochastic_model"] == "full" == summary["parameters"]["stochastic_model"]
+    assert md["stochastic_model"] == "full" == params["stochastic_model"]
     assert units["units_option"] == "auto"
     assert units["before"] == {
         "source": "none",
@@ -349,10 +354,16 @@ def test_displacement_fixed_components_and_white(drift_pair):
 
 
 def test_displacement_stochastic_options_parse():
+    from slipmap.app.slip import fixed_components
+    from slipmap.pdal_filters import _stage
     from slipmap.pdal_filters import displacement as mod
 
     table = mod.TABLE
-    opts = table.parse(
+
+    def parse(value):
+        return _stage.job_options(mod.SPEC, table.parse(value))
+
+    opts = parse(
         {
             "trace": "LINESTRING (0 0, 1 1)",
             "units": "pointsourceid",
@@ -362,16 +373,13 @@ def test_displacement_stochastic_options_parse():
     )
     assert opts["units"] == "PointSourceId" and opts["stochastic_model"] == "plane"
     assert opts["gps_gap_s"] == 1.0
-    assert mod._stochastic_options(opts) == {
-        "stochastic_model": "plane",
-        "components": {"plane": 0.002, "spatial_range_m": 30.0},
-    }
-    opts = table.parse({"trace": "x", "fixed_components": {"unit_after": 0.003}})
+    assert fixed_components(opts) == {"plane": 0.002, "spatial_range_m": 30.0}
+    opts = parse({"trace": "x", "fixed_components": {"unit_after": 0.003}})
     assert opts["units"] == "auto" and opts["stochastic_model"] == "full"
-    assert mod._stochastic_options(opts)["components"] == {"unit_after": 0.003}
-    opts = table.parse('{"trace": "x", "fixed_components": "{\\"plane\\": 0.001}"}')
-    assert mod._stochastic_options(opts)["components"] == {"plane": 0.001}
-    assert mod._stochastic_options(table.parse({"trace": "x"}))["components"] is None
+    assert fixed_components(opts) == {"unit_after": 0.003}
+    opts = parse('{"trace": "x", "fixed_components": "{\\"plane\\": 0.001}"}')
+    assert fixed_components(opts) == {"plane": 0.001}
+    assert fixed_components(parse({"trace": "x"})) is None
 
 
 def test_displacement_gps_time_units_need_the_dimension(drift_pair):
@@ -379,7 +387,7 @@ def test_displacement_gps_time_units_need_the_dimension(drift_pair):
     ins = _drift_ins(fp)
     del ins["GpsTime"]
     mod = stage("displacement", {"trace": _trace_wkt(fp), "units": "GpsTime"})
-    with pytest.raises(StageError, match="option 'units' GpsTime.*no GpsTime dimension"):
+    with pytest.raises(StageError, match="option units: GpsTime.*no GpsTime dimension"):
         call(mod, ins, DISP)
 
 

@@ -278,17 +278,20 @@ def test_pa_config_per_epoch_equals_core(provider, epochs, tmp_path):
 @pytest.mark.parametrize(
     "extra, words",
     [
-        ({"TILES": "TEMPORARY_OUTPUT"}, ("TILES", "TILE_SIZE")),
-        ({"WINDOWS": "TEMPORARY_OUTPUT"}, ("WINDOWS", "WINDOW_SIZE")),
-        ({"PA_BEFORE": 3}, ("TRAJECTORY", "SCANNER_POSITION")),
-        ({"PA_AFTER": 2, "SIGMA_COLUMNS": "SigmaX,SigmaY"}, ("SIGMA_COLUMNS", "three")),
-        ({"PA_AFTER": 2}, ("SigmaX", "columns", "SIGMA_COLUMNS")),
-        ({"PA_CONFIG": "/no/such/pa.json"}, ("PA_CONFIG", "JSON")),
-        ({"FIXED_COMPONENTS": "plane"}, ("FIXED_COMPONENTS", "NAME=SIGMA_M")),
-        ({"FIXED_COMPONENTS": "bogus=0.001"}, ("FIXED_COMPONENTS", "bogus", "spatial")),
-        ({"FIXED_COMPONENTS": "plane=-0.001"}, ("FIXED_COMPONENTS", "plane", ">= 0")),
-        ({"FIXED_COMPONENTS": "plane=1,plane=2"}, ("FIXED_COMPONENTS", "twice")),
-        ({"STOCHASTIC_MODEL": 0, "FIXED_COMPONENTS": "plane=0.001"}, ("FIXED_COMPONENTS", "white")),
+        ({"TILES": "TEMPORARY_OUTPUT"}, ("Tiles", "Tile size (m)")),
+        ({"WINDOWS": "TEMPORARY_OUTPUT"}, ("Moving windows", "Moving-window size (m)")),
+        ({"PA_BEFORE": 3}, ("Trajectory, propagated", "Scanner position")),
+        ({"PA_AFTER": 2, "SIGMA_COLUMNS": "SigmaX,SigmaY"}, ("Sigma columns", "3 values")),
+        ({"PA_AFTER": 2}, ("SigmaX", "columns", "Sigma columns")),
+        ({"PA_CONFIG": "/no/such/pa.json"}, ("Point-accuracy configuration", "JSON")),
+        ({"FIXED_COMPONENTS": "plane"}, ("Fixed components", "name=value")),
+        ({"FIXED_COMPONENTS": "bogus=0.001"}, ("Fixed components", "bogus", "spatial")),
+        ({"FIXED_COMPONENTS": "plane=-0.001"}, ("Fixed components", "plane", ">= 0")),
+        ({"FIXED_COMPONENTS": "plane=1,plane=2"}, ("Fixed components", "twice")),
+        (
+            {"STOCHASTIC_MODEL": 0, "FIXED_COMPONENTS": "plane=0.001"},
+            ("Fixed components", "white"),
+        ),
     ],
 )
 def test_bad_parameters_name_the_parameter(provider, epochs, tmp_path, extra, words):
