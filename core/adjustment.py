@@ -58,6 +58,8 @@ from . import stochastic as _stoch
 from .errors import InputDataError, InvalidParameterError
 from .planes import orient_normals
 from .progress import ProgressCallback, report
+from .rotation import rotation_matrix, rotation_vector
+from .rotation import skew as _skew
 from .stochastic import PlaneModel, VarianceComponents
 
 log = logging.getLogger(__name__)
@@ -181,37 +183,6 @@ class RigidResult:
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """Cross-product matrices ``[v]x`` of (..., 3) vectors: ``[v]x @ u == v x u``."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1] = -v[..., 2]
-    out[..., 0, 2] = v[..., 1]
-    out[..., 1, 0] = v[..., 2]
-    out[..., 1, 2] = -v[..., 0]
-    out[..., 2, 0] = -v[..., 1]
-    out[..., 2, 1] = v[..., 0]
-    return out
-
-
-def _expm_so3(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector ``w`` (3,) (Rodrigues)."""
-    theta = float(np.linalg.norm(w))
-    k = _skew(w)
-    if theta < 1e-8:
-        return np.eye(3) + k + 0.5 * (k @ k)
-    return np.eye(3) + math.sin(theta) / theta * k + (1 - math.cos(theta)) / theta**2 * (k @ k)
-
-
-def _logm_so3(r: np.ndarray) -> np.ndarray:
-    """Rotation vector (3,) of a rotation matrix (angles below pi)."""
-    c = min(1.0, max(-1.0, (np.trace(r) - 1.0) / 2.0))
-    theta = math.acos(c)
-    v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0
-    if theta < 1e-8:
-        return v
-    return v * theta / math.sin(theta)
 
 
 def _describe_direction(v: np.ndarray) -> str:
@@ -806,7 +777,7 @@ def _iterate(state, epochs, active, b, step, max_iterations, tolerance, progress
     nred = qxx = None
     for it in range(1, max_iterations + 1):
         d1, d2, nred, qxx = step(state, epochs, active, b)
-        state.r = _expm_so3(d1[:3]) @ state.r
+        state.r = rotation_matrix(d1[:3]) @ state.r
         state.t = state.t + d1[3:]
         state.n[active] += d2[:, :3]
         state.d[active] += d2[:, 3]
@@ -1266,7 +1237,7 @@ def _finish(
     plane_params = np.full((b, 4), np.nan)
     plane_params[has, :3] = n[has]
     plane_params[has, 3] = d[has] - n[has] @ centre
-    params = np.concatenate([_logm_so3(state.r), state.t])
+    params = np.concatenate([rotation_vector(state.r), state.t])
     ev, evec = np.linalg.eigh(nred[3:, 3:])
     weak = []
     for j in range(3):

@@ -45,6 +45,8 @@ import numpy as np
 
 from .errors import InputDataError, InvalidParameterError
 from .progress import ProgressCallback, report, scaled
+from .rotation import left_jacobian as _left_jacobian
+from .rotation import rotation_matrix, rotation_vector
 
 log = logging.getLogger(__name__)
 
@@ -60,67 +62,6 @@ SIGMA_SCALING_CHOICES = ("field", "formal")
 
 
 # --------------------------------------------------------------------------- rotations
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(3,) -> (3, 3) cross-product matrix ``[v]x`` (``[v]x @ a == v x a``)."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def rotation_matrix(rotvec: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a rotation vector (axis times angle, radians), Rodrigues' formula.
-
-    Parameters
-    ----------
-    rotvec : (3,) float64
-
-    Returns
-    -------
-    (3, 3) float64
-    """
-    r = np.asarray(rotvec, dtype=np.float64)
-    th = float(np.linalg.norm(r))
-    k = _skew(r)
-    if th < 1e-6:  # series: sin(th)/th, (1-cos th)/th^2
-        a, b = 1.0 - th * th / 6.0, 0.5 - th * th / 24.0
-    else:
-        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / (th * th)
-    return np.eye(3) + a * k + b * (k @ k)
-
-
-def rotation_vector(rot: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis times angle, radians) of a rotation matrix (inverse of
-    :func:`rotation_matrix`, angles below pi).
-
-    Parameters
-    ----------
-    rot : (3, 3) float64
-
-    Returns
-    -------
-    (3,) float64
-    """
-    R = np.asarray(rot, dtype=np.float64)
-    w = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    s = float(np.linalg.norm(w))  # sin(theta)
-    c = 0.5 * (float(np.trace(R)) - 1.0)  # cos(theta)
-    th = math.atan2(s, c)
-    if s < 1e-12:
-        return w  # theta ~ 0 (rotations near pi are not expected between epochs)
-    return w * (th / s)
-
-
-def _left_jacobian(rotvec: np.ndarray) -> np.ndarray:
-    """SO(3) left Jacobian: ``exp([r + dr]x) ~ exp([J_l(r) dr]x) exp([r]x)``."""
-    r = np.asarray(rotvec, dtype=np.float64)
-    th = float(np.linalg.norm(r))
-    k = _skew(r)
-    if th < 1e-4:
-        a, b = 0.5 - th * th / 24.0, 1.0 / 6.0 - th * th / 120.0
-    else:
-        a = (1.0 - math.cos(th)) / (th * th)
-        b = (th - math.sin(th)) / (th**3)
-    return np.eye(3) + a * k + b * (k @ k)
 
 
 # --------------------------------------------------------------------------- result type

@@ -1600,13 +1600,10 @@ def _tls_layout(
 
 
 def _rotation_minus_identity(rotvec: np.ndarray) -> np.ndarray:
-    """(U, 3) rotation vectors (radians) -> (U, 3, 3) ``R - I`` (Rodrigues; 0 for no turn)."""
-    angle = np.linalg.norm(rotvec, axis=1)
-    axis = rotvec / np.where(angle > 0.0, angle, 1.0)[:, None]
-    k = np.zeros((rotvec.shape[0], 3, 3))
-    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = axis[:, 2], -axis[:, 1], axis[:, 0]
-    return np.sin(angle)[:, None, None] * k + (1.0 - np.cos(angle))[:, None, None] * (k @ k)
+    """(U, 3) rotation vectors (radians) -> (U, 3, 3) ``R - I`` (0 for no turn)."""
+    from .icp import rotation_matrix
+
+    return rotation_matrix(rotvec) - np.eye(3)
 
 
 def _rigid_unit_errors(
