@@ -264,27 +264,6 @@ def epoch_units(
     return EpochUnits(units, dim, n, note)
 
 
-def cloud_units(
-    cloud, sel, how: str, *, gap_s: float, epoch: str, option: str, spelling=None
-) -> EpochUnits:
-    """:func:`epoch_units` of a :class:`~slipmap.core.io.las.PointCloud`'s selected points
-    (``sel``: indices or mask), logging which units were used."""
-    attrs = cloud.attributes
-    psid = attrs.get("PointSourceId")
-    gps = attrs.get("GpsTime")
-    res = epoch_units(
-        how,
-        point_source_id=None if psid is None else np.asarray(psid)[sel],
-        gps_time=None if gps is None else np.asarray(gps)[sel],
-        gap_s=gap_s,
-        epoch=epoch,
-        option=option,
-        spelling=spelling,
-    )
-    log_units(epoch, res)
-    return res
-
-
 def log_units(epoch: str, units: EpochUnits) -> None:
     if units.units is None:
         log.info("%s: no acquisition units (%s)", epoch, units.note)

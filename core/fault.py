@@ -220,11 +220,6 @@ class _Segments:
         self.n = len(self.a)
 
 
-def _right_normal(v: np.ndarray) -> np.ndarray:
-    """Vectors ``(..., 2)`` rotated 90° clockwise (towards the right side)."""
-    return np.stack([v[..., 1], -v[..., 0]], axis=-1)
-
-
 def _azimuth(v: np.ndarray) -> np.ndarray:
     """Azimuth clockwise from +y of vectors ``(..., 2)``, in ``[0, 2π)``."""
     az = np.arctan2(v[..., 0], v[..., 1])

@@ -264,44 +264,6 @@ def advanced(param):
     return param
 
 
-def optional_number(alg, parameters, name, context, integer=False):
-    """An optional numeric parameter, ``None`` when it is not set."""
-    if not is_set(parameters, name):
-        return None
-    if integer:
-        return alg.parameterAsInt(parameters, name, context)
-    return alg.parameterAsDouble(parameters, name, context)
-
-
-def select_points(cloud, exclude_ground):
-    """Indices of the points used, as the CLI's default: ground (class 2) left out."""
-    import numpy as np
-
-    cls = cloud.attributes.get("Classification")
-    if not exclude_ground or cls is None:
-        return np.arange(len(cloud))
-    return np.flatnonzero(np.asarray(cls) != 2)
-
-
-def read_cloud(path):
-    """``read_las`` with an empty file an error."""
-    from ...core.errors import InputDataError
-    from ...core.io.las import read_las
-
-    cloud = read_las(path)
-    if len(cloud) == 0:
-        raise InputDataError(f"{path}: the file has no points")
-    return cloud
-
-
-def write_json(path, payload):
-    import json
-
-    from ...core.io.atomic import write_text_atomic
-
-    write_text_atomic(path, json.dumps(payload, indent=2, default=str))
-
-
 #: group id -> icon file (qgis_plugin/icons); the provider's own icon is slipmap.svg
 GROUP_ICONS = {
     "slip": "slip.svg",

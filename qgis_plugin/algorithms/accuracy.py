@@ -153,41 +153,6 @@ def pa_values(alg, parameters, context, model_name, crs=None):
     return values
 
 
-def pa_settings(alg, parameters, context, model_name, crs):
-    """The ``slipmap.app.pointaccuracy`` settings dict of the model chosen in ``model_name``
-    (for algorithms not yet on a job). Raises ``QgsProcessingException`` naming the
-    parameter at fault by its label."""
-    from ...app.pointaccuracy import settings_from_options
-
-    extra = pa_values(alg, parameters, context, model_name, crs)
-    opts = options_from(alg, parameters, context, PA_SPEC, extra=extra)
-    with slipmap_errors(PA_SPEC):
-        return settings_from_options({**opts, "pa_config": None})["before"]
-
-
-def pa_config(alg, parameters, context):
-    """``{"before": settings, "after": settings}`` from PA_CONFIG, or None when it is unset."""
-    path = alg.parameterAsFile(parameters, "PA_CONFIG", context)
-    if not path:
-        return None
-    with slipmap_errors(PA_SPEC):
-        from ...app.pointaccuracy import load_config
-
-        return load_config(path)
-
-
-def pa_errors():
-    """Point-accuracy errors as ``QgsProcessingException`` naming the dialog labels."""
-    return slipmap_errors(PA_SPEC)
-
-
-def cloud_crs(cloud):
-    """The ``QgsCoordinateReferenceSystem`` of a ``PointCloud`` (invalid when it has none)."""
-    if cloud.crs is None:
-        return QgsCoordinateReferenceSystem()
-    return QgsCoordinateReferenceSystem.fromWkt(cloud.crs.to_wkt())
-
-
 def _input_crs(alg, parameters, context):
     """The CRS the points will be in: the CRS parameter, else the file's (header only)."""
     if is_set(parameters, "CRS"):

@@ -23,23 +23,6 @@ THRESHOLD_HELP = (
 )
 
 
-def add_plane_parameters(alg):
-    """The optional segmentation thresholds (advanced) and the backend enum."""
-    add_parameters(alg, job.SPEC, roles=("setting",), skip=_NOT_PLANES)
-
-
-_NOT_PLANES = tuple(k.key for k in job.SPEC.options if k.key not in job.PLANE_KEYS)
-
-
-def plane_options(alg, parameters, context):
-    """``segment_planes`` keywords from the parameters (unset thresholds left out)."""
-    return job.core_kwargs(
-        options_from(
-            alg, parameters, context, job.SPEC, run_check=False, extra={"input": "-", "out": "-"}
-        )
-    )
-
-
 class PlanesAlgorithm(SlipMapAlgorithm):
     _id = "planes"
     _name = "Planar segmentation"

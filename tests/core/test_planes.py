@@ -345,3 +345,39 @@ def test_progress_is_reported_and_cancellation_stops():
 
     with pytest.raises(CancelledError):
         segment_planes(pts, progress=cancel)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_numpy_node_fit_equals_the_slow_reference(seed):
+    """The vectorised node fit (NumpyKernels.node_fit) against the per-node loop beside it
+    (node_fit_reference): noisy planes in random orientations, centred, groups of 1-300."""
+    from slipmap.core.planes import NumpyKernels, node_fit_reference
+
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(1, 300, size=120).astype(np.int64)
+    parts = []
+    for c in counts:
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        u = np.cross(n, [0.3, 0.5, 0.8])
+        u /= np.linalg.norm(u)
+        v = np.cross(n, u)
+        ab = rng.uniform(-2.0, 2.0, size=(c, 2))
+        off = rng.normal(0.0, 0.02, size=(c, 1))
+        parts.append(rng.uniform(-50, 50, 3) + ab[:, :1] * u + ab[:, 1:] * v + off * n)
+    sub = np.concatenate(parts)
+    starts = np.cumsum(counts) - counts
+    got = NumpyKernels().node_fit(sub, starts, counts, 0.03)
+    want = node_fit_reference(sub, starts, counts, 0.03)
+    mean, evals, normal, n_within, within = got
+    np.testing.assert_allclose(mean, want[0], rtol=0, atol=1e-11)
+    np.testing.assert_allclose(evals, want[1], rtol=1e-9, atol=1e-14)
+    gap = (want[1][:, 1] - want[1][:, 0]) > 1e-6 * want[1][:, 2]
+    dot = np.abs(np.einsum("ij,ij->i", normal, want[2]))
+    assert np.all(dot[gap] >= 1.0 - 1e-9)
+    node_of = np.repeat(np.arange(counts.size), counts)
+    dist = np.abs(np.einsum("ij,ij->i", sub - want[0][node_of], want[2][node_of]))
+    clear = np.abs(dist - 0.03) > 1e-9
+    np.testing.assert_array_equal(within[clear], want[4][clear])
+    sure = np.add.reduceat((~clear).astype(np.int64), starts) == 0
+    np.testing.assert_array_equal(n_within[sure], want[3][sure])
