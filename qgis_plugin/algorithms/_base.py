@@ -243,15 +243,6 @@ def options_from(alg, parameters, context, spec, *, extra=None, run_check=True):
         raise QgsProcessingException(spec.render_error(exc, "qgis")) from exc
 
 
-def check_options(alg, parameters, context, spec, *, extra=None):
-    """``checkParameterValues`` for a job: ``(ok, message)`` with the dialog's labels."""
-    try:
-        options_from(alg, parameters, context, spec, extra=extra)
-    except QgsProcessingException as exc:
-        return False, str(exc)
-    return True, ""
-
-
 def is_set(parameters, name):
     """True when the optional parameter ``name`` was given (not absent, None or empty)."""
     value = parameters.get(name)
@@ -346,6 +337,36 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
     def prepareAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
         attach_feedback(feedback)
         return True
+
+    # ------------------------------------------------------------------ the job
+
+    def job_extra(self, parameters, context):
+        """Options the algorithm gives its job itself (paths it resolves; ``out`` stands for
+        the outputs, which the algorithm maps from its destinations)."""
+        return {"out": "-"}
+
+    def job_options(self, parameters, context):
+        """The job's options from the parameters (:func:`options_from` with
+        :meth:`job_extra`); errors name the dialog's labels."""
+        extra = self.job_extra(parameters, context)
+        return options_from(self, parameters, context, self.spec, extra=extra)
+
+    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
+        if self.spec is not None:
+            try:
+                self.job_options(parameters, context)
+            except QgsProcessingException as exc:
+                return False, str(exc)
+        return super().checkParameterValues(parameters, context)
+
+    def run_job(self, job, opts, outputs, feedback, **kwargs):
+        """``job.run`` with the feedback's progress and cancel, its errors as
+        ``QgsProcessingException`` in the dialog's words and its lines in the log."""
+        with slipmap_errors(self.spec):
+            result = job.run(opts, outputs, progress=progress_callback(feedback), **kwargs)
+        for line in result.lines:
+            feedback.pushInfo(line)
+        return result
 
 
 # --------------------------------------------------------------------------- styles

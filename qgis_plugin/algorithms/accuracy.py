@@ -28,11 +28,8 @@ from ._base import (
     SlipMapAlgorithm,
     add_parameters,
     advanced,
-    check_options,
     is_set,
     options_from,
-    progress_callback,
-    slipmap_errors,
 )
 
 SCANNER_FROM_FILE = "JSON file (Scanner specification file)"
@@ -202,23 +199,11 @@ class PointAccuracyAlgorithm(SlipMapAlgorithm):
         extra["output_cloud"] = self.parameterAsFileOutput(parameters, "OUTPUT", context)
         return extra
 
-    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
-        try:
-            extra = self._extra(parameters, context)
-        except QgsProcessingException as exc:
-            return False, str(exc)
-        ok, message = check_options(self, parameters, context, job.SPEC, extra=extra)
-        if not ok:
-            return ok, message
-        return super().checkParameterValues(parameters, context)
+    def job_extra(self, parameters, context):
+        return self._extra(parameters, context)
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
         extra = self._extra(parameters, context, _input_crs(self, parameters, context))
         opts = options_from(self, parameters, context, job.SPEC, extra=extra)
-        with slipmap_errors(job.SPEC):
-            result = job.run(
-                opts, {"output_cloud": extra["output_cloud"]}, progress=progress_callback(feedback)
-            )
-        for line in result.lines:
-            feedback.pushInfo(line)
+        result = self.run_job(job, opts, {"output_cloud": extra["output_cloud"]}, feedback)
         return {"OUTPUT": str(result.files["output_cloud"])}

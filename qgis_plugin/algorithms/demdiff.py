@@ -9,10 +9,6 @@ from ...app import dem_diff as job
 from ._base import (
     SlipMapAlgorithm,
     add_parameters,
-    check_options,
-    options_from,
-    progress_callback,
-    slipmap_errors,
 )
 from ._fields import (
     FIELDS_GROUP,
@@ -50,18 +46,9 @@ class DemDifferenceAlgorithm(SlipMapAlgorithm):
         )
         add_optional_file_output(self, job.SPEC, "plot")
 
-    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
-        ok, message = check_options(self, parameters, context, job.SPEC, extra={"out": "-"})
-        if not ok:
-            return ok, message
-        return super().checkParameterValues(parameters, context)
-
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
-        opts = options_from(self, parameters, context, job.SPEC, extra={"out": "-"})
+        opts = self.job_options(parameters, context)
         outputs = file_outputs(self, parameters, context, job.SPEC, _FILES)
-        with slipmap_errors(job.SPEC):
-            result = job.run(opts, outputs, progress=progress_callback(feedback))
-        for line in result.lines:
-            feedback.pushInfo(line)
+        self.run_job(job, opts, outputs, feedback)
         apply_diverging_style_on_load(context, outputs["raster"], "diverging")
         return {"OUTPUT": outputs["raster"], "SUMMARY": outputs["summary"], "PLOT": outputs["plot"]}

@@ -11,10 +11,6 @@ from ...app import planes as job
 from ._base import (
     SlipMapAlgorithm,
     add_parameters,
-    check_options,
-    options_from,
-    progress_callback,
-    slipmap_errors,
 )
 
 THRESHOLD_HELP = (
@@ -55,22 +51,13 @@ class PlanesAlgorithm(SlipMapAlgorithm):
         )
         self.addOutput(QgsProcessingOutputNumber("N_PLANES", "Number of planes"))
 
-    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
-        ok, message = check_options(self, parameters, context, job.SPEC, extra={"out": "-"})
-        if not ok:
-            return ok, message
-        return super().checkParameterValues(parameters, context)
-
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
-        opts = options_from(self, parameters, context, job.SPEC, extra={"out": "-"})
+        opts = self.job_options(parameters, context)
         outputs = {
             "labelled_cloud": self.parameterAsFileOutput(parameters, "OUTPUT", context),
             "summary": self.parameterAsFileOutput(parameters, "SUMMARY", context),
         }
-        with slipmap_errors(job.SPEC):
-            result = job.run(opts, outputs, progress=progress_callback(feedback))
-        for line in result.lines:
-            feedback.pushInfo(line)
+        result = self.run_job(job, opts, outputs, feedback)
         planes = result.data[0]
         return {
             "OUTPUT": outputs["labelled_cloud"],

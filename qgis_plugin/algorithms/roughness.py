@@ -14,10 +14,6 @@ from ...app import roughness as job
 from ._base import (
     SlipMapAlgorithm,
     add_parameters,
-    check_options,
-    options_from,
-    progress_callback,
-    slipmap_errors,
 )
 
 _CELL = job.SPEC["cell_sizes_m"]
@@ -93,28 +89,16 @@ class RoughnessAlgorithm(SlipMapAlgorithm):
             "points_out": dest("POINTS"),
         }
 
-    def _extra(self, parameters, context):
+    def job_extra(self, parameters, context):
         return {
             "cell_sizes_m": [self.parameterAsDouble(parameters, "CELL", context)],
             "points_out": self._outputs(parameters, context)["points_out"],
         }
 
-    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
-        extra = self._extra(parameters, context)
-        ok, message = check_options(self, parameters, context, job.SPEC, extra=extra)
-        if not ok:
-            return ok, message
-        return super().checkParameterValues(parameters, context)
-
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
-        opts = options_from(
-            self, parameters, context, job.SPEC, extra=self._extra(parameters, context)
-        )
+        opts = self.job_options(parameters, context)
         outputs = self._outputs(parameters, context)
-        with slipmap_errors(job.SPEC):
-            result = job.run(opts, outputs, progress=progress_callback(feedback))
-        for line in result.lines:
-            feedback.pushInfo(line)
+        self.run_job(job, opts, outputs, feedback)
         return {
             "OUTPUT": outputs["geotiff"],
             "CSV": outputs["csv"],

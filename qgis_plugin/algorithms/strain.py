@@ -16,10 +16,7 @@ from ...app import strain as job
 from ._base import (
     SlipMapAlgorithm,
     add_parameters,
-    check_options,
     options_from,
-    progress_callback,
-    slipmap_errors,
 )
 from ._fields import (
     FIELDS_GROUP,
@@ -130,13 +127,8 @@ class StrainAlgorithm(SlipMapAlgorithm):
         )
         add_optional_file_output(self, job.SPEC, "plot")
 
-    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
-        ok, message = check_options(
-            self, parameters, context, job.SPEC, extra={"out": "-", "field": "-"}
-        )
-        if not ok:
-            return ok, message
-        return super().checkParameterValues(parameters, context)
+    def job_extra(self, parameters, context):
+        return {"out": "-", "field": "-"}
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
         source = self.parameterAsSource(parameters, "FIELD", context)
@@ -156,16 +148,6 @@ class StrainAlgorithm(SlipMapAlgorithm):
         cols, dropped = read_vectors(source)
         if dropped:
             feedback.pushWarning(f"{name}: {dropped} feature(s) without a position left out")
-        with slipmap_errors(job.SPEC):
-            result = job.run(
-                opts,
-                outputs,
-                columns=cols,
-                crs=crs,
-                what=name,
-                progress=progress_callback(feedback),
-            )
-        for line in result.lines:
-            feedback.pushInfo(line)
+        self.run_job(job, opts, outputs, feedback, columns=cols, crs=crs, what=name)
         apply_diverging_style_on_load(context, outputs["raster"], "strain")
         return {"OUTPUT": outputs["raster"], "SUMMARY": outputs["summary"], "PLOT": outputs["plot"]}

@@ -15,11 +15,7 @@ from ...app import icp as job
 from ._base import (
     SlipMapAlgorithm,
     add_parameters,
-    check_options,
     is_set,
-    options_from,
-    progress_callback,
-    slipmap_errors,
     source_parts,
 )
 from ._fields import (
@@ -76,14 +72,8 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
         )
         add_optional_file_output(self, job.SPEC, "plot")
 
-    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
-        ok, message = check_options(self, parameters, context, job.SPEC, extra={"out": "-"})
-        if not ok:
-            return ok, message
-        return super().checkParameterValues(parameters, context)
-
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
-        opts = options_from(self, parameters, context, job.SPEC, extra={"out": "-"})
+        opts = self.job_options(parameters, context)
         outputs = file_outputs(self, parameters, context, job.SPEC, _FILES)
         stable_mask = None
         if is_set(parameters, "STABLE_MASK"):
@@ -95,12 +85,7 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
             def stable_mask(crs):
                 return source_parts(source, qgs_crs(crs), context, parameter=label, polygons=True)
 
-        with slipmap_errors(job.SPEC):
-            result = job.run(
-                opts, outputs, stable_mask=stable_mask, progress=progress_callback(feedback)
-            )
-        for line in result.lines:
-            feedback.pushInfo(line)
+        result = self.run_job(job, opts, outputs, feedback, stable_mask=stable_mask)
         res, cols, crs = result.data["result"], result.data["columns"], qgs_crs(result.data["crs"])
         cells_id = write_polygon_sink(
             self, parameters, "CELLS", context, crs, result.data["rings"], cols

@@ -734,7 +734,12 @@ def test_white_model_and_fixed_components(provider, drift_epochs, tmp_path):
     assert white["N_EFF_LEFT"] is None
     js = json.loads((tmp_path / "w.json").read_text())
     assert "variance_components" not in js["left"]
-    assert "before" not in js["parameters"]["acquisition_unit_sources"]  # units not read
+    units = js["parameters"]["acquisition_unit_sources"]
+    assert units["before"] == units["after"] == {  # units not read
+        "source": "none",
+        "n_units": 0,
+        "note": "not used by the white model",
+    }
     fixed = processing.run(
         "slipmap:displacement",
         {
