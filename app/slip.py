@@ -40,6 +40,7 @@ from .planes import core_kwargs as plane_kwargs
 from .planes import plane_options
 from .stochasticmodel import check_stochastic, stochastic_options, units_for_job
 from .summaries import json_safe, slip_summary_lines, stochastic_tables, strip_rows
+from .tiled import scale_options
 
 log = logging.getLogger("slipmap.app")
 
@@ -124,7 +125,7 @@ def _output(key: str, help_: str, label: str) -> Option:
 
 def _check(opts: Mapping[str, Any]) -> None:
     """Cross-option checks of :data:`SPEC` (every face, before anything is read)."""
-    from .tiled import check_scale
+    from .tiled import check_scale, check_slip_tiled, is_tiled
 
     check_stochastic(opts)
     if opts.get("combine") == "tiles" and opts.get("tile_size_m") is None:
@@ -141,6 +142,8 @@ def _check(opts: Mapping[str, Any]) -> None:
         )
     _pa_check(opts)
     check_scale(opts)
+    if is_tiled(opts, "before", "after"):
+        check_slip_tiled(opts)  # strips, windows, per-point models, GpsTime units refused
 
 
 def _pa_check(opts: Mapping[str, Any]) -> None:
@@ -287,6 +290,7 @@ SPEC = JobSpec(
         ),
         *selection_options(ground_default=True),
         *plane_options(),
+        *scale_options(tile_option=False),
         _output("summary", "summary (displacement.json)", "Summary"),
         _output("report", "HTML report (report.html)", "Report"),
         _output("layers", "matched planes, tiles, strips, trace (displacement.gpkg)", "Layers"),
@@ -591,9 +595,16 @@ def check_outputs(opts: Mapping[str, Any], wanted) -> None:
             )
 
 
-def input_paths(opts: Mapping[str, Any]) -> Dict[str, Any]:
+def input_paths(opts: Mapping[str, Any], *, tiled: bool = False) -> Dict[str, Any]:
+    """Every input path of the options (``tiled``: every tile file of each epoch), for
+    :class:`~.outputs.OutputPlan`'s checks."""
+    from .tiled import input_files
+
     keys = ("before", "after", "fault", "trajectory", "trajectory_accuracy", "pa_config")
-    return {k: opts.get(k) for k in keys}
+    paths = {k: opts.get(k) for k in keys}
+    if tiled:
+        paths.update({k: input_files(opts, k) for k in ("before", "after")})
+    return paths
 
 
 def read_trace(path, crs):
@@ -636,60 +647,32 @@ def run(
         "strips", "strip_points", "tile_rings", "windows": bands or None}``.
     """
     from ..core.displacement import SIDES
+    from .tiled import check_slip_tiled, is_tiled, slip_job_tiled
 
     outputs = dict(outputs)
     folder = outputs.get("out") is not None
     if not folder:
         outputs = _with_figures(outputs)
         check_outputs(opts, [k for k in ("windows",) if outputs.get(k) is not None])
+    tiled = is_tiled(opts, "before", "after")
+    if tiled:
+        check_slip_tiled(opts)  # before any output is touched
     plan = OutputPlan.for_outputs(
-        inputs=input_paths(opts), outputs=outputs, default_names=default_names(opts)
+        inputs=input_paths(opts, tiled=tiled),
+        outputs=outputs,
+        default_names=default_names(opts),
     )
     plan.check()
     want_windows = folder or plan.wants("windows")
     with plan:
-        pair = read_epoch_pair(opts["before"], opts["after"], crs=opts.get("crs"))
-        clouds = {"before": pair.before, "after": pair.after}
-        sel, label = {}, {}
-        for epoch, cloud in clouds.items():
-            label[epoch] = f"{epoch} epoch ({Path(str(cloud.source)).name})"
-            sel[epoch] = select_points(
-                cloud,
-                classes=opts.get("classes"),
-                exclude_classes=opts.get("exclude_classes"),
-                ground_default=True,
-                what=f"the {epoch} epoch",
+        if tiled:  # tile by tile, in process or on Dask (app/tiled.py)
+            crs, fault, slip, settings, unit_record, runtime = slip_job_tiled(
+                opts, trace, progress=scaled(progress, 0.0, 0.95)
             )
-        settings = point_accuracy(opts)
-        sigma = {e: pa.covariances(clouds[e], sel[e], settings[e]) for e in clouds}
-        units, unit_record = units_for_job(
-            opts,
-            {
-                e: (
-                    label[e],
-                    _dim(clouds[e], "PointSourceId", sel[e]),
-                    _dim(clouds[e], "GpsTime", sel[e]),
-                )
-                for e in clouds
-            },
-        )
-        fault = trace(pair.crs) if trace is not None else read_trace(opts["fault"], pair.crs)
-        before = pair.before.xyz[sel["before"]]
-        after = pair.after_xyz[sel["after"]]
-        t0 = time.perf_counter()
-        slip = compute(
-            before,
-            after,
-            fault,
-            opts,
-            sigma_before=sigma["before"],
-            sigma_after=sigma["after"],
-            unit_before=units["before"].units,
-            unit_after=units["after"].units,
-            windows=want_windows,
-            progress=scaled(progress, 0.0, 0.95),
-        )
-        runtime = time.perf_counter() - t0
+        else:
+            crs, fault, slip, settings, unit_record, runtime = _compute_whole(
+                opts, trace, want_windows, scaled(progress, 0.0, 0.95)
+            )
         result = slip.result
         payload = result.to_dict()
         payload["parameters"].update(
@@ -711,7 +694,7 @@ def run(
         data = {
             "run": slip,
             "trace": fault,
-            "crs": pair.crs,
+            "crs": crs,
             "planes": {s: plane_columns(getattr(result, s)) for s in SIDES},
             "tiles": tile_columns(result) if result.tiles else None,
             "tile_rings": tile_rings(result) if result.tiles else None,
@@ -723,6 +706,9 @@ def run(
         if progress is not None:
             progress(1.0, "written")
     lines = slip_summary_lines(payload)
+    if tiled:
+        prm = payload["parameters"]
+        lines.append(f"tiled inputs: tiles of {prm['tile_size_m']:g} m, {prm.get('engine')}")
     ref = payload.get("reference")
     if ref is not None:
         lines.append(
@@ -732,6 +718,53 @@ def run(
         )
     files = {k: p for k in _all_keys(plan) if (p := plan.final(k)).exists()}
     return JobResult(payload, lines, files, data=data)
+
+
+def _compute_whole(opts, trace, want_windows: bool, progress):
+    """Read both epochs whole, select, and compute: ``(crs, trace, SlipRun, point-accuracy
+    settings, units record, seconds)``."""
+    pair = read_epoch_pair(opts["before"], opts["after"], crs=opts.get("crs"))
+    clouds = {"before": pair.before, "after": pair.after}
+    sel, label = {}, {}
+    for epoch, cloud in clouds.items():
+        label[epoch] = f"{epoch} epoch ({Path(str(cloud.source)).name})"
+        sel[epoch] = select_points(
+            cloud,
+            classes=opts.get("classes"),
+            exclude_classes=opts.get("exclude_classes"),
+            ground_default=True,
+            what=f"the {epoch} epoch",
+        )
+    settings = point_accuracy(opts)
+    sigma = {e: pa.covariances(clouds[e], sel[e], settings[e]) for e in clouds}
+    units, unit_record = units_for_job(
+        opts,
+        {
+            e: (
+                label[e],
+                _dim(clouds[e], "PointSourceId", sel[e]),
+                _dim(clouds[e], "GpsTime", sel[e]),
+            )
+            for e in clouds
+        },
+    )
+    fault = trace(pair.crs) if trace is not None else read_trace(opts["fault"], pair.crs)
+    before = pair.before.xyz[sel["before"]]
+    after = pair.after_xyz[sel["after"]]
+    t0 = time.perf_counter()
+    slip = compute(
+        before,
+        after,
+        fault,
+        opts,
+        sigma_before=sigma["before"],
+        sigma_after=sigma["after"],
+        unit_before=units["before"].units,
+        unit_after=units["after"].units,
+        windows=want_windows,
+        progress=progress,
+    )
+    return pair.crs, fault, slip, settings, unit_record, time.perf_counter() - t0
 
 
 def _all_keys(plan: OutputPlan) -> List[str]:

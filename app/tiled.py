@@ -1291,18 +1291,24 @@ def slip_for_job(
     """The slip job's computation on tiled inputs: both epochs' tiles, the engine the options
     ask for, :func:`slip_tiled` with ``kw`` (sigmas, plane/match options, stochastic model,
     units, components, combine). The study's tile size (``tile_size_m``) is the processing
-    tile; without it, :data:`DEFAULT_TILE_SIZE_M`."""
+    tile; without it, :data:`DEFAULT_TILE_SIZE_M`.
+
+    ``trace``: a FaultTrace, or ``f(crs) -> FaultTrace`` called with the before tiles' CRS.
+    Returns ``(crs, trace, SlipResult)``.
+    """
     from .outputs import refuse_same_inputs
 
     refuse_same_inputs([(keys[0], opts[keys[0]]), (keys[1], opts[keys[1]])])
     before = open_input(opts, keys[0], what="before epoch", crs=opts.get("crs"))
     after = open_input(opts, keys[1], what="after epoch", crs=opts.get("crs"))
+    fault = trace(before.crs) if callable(trace) else trace
     t = opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M
     with engine_from(opts) as eng:
-        return slip_tiled(
-            before, after, trace, tile_size_m=t, selection=selection, engine=eng,
+        result = slip_tiled(
+            before, after, fault, tile_size_m=t, selection=selection, engine=eng,
             progress=progress, **kw,
         )  # fmt: skip
+    return before.crs, fault, result
 
 
 def input_files(opts, key: str):
@@ -1321,54 +1327,80 @@ def input_files(opts, key: str):
         raise OptionError(key, str(exc)) from exc
 
 
-def slip_job_tiled(opts, trace=None, *, progress: Optional[ProgressCallback] = None):
-    """The slip job's (:mod:`.slip`) computation on tiled inputs or on Dask.
+def check_slip_tiled(opts):
+    """Refuse what the slip job cannot do on tiled inputs or Dask, naming the option: strips
+    and moving windows, per-point accuracy models (columns, propagated), acquisition units
+    from GPS time (all need the points of an epoch in one place).
 
-    Returns ``(crs, fault trace, SlipRun, point-accuracy settings, units record, seconds)``,
-    what the job's writing part uses. What needs the points in one place is refused, naming
-    the option: strips and moving windows, per-point accuracy models, units from GPS time.
-    ``trace``: ``f(crs) -> FaultTrace`` (QGIS) or None to read the ``fault`` option.
+    Returns
+    -------
+    settings, sigma
+        The point-accuracy settings per epoch and each epoch's sigma for
+        :func:`slip_tiled` (a float, or (3,) per axis, metres).
+
+    Raises
+    ------
+    OptionError
     """
-    import time
-
     from .options import OptionError
-    from .slip import SlipRun, core_options, fixed_components, point_accuracy, read_trace
+    from .slip import point_accuracy
 
     for key in ("strip_width_m", "window_size_m"):
         if opts.get(key) is not None:
             raise OptionError(
-                key, "needs the points in one place; it is not available for tiled inputs or Dask"
+                key,
+                "needs the points in one place; it is not available for tiled inputs or Dask "
+                "runs: leave it out, or give one file per epoch",
             )
+    model = opts.get("stochastic_model", "full")
+    if model == "full" and opts.get("units") == "GpsTime":
+        raise OptionError(
+            "units",
+            "GpsTime splits each epoch at time gaps, which needs the whole epoch in one place; "
+            "with tiled inputs or Dask use PointSourceId, auto or none",
+        )
     settings = point_accuracy(opts)
     sigma = {}
     for epoch, s in settings.items():
         if s["model"] not in ("constant", "axis"):
+            key = "pa_model"
+            if opts.get("pa_config"):
+                key = "pa_config"
+            elif epoch == "after" and opts.get("pa_model_after"):
+                key = "pa_model_after"
             raise OptionError(
-                "pa_model",
-                f"{s['model']} (per-point accuracy) needs the points in one place; tiled inputs "
-                "and Dask take a constant or per-axis sigma",
+                key,
+                f"{s['model']} ({epoch} epoch) is a per-point accuracy model, which needs the "
+                "points in one place; tiled inputs and Dask take a constant or per-axis sigma",
             )
         sigma[epoch] = (
             float(s.get("sigma", 0.05))
             if s["model"] == "constant"
             else np.asarray(s["sigma_xyz"], dtype=np.float64)
         )
+    return settings, sigma
+
+
+def slip_job_tiled(opts, trace=None, *, progress: Optional[ProgressCallback] = None):
+    """The slip job's (:mod:`.slip`) computation on tiled inputs or on Dask.
+
+    Returns ``(crs, fault trace, SlipRun, point-accuracy settings, units record, seconds)``,
+    what the job's writing part uses. What needs the points in one place is refused, naming
+    the option (:func:`check_slip_tiled`). ``trace``: ``f(crs) -> FaultTrace`` (QGIS) or None
+    to read the ``fault`` option. ``progress`` may raise to cancel (between tiles).
+    """
+    import time
+
+    from .slip import SlipRun, core_options, fixed_components, read_trace
+
+    settings, sigma = check_slip_tiled(opts)
     model = opts.get("stochastic_model", "full")
-    how = opts.get("units", "auto") if model == "full" else "none"
-    if how == "GpsTime":
-        raise OptionError(
-            "units",
-            "GpsTime splits each epoch at time gaps, which needs the whole epoch in one place; "
-            "with tiled inputs or Dask use PointSourceId, auto or none",
-        )
-    before = open_input(opts, "before", what="before epoch", crs=opts.get("crs"))
-    crs = before.crs
-    fault = trace(crs) if trace is not None else read_trace(opts["fault"], crs)
+    how = (opts.get("units") or "auto") if model == "full" else "none"
     core = core_options(opts)
     t0 = time.perf_counter()
-    result = slip_for_job(
+    crs, fault, result = slip_for_job(
         opts,
-        fault,
+        trace if trace is not None else (lambda crs: read_trace(opts["fault"], crs)),
         selection=Selection(opts.get("classes"), opts.get("exclude_classes"), ground_default=True),
         progress=progress,
         sigma_before=sigma["before"],
