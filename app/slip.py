@@ -607,6 +607,19 @@ def input_paths(opts: Mapping[str, Any], *, tiled: bool = False) -> Dict[str, An
     return paths
 
 
+def check_trace(fault, before: np.ndarray, opts: Mapping[str, Any]) -> None:
+    """The fault trace against the before epoch's points (it crosses their extent, points lie
+    on both sides outside the buffer), before any computation; errors name the ``fault``
+    option (the trace is what users get wrong: a wrong file, layer or CRS)."""
+    from ..core.errors import InputDataError
+    from ..core.fault import trace_in_data_check
+
+    try:
+        trace_in_data_check(fault, before[:, :2], buffer_m=opts.get("buffer_m", 10.0))
+    except InputDataError as exc:
+        raise OptionError("fault", str(exc)) from exc
+
+
 def read_trace(path, crs):
     """The fault trace of a file, reprojected to ``crs``; errors name the ``fault`` option."""
     from ..core.io.vector import read_fault_trace
@@ -751,6 +764,7 @@ def _compute_whole(opts, trace, want_windows: bool, progress):
     fault = trace(pair.crs) if trace is not None else read_trace(opts["fault"], pair.crs)
     before = pair.before.xyz[sel["before"]]
     after = pair.after_xyz[sel["after"]]
+    check_trace(fault, before, opts)
     t0 = time.perf_counter()
     slip = compute(
         before,
