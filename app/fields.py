@@ -24,6 +24,7 @@ from .inputs import (
     select_points,
     selection_options,
 )
+from .job import plotting
 from .options import Option, OptionError
 
 log = logging.getLogger("slipmap.app")
@@ -287,17 +288,8 @@ def write_tif(path, array, *, origin_xy, pixel_m, crs, names, metadata=None):
 
 
 def figures():
-    """The figures module (matplotlib), or None with a warning when matplotlib is missing."""
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        log.warning("matplotlib is not installed: no PNG figures (pip install matplotlib)")
-        return None
-    try:
-        from . import report  # the figures' home once moved out of core (issue #15)
-    except ImportError:
-        from ..core import report
-    return report
+    """The figures module, or None with a warning when matplotlib is missing."""
+    return plotting()
 
 
 def horizontal_columns(dx, dy) -> Dict[str, np.ndarray]:

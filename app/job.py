@@ -52,3 +52,25 @@ class Timer:
 
 
 __all__ = ["JobResult", "Progress", "scaled", "Timer", "CancelledError"]
+
+
+NO_MATPLOTLIB = "matplotlib is not installed: no PNG figures (pip install matplotlib)"
+
+
+def matplotlib_available() -> bool:
+    """Whether matplotlib can be imported (the figures and the report's plots need it; it is
+    optional). Says nothing: a job warns (:func:`plotting`) once it is past its checks."""
+    import importlib.util
+
+    return importlib.util.find_spec("matplotlib") is not None
+
+
+def plotting():
+    """:mod:`slipmap.app.report` (figures, HTML report), or None with one warning when
+    matplotlib is missing."""
+    if not matplotlib_available():
+        log.warning(NO_MATPLOTLIB)
+        return None
+    from . import report
+
+    return report

@@ -23,7 +23,7 @@ import numpy as np
 
 from .._version import __version__
 from .inputs import cloud_option, crs_option, out_dir_option, read_cloud
-from .job import JobResult, Progress, scaled
+from .job import NO_MATPLOTLIB, JobResult, Progress, matplotlib_available, scaled
 from .options import JobSpec, Option, OptionError
 from .outputs import OutputPlan
 from .resources import check_grid_memory
@@ -384,15 +384,6 @@ class _Sink:
         return Path(str(self.files[kind])).name if self.files.get(kind) else None
 
 
-def _have_matplotlib() -> bool:
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        log.warning("matplotlib is not installed: no PNG figures (pip install matplotlib)")
-        return False
-    return True
-
-
 def _local_frame_wkt(plane) -> str:
     return (
         f'LOCAL_CS["SlipMap {plane.name} map plane (u, v in the input CRS units)",'
@@ -559,7 +550,8 @@ def run(
     plan = OutputPlan(
         inputs=inputs, out_dir=("out", folder) if folder is not None else None, files=files
     )
-    figures = bool(opts.get("figures")) and folder is not None and _have_matplotlib()
+    want_figures = bool(opts.get("figures")) and folder is not None
+    figures = want_figures and matplotlib_available()
     sink = _Sink(plan, None if folder is not None else outputs, map(cell_label, cells), figures)
     plan.check()
     tiled = is_tiled(opts, "input")
@@ -603,6 +595,8 @@ def run(
             plane.name,
             angle,
         )
+        if want_figures and not figures:
+            log.warning(NO_MATPLOTLIB)  # once the run is past every check: only writing is left
         records, panels = [], []
         for k, grid in enumerate(res.grids):
             rec, variograms = _one_size(grid, plane, crs, opts, sink, figures)

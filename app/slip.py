@@ -33,7 +33,7 @@ from .inputs import (
     select_points,
     selection_options,
 )
-from .job import JobResult, Progress, scaled
+from .job import JobResult, Progress, plotting, scaled
 from .options import JobSpec, Option, OptionError
 from .outputs import OutputPlan
 from .planes import core_kwargs as plane_kwargs
@@ -125,7 +125,7 @@ def _output(key: str, help_: str, label: str) -> Option:
 
 def _check(opts: Mapping[str, Any]) -> None:
     """Cross-option checks of :data:`SPEC` (every face, before anything is read)."""
-    from .tiled import check_scale, check_slip_tiled, is_tiled
+    from .tiled import check_scale, is_tiled
 
     check_stochastic(opts)
     if opts.get("combine") == "tiles" and opts.get("tile_size_m") is None:
@@ -143,7 +143,7 @@ def _check(opts: Mapping[str, Any]) -> None:
     _pa_check(opts)
     check_scale(opts)
     if is_tiled(opts, "before", "after"):
-        check_slip_tiled(opts)  # strips, windows, per-point models, GpsTime units refused
+        check_tiled(opts)  # strips, windows, per-point models, GpsTime units refused
 
 
 def _pa_check(opts: Mapping[str, Any]) -> None:
@@ -660,7 +660,7 @@ def run(
         "strips", "strip_points", "tile_rings", "windows": bands or None}``.
     """
     from ..core.displacement import SIDES
-    from .tiled import check_slip_tiled, is_tiled, slip_job_tiled
+    from .tiled import is_tiled
 
     outputs = dict(outputs)
     folder = outputs.get("out") is not None
@@ -669,7 +669,7 @@ def run(
         check_outputs(opts, [k for k in ("windows",) if outputs.get(k) is not None])
     tiled = is_tiled(opts, "before", "after")
     if tiled:
-        check_slip_tiled(opts)  # before any output is touched
+        check_tiled(opts)  # before any output is touched
     plan = OutputPlan.for_outputs(
         inputs=input_paths(opts, tiled=tiled),
         outputs=outputs,
@@ -679,8 +679,8 @@ def run(
     want_windows = folder or plan.wants("windows")
     with plan:
         if tiled:  # tile by tile, in process or on Dask (app/tiled.py)
-            crs, fault, slip, settings, unit_record, runtime = slip_job_tiled(
-                opts, trace, progress=scaled(progress, 0.0, 0.95)
+            crs, fault, slip, settings, unit_record, runtime = _compute_tiled(
+                opts, trace, scaled(progress, 0.0, 0.95)
             )
         else:
             crs, fault, slip, settings, unit_record, runtime = _compute_whole(
@@ -779,6 +779,90 @@ def _compute_whole(opts, trace, want_windows: bool, progress):
         progress=progress,
     )
     return pair.crs, fault, slip, settings, unit_record, time.perf_counter() - t0
+
+
+def check_tiled(opts: Mapping[str, Any]):
+    """Refuse what the job cannot do on tiled inputs or Dask, naming the option: strips and
+    moving windows, per-point accuracy models (columns, propagated), acquisition units from
+    GPS time (all need the points of an epoch in one place).
+
+    Returns
+    -------
+    settings, sigma
+        The point-accuracy settings per epoch and each epoch's sigma for
+        :func:`.tiled.slip_tiled` (a float, or (3,) per axis, metres).
+
+    Raises
+    ------
+    OptionError
+    """
+    for key in ("strip_width_m", "window_size_m"):
+        if opts.get(key) is not None:
+            raise OptionError(
+                key,
+                "needs the points in one place; it is not available for tiled inputs or Dask "
+                "runs: leave it out, or give one file per epoch",
+            )
+    if opts.get("stochastic_model", "full") == "full" and opts.get("units") == "GpsTime":
+        raise OptionError(
+            "units",
+            "GpsTime splits each epoch at time gaps, which needs the whole epoch in one place; "
+            "with tiled inputs or Dask use PointSourceId, auto or none",
+        )
+    settings = point_accuracy(opts)
+    sigma = {}
+    for epoch, s in settings.items():
+        if s["model"] not in ("constant", "axis"):
+            key = "pa_model"
+            if opts.get("pa_config"):
+                key = "pa_config"
+            elif epoch == "after" and opts.get("pa_model_after"):
+                key = "pa_model_after"
+            raise OptionError(
+                key,
+                f"{s['model']} ({epoch} epoch) is a per-point accuracy model, which needs the "
+                "points in one place; tiled inputs and Dask take a constant or per-axis sigma",
+            )
+        sigma[epoch] = (
+            float(s.get("sigma", 0.05))
+            if s["model"] == "constant"
+            else np.asarray(s["sigma_xyz"], dtype=np.float64)
+        )
+    return settings, sigma
+
+
+def _compute_tiled(opts, trace, progress):
+    """Tile by tile, in process or on Dask (:func:`.tiled.slip_for_job`; no epoch is read
+    whole): ``(crs, trace, SlipRun, point-accuracy settings, units record, seconds)``.
+    ``progress`` may raise to cancel (between tiles)."""
+    from .tiled import Selection, slip_for_job
+
+    settings, sigma = check_tiled(opts)
+    how = (opts.get("units") or "auto") if opts["stochastic_model"] == "full" else "none"
+    t0 = time.perf_counter()
+    crs, fault, result = slip_for_job(
+        opts,
+        trace if trace is not None else (lambda crs: read_trace(opts["fault"], crs)),
+        selection=Selection(opts.get("classes"), opts.get("exclude_classes"), ground_default=True),
+        progress=progress,
+        sigma_before=sigma["before"],
+        sigma_after=sigma["after"],
+        combine=opts.get("combine") or "joint",
+        units=how,
+        components=fixed_components(opts),
+        **core_options(opts),
+    )
+    runtime = time.perf_counter() - t0
+    n_units = result.parameters.get("acquisition_units") or {}
+    record = {
+        "units_option": opts.get("units", "auto"),
+        **{
+            e: {"source": "PointSourceId" if n_units else "none", "n_units": n_units.get(e, 0)}
+            for e in ("before", "after")
+        },
+        "tiled": True,
+    }
+    return crs, fault, SlipRun(result), settings, record, runtime
 
 
 def _all_keys(plan: OutputPlan) -> List[str]:
@@ -885,12 +969,9 @@ def _figures(plan: OutputPlan, slip: SlipRun) -> List[str]:
     report (none without matplotlib)."""
     from ..core.errors import DependencyError
 
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        log.warning("matplotlib is not installed: no PNG figures (pip install matplotlib)")
+    report = plotting()
+    if report is None:
         return []
-    from . import report
 
     result = slip.result
     sides = (result.left, result.right)
