@@ -231,7 +231,7 @@ def run(
         then only names it.
     """
     if cloud is None and is_tiled(opts, "input"):  # tiles, or Dask: app/tiled.py
-        return run_planes_job(opts, outputs, progress=progress)
+        return run_planes_job(opts, outputs, plane_options=core_kwargs(opts), progress=progress)
     plan = OutputPlan.for_outputs(
         inputs={"input": opts.get("input")}, outputs=outputs, default_names=default_names(opts)
     )

@@ -447,6 +447,22 @@ def _mean_after_misclosure(rigid, after: PlaneMoments) -> np.ndarray:
     return out
 
 
+def _check_trace(before: TileCollection, after: TileCollection, trace, t: float):
+    """The processing tiles of two epochs, after checking that the trace crosses them (on the
+    tiles' centres and the overlap's corners: no point is read). Raises InputDataError."""
+    from ..core.fault import trace_in_data_check
+
+    (lo_b, hi_b), (lo_a, hi_a) = before.bounds, after.bounds
+    lo, hi = np.maximum(lo_b, lo_a), np.minimum(hi_b, hi_a)
+    regions = region_grid(_bounds_of(before, after), t, collections=[before, after])
+    if np.any(lo[:2] >= hi[:2]):
+        return regions  # slip_tiled says the epochs do not overlap
+    centres = np.array([[0.5 * (r.xmin + r.xmax), 0.5 * (r.ymin + r.ymax)] for r in regions])
+    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]])
+    trace_in_data_check(trace, np.concatenate([centres, corners]), buffer_m=0.0)
+    return regions
+
+
 def slip_tiled(
     before: TileCollection,
     after: TileCollection,
@@ -500,7 +516,7 @@ def slip_tiled(
         _merge_planesets,
         tile_adjustments,
     )
-    from ..core.fault import mean_strike_rad, trace_in_data_check
+    from ..core.fault import mean_strike_rad
     from ..core.matching import PlaneMatches
     from ..core.planemoments import adjust_rigid_moments
     from ..core.stochastic import check_components, check_stochastic_model
@@ -536,10 +552,7 @@ def slip_tiled(
     lo, hi = np.maximum(lo_b, lo_a), np.minimum(hi_b, hi_a)
     if np.any(lo[:2] >= hi[:2]):
         raise InputDataError("the two epochs do not overlap in plan; check their CRSs and extents")
-    regions = region_grid(_bounds_of(before, after), t, collections=[before, after])
-    centres = np.array([[0.5 * (r.xmin + r.xmax), 0.5 * (r.ymin + r.ymax)] for r in regions])
-    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]])
-    trace_in_data_check(trace, np.concatenate([centres, corners]), buffer_m=0.0)
+    regions = _check_trace(before, after, trace, t)
     origin = tuple(float(v) for v in _reference(before, after))
     h = 1e-3 * t  # the tasks read with a hair of halo: ownership is decided by floor(x / t)
     tasks = [
@@ -1157,15 +1170,18 @@ def engine_from(opts) -> Engine:
         raise
 
 
-def run_planes_job(opts, outputs, *, progress: Optional[ProgressCallback] = None):
+def run_planes_job(
+    opts, outputs, *, plane_options: dict, progress: Optional[ProgressCallback] = None
+):
     """The planes job (:mod:`.planes`) on tiled inputs: ``planes.json`` of the merged planes
     and, into an output folder, one labelled LAZ per processing tile (``planes_IX_IY.laz``:
     the tile's own points with the main dimensions and PlaneId). A single labelled-cloud
-    destination (QGIS) is not written for tiled inputs (a warning says so)."""
+    destination (QGIS) is not written for tiled inputs (a warning says so).
+    ``plane_options``: the keywords of :func:`~slipmap.core.planes.segment_planes` (the job's
+    ``core_kwargs``)."""
     from .._version import __version__
     from .job import JobResult, Timer
     from .outputs import OutputPlan
-    from .planes import core_kwargs
     from .summaries import json_text
 
     outputs = dict(outputs)
@@ -1188,7 +1204,7 @@ def run_planes_job(opts, outputs, *, progress: Optional[ProgressCallback] = None
         with engine_from(opts) as eng, Timer() as t:
             planes = planes_tiled(
                 coll,
-                options=core_kwargs(opts),
+                options=plane_options,
                 selection=sel,
                 tile_size_m=opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M,
                 labelled_path=(lambda r: plan.path(f"planes_{r.ix}_{r.iy}.laz"))
@@ -1293,8 +1309,9 @@ def slip_for_job(
     units, components, combine). The study's tile size (``tile_size_m``) is the processing
     tile; without it, :data:`DEFAULT_TILE_SIZE_M`.
 
-    ``trace``: a FaultTrace, or ``f(crs) -> FaultTrace`` called with the before tiles' CRS.
-    Returns ``(crs, trace, SlipResult)``.
+    ``trace``: a FaultTrace, or ``f(crs) -> FaultTrace`` called with the before tiles' CRS;
+    a trace away from the tiles is refused naming the ``fault`` option before any tile is
+    read. Returns ``(crs, trace, SlipResult)``.
     """
     from .outputs import refuse_same_inputs
 
@@ -1303,6 +1320,12 @@ def slip_for_job(
     after = open_input(opts, keys[1], what="after epoch", crs=opts.get("crs"))
     fault = trace(before.crs) if callable(trace) else trace
     t = opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M
+    try:
+        _check_trace(before, after, fault, t)
+    except InputDataError as exc:
+        from .options import OptionError
+
+        raise OptionError("fault", str(exc)) from exc
     with engine_from(opts) as eng:
         result = slip_tiled(
             before, after, fault, tile_size_m=t, selection=selection, engine=eng,
@@ -1325,102 +1348,3 @@ def input_files(opts, key: str):
         return [str(p) for p in expand_paths(split_inputs(value))]
     except SlipMapError as exc:
         raise OptionError(key, str(exc)) from exc
-
-
-def check_slip_tiled(opts):
-    """Refuse what the slip job cannot do on tiled inputs or Dask, naming the option: strips
-    and moving windows, per-point accuracy models (columns, propagated), acquisition units
-    from GPS time (all need the points of an epoch in one place).
-
-    Returns
-    -------
-    settings, sigma
-        The point-accuracy settings per epoch and each epoch's sigma for
-        :func:`slip_tiled` (a float, or (3,) per axis, metres).
-
-    Raises
-    ------
-    OptionError
-    """
-    from .options import OptionError
-    from .slip import point_accuracy
-
-    for key in ("strip_width_m", "window_size_m"):
-        if opts.get(key) is not None:
-            raise OptionError(
-                key,
-                "needs the points in one place; it is not available for tiled inputs or Dask "
-                "runs: leave it out, or give one file per epoch",
-            )
-    model = opts.get("stochastic_model", "full")
-    if model == "full" and opts.get("units") == "GpsTime":
-        raise OptionError(
-            "units",
-            "GpsTime splits each epoch at time gaps, which needs the whole epoch in one place; "
-            "with tiled inputs or Dask use PointSourceId, auto or none",
-        )
-    settings = point_accuracy(opts)
-    sigma = {}
-    for epoch, s in settings.items():
-        if s["model"] not in ("constant", "axis"):
-            key = "pa_model"
-            if opts.get("pa_config"):
-                key = "pa_config"
-            elif epoch == "after" and opts.get("pa_model_after"):
-                key = "pa_model_after"
-            raise OptionError(
-                key,
-                f"{s['model']} ({epoch} epoch) is a per-point accuracy model, which needs the "
-                "points in one place; tiled inputs and Dask take a constant or per-axis sigma",
-            )
-        sigma[epoch] = (
-            float(s.get("sigma", 0.05))
-            if s["model"] == "constant"
-            else np.asarray(s["sigma_xyz"], dtype=np.float64)
-        )
-    return settings, sigma
-
-
-def slip_job_tiled(opts, trace=None, *, progress: Optional[ProgressCallback] = None):
-    """The slip job's (:mod:`.slip`) computation on tiled inputs or on Dask.
-
-    Returns ``(crs, fault trace, SlipRun, point-accuracy settings, units record, seconds)``,
-    what the job's writing part uses. What needs the points in one place is refused, naming
-    the option (:func:`check_slip_tiled`). ``trace``: ``f(crs) -> FaultTrace`` (QGIS) or None
-    to read the ``fault`` option. ``progress`` may raise to cancel (between tiles).
-    """
-    import time
-
-    from .slip import SlipRun, core_options, fixed_components, read_trace
-
-    settings, sigma = check_slip_tiled(opts)
-    model = opts.get("stochastic_model", "full")
-    how = (opts.get("units") or "auto") if model == "full" else "none"
-    core = core_options(opts)
-    t0 = time.perf_counter()
-    crs, fault, result = slip_for_job(
-        opts,
-        trace if trace is not None else (lambda crs: read_trace(opts["fault"], crs)),
-        selection=Selection(opts.get("classes"), opts.get("exclude_classes"), ground_default=True),
-        progress=progress,
-        sigma_before=sigma["before"],
-        sigma_after=sigma["after"],
-        buffer_m=core["buffer_m"],
-        plane_options=core["plane_options"],
-        match_options=core["match_options"],
-        stochastic_model=core["stochastic_model"],
-        combine=opts.get("combine") or "joint",
-        units=how,
-        components=fixed_components(opts),
-    )
-    runtime = time.perf_counter() - t0
-    n_units = result.parameters.get("acquisition_units") or {}
-    record = {
-        "units_option": opts.get("units", "auto"),
-        **{
-            e: {"source": "PointSourceId" if n_units else "none", "n_units": n_units.get(e, 0)}
-            for e in ("before", "after")
-        },
-        "tiled": True,
-    }
-    return crs, fault, SlipRun(result), settings, record, runtime

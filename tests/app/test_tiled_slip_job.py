@@ -160,3 +160,21 @@ def test_missing_tile_named(epochs, tmp_path, capsys, snapshot):
     assert rc == 2 and len(err) == 1, err
     assert "error: AFTER: " in err[0] and "gone.laz" in err[0], err
     assert not out.exists() and snap.unchanged()
+
+
+def test_trace_away_from_the_tiles_named(epochs, tmp_path, capsys, snapshot):
+    text = (epochs / "fault.geojson").read_text()
+    feature = json.loads(text)
+    for c in feature["features"][0]["geometry"]["coordinates"]:
+        c[0] += 0.5  # about 40 km east: the trace does not cross the tiles
+    far = tmp_path / "far.geojson"
+    far.write_text(json.dumps(feature))
+    out = tmp_path / "out"
+    snap = snapshot(epochs)
+    rc, err = _cli(
+        ["-q", "displacement", str(epochs / "before_tiles"), str(epochs / "after_tiles"),
+         "--fault", str(far), "--out", str(out)],
+        capsys,
+    )  # fmt: skip
+    assert rc == 2 and len(err) == 1 and "error: --fault: " in err[0], err
+    assert not out.exists() and snap.unchanged()
