@@ -33,7 +33,7 @@ from .inputs import (
     select_points,
     selection_options,
 )
-from .job import JobResult, Progress, scaled
+from .job import JobResult, Progress, plotting, scaled
 from .options import JobSpec, Option, OptionError
 from .outputs import OutputPlan
 from .planes import core_kwargs as plane_kwargs
@@ -969,12 +969,9 @@ def _figures(plan: OutputPlan, slip: SlipRun) -> List[str]:
     report (none without matplotlib)."""
     from ..core.errors import DependencyError
 
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        log.warning("matplotlib is not installed: no PNG figures (pip install matplotlib)")
+    report = plotting()
+    if report is None:
         return []
-    from . import report
 
     result = slip.result
     sides = (result.left, result.right)
