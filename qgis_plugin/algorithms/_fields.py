@@ -80,12 +80,17 @@ def qgs_crs(crs):
 
 
 def sink_kinds(columns):
-    """``(name, QVariant type)`` of every column: integers and booleans as Int, others Double."""
+    """``(name, QVariant type)`` of every column: text as String, integers and booleans as
+    Int, others Double."""
     kinds = []
     for name, values in columns.items():
-        a = np.asarray(values)
-        integer = a.dtype.kind in "iub"
-        kinds.append((name, QVariant.Int if integer else QVariant.Double))
+        k = np.asarray(values).dtype.kind
+        kinds.append(
+            (
+                name,
+                QVariant.String if k in "OUS" else QVariant.Int if k in "iub" else QVariant.Double,
+            )
+        )
     return tuple(kinds)
 
 
@@ -94,7 +99,7 @@ def write_point_sink(alg, parameters, name, context, crs, x, y, columns):
 
     Non-finite numbers are written as NULL. Returns the sink's id (None: not requested).
     """
-    return _write_sink(
+    return write_sink(
         alg,
         parameters,
         name,
@@ -109,10 +114,13 @@ def write_point_sink(alg, parameters, name, context, crs, x, y, columns):
 def write_polygon_sink(alg, parameters, name, context, crs, rings, columns):
     """Polygon features (one (K, 2) ring each) with attributes, as :func:`write_point_sink`."""
     geoms = [QgsGeometry.fromPolygonXY([[QgsPointXY(*map(float, p)) for p in r]]) for r in rings]
-    return _write_sink(alg, parameters, name, context, crs, QgsWkbTypes.Polygon, geoms, columns)
+    return write_sink(alg, parameters, name, context, crs, QgsWkbTypes.Polygon, geoms, columns)
 
 
-def _write_sink(alg, parameters, name, context, crs, wkb, geometries, columns):
+def write_sink(alg, parameters, name, context, crs, wkb, geometries, columns):
+    """Features (``geometries``, QgsGeometry) with the job's ``columns`` (name -> (K,) array:
+    text, integer or real; NaN written as NULL) into the sink ``name``; its id, or None when
+    it is not asked for."""
     kinds = sink_kinds(columns)
     fields = QgsFields()
     for key, kind in kinds:
@@ -126,7 +134,9 @@ def _write_sink(alg, parameters, name, context, crs, wkb, geometries, columns):
         f.setGeometry(geom)
         f.setAttributes(
             [
-                int(col[i]) if kind == QVariant.Int else finite(col[i])
+                str(col[i])
+                if kind == QVariant.String
+                else (int(col[i]) if kind == QVariant.Int else finite(col[i]))
                 for (_, kind), col in zip(kinds, cols)
             ]
         )

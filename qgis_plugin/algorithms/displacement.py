@@ -11,9 +11,6 @@ import json
 
 import numpy as np
 from qgis.core import (
-    QgsFeature,
-    QgsFeatureSink,
-    QgsFields,
     QgsGeometry,
     QgsMapLayerType,
     QgsPoint,
@@ -30,12 +27,10 @@ from qgis.core import (
     QgsProcessingUtils,
     QgsWkbTypes,
 )
-from qgis.PyQt.QtCore import QVariant
 
 from ...app import slip as job
 from ...app.pointaccuracy import MODELS, PA_KEYS
-from ...app.summaries import finite, stochastic_outputs
-from ..compat import make_field
+from ...app.summaries import stochastic_outputs
 from ._base import (
     PLANES_CITATION,
     SlipMapAlgorithm,
@@ -48,7 +43,7 @@ from ._base import (
     slipmap_errors,
     source_parts,
 )
-from ._fields import help_text, qgs_crs
+from ._fields import help_text, qgs_crs, write_sink
 from .accuracy import PA_HELP, add_pa_parameters, pa_values
 
 #: options this algorithm shows as widgets of its own (point accuracy: see accuracy.py)
@@ -243,7 +238,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             centroids += [pb.centroids[i] for i in side.matches.before]
             cols = data["planes"][side.side]
             columns = cols if columns is None else _concat(columns, cols)
-        results["PLANES"] = _sink(
+        results["PLANES"] = write_sink(
             self,
             parameters,
             "PLANES",
@@ -258,13 +253,13 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
                 QgsGeometry.fromPolygonXY([[QgsPointXY(*map(float, p)) for p in r]])
                 for r in data["tile_rings"]
             ]
-            results["TILES"] = _sink(
+            results["TILES"] = write_sink(
                 self, parameters, "TILES", context, crs, QgsWkbTypes.Polygon, rings, data["tiles"]
             )
             apply_style_on_load(context, results["TILES"], "slip_tiles")
         if data["strips"] is not None and is_set(parameters, "STRIPS"):
             points = [QgsGeometry(QgsPoint(float(x), float(y))) for x, y in data["strip_points"]]
-            results["STRIPS"] = _sink(
+            results["STRIPS"] = write_sink(
                 self, parameters, "STRIPS", context, crs, QgsWkbTypes.Point, points, data["strips"]
             )
             apply_style_on_load(context, results["STRIPS"], "slip_strips")
@@ -288,36 +283,3 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
 
 def _concat(a, b):
     return {k: np.concatenate([np.asarray(a[k]), np.asarray(b[k])]) for k in a}
-
-
-def _sink(alg, parameters, name, context, crs, wkb, geometries, columns):
-    """Features with the job's ``columns`` (text, integer or real; NaN written as NULL);
-    returns the sink's id (None: not asked for)."""
-    fields = QgsFields()
-    kinds = []
-    for key, values in columns.items():
-        a = np.asarray(values)
-        kind = (
-            QVariant.String
-            if a.dtype.kind in "OUS"
-            else (QVariant.Int if a.dtype.kind in "iub" else QVariant.Double)
-        )
-        kinds.append((key, kind, a))
-        fields.append(make_field(key, kind))
-    sink, sink_id = alg.parameterAsSink(parameters, name, context, fields, wkb, crs)
-    if sink is None:
-        return None
-    for i, geom in enumerate(geometries):
-        f = QgsFeature(fields)
-        f.setGeometry(geom)
-        f.setAttributes(
-            [
-                str(a[i])
-                if kind == QVariant.String
-                else (int(a[i]) if kind == QVariant.Int else finite(a[i]))
-                for _, kind, a in kinds
-            ]
-        )
-        if not sink.addFeature(f, QgsFeatureSink.FastInsert):
-            raise QgsProcessingException(f"{name}: cannot write feature {i}")
-    return sink_id
