@@ -4,9 +4,17 @@ from __future__ import annotations
 
 import importlib.util
 
+#: what to run where laspy/lazrs are missing; plain text (no "<...>": QGIS shows the message in
+#: rich-text tooltips and message boxes, which would swallow it as a tag)
 INSTALL_HINT = (
-    "pip install laspy lazrs into QGIS's Python: on Windows run `python -m pip install laspy "
-    "lazrs` from the OSGeo4W Shell; on Linux/macOS run `<QGIS python> -m pip install laspy lazrs`"
+    "SlipMap needs the Python packages laspy and lazrs in the Python that QGIS runs; install "
+    "them and restart QGIS. "
+    "Debian or Ubuntu (QGIS from the distribution; its Python is externally managed and there "
+    "is no Debian package of laspy): python3 -m pip install --user --break-system-packages "
+    "laspy lazrs. "
+    "Windows: in the OSGeo4W Shell, python -m pip install laspy lazrs. "
+    "macOS: /Applications/QGIS.app/Contents/MacOS/bin/python3 -m pip install laspy lazrs "
+    "(QGIS-LTR.app for the LTR)."
 )
 
 
@@ -19,7 +27,7 @@ def can_execute():
     """``(True, "")`` or ``(False, install hint)`` for ``QgsProcessingAlgorithm.canExecute``."""
     missing = missing_packages()
     if missing:
-        return False, f"{INSTALL_HINT} (missing: {', '.join(missing)})"
+        return False, f"Missing: {', '.join(missing)}. {INSTALL_HINT}"
     return True, ""
 
 
