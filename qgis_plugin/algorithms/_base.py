@@ -227,7 +227,7 @@ def options_from(alg, parameters, context, spec, *, extra=None, run_check=True):
         elif t == "choice":
             value = opt.choices[alg.parameterAsEnum(parameters, name, context)]
         elif t == "path":
-            value = alg.parameterAsFile(parameters, name, context)
+            value = _path_value(alg, parameters, name, context)
         elif t == "crs":
             crs = alg.parameterAsCrs(parameters, name, context)
             value = crs.toWkt() if crs.isValid() else None
@@ -241,6 +241,20 @@ def options_from(alg, parameters, context, spec, *, extra=None, run_check=True):
         return spec.parse(raw, face="qgis", run_check=run_check)
     except OptionError as exc:
         raise QgsProcessingException(spec.render_error(exc, "qgis")) from exc
+
+
+def _path_value(alg, parameters, name, context):
+    """A path parameter's value: an input file, or the file a destination writes (the dialog
+    gives destinations as ``QgsProcessingOutputLayerDefinition``, which ``parameterAsFile``
+    reads as empty)."""
+    p = alg.parameterDefinition(name)
+    if p is None or not p.isDestination():
+        return alg.parameterAsFile(parameters, name, context)
+    if p.type() == "fileDestination":
+        return alg.parameterAsFileOutput(parameters, name, context)
+    if p.type() == "rasterDestination":
+        return raster_output(alg, parameters, name, context)
+    return destination_path(parameters.get(name), context)
 
 
 def is_set(parameters, name):
@@ -357,6 +371,9 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
                 self.job_options(parameters, context)
             except QgsProcessingException as exc:
                 return False, str(exc)
+        problem = output_folder_problem(self, parameters, context)
+        if problem:
+            return False, problem
         return super().checkParameterValues(parameters, context)
 
     def run_job(self, job, opts, outputs, feedback, **kwargs):
@@ -367,6 +384,67 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         for line in result.lines:
             feedback.pushInfo(line)
         return result
+
+
+# --------------------------------------------------------------------------- destinations
+
+#: destination values that are not files (QGIS writes them itself)
+_NOT_FILES = ("TEMPORARY_OUTPUT", "memory:", "ogr:", "postgis:", "postgres:", "spatialite:")
+#: suffixes of the GeoTIFF every SlipMap raster output is
+GEOTIFF_SUFFIXES = (".tif", ".tiff")
+
+
+def destination_path(value, context):
+    """The file a destination parameter's ``value`` names (a path, a ``QgsProperty`` or a
+    ``QgsProcessingOutputLayerDefinition``); None for a temporary, memory or database output."""
+    from qgis.core import QgsProcessingOutputLayerDefinition, QgsProperty
+
+    if isinstance(value, QgsProcessingOutputLayerDefinition):
+        value = value.sink
+    if isinstance(value, QgsProperty):
+        value = value.valueAsString(context.expressionContext())[0]
+    text = str(value or "").strip()
+    if not text or text.startswith(_NOT_FILES):
+        return None
+    return text.split("|")[0]
+
+
+def output_folder_problem(alg, parameters, context):
+    """The message for the first destination whose folder does not exist, or whose raster
+    is not named as the GeoTIFF it is, in the dialog's words (None when all is well):
+    checked before running, so nothing is computed for an output that cannot be written."""
+    from pathlib import Path
+
+    for p in alg.destinationParameterDefinitions():
+        path = destination_path(parameters.get(p.name()), context)
+        if path is None:
+            continue
+        target = Path(path).expanduser()
+        label = f'"{p.description()}"'
+        if not target.parent.is_dir():
+            return (
+                f"{label}: the folder {target.parent} does not exist; create it or choose "
+                "another place for the file"
+            )
+        suffix = target.suffix.lower()
+        if p.type() == "rasterDestination" and suffix and suffix not in GEOTIFF_SUFFIXES:
+            return f"{label}: the raster is a GeoTIFF; name the file .tif (not {target.suffix})"
+    return None
+
+
+def raster_output(alg, parameters, name, context):
+    """The path of raster destination ``name`` (None when not asked for), ``.tif`` added
+    when the name has no suffix, so that the GeoTIFF written there opens as one."""
+    from pathlib import Path
+
+    path = alg.parameterAsOutputLayer(parameters, name, context)
+    if not path or Path(path).suffix:
+        return path or None
+    layers = context.layersToLoadOnCompletion()
+    if path in layers:  # load the file that is written, under the name it gets
+        layers[path + ".tif"] = layers.pop(path)
+        context.setLayersToLoadOnCompletion(layers)
+    return path + ".tif"
 
 
 # --------------------------------------------------------------------------- styles

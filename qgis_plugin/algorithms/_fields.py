@@ -56,7 +56,7 @@ def file_outputs(alg, parameters, context, spec, keys):
     files; an optional one left empty is None)."""
     from qgis.core import QgsProcessingParameterDefinition
 
-    from ._base import is_set
+    from ._base import is_set, raster_output
 
     out = {}
     for key in keys:
@@ -66,7 +66,7 @@ def file_outputs(alg, parameters, context, spec, keys):
         if optional and not is_set(parameters, name):
             out[key] = None
         elif p.type() == "rasterDestination":
-            out[key] = alg.parameterAsOutputLayer(parameters, name, context) or None
+            out[key] = raster_output(alg, parameters, name, context)
         else:
             out[key] = alg.parameterAsFileOutput(parameters, name, context) or None
     return out

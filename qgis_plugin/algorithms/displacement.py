@@ -40,6 +40,7 @@ from ._base import (
     is_set,
     options_from,
     progress_callback,
+    raster_output,
     slipmap_errors,
     source_parts,
 )
@@ -213,7 +214,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         summary = self.parameterAsFileOutput(parameters, "SUMMARY", context)
         windows = None
         if is_set(parameters, "WINDOWS"):
-            windows = self.parameterAsOutputLayer(parameters, "WINDOWS", context)
+            windows = raster_output(self, parameters, "WINDOWS", context)
         elif opts["window_size_m"] is not None:
             feedback.pushInfo("WINDOW_SIZE is set but no WINDOWS output is asked for: no windows")
         outputs = {

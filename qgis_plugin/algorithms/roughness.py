@@ -11,10 +11,7 @@ from qgis.core import (
 )
 
 from ...app import roughness as job
-from ._base import (
-    SlipMapAlgorithm,
-    add_parameters,
-)
+from ._base import SlipMapAlgorithm, add_parameters, raster_output
 
 _CELL = job.SPEC["cell_sizes_m"]
 _POINTS = job.SPEC["points_out"]
@@ -83,7 +80,7 @@ class RoughnessAlgorithm(SlipMapAlgorithm):
             return self.parameterAsFileOutput(parameters, name, context) or None
 
         return {
-            "geotiff": self.parameterAsOutputLayer(parameters, "OUTPUT", context),
+            "geotiff": raster_output(self, parameters, "OUTPUT", context),
             "csv": dest("CSV"),
             "summary": dest("SUMMARY"),
             "points_out": dest("POINTS"),
