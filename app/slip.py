@@ -978,7 +978,8 @@ def _figures(plan: OutputPlan, slip: SlipRun) -> List[str]:
     written = []
     try:
         if plan.wants("figure_residuals") and all(
-            s.rigid.residuals_before is not None for s in sides
+            s.rigid.residuals_before is not None and np.size(s.rigid.residuals_before)
+            for s in sides  # a tiled run forms no per-point residuals
         ):
             res = {f"{s.side} before": s.rigid.residuals_before for s in sides}
             res.update({f"{s.side} after": s.rigid.residuals_after for s in sides})

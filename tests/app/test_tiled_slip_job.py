@@ -113,6 +113,7 @@ def test_folder_and_glob_equal_one_file(epochs, whole, tmp_path, capsys):
         assert got["parameters"]["acquisition_unit_sources"]["tiled"] is True
         names = {p.name for p in out.iterdir()}
         assert {"displacement.json", "displacement.gpkg", "report.html"} <= names
+        assert "residuals.png" not in names  # no per-point residuals from tiles
 
 
 def test_two_dask_workers_equal_one_file(epochs, whole, tmp_path, capsys):
