@@ -179,3 +179,31 @@ def test_trace_away_from_the_tiles_named(epochs, tmp_path, capsys, snapshot):
     )  # fmt: skip
     assert rc == 2 and len(err) == 1 and "error: --fault: " in err[0], err
     assert not out.exists() and snap.unchanged()
+
+
+def test_progress_and_cancel_pass_through(epochs, tmp_path, snapshot):
+    """The job's progress reaches the tiles; a cancel between tiles leaves nothing."""
+    from slipmap.app import slip
+    from slipmap.core.errors import CancelledError
+
+    opts = slip.SPEC.parse(
+        {
+            "before": str(epochs / "before_tiles"),
+            "after": str(epochs / "after_tiles"),
+            "fault": str(epochs / "fault.geojson"),
+            "out": str(tmp_path / "out"),
+            "tile_size_m": float(TILE),
+        }
+    )
+    seen = []
+
+    def progress(fraction, message):
+        seen.append((fraction, message))
+        if len(seen) == 3:
+            raise CancelledError("cancelled")
+
+    snap = snapshot(epochs)
+    with pytest.raises(CancelledError):
+        slip.run(opts, {"out": opts["out"]}, progress=progress)
+    assert len(seen) == 3 and 0 < seen[-1][0] < 0.95
+    assert not (tmp_path / "out").exists() and snap.unchanged()
