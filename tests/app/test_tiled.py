@@ -344,6 +344,9 @@ def test_dask_killed_worker_is_retried(cluster, tmp_path):
 
 
 def test_dask_worker_dying_every_time_is_a_clear_error(cluster):
-    with pytest.raises(SlipMapError, match="tile 4: the Dask worker running it died"):
+    # the tile named is one the dying worker held: item 3 (tile 4), or a tile queued beside it
+    # on that worker when it died (Dask counts those as suspicious too), whichever is reported
+    # first
+    with pytest.raises(SlipMapError, match=r"tile [1-5]: the Dask worker running it died"):
         cluster.map(_die_always, list(range(5)))
     assert cluster.map(_slow_double, [1, 2]) == [2, 4]  # the cluster still works
