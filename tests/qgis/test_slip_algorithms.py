@@ -735,11 +735,8 @@ def test_white_model_and_fixed_components(provider, drift_epochs, tmp_path):
     js = json.loads((tmp_path / "w.json").read_text())
     assert "variance_components" not in js["left"]
     units = js["parameters"]["acquisition_unit_sources"]
-    assert units["before"] == units["after"] == {  # units not read
-        "source": "none",
-        "n_units": 0,
-        "note": "not used by the white model",
-    }
+    unread = {"source": "none", "n_units": 0, "note": "not used by the white model"}
+    assert units["before"] == unread and units["after"] == unread
     fixed = processing.run(
         "slipmap:displacement",
         {
