@@ -352,6 +352,10 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         attach_feedback(feedback)
         return True
 
+    def postProcessAlgorithm(self, context, feedback):  # noqa: N802 (QGIS API name)
+        unique_layer_names(self, context)
+        return {}
+
     # ------------------------------------------------------------------ the job
 
     def job_extra(self, parameters, context):
@@ -461,13 +465,19 @@ def style_path(name):
     return str(p) if p.is_file() else None
 
 
-def apply_style_on_load(context, output, style_name, symmetric_band=None):
+def apply_style_on_load(
+    context, output, style_name, symmetric_band=None, *, scale=1.0, unit="", ends=None
+):
     """Style ``output`` (an output layer path or id) with a bundled QML when QGIS loads it.
 
     With ``symmetric_band`` (a raster band number) the pseudocolor ramp is then rescaled to
-    ``±max|value|`` of that band (:func:`symmetric_limits`), so a diverging ramp keeps white at
-    zero whatever the data's range. Does nothing when the output is not loaded on completion
-    (e.g. ``processing.run`` from a script) or the style is missing; never fails the algorithm.
+    ``±max|value|`` of that band (:func:`symmetric_limits`; legend labels in the band's values
+    times ``scale``, with ``unit``, and ``ends`` = (name of the low end, of the high end)), so
+    a diverging ramp keeps white at zero whatever the data's range. A graduated vector style
+    gets the same symmetric classes (:func:`symmetric_classes`). A raster is drawn at 80 %
+    opacity below the vectors of its group (:func:`raster_below_vectors`). Does nothing when
+    the output is not loaded on completion (e.g. ``processing.run`` from a script) or the
+    style is missing; never fails the algorithm.
     """
     from qgis.core import QgsProcessingLayerPostProcessorInterface
 
@@ -477,28 +487,46 @@ def apply_style_on_load(context, output, style_name, symmetric_band=None):
 
     class _Style(QgsProcessingLayerPostProcessorInterface):
         def postProcessLayer(self, layer, context, feedback):  # noqa: N802 (QGIS API name)
-            if layer is not None and layer.isValid():
+            if layer is None or not layer.isValid():
+                return
+            try:
                 layer.loadNamedStyle(qml)
                 if symmetric_band is not None:
-                    symmetric_limits(layer, symmetric_band)
+                    symmetric_limits(layer, symmetric_band, scale=scale, unit=unit, ends=ends)
+                symmetric_classes(layer)
+                raster_below_vectors(layer, context)
                 layer.triggerRepaint()
+            except Exception as exc:  # noqa: BLE001 - styling must never fail the run
+                if feedback is not None:
+                    feedback.pushInfo(f"style {style_name} not applied: {exc}")
 
     post = _Style()
     _POST_PROCESSORS.append(post)
     context.layerToLoadOnCompletionDetails(output).setPostProcessor(post)
 
 
-def apply_diverging_style_on_load(context, output, style_name="diverging", band=1):
-    """:func:`apply_style_on_load` with the ramp made symmetric about zero on ``band``."""
-    apply_style_on_load(context, output, style_name, symmetric_band=band)
+def apply_diverging_style_on_load(context, output, style_name="diverging", band=1, **legend):
+    """:func:`apply_style_on_load` with the ramp made symmetric about zero on ``band``
+    (``legend``: ``scale``, ``unit``, ``ends`` of the legend labels)."""
+    apply_style_on_load(context, output, style_name, symmetric_band=band, **legend)
 
 
-def symmetric_limits(layer, band=1):
+def value_label(value, scale=1.0, unit=""):
+    """A legend label: ``value * scale`` to 3 significant digits with its sign, then ``unit``
+    (``+18.1 mm``, ``-0.00215``)."""
+    text = f"{value * scale:+.3g}"
+    return f"{text} {unit}" if unit else text
+
+
+def symmetric_limits(layer, band=1, *, scale=1.0, unit="", ends=None):
     """Rescale a single-band pseudocolor renderer to ``[-m, m]``, m = max |value| of ``band``.
 
     The bundled diverging styles store a ramp symmetric about 0 (white at 0); scaling every
-    colour stop by ``m / old_max`` keeps white at 0 for the layer's own range. Returns m (None
-    when the renderer is not pseudocolor or the band has no finite value).
+    colour stop by ``m / old_max`` keeps white at 0 for the layer's own range. Every colour
+    stop and the continuous legend's end labels then read the values they stand for
+    (:func:`value_label`; ``ends`` appended to the low and high end's label, e.g.
+    ``("right-lateral", "left-lateral")``). Returns m (None when the renderer is not
+    pseudocolor or the band has no finite value).
     """
     import math
 
@@ -523,12 +551,119 @@ def symmetric_limits(layer, band=1):
     items = ramp.colorRampItemList()
     for item in items:
         item.value = item.value * m / old
+        item.label = value_label(item.value, scale, unit)
+    if ends:
+        items[0].label += f" ({ends[0]})"
+        items[-1].label += f" ({ends[1]})"
     ramp.setColorRampItemList(items)
     ramp.setMinimumValue(-m)
     ramp.setMaximumValue(m)
+    if hasattr(ramp, "legendSettings"):  # QGIS >= 3.18: the continuous legend's end labels
+        legend = ramp.legendSettings()
+        legend.setMinimumLabel(items[0].label)
+        legend.setMaximumLabel(items[-1].label)
+        ramp.setLegendSettings(legend)
     renderer.setClassificationMin(-m)
     renderer.setClassificationMax(m)
     return m
+
+
+def symmetric_classes(layer):
+    """Rescale a graduated vector renderer's classes to equal steps over ``[-m, m]``,
+    m = max |class expression| over the layer's features (the bundled slip styles: a
+    diverging ramp, white about zero, values in mm); labels read ``+6.03 to +12.1 mm``.
+    Returns m (None when the renderer is not graduated or no value is finite)."""
+    import math
+
+    from qgis.core import (
+        QgsExpression,
+        QgsExpressionContext,
+        QgsExpressionContextUtils,
+        QgsGraduatedSymbolRenderer,
+    )
+
+    renderer = layer.renderer() if hasattr(layer, "renderer") else None
+    if not isinstance(renderer, QgsGraduatedSymbolRenderer) or not renderer.ranges():
+        return None
+    expression = QgsExpression(renderer.classAttribute())
+    ctx = QgsExpressionContext(QgsExpressionContextUtils.globalProjectLayerScopes(layer))
+    expression.prepare(ctx)
+    values = []
+    for feature in layer.getFeatures():
+        ctx.setFeature(feature)
+        v = expression.evaluate(ctx)
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            continue
+        if math.isfinite(v):
+            values.append(abs(v))
+    m = max(values, default=0.0)
+    if not m > 0:
+        return None
+    n = len(renderer.ranges())
+    edges = [-m + 2.0 * m * i / n for i in range(n + 1)]
+    for i in range(n):
+        renderer.updateRangeLowerValue(i, edges[i])
+        renderer.updateRangeUpperValue(i, edges[i + 1])
+        lo, hi = value_label(edges[i]), value_label(edges[i + 1])
+        renderer.updateRangeLabel(i, f"{lo} to {hi} mm")
+    return m
+
+
+def raster_below_vectors(layer, context=None):
+    """Draw a raster output at 80 % opacity (the bundled raster styles say so) and move it
+    below every vector layer of its layer-tree group, so a new raster never hides the
+    vectors (QGIS loads a run's outputs in file-name order, each on top)."""
+    from qgis.core import QgsLayerTree, QgsMapLayerType, QgsProject
+
+    if layer.type() != QgsMapLayerType.RasterLayer:
+        return
+    project = (layer.project() if hasattr(layer, "project") else None) or QgsProject.instance()
+    node = project.layerTreeRoot().findLayer(layer.id())
+    if node is None or node.parent() is None:
+        return
+    parent = node.parent()
+    children = parent.children()
+    vectors = [
+        i
+        for i, c in enumerate(children)
+        if QgsLayerTree.isLayer(c)
+        and c.layer() is not None
+        and c.layer().type() == QgsMapLayerType.VectorLayer
+    ]
+    here = children.index(node)
+    if vectors and vectors[-1] > here:
+        parent.insertChildNode(vectors[-1] + 1, node.clone())
+        parent.removeChildNode(node)
+
+
+_USED_NAMES = set()
+
+
+def unique_layer_names(alg, context):
+    """Give the layers this run loads names of its own: the output's label and the run's
+    time (``Tiles 14:03:22``; a counter is added within the same second), so a second run
+    does not add a second "Tiles" (QGIS may still prefer the file name of a named file,
+    its setting "Prefer output filename for layer names")."""
+    import time
+
+    labels = {p.description() for p in alg.destinationParameterDefinitions()}
+    layers = context.layersToLoadOnCompletion()
+    stamp = time.strftime("%H:%M:%S")
+    changed = False
+    for details in layers.values():
+        if details.name not in labels:
+            continue
+        name, k = f"{details.name} {stamp}", 1
+        while name in _USED_NAMES:
+            k += 1
+            name = f"{details.name} {stamp} #{k}"
+        _USED_NAMES.add(name)
+        details.name = name
+        changed = True
+    if changed:
+        context.setLayersToLoadOnCompletion(layers)
 
 
 # --------------------------------------------------------------------------- vector inputs

@@ -249,6 +249,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             [QgsGeometry(QgsPoint(*map(float, c[:3]))) for c in centroids],
             columns,
         )
+        apply_style_on_load(context, results["PLANES"], "slip_planes")
         if data["tiles"] is not None and is_set(parameters, "TILES"):
             rings = [
                 QgsGeometry.fromPolygonXY([[QgsPointXY(*map(float, p)) for p in r]])
@@ -266,7 +267,14 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             apply_style_on_load(context, results["STRIPS"], "slip_strips")
         if outputs["windows"] and "windows" in result.files:
             results["WINDOWS"] = outputs["windows"]
-            apply_diverging_style_on_load(context, results["WINDOWS"])
+            apply_diverging_style_on_load(  # red: the right-lateral sense, as tiles and strips
+                context,
+                results["WINDOWS"],
+                "slip_windows",
+                scale=1000.0,
+                unit="mm",
+                ends=("right-lateral", "left-lateral"),
+            )
         rel = payload["relative"]
         stoch = stochastic_outputs(payload)
         results["RIGHT_LATERAL_SLIP"] = rel["right_lateral_slip"]

@@ -172,3 +172,233 @@ def test_raster_without_suffix_written_and_loaded_as_tif(provider, small_cloud, 
     assert sources == [str(tmp_path / "theta.tif")]
     assert all(layer.isValid() for layer in project.mapLayers().values())
     project.removeAllMapLayers()
+
+
+# --------------------------------------------------------------------------- 3. loaded outputs
+
+OFFSET = 0.0181  # the synthetic right side moves 18.1 mm opposite strike: dextral
+
+
+class _Feedback:
+    """A QgsProcessingFeedback that keeps every log line and progress text."""
+
+    @staticmethod
+    def make():
+        from qgis.core import QgsProcessingFeedback
+
+        class Feedback(QgsProcessingFeedback):
+            def __init__(self):
+                super().__init__()
+                self.lines, self.texts = [], []
+
+            def pushInfo(self, text):  # noqa: N802 (QGIS API name)
+                self.lines.append(text)
+
+            def pushWarning(self, text):  # noqa: N802 (QGIS API name)
+                self.lines.append(text)
+
+            def pushDebugInfo(self, text):  # noqa: N802 (QGIS API name)
+                pass
+
+            def reportError(self, text, fatal_error=False):  # noqa: N802 (QGIS API name)
+                self.lines.append(text)
+
+            def setProgressText(self, text):  # noqa: N802 (QGIS API name)
+                self.texts.append(text)
+
+        return Feedback()
+
+
+@pytest.fixture(scope="module")
+def loaded_slip(provider, tmp_path_factory):
+    """One Fault slip run with every output, loaded into the project as the dialog does."""
+    import numpy as np
+    import processing
+    import pyproj
+    from qgis.core import (
+        QgsFeature,
+        QgsGeometry,
+        QgsPointXY,
+        QgsProcessingContext,
+        QgsProject,
+        QgsVectorLayer,
+    )
+
+    from slipmap.core.io.las import PointCloud, write_las
+    from slipmap.core.synthetic import make_fault_pair
+
+    d = tmp_path_factory.mktemp("face_slip")
+    utm = pyproj.CRS.from_epsg(32610)
+    fp = make_fault_pair(
+        "mls", seed=7, origin=(498000.0, 4234000.0, 20.0), right_offset_m=(0.0, -OFFSET, 0.0)
+    )
+    for name, sc in (("before", fp.before), ("after", fp.after)):
+        attrs = {"Classification": sc.classification}
+        write_las(d / f"{name}.las", PointCloud(xyz=sc.points, attributes=attrs, crs=utm))
+    fault = QgsVectorLayer("LineString?crs=EPSG:32610", "fault", "memory")
+    f = QgsFeature()
+    f.setGeometry(QgsGeometry.fromPolylineXY([QgsPointXY(*p) for p in np.asarray(fp.trace_xy)]))
+    fault.dataProvider().addFeatures([f])
+    project = QgsProject.instance()
+    project.removeAllMapLayers()
+    context = QgsProcessingContext()
+    context.setProject(project)
+    feedback = _Feedback.make()
+    res = processing.runAndLoadResults(
+        "slipmap:displacement",
+        {
+            "BEFORE": str(d / "before.las"),
+            "AFTER": str(d / "after.las"),
+            "FAULT": fault,
+            "TILE_SIZE": 30.0,
+            "COMBINE": 1,
+            "STRIP_WIDTH": 30.0,
+            "WINDOW_SIZE": 30.0,
+            "WINDOW_STEP": 10.0,
+            "SUMMARY": str(d / "slip.json"),
+            "PLANES": str(d / "planes.gpkg"),
+            "TILES": str(d / "tiles.gpkg"),
+            "STRIPS": str(d / "strips.gpkg"),
+            "WINDOWS": str(d / "windows.tif"),
+        },
+        context=context,
+        feedback=feedback,
+    )
+    layers = {
+        layer.source().split("|")[0].rsplit("/", 1)[-1]: layer
+        for layer in project.mapLayers().values()
+    }
+    yield res, layers, feedback, project
+    project.removeAllMapLayers()
+
+
+def _expression_values(layer, expression_text, where=None):
+    from qgis.core import (
+        QgsExpression,
+        QgsExpressionContext,
+        QgsExpressionContextUtils,
+    )
+
+    expr = QgsExpression(expression_text)
+    ctx = QgsExpressionContext(QgsExpressionContextUtils.globalProjectLayerScopes(layer))
+    out = []
+    for feature in layer.getFeatures():
+        if where is not None and not where(feature):
+            continue
+        ctx.setFeature(feature)
+        v = expr.evaluate(ctx)
+        out.append(None if v is None else float(v))
+    return out
+
+
+def test_every_slip_output_loads_styled(loaded_slip):
+    from qgis.core import (
+        QgsGraduatedSymbolRenderer,
+        QgsRuleBasedRenderer,
+        QgsSingleBandPseudoColorRenderer,
+    )
+
+    _, layers, _, _ = loaded_slip
+    assert set(layers) == {"planes.gpkg", "tiles.gpkg", "strips.gpkg", "windows.tif"}
+    assert all(layer.isValid() for layer in layers.values())
+    # matched planes: by weight (full, down-weighted, rejected, unused), not QGIS's default
+    assert isinstance(layers["planes.gpkg"].renderer(), QgsRuleBasedRenderer)
+    labels = [r.label() for r in layers["planes.gpkg"].renderer().rootRule().children()]
+    assert any("rejected" in t for t in labels) and any("down-weighted" in t for t in labels)
+    for name in ("tiles.gpkg", "strips.gpkg"):
+        assert isinstance(layers[name].renderer(), QgsGraduatedSymbolRenderer)
+    assert isinstance(layers["windows.tif"].renderer(), QgsSingleBandPseudoColorRenderer)
+
+
+def test_tiles_and_strips_show_the_summary_sign(loaded_slip):
+    """The slip is +18.1 mm dextral: the right side's tiles and strips show about +18 mm in
+    their class values and labels, the left side's about 0; the classes span ±max|value|."""
+    import numpy as np
+
+    res, layers, _, _ = loaded_slip
+    slip_mm = 1000.0 * res["RIGHT_LATERAL_SLIP"]
+    assert slip_mm == pytest.approx(1000 * OFFSET, abs=1.5)
+    for name in ("tiles.gpkg", "strips.gpkg"):
+        layer = layers[name]
+        renderer = layer.renderer()
+        expression = renderer.classAttribute()
+
+        def ok_side(side):
+            return lambda f: f["side"] == side and f["status"] == "ok"
+
+        right = _expression_values(layer, expression, ok_side("right"))
+        left = _expression_values(layer, expression, ok_side("left"))
+        assert right and left
+        assert np.median(right) == pytest.approx(slip_mm, abs=3.0), (name, right)
+        assert abs(np.median(left)) < 3.0, (name, left)
+        labeling = layer.labeling()
+        label = labeling.settings().fieldName
+        texts = _expression_values(layer, f"to_real(regexp_substr({label}, '^-?[0-9.]+'))")
+        assert np.nanmax([t for t in texts if t is not None]) > 0.8 * slip_mm
+        everything = [abs(v) for v in _expression_values(layer, expression) if v is not None]
+        ranges = renderer.ranges()
+        assert ranges[0].lowerValue() == pytest.approx(-max(everything))
+        assert ranges[-1].upperValue() == pytest.approx(max(everything))
+        assert ranges[-1].symbol().color().red() > ranges[-1].symbol().color().blue()  # +: red
+
+
+def test_window_legend_equals_the_data_and_red_is_right_lateral(loaded_slip):
+    import numpy as np
+    from osgeo import gdal
+
+    _, layers, _, _ = loaded_slip
+    layer = layers["windows.tif"]
+    ds = gdal.Open(layer.source())
+    band = ds.GetRasterBand(1).ReadAsArray().astype(float)
+    band[band == ds.GetRasterBand(1).GetNoDataValue()] = np.nan
+    ds = None
+    m = np.nanmax(np.abs(band))
+    renderer = layer.renderer()
+    assert renderer.classificationMin() == pytest.approx(-m, rel=1e-6)
+    assert renderer.classificationMax() == pytest.approx(m, rel=1e-6)
+    ramp = renderer.shader().rasterShaderFunction()
+    assert (ramp.minimumValue(), ramp.maximumValue()) == pytest.approx((-m, m), rel=1e-6)
+    items = ramp.colorRampItemList()
+    assert items[0].value == pytest.approx(-m, rel=1e-6)
+    assert items[0].label == f"{-1000 * m:+.3g} mm (right-lateral)"
+    assert items[-1].label == f"{1000 * m:+.3g} mm (left-lateral)"
+    assert items[0].color.red() > items[0].color.blue()  # fault_parallel < 0 on the right: red
+    assert renderer.opacity() < 1.0
+
+
+def test_raster_below_the_vectors(loaded_slip):
+    from qgis.core import QgsMapLayerType
+
+    _, layers, _, project = loaded_slip
+    order = [n.layer() for n in project.layerTreeRoot().findLayers()]  # top first
+    kinds = [layer.type() for layer in order]
+    assert kinds.index(QgsMapLayerType.RasterLayer) > max(
+        i for i, k in enumerate(kinds) if k == QgsMapLayerType.VectorLayer
+    )
+
+
+def test_layer_names_unique_per_run(provider, small_cloud, tmp_path):
+    import processing
+    from qgis.core import QgsProcessingContext, QgsProject
+
+    project = QgsProject.instance()
+    before = set(project.mapLayers())
+    names = []
+    for k in range(2):
+        context = QgsProcessingContext()
+        context.setProject(project)
+        processing.runAndLoadResults(
+            "slipmap:roughness",
+            {
+                "INPUT": str(small_cloud),
+                "CELL": 2.0,
+                "OUTPUT": "TEMPORARY_OUTPUT",
+                "CSV": str(tmp_path / f"cells{k}.csv"),
+            },
+            context=context,
+            feedback=_Feedback.make(),
+        )
+        names += [project.mapLayer(i).name() for i in set(project.mapLayers()) - before]
+        before = set(project.mapLayers())
+    assert len(names) == 2 and len(set(names)) == 2, names
+    assert all(n.startswith("Roughness (GeoTIFF) ") for n in names), names
