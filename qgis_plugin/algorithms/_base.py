@@ -26,16 +26,16 @@ def progress_callback(feedback, *, text_every_s=2.0):
     """A SlipMap ``callback(fraction, message)`` that drives ``feedback`` and cancels.
 
     Raises :class:`~slipmap.core.errors.CancelledError` as soon as ``feedback.isCanceled()``.
-    The progress bar follows every call; the progress *text* (a line in the Processing log)
-    is shown at most every ``text_every_s`` seconds and when the stage changes, so a loop over
-    90 windows writes a few lines, not 90.
+    The progress bar follows every call; the progress *text* (the dialog also writes it as a
+    line of the Processing log) is shown for the first call, then at most every
+    ``text_every_s`` seconds, and for the last (fraction 1), so a loop over 90 windows or the
+    sub-stages of 16 plane extractions write a few lines, not 90.
     """
-    import re
     import time
 
     from ...core.errors import CancelledError
 
-    state = {"t": -1e9, "stage": None}
+    state = {"t": -1e9}
 
     def callback(fraction, message=""):
         if feedback is None:
@@ -44,24 +44,41 @@ def progress_callback(feedback, *, text_every_s=2.0):
             raise CancelledError("cancelled by the user")
         feedback.setProgress(100.0 * float(fraction))
         if message:
-            text = str(message)
-            stage = re.sub(r"[0-9.]+", "#", text)  # "window 3/90" and "window 4/90": one stage
             now = time.monotonic()
-            if stage != state["stage"] or now - state["t"] >= text_every_s or fraction >= 1:
-                feedback.setProgressText(text)
-                state["t"], state["stage"] = now, stage
+            if now - state["t"] >= text_every_s or fraction >= 1:
+                feedback.setProgressText(str(message))
+                state["t"] = now
 
     return callback
 
 
 class _FeedbackHandler(logging.Handler):
-    """Routes the ``slipmap`` logger to the running algorithm's feedback: warnings to
-    ``pushWarning`` (the Processing log, in orange), errors to ``reportError``, info to
-    ``pushInfo`` and debug to ``pushDebugInfo``; nothing goes to QGIS's Python console."""
+    """Routes the ``slipmap`` logger to the running algorithm's feedback, a few lines a job:
+
+    * errors to ``reportError``;
+    * warnings to ``pushWarning`` (the Processing log, in orange), each kind once: a warning
+      that differs from an earlier one only in its numbers ("no planes found (56 leaves, 4
+      planar)" per tile) goes to ``pushDebugInfo``, and :meth:`flush_repeats` then writes one line
+      with the count;
+    * info of the application layer (the job's lines) to ``pushInfo``, a line repeated word
+      for word once; info of the core (per tile, per side, per window: "point spacing …",
+      "7 of 7 planes matched") and debug to ``pushDebugInfo``.
+
+    Nothing goes to QGIS's Python console."""
 
     def __init__(self):
         super().__init__(logging.DEBUG)
         self.feedback = None
+        self.reset()
+
+    def reset(self):
+        self.kinds, self.last_info = {}, None
+
+    @staticmethod
+    def kind(record, text):
+        import re
+
+        return record.name, re.sub(r"[-+]?(\d+\.?\d*(e[-+]?\d+)?|nan|inf)", "#", text)
 
     def emit(self, record):
         fb = self.feedback
@@ -72,14 +89,32 @@ class _FeedbackHandler(logging.Handler):
             if record.levelno >= logging.ERROR:
                 fb.reportError(text)
             elif record.levelno >= logging.WARNING:
-                push = getattr(fb, "pushWarning", None) or fb.pushInfo  # pushWarning: 3.20+
-                push(text)
-            elif record.levelno >= logging.INFO:
-                fb.pushInfo(text)
+                key = self.kind(record, text)
+                first, n = self.kinds.get(key, (text, 0))
+                self.kinds[key] = (first, n + 1)
+                if n == 0:
+                    push = getattr(fb, "pushWarning", None) or fb.pushInfo  # pushWarning: 3.20+
+                    push(text)
+                else:
+                    fb.pushDebugInfo(text)
+            elif record.levelno >= logging.INFO and not record.name.startswith("slipmap.core"):
+                if text != self.last_info:
+                    fb.pushInfo(text)
+                self.last_info = text
             else:
                 fb.pushDebugInfo(text)
         except Exception:  # noqa: BLE001 - logging must never fail the algorithm
             pass
+
+    def flush_repeats(self):
+        """One line per kind of warning that came more than once (then start afresh)."""
+        fb = self.feedback
+        if fb is not None:
+            push = getattr(fb, "pushWarning", None) or fb.pushInfo
+            for first, n in self.kinds.values():
+                if n > 1:
+                    push(f"{n} warnings like: {first}")
+        self.reset()
 
 
 _HANDLER = _FeedbackHandler()
@@ -94,6 +129,7 @@ def attach_feedback(feedback):
         logger.addHandler(_HANDLER)
         logger.setLevel(min(logger.level or logging.INFO, logging.INFO))
     _HANDLER.feedback = feedback
+    _HANDLER.reset()
     if feedback is not None and warnings.showwarning is not _warning_to_feedback:
         _ORIGINAL_SHOWWARNING[0] = warnings.showwarning
         warnings.showwarning = _warning_to_feedback
@@ -353,6 +389,7 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         return True
 
     def postProcessAlgorithm(self, context, feedback):  # noqa: N802 (QGIS API name)
+        _HANDLER.flush_repeats()
         unique_layer_names(self, context)
         return {}
 

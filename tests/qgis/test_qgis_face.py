@@ -4,6 +4,8 @@ before running, loaded outputs (styles, legends, names, order), log, help; throu
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 import slipmap
@@ -402,3 +404,45 @@ def test_layer_names_unique_per_run(provider, small_cloud, tmp_path):
         before = set(project.mapLayers())
     assert len(names) == 2 and len(set(names)) == 2, names
     assert all(n.startswith("Roughness (GeoTIFF) ") for n in names), names
+
+
+# --------------------------------------------------------------------------- 4. log
+
+
+def test_a_few_log_lines_per_job(loaded_slip):
+    """Per tile, per window or per cell there is no log line: the core's per-item info goes
+    to the debug log, a repeated warning is written once and counted at the end, and the
+    progress text is throttled."""
+    _, _, feedback, _ = loaded_slip
+    lines = [t for t in feedback.lines if not t.startswith("Results:")]  # QGIS's own
+    assert len(lines) <= 16, "\n".join(lines)
+    per_item = re.compile(r"(window|tile|cell|strip)\s+\d+\s*(/|of)\s*\d+", re.I)
+    assert not [t for t in lines if per_item.search(t)]
+    assert not [t for t in lines if t.startswith("point spacing")]
+    assert len(lines) == len(set(lines))
+    assert "  right-lateral slip" in "\n".join(lines)
+    assert len(feedback.texts) <= 12, feedback.texts
+
+
+def test_cancel_says_run_cancelled_once(provider, small_cloud, tmp_path):
+    import processing
+    from qgis.core import QgsProcessingException
+
+    feedback = _Feedback.make()
+    feedback.setProgress = lambda value: feedback.cancel()  # cancel at the first step
+    with pytest.raises(QgsProcessingException) as raised:
+        processing.run(
+            "slipmap:roughness",
+            {
+                "INPUT": str(small_cloud),
+                "CELL": 2.0,
+                "OUTPUT": str(tmp_path / "theta.tif"),
+                "CSV": str(tmp_path / "cells.csv"),
+            },
+            feedback=feedback,
+        )
+    said = [str(raised.value)] + feedback.lines
+    assert str(raised.value).strip().endswith("Run cancelled."), said
+    assert sum(t.lower().count("cancel") for t in said) <= 2, said  # the exception, its log line
+    assert not any("cancelled by the user" in t for t in said), said
+    assert _listing(tmp_path) == []
