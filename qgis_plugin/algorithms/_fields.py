@@ -28,16 +28,19 @@ from ._base import (  # noqa: F401  (apply_*_style_on_load re-exported for the a
 FIELDS_GROUP = ("Displacement fields", "fields")
 
 
-def help_text(spec, outputs):
-    """The algorithm's help: the job's description, its options as the dialog shows them,
-    ``outputs`` (HTML) and the method's citation."""
-    parts = [spec.description, ""]
-    for opt in spec.for_face("qgis", roles=("input", "setting")):
-        parts.append(f"<b>{opt.dialog_label}</b>: {opt.help}.")
-    parts += ["", f"<b>Outputs</b>: {outputs}"]
-    if spec.citation:
-        parts += ["", f"Method: {spec.citation}."]
-    return "<br>".join(parts)
+def help_text(spec, outputs, *, sections=(), citation=None):
+    """The algorithm's help as plain-text paragraphs (QGIS's dialog makes each line a
+    paragraph; ``qgis_process help`` prints it as it is): the job's description, ``sections``
+    (``(title, text)`` pairs), the outputs and the method's citation (``citation`` or the
+    job's), once. Each parameter's own help is its tooltip in the dialog and its line under
+    "Arguments" in ``qgis_process help``, so it is not repeated here."""
+    parts = [spec.description]
+    parts += [f"{title}: {text}" for title, text in sections]
+    parts.append(f"Outputs: {outputs}")
+    cite = citation or spec.citation
+    if cite:
+        parts.append(f"Method: {cite.rstrip('.')}.")
+    return "\n\n".join(parts)
 
 
 def add_optional_file_output(alg, spec, key):

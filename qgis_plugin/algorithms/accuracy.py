@@ -40,27 +40,17 @@ PA_SPEC = JobSpec("pointaccuracy", "Point accuracy", "", pa_options())
 _OWN_WIDGETS = ("pa_model", "sigma_xyz_m", "scanner", "scanner_position")
 _SCANNER_FILE_LABEL = "Scanner specification file (JSON)"
 
+#: the four point-accuracy models and their settings, compact plain text (help sections)
 PA_HELP = (
-    "<b>Point accuracy</b> (Kusari, Glennie, Brooks and Ericksen 2019, IEEE TGRS 57(6), "
-    "section II.E; Glennie 2007 for the propagated model): "
-    "<i>constant</i> = the same isotropic <b>Sigma</b> (m, default 0.05 as the study) for "
-    "every point; <i>axis</i> = <b>Sigma X / Y / Z</b> (m) per axis; <i>columns</i> = per-point "
-    "sigmas (m) read from the LAS dimensions named in <b>Sigma columns</b> (comma-separated X,Y,Z "
-    "names, default SigmaX,SigmaY,SigmaZ, e.g. written by this algorithm); <i>propagated</i> = "
-    "covariance propagated from the scanner's range/angle accuracy, the beam footprint and, "
-    "for a mobile/airborne survey, the <b>Trajectory</b> (SBET or CSV) and <b>Trajectory "
-    "accuracy</b> (SMRMSG or CSV) interpolated at each point's GpsTime (needs GpsTime and "
-    "ScanAngle dimensions), or, for a static (TLS) scan, the <b>Scanner position</b> (map "
-    "point, any CRS; reprojected to the point cloud's) and <b>Scanner height</b> (m, "
-    "elevation of the scanner origin in the cloud's vertical datum). <b>Scanner</b>: one of "
-    "the built-in specifications or a <b>Scanner specification file</b> (JSON, units in the "
-    "key names, e.g. range_sigma_m). <b>Beam footprint term</b>: add the incidence-angle "
-    "footprint covariance (Schaer et al. 2007; default yes). "
-    "<b>Point-accuracy configuration</b>: a JSON file "
-    '({"before": {...}, "after": {...}} or one object for both, keys '
-    "model, sigma, sigma_xyz, columns, trajectory, trajectory_accuracy, scanner, "
-    "scanner_position, footprint); when given it replaces all the other point-accuracy "
-    "parameters."
+    "constant = one isotropic Sigma (m; default 0.05, as the study) for every point; "
+    "axis = Sigma X, Y and Z (m); "
+    "columns = per-point sigmas (m) from the LAS dimensions named in Sigma columns (default "
+    "SigmaX,SigmaY,SigmaZ, as Point accuracy writes them); "
+    "propagated = from the Scanner's range and angle accuracy and the beam footprint, plus "
+    "the Trajectory and its accuracy at each point's GpsTime (mobile or airborne; needs "
+    "GpsTime and ScanAngle) or the Scanner position and height (a static scan). "
+    "A Point-accuracy configuration (JSON) replaces all of these settings and may give each "
+    "epoch its own."
 )
 
 
@@ -173,15 +163,15 @@ class PointAccuracyAlgorithm(SlipMapAlgorithm):
     spec = job.SPEC
 
     def shortHelpString(self):  # noqa: N802 (QGIS API name)
-        return (
-            f"{job.SPEC.description}<br>"
-            "<b>Input point cloud</b>: LAS/LAZ in a projected CRS (metres). <b>Model</b>: "
-            "constant, axis, columns or propagated. "
-            + PA_HELP
-            + "<br><b>Full covariance</b>: also write the six covariance entries (default no; "
-            "the propagated model has correlated axes that SigmaX/Y/Z alone lose).<br>"
-            "<b>Output</b>: LAS/LAZ copy with the extra-bytes dimensions (the input is not "
-            f"modified).<br>Method: {job.CITATION}."
+        from ._fields import help_text
+
+        return help_text(
+            job.SPEC,
+            "a LAS/LAZ copy with the extra-bytes dimensions SigmaX, SigmaY, SigmaZ (m) and, "
+            "with Full covariance, the six covariance entries (m²; the propagated model's "
+            "axes are correlated); the input is not modified.",
+            sections=[("Point accuracy models", PA_HELP)],
+            citation=job.CITATION,
         )
 
     def initAlgorithm(self, config=None):  # noqa: N802 (QGIS API name)

@@ -32,8 +32,8 @@ class DemDifferenceAlgorithm(SlipMapAlgorithm):
             job.SPEC,
             "a 3-band GeoTIFF in the point cloud's CRS (band 1 dz, band 2 z_before, band 3 "
             "z_after, metres; NaN = no data), styled with a diverging ramp centred on 0; a "
-            "JSON summary (mean, median, std of dz); optionally a figure (PNG). See Aryal "
-            "(2014), chapter 3, section 3.1.",
+            "JSON summary (mean, median, std of dz); optionally a figure (PNG).",
+            citation="Aryal (2014), chapter 3, section 3.1",
         )
 
     def initAlgorithm(self, config=None):  # noqa: N802 (QGIS API name)

@@ -32,7 +32,6 @@ from ...app import slip as job
 from ...app.pointaccuracy import MODELS, PA_KEYS
 from ...app.summaries import stochastic_outputs
 from ._base import (
-    PLANES_CITATION,
     SlipMapAlgorithm,
     add_parameters,
     apply_diverging_style_on_load,
@@ -88,27 +87,32 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
     spec = job.SPEC
 
     def shortHelpString(self):  # noqa: N802 (QGIS API name)
-        return (
-            help_text(
-                job.SPEC,
-                "JSON summary; HTML report (tables and plots, beside the JSON); matched planes "
-                "(points at the before-epoch plane centroids: side, plane ids, n_points, unit "
-                "normal, match angle and distance, weight = 1 full / below 1 down-weighted / 0 "
-                "rejected, w_test, offset_mm, misclosure_mm); tiles (polygons: side, ix, iy, "
-                "n_planes, the tile's own dx, dy, dz and sigmas in m, fault_parallel, "
-                "fault_normal and their sigma_fp, sigma_fn, status); strips (points on the "
-                "trace at the strip's centre chainage: chainages, n_planes, fault_parallel, "
-                "fault_normal, dz and their sigmas in m relative to the left side, status); "
-                "windows (GeoTIFF, one pixel per window centre, bands "
-                + ", ".join(job.WINDOW_BANDS)
-                + " relative to the left side; styled on fault_parallel_m); "
-                "right_lateral_slip, sigma_fault_parallel and sigma_fault_parallel_white (m), "
-                "n_eff of each side, the model and the variance components (JSON text).",
-            )
-            + "<br>"
-            + PA_HELP
-            + "<br>"
-            + PLANES_CITATION
+        return help_text(
+            job.SPEC,
+            "a JSON summary and an HTML report beside it (tables, plots); Matched planes "
+            "(before-epoch centroids: side, plane ids, normal, weight 1 full / below 1 "
+            "down-weighted / 0 rejected, w_test, offset_mm, misclosure_mm); Tiles (polygons) "
+            "and Strips (points on the trace), each with its motion dx, dy, dz, fault_parallel, "
+            "fault_normal and their sigmas in m, status; Moving windows (GeoTIFF, one pixel per "
+            "window, bands " + ", ".join(job.WINDOW_BANDS) + ", relative to the left side); "
+            "the right-lateral slip and its sigma (m, the model's and the white-noise one), "
+            "n_eff per side and the variance components.",
+            sections=[
+                ("Point accuracy models (one per epoch)", PA_HELP),
+                (
+                    "Stochastic model",
+                    "white = independent point errors (the study's; too small a sigma for "
+                    "real surveys); plane = plus one offset per plane; full = plus spatially "
+                    "correlated offsets and a rigid error per acquisition unit (default).",
+                ),
+                (
+                    "Colours",
+                    "red = right-lateral, blue = left-lateral, white = 0 on Tiles, Strips and "
+                    "Moving windows; ramps span plus and minus the largest value.",
+                ),
+            ],
+            citation=job.SPEC.citation + "; point accuracy: section II.E, Glennie (2007), "
+            "Schaer et al. (2007)",
         )
 
     def initAlgorithm(self, config=None):  # noqa: N802 (QGIS API name)

@@ -25,19 +25,19 @@ class RoughnessAlgorithm(SlipMapAlgorithm):
     spec = job.SPEC
 
     def shortHelpString(self):  # noqa: N802 (QGIS API name)
-        return (
-            f"{job.SPEC.description}<br>"
-            "<b>Input point cloud</b>: LAS/LAZ in a projected CRS (metres). "
-            "<b>Cell size</b> (m): edge of the grid cells and of the raster pixels (the study: "
-            "1, 0.5, 0.25, 0.125). <b>Smallest cell</b> (points, at least 3): cells with fewer "
-            "points are skipped.<br>"
-            "<b>Outputs</b>: a GeoTIFF on the map plane (bands "
+        from ._fields import help_text
+
+        return help_text(
+            job.SPEC,
+            "a GeoTIFF on the map plane (bands "
             + ", ".join(job.BANDS)
-            + "; the xy plane keeps the point cloud's CRS; cells stacked along the map normal "
-            "are averaged; NaN = no data), a CSV with one row per cell ("
+            + "; the point cloud's CRS; cells stacked along the map normal are averaged; NaN "
+            "= no data), a CSV with one row per cell ("
             + job.CSV_HEADER
             + "), optionally the JSON summary (Table 1 per cell size) and a copy of the point "
-            f"cloud with a Roughness dimension.<br>Method: {job.CITATION}."
+            "cloud with a Roughness dimension.",
+            sections=[("Input", "a LAS/LAZ file in a projected CRS (metres).")],
+            citation=job.CITATION,
         )
 
     def initAlgorithm(self, config=None):  # noqa: N802 (QGIS API name)

@@ -329,11 +329,11 @@ def test_styles_applied_on_load(provider, epochs, tmp_path):
     import processing
     from osgeo import gdal
     from qgis.core import (
+        QgsGraduatedSymbolRenderer,
         QgsProcessingContext,
         QgsProcessingFeedback,
         QgsProject,
         QgsRasterLayer,
-        QgsRuleBasedRenderer,
         QgsSingleBandPseudoColorRenderer,
         QgsVectorLayer,
     )
@@ -368,7 +368,7 @@ def test_styles_applied_on_load(provider, epochs, tmp_path):
     context.layerToLoadOnCompletionDetails(tiles).postProcessor().postProcessLayer(
         layer, context, feedback
     )
-    assert isinstance(layer.renderer(), QgsRuleBasedRenderer)
+    assert isinstance(layer.renderer(), QgsGraduatedSymbolRenderer)  # right-lateral sense
     assert layer.labelsEnabled()
     assert "1000" in layer.labeling().settings().fieldName
     raster = QgsRasterLayer(windows, "windows")
@@ -432,7 +432,7 @@ def test_vector_styles_load(qgis_app, style, uri):
     ctx = QgsExpressionContext(QgsExpressionContextUtils.globalProjectLayerScopes(layer))
     ctx.setFeature(next(layer.getFeatures()))
     label = QgsExpression(layer.labeling().settings().fieldName).evaluate(ctx)
-    assert label == "-18.1 ± 0.4 mm"
+    assert label == "18.1 ± 0.4 mm"  # a right-side tile moving -18.1 mm along strike: dextral
     assert len(layer.renderer().symbols(QgsRenderContext())) >= 2
 
 
