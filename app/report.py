@@ -271,6 +271,25 @@ def plot_normals_polar(
     return _save(fig, path, dpi)
 
 
+def readable_number(value: float, digits: int = 4) -> str:
+    """``value`` for a reader: ``digits`` significant digits in fixed point when
+    0.001 <= |value| < 10⁶ (trailing zeros dropped: 0.01787, 17.87, 215334), otherwise three
+    significant digits with an exponent (1.6e-05); NaN and infinities as ``nan``, ``inf``."""
+    import math
+
+    v = float(value)
+    if not math.isfinite(v):
+        return str(v)
+    a = abs(v)
+    if a == 0:
+        return "0"
+    if 1e-3 <= a < 1e6:
+        decimals = max(0, digits - 1 - int(math.floor(math.log10(a))))
+        text = f"{v:.{decimals}f}"
+        return text.rstrip("0").rstrip(".") if "." in text else text
+    return f"{v:.2e}".replace("e-0", "e-").replace("e+0", "e+")
+
+
 def write_html_report(
     path: PathLike,
     title: str,
@@ -282,14 +301,15 @@ def write_html_report(
 
     A table is either a mapping (one ``key | value`` row per item) or a sequence of mappings
     (rows of a table whose columns are the keys, in order of first appearance). Floats are
-    shown with 6 significant digits, None as an empty cell."""
+    shown for reading (:func:`readable_number`: 4 significant digits, no exponent between
+    0.001 and 10⁶), None as an empty cell."""
     import html
 
     def cell(value) -> str:
         if value is None:
             return ""
         if isinstance(value, (float, np.floating)):
-            return f"{float(value):.6g}"
+            return readable_number(float(value))
         if isinstance(value, (list, tuple)):
             # numpy scalars as Python numbers: under numpy 2 their repr is "np.float64(...)"
             plain = [v.item() if isinstance(v, np.generic) else v for v in value]
