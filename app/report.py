@@ -295,9 +295,12 @@ def write_html_report(
     title: str,
     tables: Mapping[str, object],
     images: Sequence[str],
+    *,
+    lead: str = "",
 ) -> Path:
-    """A self-contained HTML summary: one table per entry of ``tables`` and the given image
-    files (relative paths beside the report).
+    """A self-contained HTML summary: ``lead`` (the result in one sentence) under the title,
+    one table per entry of ``tables`` and the given image files (relative paths beside the
+    report).
 
     A table is either a mapping (one ``key | value`` row per item) or a sequence of mappings
     (rows of a table whose columns are the keys, in order of first appearance). Floats are
@@ -325,6 +328,8 @@ def write_html_report(
         "</style></head><body>",
         f"<h1>{html.escape(title)}</h1>",
     ]
+    if lead:
+        parts.append(f"<p style='font-size:1.3em'><b>{html.escape(lead)}</b></p>")
     for name, rows in tables.items():
         parts.append(f"<h2>{html.escape(name)}</h2><table>")
         if isinstance(rows, Mapping):

@@ -899,15 +899,119 @@ def _write(plan: OutputPlan, payload: Dict[str, Any], data: Dict[str, Any]) -> N
     if plan.wants("report"):
         from .report import write_html_report
 
-        tables = {"relative (right - left), m": payload["relative"]}
-        for side in ("left", "right"):
-            tables[f"{side} side"] = {
-                k: v for k, v in payload[side].items() if not isinstance(v, (list, dict))
-            }
-        tables.update(stochastic_tables(payload))
-        if "reference" in payload:
-            tables["against the reference slip"] = payload["reference"]
-        write_html_report(plan.file("report"), "SlipMap displacement", tables, images)
+        lead, tables = report_tables(payload, data.get("crs"))
+        write_html_report(plan.file("report"), "SlipMap fault slip", tables, images, lead=lead)
+
+
+#: report rows of a motion (relative or one side): JSON key -> (label, scale to the unit)
+_MOTION_ROWS = (
+    ("right_lateral_slip", "right-lateral slip (mm)", 1e3),
+    ("fault_parallel", "fault-parallel (mm, + = left-lateral)", 1e3),
+    ("sigma_fault_parallel", "σ fault-parallel (mm)", 1e3),
+    ("sigma_fault_parallel_white", "σ fault-parallel, white noise only (mm)", 1e3),
+    ("fault_normal", "fault-normal (mm)", 1e3),
+    ("sigma_fault_normal", "σ fault-normal (mm)", 1e3),
+    ("horizontal", "horizontal (mm)", 1e3),
+    ("sigma_horizontal", "σ horizontal (mm)", 1e3),
+    ("dx", "dx east (mm)", 1e3),
+    ("sigma_dx", "σ dx (mm)", 1e3),
+    ("dy", "dy north (mm)", 1e3),
+    ("sigma_dy", "σ dy (mm)", 1e3),
+    ("dz", "dz up (mm)", 1e3),
+    ("sigma_dz", "σ dz (mm)", 1e3),
+    ("sigma_dz_white", "σ dz, white noise only (mm)", 1e3),
+    ("rx", "rx (mrad)", 1e3),
+    ("ry", "ry (mrad)", 1e3),
+    ("rz", "rz (mrad)", 1e3),
+    ("sigma_white_dx", "σ dx, white noise only (mm)", 1e3),
+    ("sigma_white_dy", "σ dy, white noise only (mm)", 1e3),
+    ("sigma_white_dz", "σ dz, white noise only (mm)", 1e3),
+    ("n_planes", "matched planes", 1),
+    ("n_points", "points", 1),
+    ("variance_factor", "variance factor", 1),
+    ("iterations", "iterations", 1),
+)
+
+
+def _motion_rows(values: Mapping[str, Any]) -> Dict[str, Any]:
+    out = {}
+    for key, label, scale in _MOTION_ROWS:
+        v = values.get(key)
+        if v is None or isinstance(v, (list, dict, str)):
+            continue
+        out[label] = v * scale if scale != 1 else v
+    return out
+
+
+def report_tables(payload: Mapping[str, Any], crs=None) -> Tuple[str, Dict[str, Any]]:
+    """The HTML report's lead sentence and tables, in the units a geodesist reads: the
+    result in mm with its σ and model first, then the inputs, the settings used, each side's
+    motion (mm, mrad), the stochastic model and, when given, the reference comparison.
+
+    Parameters
+    ----------
+    payload
+        The job's summary (``displacement.json``).
+    crs
+        The epochs' CRS (pyproj) or None.
+
+    Returns
+    -------
+    (str, dict)
+        The lead sentence and ``{title: table}`` for :func:`.report.write_html_report`.
+    """
+    rel = payload.get("relative", {})
+    params = payload.get("parameters", {})
+    model = params.get("stochastic_model", "white")
+    slip, sig = rel.get("right_lateral_slip"), rel.get("sigma_fault_parallel")
+    if slip is None or sig is None:
+        lead = "No slip estimate."
+    else:
+        lead = f"Right-lateral slip {1e3 * slip:.2f} ± {1e3 * sig:.2f} mm (1σ, {model} model)"
+        white = rel.get("sigma_fault_parallel_white")
+        if white is not None and model != "white":
+            lead += f"; white noise alone would claim ± {1e3 * white:.2f} mm"
+        lead += "."
+    inputs = {
+        "before epoch": Path(str(params.get("before", ""))).name or None,
+        "after epoch": Path(str(params.get("after", ""))).name or None,
+        "fault trace": Path(str(params["fault"])).name if params.get("fault") else "(layer)",
+        "CRS": getattr(crs, "name", None) or ("none" if crs is None else str(crs)),
+    }
+    for side in ("left", "right"):
+        n = payload.get(side, {}).get("n_points")
+        if n is not None:
+            inputs[f"points used, {side} side (both epochs)"] = n
+    settings: Dict[str, Any] = {
+        "buffer around the trace (m)": params.get("buffer_m"),
+        "combine": params.get("combine"),
+        "stochastic model": model,
+    }
+    units = params.get("acquisition_unit_sources") or {}
+    if units:
+        settings["acquisition units"] = units.get("units_option")
+    for epoch, s in (params.get("point_accuracy") or {}).items():
+        if isinstance(s, Mapping):
+            text = ", ".join(f"{k} {v}" for k, v in s.items() if not isinstance(v, dict))
+            settings[f"point accuracy, {epoch}"] = text
+    for key in ("plane_options", "match_options", "components"):
+        if params.get(key):
+            settings[key.replace("_", " ")] = ", ".join(
+                f"{k} {v}" for k, v in dict(params[key]).items()
+            )
+    tables: Dict[str, Any] = {
+        "Result: relative motion of the right side against the left": _motion_rows(rel),
+        "Inputs": inputs,
+        "Settings": {k: v for k, v in settings.items() if v is not None},
+    }
+    for side in ("left", "right"):
+        tables[f"{side.capitalize()} side: after against before"] = _motion_rows(
+            payload.get(side, {})
+        )
+    tables.update(stochastic_tables(dict(payload)))
+    if "reference" in payload:
+        tables["Against the reference slip"] = payload["reference"]
+    return lead, tables
 
 
 def _write_layers(path: Path, result, data: Dict[str, Any], crs) -> None:
