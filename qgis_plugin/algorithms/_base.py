@@ -15,11 +15,6 @@ from ..compat import band_statistics, can_execute, renderer_band, set_renderer_b
 
 LAS_FILTER = "LAS/LAZ (*.las *.laz)"
 LAS_OUTPUT_FILTER = "LAS (*.las);;LAZ (*.laz)"
-PLANES_CITATION = (
-    "Method: octree subdivision and region growing of planar leaves "
-    "(Kusari, Glennie, Brooks and Ericksen 2019, Precise registration of laser mapping data "
-    "by planar feature extraction for deformation monitoring, IEEE TGRS 57(6), section II)."
-)
 
 
 def progress_callback(feedback, *, text_every_s=2.0):
