@@ -55,6 +55,7 @@ def _rss_mb() -> float:
 def make(out: Path, copies: int) -> None:
     import pyproj
 
+    from slipmap.core.errors import InvalidParameterError
     from slipmap.core.io.las import PointCloud, write_las
     from slipmap.core.synthetic import make_fault_pair
 
@@ -66,7 +67,16 @@ def make(out: Path, copies: int) -> None:
         paths = [out / e / f"tile_{j:03d}.laz" for e in ("before", "after")]
         if all(p.exists() for p in paths):
             continue
-        pair = make_fault_pair("mls", seed=100 + j, origin=(X0, Y0 + j * EXTENT, Z0))
+        pair = None
+        for k in range(10):  # a seed whose random buildings do not fit is skipped
+            try:
+                seed = 100 + j + 1000 * k
+                pair = make_fault_pair("mls", seed=seed, origin=(X0, Y0 + j * EXTENT, Z0))
+                break
+            except InvalidParameterError:
+                continue
+        if pair is None:
+            raise SystemExit(f"copy {j}: no seed gave a scene")
         for p, scene, e in zip(paths, (pair.before, pair.after), ("before", "after")):
             write_las(p, PointCloud(scene.points, {}, crs))
             n[e] += len(scene.points)
