@@ -254,7 +254,9 @@ def select_points(
     elif ground_default and not classes and np.any(cls == 2):
         keep &= cls != 2
         log.info(
-            "%s: leaving out ground (class 2); give the exclude-classes option to change", label
+            "%s: leaving out ground (class 2); set the classes to exclude (none keeps every "
+            "class) to change",
+            label,
         )
     idx = np.flatnonzero(keep)
     if idx.size == 0:

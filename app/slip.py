@@ -615,7 +615,7 @@ def check_trace(fault, before: np.ndarray, opts: Mapping[str, Any]) -> None:
     from ..core.fault import trace_in_data_check
 
     try:
-        trace_in_data_check(fault, before[:, :2], buffer_m=opts.get("buffer_m", 10.0))
+        trace_in_data_check(fault, before[:, :2], buffer_m=opts.get("buffer_m", 10.0), quiet=True)
     except InputDataError as exc:
         raise OptionError("fault", str(exc)) from exc
 

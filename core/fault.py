@@ -575,6 +575,7 @@ def trace_in_data_check(
     *,
     buffer_m: float = 10.0,
     geometry: Optional[FaultGeometry] = None,
+    quiet: bool = False,
 ) -> FaultGeometry:
     """Check that a trace runs through the data and that the data lie on both of its sides.
 
@@ -587,6 +588,9 @@ def trace_in_data_check(
         Buffer excluded around the trace (metres); only points outside it are counted.
     geometry : FaultGeometry, optional
         The points' geometry if already computed (else it is computed here).
+    quiet : bool, default False
+        Do not log the counts per side (a caller checking ahead of the computation, which
+        logs them itself).
 
     Returns
     -------
@@ -618,7 +622,7 @@ def trace_in_data_check(
     geom = geometry if geometry is not None else fault_geometry(pts, trace)
     left, right = side_masks(geom, buffer_m=buffer_m)
     n_left, n_right = int(left.sum()), int(right.sum())
-    logger.info(
+    (logger.debug if quiet else logger.info)(
         "fault trace: %d points on the left, %d on the right, %d within %g m",
         n_left,
         n_right,
