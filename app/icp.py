@@ -110,6 +110,49 @@ SPEC = JobSpec(
             advanced=True,
         ),
         _opt(
+            "deform_passes",
+            "int",
+            "window-deformation passes after the first: each cell's after-points are moved "
+            "back by the previous pass's field (cubic spline through the cell centres) and "
+            "the residual is fitted, so the cell reports the motion at its centre, not the "
+            "mean over a straining cell (0: off)",
+            "Window-deformation passes",
+            default=0,
+            minimum=0,
+            metavar="PASSES",
+            advanced=True,
+        ),
+        _opt(
+            "cell_model",
+            "choice",
+            "motion model of a cell: rigid (6 parameters, the study's) or affine (12: a 3x3 "
+            "matrix and a translation; follows a straining cell and gives its strain)",
+            "Cell model",
+            default="rigid",
+            choices=("rigid", "affine"),
+            advanced=True,
+        ),
+        _opt(
+            "median_threshold",
+            "float",
+            "normalised median test of each cell against its 8 neighbours (Westerweel & "
+            "Scarano 2005): cells above it are flagged as likely wrong minima (0: off)",
+            "Wrong-minimum test threshold",
+            default=2.0,
+            minimum=0,
+            metavar="R",
+            advanced=True,
+        ),
+        _opt(
+            "median_restart",
+            "bool",
+            "restart flagged cells from their neighbours' median motion and keep the restart "
+            "where it fits better",
+            "Restart flagged cells",
+            default=False,
+            advanced=True,
+        ),
+        _opt(
             "formal_sigma",
             "bool",
             "report the cells' formal sigmas; by default they are multiplied by the field's "
@@ -156,7 +199,16 @@ SPEC = JobSpec(
 )
 
 #: options passed to ``windowed_icp`` under their own key (add new core options here)
-CORE_KEYS = ("cell_m", "buffer_m", "min_points", "coarse_to_fine")
+CORE_KEYS = (
+    "cell_m",
+    "buffer_m",
+    "min_points",
+    "coarse_to_fine",
+    "deform_passes",
+    "cell_model",
+    "median_threshold",
+    "median_restart",
+)
 _KEYS = ("table", "layers", "raster", "plot", "summary")
 
 

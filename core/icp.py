@@ -946,6 +946,17 @@ class WindowedICPResult:
         ``sigma_factor = max(1, sigma_factor_estimate)`` when scaled.
     sigma_factor_cells : int
         Cells that entered the estimate.
+    exx, eyy, exy : (K,) float64
+        Horizontal strain at the cell centre (dimensionless): ``d(dx)/dx``, ``d(dy)/dy`` and
+        ``(d(dx)/dy + d(dy)/dx) / 2`` of the cell's motion model (0 for a rigid cell without
+        deformation passes, whose model has no strain).
+    flagged : (K,) bool
+        The cell failed the normalised median test against its neighbours (a likely wrong
+        minimum) even after a restart from their median motion; see ``median_threshold``.
+    cell_model : str
+        ``"rigid"`` or ``"affine"``.
+    deform_passes : int
+        Window-deformation passes run after the first.
     """
 
     x: np.ndarray
@@ -983,6 +994,12 @@ class WindowedICPResult:
     sigma_factor: float = 1.0
     sigma_factor_estimate: float = math.nan
     sigma_factor_cells: int = 0
+    exx: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    eyy: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    exy: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cell_model: str = "rigid"
+    deform_passes: int = 0
+    flagged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -990,7 +1007,8 @@ class WindowedICPResult:
     def to_columns(self) -> Dict[str, np.ndarray]:
         """Per-cell columns: ``x, y, z, dx, dy, dz, sigma_dx, sigma_dy, sigma_dz, rmse, n``
         (the CLI's CSV columns, in this order) then ``rx, ry, rz, sigma_rx, sigma_ry,
-        sigma_rz, sigma0, n_after, n_before, iterations, converged (0/1), row, col``."""
+        sigma_rz, sigma0, n_after, n_before, iterations, converged (0/1), row, col, exx, eyy,
+        exy, flagged (0/1)``."""
         names = ["x", "y", "z", "dx", "dy", "dz", "sigma_dx", "sigma_dy", "sigma_dz", "rmse"]
         cols: Dict[str, np.ndarray] = {k: getattr(self, k) for k in names}
         cols["n"] = self.n
@@ -1000,6 +1018,11 @@ class WindowedICPResult:
             cols[k] = getattr(self, k)
         cols["converged"] = self.converged.astype(np.int64)
         cols["row"], cols["col"] = self.row, self.col
+        for k in ("exx", "eyy", "exy"):
+            v = getattr(self, k)
+            cols[k] = v if v.size == self.x.size else np.zeros(self.x.size)
+        fl = self.flagged if self.flagged.size == self.x.size else np.zeros(self.x.size, bool)
+        cols["flagged"] = fl.astype(np.int64)
         return cols
 
     def to_grid(self, name: str) -> np.ndarray:
@@ -1063,6 +1086,284 @@ def _interpolator(res: WindowedICPResult) -> Callable[[np.ndarray], np.ndarray]:
     return f
 
 
+CELL_MODELS = ("rigid", "affine")
+ENGINES = ("batched", "per_cell")
+
+
+@dataclass(frozen=True)
+class _Cells:
+    """The cells of a windowed-ICP run: their after-points concatenated cell by cell."""
+
+    points: np.ndarray  # (P,) indices into the after points, grouped by cell
+    seg: np.ndarray  # (P,) cell of each point, 0 .. K-1
+    centres: np.ndarray  # (K, 3) cell centre x, y and mean z of its points
+    boxes: np.ndarray  # (K, 4) xmin, xmax, ymin, ymax of the target points (unmoved)
+    row: np.ndarray
+    col: np.ndarray
+    n_after: np.ndarray
+    n_before: np.ndarray
+
+    @classmethod
+    def build(cls, a, idx_parts, keys, n_after, n_before, x0, y0, cell, buf, n_cols):
+        k = len(idx_parts)
+        pts = np.concatenate(idx_parts) if k else np.zeros(0, dtype=np.int64)
+        sizes = np.array([len(i) for i in idx_parts], dtype=np.int64)
+        seg = np.repeat(np.arange(k), sizes)
+        row, col = np.divmod(np.asarray(keys, dtype=np.int64), n_cols)
+        zc = np.bincount(seg, weights=a[pts, 2], minlength=k) / np.maximum(sizes, 1)
+        # the mean z per cell as np.mean does it (pairwise sums), so that the batched and
+        # per-cell runs share their centres exactly
+        zc = np.array([float(a[i, 2].mean()) for i in idx_parts]) if k else zc
+        cx, cy = x0 + (col + 0.5) * cell, y0 - (row + 0.5) * cell
+        boxes = np.column_stack(
+            [x0 + col * cell - buf, x0 + (col + 1) * cell + buf,
+             y0 - (row + 1) * cell - buf, y0 - row * cell + buf]
+        )  # fmt: skip
+        return cls(
+            points=pts,
+            seg=seg,
+            centres=np.column_stack([cx, cy, zc]).reshape(k, 3),
+            boxes=boxes.reshape(k, 4),
+            row=row,
+            col=col,
+            n_after=np.asarray(n_after, dtype=np.int64),
+            n_before=np.asarray(n_before, dtype=np.int64),
+        )
+
+
+def _cells_subset(cells: _Cells, idx: np.ndarray) -> _Cells:
+    """The cells ``idx`` (K',) of ``cells``, their points regrouped."""
+    mask = np.zeros(len(cells.centres), dtype=bool)
+    mask[idx] = True
+    pm = mask[cells.seg]
+    remap = np.full(len(cells.centres), -1, dtype=np.int64)
+    remap[idx] = np.arange(len(idx))
+    return replace(
+        cells,
+        points=cells.points[pm],
+        seg=remap[cells.seg[pm]],
+        centres=cells.centres[idx],
+        boxes=cells.boxes[idx],
+        row=cells.row[idx],
+        col=cells.col[idx],
+        n_after=cells.n_after[idx],
+        n_before=cells.n_before[idx],
+    )
+
+
+def _merge_fits(fits: _PassFits, sub: _PassFits, idx: np.ndarray, take: np.ndarray):
+    """``fits`` with the cells ``idx[take]`` replaced by ``sub``'s ``take`` entries."""
+    out = {}
+    for k in fits.__dataclass_fields__:
+        a = getattr(fits, k).copy()
+        a[idx[take]] = getattr(sub, k)[take]
+        out[k] = a
+    return _PassFits(**out)
+
+
+@dataclass(frozen=True)
+class _PassFits:
+    """One pass over the cells: the fits and what the field needs of them."""
+
+    ok: np.ndarray
+    d: np.ndarray  # (K, 3) ground motion at the (moved) centre: -t (+ start for pass 1)
+    d_residual: np.ndarray  # (K, 3) -t
+    cov_d: np.ndarray
+    gradient: np.ndarray  # (K, 3, 3) gradient of the pass's motion model
+    rotation: np.ndarray
+    sigma_rotation: np.ndarray
+    rmse: np.ndarray
+    sigma0: np.ndarray
+    n: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+
+
+def _fit_pass(
+    cells: _Cells,
+    pts: np.ndarray,
+    d_start: np.ndarray,
+    moved_by: np.ndarray,
+    model: str,
+    *,
+    before,
+    tree,
+    normals,
+    gate,
+    opts,
+    engine,
+    residual: bool = False,
+    progress: Optional[ProgressCallback] = None,
+) -> _PassFits:
+    """Fit every cell once. ``pts`` (P, 3) are the cells' after-points (pre-moved by the
+    field in a deformation pass), ``moved_by`` (K, 3) how far each cell's centre was moved
+    back, ``d_start`` (K, 3) the starting ground motion (the target box moves with it)."""
+    from .icp_cells import fit_cells, ground_rotation
+
+    centres = cells.centres - moved_by
+    shift = moved_by if residual else d_start
+    boxes = cells.boxes - np.repeat(shift[:, :2], 2, axis=1)
+    src = pts - centres[cells.seg]
+    t_init = np.zeros_like(d_start) if residual else -d_start
+    kw = dict(before=before, tree=tree, normals=normals, boxes=boxes, gate=gate, opts=opts)
+    if engine == "batched":
+        fits = fit_cells(
+            src, cells.seg, centres, model=model, t_init=t_init, progress=progress, **kw
+        )
+    else:
+        fits = _fit_cells_per_cell(
+            src, cells.seg, centres, model=model, t_init=t_init, progress=progress, **kw
+        )
+    cov = fits.covariance[:, -3:, -3:]
+    rot, sig_rot = ground_rotation(fits, model)
+    return _PassFits(
+        ok=fits.ok,
+        d=-fits.t,
+        d_residual=-fits.t,
+        cov_d=cov,
+        gradient=fits.gradient,
+        rotation=rot,
+        sigma_rotation=sig_rot,
+        rmse=fits.rmse,
+        sigma0=fits.sigma0,
+        n=fits.n,
+        iterations=fits.iterations,
+        converged=fits.converged,
+    )
+
+
+def _fit_cells_per_cell(src, seg, centres, *, before, tree, normals, boxes, gate, opts, model,
+                        t_init, progress=None):  # fmt: skip
+    """Slow obvious reference of :func:`slipmap.core.icp_cells.fit_cells`: one cell at a time
+    (rigid: :func:`_icp_engine` with its own matcher, the pre-issue-#18 loop; affine:
+    ``fit_cells`` on one cell, so that the batching itself is what is compared)."""
+    from .icp_cells import CellFits, fit_cells, n_params
+
+    k = len(centres)
+    p = n_params(model)
+    out = {
+        "ok": np.zeros(k, dtype=bool),
+        "linear": np.repeat(np.eye(3)[None], k, axis=0),
+        "t": np.zeros((k, 3)),
+        "params": np.zeros((k, p)),
+        "covariance": np.full((k, p, p), np.nan),
+        "rmse": np.full(k, np.nan),
+        "sigma0": np.full(k, np.nan),
+        "n": np.zeros(k, dtype=np.int64),
+        "iterations": np.zeros(k, dtype=np.int64),
+        "converged": np.zeros(k, dtype=bool),
+    }
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(seg, minlength=k))])
+    M = len(before)
+    for ci in range(k):
+        report(progress, ci / max(k, 1), f"ICP cell {ci + 1} of {k}")
+        s = src[bounds[ci] : bounds[ci + 1]]
+        centre = centres[ci]
+        if model == "affine":
+            one = fit_cells(
+                s,
+                np.zeros(len(s), dtype=np.int64),
+                centre[None],
+                before=before,
+                tree=tree,
+                normals=normals,
+                boxes=boxes[ci : ci + 1],
+                gate=gate,
+                opts=opts,
+                model=model,
+                t_init=t_init[ci : ci + 1],
+            )
+            for key in out:
+                out[key][ci] = getattr(one, key)[0]
+            continue
+        bx0, bx1, by0, by1 = boxes[ci]
+
+        def match(q, centre=centre, bx0=bx0, bx1=bx1, by0=by0, by1=by1):
+            _, j = tree.query(q + centre, distance_upper_bound=gate, workers=-1)
+            ok = j < M
+            jj = j[ok]
+            tp = before[jj]
+            inbox = (tp[:, 0] >= bx0) & (tp[:, 0] <= bx1) & (tp[:, 1] >= by0) & (tp[:, 1] <= by1)
+            ok[ok] = inbox
+            jj = jj[inbox]
+            return ok, tp[inbox] - centre, normals(jj), jj
+
+        fit = _icp_engine(s, match, opts, centre, t_init=t_init[ci])
+        if fit is None:
+            continue
+        out["ok"][ci] = True
+        out["linear"][ci] = fit.rotation
+        out["t"][ci] = fit.params[3:]
+        out["params"][ci] = fit.params
+        out["covariance"][ci] = fit.covariance
+        out["rmse"][ci] = fit.rmse_m
+        out["sigma0"][ci] = fit.sigma0_m
+        out["n"][ci] = fit.n_correspondences
+        out["iterations"][ci] = fit.iterations
+        out["converged"][ci] = fit.converged
+    return CellFits(**out)
+
+
+def _median_flags(cells: _Cells, d, usable, n_rows, n_cols, eps_m, threshold):
+    """:func:`slipmap.core.icp_cells.median_test` of a pass's cell motions."""
+    from .icp_cells import median_test
+
+    use = usable & np.all(np.isfinite(d), axis=1)
+    return median_test(
+        cells.row, cells.col, d, use, n_rows=n_rows, n_cols=n_cols, eps_m=eps_m,
+        threshold=threshold,
+    )  # fmt: skip
+
+
+def _deformation_field(cells: _Cells, d, usable, n_rows, n_cols, x0, y0, cell):
+    """The field of a pass as functions of xy: ``f(xy) -> (K, 3)`` and its gradient
+    ``g(xy) -> (K, 3, 3)`` (the z column zero).
+
+    Cubic B-spline through the cell-centre values (missing cells filled from their
+    neighbours, the grid extended linearly by two cells). Cubic, not bilinear: a cell's
+    residual fit measures the mean of the residual over the cell, and the iteration stops
+    where the interpolant's cell means equal the data's; a bilinear interpolant's cell mean
+    differs from its centre value by ``h²/8`` times the curvature (a bias twice that of a
+    rigid cell's mean, ``h²/24``), a cubic one's by the field's own ``h²/24``, so the centre
+    values converge to the true ones (up to ``O(h⁴)``).
+    """
+    from scipy import ndimage
+
+    from .piv import replace_outliers
+
+    pad = 2
+    coefs = []
+    for j in range(3):
+        g = np.full((n_rows, n_cols), np.nan)
+        g[cells.row[usable], cells.col[usable]] = d[usable, j]
+        if not np.isfinite(g).any():
+            g[:] = 0.0
+        g = replace_outliers(g, np.zeros(g.shape, dtype=bool), fill_all=True)
+        g = np.pad(g, pad, mode="reflect", reflect_type="odd")
+        coefs.append(ndimage.spline_filter(g, order=3, mode="mirror"))
+
+    def f(xy: np.ndarray) -> np.ndarray:
+        fr = (y0 - xy[:, 1]) / cell - 0.5 + pad
+        fc = (xy[:, 0] - x0) / cell - 0.5 + pad
+        return np.column_stack(
+            [
+                ndimage.map_coordinates(c, [fr, fc], order=3, prefilter=False, mode="nearest")
+                for c in coefs
+            ]
+        )
+
+    def grad(xy: np.ndarray) -> np.ndarray:
+        h = 1e-3 * cell
+        out = np.zeros((len(xy), 3, 3))
+        for j in range(2):
+            e = np.zeros(2)
+            e[j] = h
+            out[:, :, j] = (f(xy + e) - f(xy - e)) / (2 * h)
+        return out
+
+    return f, grad
+
+
 def windowed_icp(
     before: np.ndarray,
     after: np.ndarray,
@@ -1079,6 +1380,12 @@ def windowed_icp(
     coarse_to_fine: int = 0,
     initial_displacement: Optional[Callable[[np.ndarray], np.ndarray]] = None,
     sigma_scaling: str = "field",
+    deform_passes: int = 0,
+    cell_model: str = "rigid",
+    engine: str = "batched",
+    median_threshold: float = 2.0,
+    median_eps_m: float = 0.02,
+    median_restart: bool = False,
     seed: int = 0,
     progress: Optional[ProgressCallback] = None,
     **icp_options,
@@ -1139,6 +1446,39 @@ def windowed_icp(
         it is 2-3x too small; the factor restores ``err / sigma`` to about 1 there. With
         fewer than 8 cells that have 5 usable neighbours the formal covariances are kept.
         ``"formal"``: keep the formal covariances.
+    deform_passes : int
+        Window-deformation passes after the first (0: none). Each pass moves every cell's
+        after-points back by the field of the previous pass (cubic spline through the cell
+        centres, as PIV's window deformation), fits the cell's residual motion, and reports
+        the field at the centre plus the residual there. A rigid cell can only see the mean
+        motion of its points, which on a lobe a few cells wide differs from the motion at
+        its centre by centimetres; the deformed passes converge to the centre value.
+        Covariances are those of the last residual fit (the previous field taken as known).
+    cell_model : {"rigid", "affine"}
+        Motion model of a cell: a rigid transform (6 parameters, the study's) or an affine
+        one (12: a 3 x 3 matrix and a translation; it follows a straining cell and gives its
+        strain). See :mod:`slipmap.core.icp_cells`.
+    median_threshold : float
+        Wrong-minimum test (0: off): a cell whose motion differs from the median of its
+        8-neighbours by more than this many times their median spread (plus
+        ``median_eps_m``), the normalised median test of PIV (Westerweel & Scarano 2005), is
+        ``flagged``; with ``median_restart`` it is first fitted again from that median: the
+        restart replaces the first fit when its residuals
+        are smaller (a wrong minimum fits the surface worse than the right one, and a true
+        peak of the field restarts into the same fit), and the cells still failing are
+        ``flagged`` in the result. Cells with fewer
+        than 3 fitted neighbours are not tested.
+    median_eps_m : float
+        Noise level of that test, metres.
+    median_restart : bool
+        Restart flagged cells from their neighbours' median (default off: on lone-star it
+        repairs small edge cells whose disagreement had propped up the field's variance
+        factor, which then drops from 3.0 to 1.9 and the sigmas of the good cells cover only
+        83 % of their errors within 2 sigma instead of 96 %; use it where a wrong cell
+        matters more than the sigmas).
+    engine : {"batched", "per_cell"}
+        ``"batched"`` (default) fits all cells together (one KD-tree query per iteration,
+        stacked solves); ``"per_cell"`` is the slow obvious reference, one cell at a time.
     seed : int
         Seed of the samples.
     progress : callable, optional
@@ -1182,6 +1522,14 @@ def windowed_icp(
         raise InvalidParameterError(
             f"sigma_scaling must be one of {SIGMA_SCALING_CHOICES}, got {sigma_scaling!r}"
         )
+    passes = _int_at_least("deform_passes", deform_passes, 0)
+    if cell_model not in CELL_MODELS:
+        raise InvalidParameterError(f"cell_model must be one of {CELL_MODELS}, got {cell_model!r}")
+    model = cell_model
+    med_thr = _positive("median_threshold", median_threshold, allow_zero=True)
+    med_eps = _positive("median_eps_m", median_eps_m, allow_zero=True)
+    if engine not in ENGINES:
+        raise InvalidParameterError(f"engine must be one of {ENGINES}, got {engine!r}")
     if initial_displacement is not None and not callable(initial_displacement):
         raise InvalidParameterError("initial_displacement must be a function xy -> (K, 3)")
     _check_overlap(b, a)
@@ -1201,6 +1549,10 @@ def windowed_icp(
             coarse_to_fine=levels - 1,
             initial_displacement=initial_displacement,
             sigma_scaling="formal",
+            engine=engine,
+            median_threshold=median_threshold,
+            median_eps_m=median_eps_m,
+            median_restart=median_restart,
             seed=seed,
             progress=scaled(progress, 0.0, 0.4),
             **icp_options,
@@ -1252,16 +1604,8 @@ def windowed_icp(
     nb_cell = np.bincount(rb[inb] * n_cols + cb[inb], minlength=n_rows * n_cols)
 
     skipped = {"few_after_points": 0, "few_before_points": 0, "icp_failed": 0}
-    rows: Dict[str, list] = {k: [] for k in _CELL_FIELDS}
-    extra: Dict[str, list] = {
-        k: [] for k in ("cov_d", "n", "n_after", "n_before", "iterations", "conv", "row", "col")
-    }
     gate = math.inf if opts.max_correspondence_m is None else opts.max_correspondence_m
-    M = len(b)
     rng = np.random.default_rng(seed)
-    cell_progress = scaled(progress, 0.1 if pre is not None else 0.02, 1.0)
-    batch = max(1, len(uk) // 100)
-    n_fail_nonconv = 0
     # starting motion of every cell in one call (a per-cell call of a sampler is slow)
     start_d = np.zeros((len(uk), 3))
     if initial_displacement is not None and len(uk):
@@ -1269,86 +1613,111 @@ def windowed_icp(
         centres_xy = np.column_stack([x0 + (cols_u + 0.5) * cell, y0 - (rows_u + 0.5) * cell])
         start_d = np.asarray(initial_displacement(centres_xy), dtype=np.float64)
         start_d = np.where(np.isfinite(start_d), start_d, 0.0).reshape(len(uk), 3)
+    # the cells to fit: their (sampled) after-points, concatenated cell by cell
+    sel, idx_parts = [], []
     for ci, (key, s0, cnt) in enumerate(zip(uk, starts, counts)):
-        if ci % batch == 0:
-            report(cell_progress, ci / len(uk), f"ICP cell {ci + 1} of {len(uk)}")
-        r, c = divmod(int(key), n_cols)
-        nbk = int(nb_cell[key])
         if cnt < minp:
             skipped["few_after_points"] += 1
             continue
-        if nbk < minp:
+        if nb_cell[key] < minp:
             skipped["few_before_points"] += 1
             continue
         idx = order[s0 : s0 + cnt]
         if mpc is not None and cnt > mpc:
             idx = np.sort(rng.choice(idx, size=mpc, replace=False))
-        pts = a[idx]
-        cx, cy = x0 + (c + 0.5) * cell, y0 - (r + 0.5) * cell
-        centre = np.array([cx, cy, float(pts[:, 2].mean())])
-        d0 = start_d[ci]
-        # the cell's material came from (cell - d0): its target box moves with it
-        bx0, bx1 = x0 + c * cell - buf - d0[0], x0 + (c + 1) * cell + buf - d0[0]
-        by1, by0 = y0 - r * cell + buf - d0[1], y0 - (r + 1) * cell - buf - d0[1]
-
-        def match(q, centre=centre, bx0=bx0, bx1=bx1, by0=by0, by1=by1):
-            _, j = tree.query(q + centre, distance_upper_bound=gate, workers=-1)
-            ok = j < M
-            jj = j[ok]
-            tp = b[jj]
-            inbox = (tp[:, 0] >= bx0) & (tp[:, 0] <= bx1) & (tp[:, 1] >= by0) & (tp[:, 1] <= by1)
-            ok[ok] = inbox
-            jj = jj[inbox]
-            return ok, tp[inbox] - centre, normals(jj), jj
-
-        fit = _icp_engine(pts - centre, match, opts, centre, t_init=-d0)
-        if fit is None:
-            skipped["icp_failed"] += 1
-            continue
-        if not fit.converged:
-            n_fail_nonconv += 1
-        d, cov = fit.displacement_at(centre)
-        sp = fit.sigma
-        for k, val in zip(
-            _CELL_FIELDS,
-            (
-                cx,
-                cy,
-                centre[2],
-                d[0],
-                d[1],
-                d[2],
-                math.sqrt(cov[0, 0]),
-                math.sqrt(cov[1, 1]),
-                math.sqrt(cov[2, 2]),
-                -fit.params[0],
-                -fit.params[1],
-                -fit.params[2],
-                sp[0],
-                sp[1],
-                sp[2],
-                fit.rmse_m,
-                fit.sigma0_m,
-            ),
-        ):
-            rows[k].append(val)
-        extra["cov_d"].append(cov)
-        extra["n"].append(fit.n_correspondences)
-        extra["n_after"].append(int(cnt))
-        extra["n_before"].append(nbk)
-        extra["iterations"].append(fit.iterations)
-        extra["conv"].append(fit.converged)
-        extra["row"].append(r)
-        extra["col"].append(c)
-    report(cell_progress, 1.0, "ICP cells done")
-
-    n_ok = len(rows["x"])
+        sel.append(ci)
+        idx_parts.append(idx)
+    sel = np.asarray(sel, dtype=np.int64)
+    cells = _Cells.build(
+        a, idx_parts, uk[sel], counts[sel], nb_cell[uk[sel]], x0, y0, cell, buf, n_cols
+    )
+    report(progress, 0.1 if pre is not None else 0.02, f"ICP: {len(sel)} cells")
+    fit_kw = dict(before=b, tree=tree, normals=normals, gate=gate, opts=opts, engine=engine)
+    n_pass = 1 + passes
+    pass_progress = scaled(progress, 0.1 if pre is not None else 0.02, 1.0)
+    d0 = start_d[sel]
+    fits = _fit_pass(
+        cells,
+        a[cells.points],
+        d0,
+        np.zeros((len(sel), 3)),
+        model,
+        progress=scaled(pass_progress, 0.0, 1.0 / n_pass),
+        **fit_kw,
+    )
+    report(pass_progress, 1.0 / n_pass, f"ICP pass 1 of {n_pass}")
+    d, cov_d, grad = fits.d, fits.cov_d, fits.gradient
+    for k in range(passes):
+        # window deformation: after-points pre-moved by the field of the previous pass
+        usable = fits.ok & np.all(np.isfinite(d), axis=1)
+        f_at, f_grad = _deformation_field(cells, d, usable, n_rows, n_cols, x0, y0, cell)
+        moved = a[cells.points]
+        moved = moved - f_at(moved[:, :2])
+        fc = f_at(cells.centres[:, :2])
+        fits = _fit_pass(
+            cells,
+            moved,
+            -fc,
+            fc,
+            model,
+            residual=True,
+            progress=scaled(pass_progress, (k + 1) / n_pass, (k + 2) / n_pass),
+            **fit_kw,
+        )
+        g_f = f_grad(cells.centres[:, :2])
+        d = fc + fits.d_residual
+        cov_d = fits.cov_d
+        grad = g_f + np.einsum("kij,kjl->kil", fits.gradient, np.eye(3)[None] - g_f)
+        report(pass_progress, (k + 2) / n_pass, f"ICP pass {k + 2} of {n_pass}")
+    # wrong minima: cells far from their neighbours' median (after the last pass) are
+    # restarted from that median; those still off are flagged
+    flagged = np.zeros(len(sel), dtype=bool)
+    if med_thr > 0:
+        flagged, med, _ = _median_flags(cells, d, fits.ok, n_rows, n_cols, med_eps, med_thr)
+        idx = np.flatnonzero(flagged & np.all(np.isfinite(med), axis=1))
+        if idx.size and median_restart:
+            sub = _cells_subset(cells, idx)
+            start = med[idx]
+            if passes == 0:
+                sfit = _fit_pass(
+                    sub, a[sub.points], start, np.zeros((idx.size, 3)), model, **fit_kw
+                )
+                d_new, g_new = sfit.d, sfit.gradient
+            else:
+                moved = a[sub.points]
+                moved = moved - f_at(moved[:, :2])
+                fc = f_at(sub.centres[:, :2])
+                # start the residual from the neighbours' median, not from the field
+                sfit = _fit_pass(sub, moved, start - fc, fc, model, residual=True, **fit_kw)
+                g_f = f_grad(sub.centres[:, :2])
+                d_new = fc + sfit.d_residual
+                g_new = g_f + np.einsum("kij,kjl->kil", sfit.gradient, np.eye(3)[None] - g_f)
+            # a wrong minimum fits worse than the right one: keep the restart where its
+            # residuals are smaller (a true peak of the field restarts into the same fit)
+            old_rmse = np.where(fits.ok[idx], fits.rmse[idx], np.inf)
+            closer = sfit.ok & (sfit.rmse < old_rmse)
+            fits = _merge_fits(fits, sfit, idx, closer)
+            d, grad = d.copy(), grad.copy()
+            d[idx[closer]], grad[idx[closer]] = d_new[closer], g_new[closer]
+            cov_d = fits.cov_d
+            flagged, _, _ = _median_flags(cells, d, fits.ok, n_rows, n_cols, med_eps, med_thr)
+            log.info(
+                "wrong minima: %d cells restarted from their neighbours, %d fit better, "
+                "%d still flagged",
+                idx.size,
+                int(closer.sum()),
+                int(flagged.sum()),
+            )
+    ok = fits.ok
+    skipped["icp_failed"] = int(np.count_nonzero(~ok))
+    n_ok = int(np.count_nonzero(ok))
     if n_ok == 0:
         why = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in skipped.items() if v)
         raise InputDataError(
             f"no cell could be registered: all {sum(skipped.values())} cells with points were "
             f"skipped ({why}); use a larger cell_m or a smaller min_points (now {minp})"
         )
+    n_fail_nonconv = int(np.count_nonzero(~fits.converged[ok]))
     if n_fail_nonconv:
         log.warning(
             "%d of %d cells did not converge in %d iterations",
@@ -1356,17 +1725,41 @@ def windowed_icp(
             n_ok,
             opts.max_iterations,
         )
-    f64 = {k: np.asarray(v, dtype=np.float64) for k, v in rows.items()}
+    if passes == 0 and model == "rigid":
+        rot, sig_rot = fits.rotation, fits.sigma_rotation
+    else:
+        # rotation of the total motion: antisymmetric part of its gradient; sigma of the
+        # last pass's residual model
+        w = 0.5 * (grad - np.transpose(grad, (0, 2, 1)))
+        rot = np.stack([w[:, 2, 1], w[:, 0, 2], w[:, 1, 0]], axis=1)
+        sig_rot = fits.sigma_rotation
+    sd = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
     res = WindowedICPResult(
-        **f64,
-        cov_d=np.asarray(extra["cov_d"], dtype=np.float64).reshape(n_ok, 3, 3),
-        n=np.asarray(extra["n"], dtype=np.int64),
-        n_after=np.asarray(extra["n_after"], dtype=np.int64),
-        n_before=np.asarray(extra["n_before"], dtype=np.int64),
-        iterations=np.asarray(extra["iterations"], dtype=np.int64),
-        converged=np.asarray(extra["conv"], dtype=bool),
-        row=np.asarray(extra["row"], dtype=np.int64),
-        col=np.asarray(extra["col"], dtype=np.int64),
+        x=cells.centres[ok, 0],
+        y=cells.centres[ok, 1],
+        z=cells.centres[ok, 2],
+        dx=d[ok, 0],
+        dy=d[ok, 1],
+        dz=d[ok, 2],
+        sigma_dx=sd[ok, 0],
+        sigma_dy=sd[ok, 1],
+        sigma_dz=sd[ok, 2],
+        cov_d=cov_d[ok],
+        rx=rot[ok, 0],
+        ry=rot[ok, 1],
+        rz=rot[ok, 2],
+        sigma_rx=sig_rot[ok, 0],
+        sigma_ry=sig_rot[ok, 1],
+        sigma_rz=sig_rot[ok, 2],
+        rmse=fits.rmse[ok],
+        sigma0=fits.sigma0[ok],
+        n=fits.n[ok],
+        n_after=cells.n_after[ok],
+        n_before=cells.n_before[ok],
+        iterations=fits.iterations[ok],
+        converged=fits.converged[ok],
+        row=cells.row[ok],
+        col=cells.col[ok],
         origin_xy=(float(x0), float(y0)),
         cell_m=cell,
         n_rows=n_rows,
@@ -1374,6 +1767,12 @@ def windowed_icp(
         skipped=skipped,
         prealignment=pre,
         seconds=time.perf_counter() - t_start,
+        exx=grad[ok, 0, 0],
+        eyy=grad[ok, 1, 1],
+        exy=0.5 * (grad[ok, 0, 1] + grad[ok, 1, 0]),
+        cell_model=model,
+        deform_passes=passes,
+        flagged=flagged[ok],
     )
     if sigma_scaling == "field":
         res = _scale_sigmas(res)

@@ -1,0 +1,562 @@
+"""Batched point-to-plane fits of many windowed-ICP cells at once (issue #18).
+
+:func:`fit_cells` runs the same Gauss-Newton point-to-plane iterations as
+:func:`slipmap.core.icp._icp_engine` (robust weights, step damping, the two convergence tests,
+the final covariance with the shared-target inflation), but for every cell of a field in one
+pass: one KD-tree query of all active cells' points per iteration, normal matrices summed per
+cell with ``np.bincount`` and the small (K, P, P) systems solved together with
+``np.linalg.eigh``. The per-cell loop in :func:`slipmap.core.icp.windowed_icp`
+(``engine="per_cell"``) is the slow obvious reference it is tested against.
+
+Two cell models:
+
+* ``"rigid"`` (6 parameters, rotation vector ``r`` and translation ``t`` about the cell
+  centre): ``T(s) = R s + t``, the study's model.
+* ``"affine"`` (12 parameters, a 3 x 3 matrix ``G`` and ``t``): ``T(s) = (I + G) s + t``. It
+  follows a linearly straining cell (stretch, shear, rotation), gives the cell's displacement
+  gradient ``-G`` (hence its strain), and its value at the cell centre is not biased by an
+  uneven spread of the points over the cell. ``G`` is updated additively (the residuals are
+  linear in ``G`` and ``t``).
+
+``s`` are source (epoch 2) coordinates centred on the cell's reference point, so the ground
+motion at that point is ``-t`` for both models and its covariance the ``t`` block.
+
+Everything is numpy + ``scipy.spatial.cKDTree``; no file I/O.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .icp import EIG_RTOL, NULL_RTOL, _Options
+from .progress import report
+from .rotation import left_jacobian, rotation_matrix, rotation_vector
+
+MODELS = ("rigid", "affine")
+_MIN_PAIRS = 7
+
+
+@dataclass(frozen=True)
+class CellFits:
+    """Result of :func:`fit_cells` for K cells (P = 6 rigid, 12 affine parameters).
+
+    Attributes
+    ----------
+    ok : (K,) bool
+        The cell was fitted (enough correspondences with normals).
+    linear : (K, 3, 3) float64
+        Linear part of ``T``: ``R`` (rigid) or ``I + G`` (affine).
+    t : (K, 3) float64
+        Translation of ``T`` about the cell's reference point, metres.
+    params : (K, P) float64
+        ``(r, t)`` (rigid) or ``(G row-major, t)`` (affine).
+    covariance : (K, P, P) float64
+        Parameter covariance (formal); ``inf`` variance and NaN covariances for parameters
+        the geometry leaves undetermined.
+    rmse, sigma0 : (K,) float64
+        RMS residual of the used pairs and a-posteriori sigma of unit weight, metres.
+    n : (K,) int64
+        Correspondences used.
+    iterations : (K,) int64
+    converged : (K,) bool
+    """
+
+    ok: np.ndarray
+    linear: np.ndarray
+    t: np.ndarray
+    params: np.ndarray
+    covariance: np.ndarray
+    rmse: np.ndarray
+    sigma0: np.ndarray
+    n: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+
+    @property
+    def gradient(self) -> np.ndarray:
+        """(K, 3, 3) gradient of the ground motion ``d(p) = p - T(p)``: ``I - linear``."""
+        return np.eye(3)[None] - self.linear
+
+
+def n_params(model: str) -> int:
+    """Parameters of a cell model: 6 (rigid) or 12 (affine)."""
+    return 6 if model == "rigid" else 12
+
+
+def _seg_sum(values: np.ndarray, seg: np.ndarray, k: int) -> np.ndarray:
+    """Per-segment sums of (P,) or (P, q) values -> (K,) or (K, q)."""
+    if values.ndim == 1:
+        return np.bincount(seg, weights=values, minlength=k)
+    return np.stack(
+        [np.bincount(seg, weights=values[:, j], minlength=k) for j in range(values.shape[1])],
+        axis=1,
+    )
+
+
+def _normal_matrices(A: np.ndarray, w: np.ndarray, v: np.ndarray, seg: np.ndarray, k: int):
+    """``N_k = sum w a a'`` and ``b_k = -sum w a v`` per segment, (K, P, P) and (K, P)."""
+    p = A.shape[1]
+    Aw = A * w[:, None]
+    N = np.zeros((k, p, p))
+    for i in range(p):
+        for j in range(i, p):
+            s = np.bincount(seg, weights=Aw[:, i] * A[:, j], minlength=k)
+            N[:, i, j] = s
+            N[:, j, i] = s
+    b = -_seg_sum(Aw * v[:, None], seg, k)
+    return N, b
+
+
+def _solve_scaled_batch(N: np.ndarray, b: np.ndarray, length_m: np.ndarray, n_lin: int):
+    """Batched :func:`slipmap.core.icp._solve_scaled`: the first ``n_lin`` unknowns (rotations
+    or gradient entries) are scaled by ``length_m`` (K,), the rest (translations) are metres;
+    eigenvalues below ``EIG_RTOL`` of the largest are truncated.
+
+    Returns the steps (K, P), the (pseudo-)inverses (K, P, P), the condition numbers (K,) and
+    a (K, P) mask of the parameters that touch an undetermined direction.
+    """
+    k, p = b.shape
+    tr = np.maximum(np.trace(N, axis1=1, axis2=2), 1e-300)
+    dg = np.ones((k, p))
+    dg[:, :n_lin] = length_m[:, None]
+    dg = dg * np.sqrt(tr)[:, None]
+    Ns = N / (dg[:, :, None] * dg[:, None, :])
+    lam, V = np.linalg.eigh(Ns)
+    top = np.maximum(lam[:, -1], 1e-300)
+    good = lam > EIG_RTOL * top[:, None]
+    inv_l = np.where(good, 1.0 / np.where(good, lam, 1.0), 0.0)
+    x = np.einsum("kij,kj->ki", V, inv_l * np.einsum("kji,kj->ki", V, b / dg)) / dg
+    cond = np.where(lam[:, 0] > 0, top / np.where(lam[:, 0] > 0, lam[:, 0], 1.0), np.inf)
+    Ninv = np.einsum("kij,kj,klj->kil", V, inv_l, V) / (dg[:, :, None] * dg[:, None, :])
+    U = V / dg[:, :, None]
+    U = U / np.linalg.norm(U, axis=1, keepdims=True)
+    undet = np.any((np.abs(U) > NULL_RTOL) & ~good[:, None, :], axis=2)
+    return x, Ninv, cond, undet
+
+
+def mark_undetermined(cov: np.ndarray, undet: np.ndarray) -> np.ndarray:
+    """``cov`` (K, q, q) with ``inf`` variances and NaN covariances where ``undet`` (K, q)."""
+    out = cov.copy()
+    pair = undet[:, :, None] | undet[:, None, :]
+    out[pair] = np.nan
+    i = np.arange(out.shape[-1])
+    out[:, i, i] = np.where(undet, np.inf, out[:, i, i])
+    return out
+
+
+def _seg_weights(v: np.ndarray, seg: np.ndarray, k: int, opts: _Options):
+    """:func:`slipmap.core.icp._weights` per segment: (keep, w, psi') of (P,) residuals.
+
+    The per-segment quantile (trimming) and median (robust scale) come from one sort by
+    (segment, |v|); they equal numpy's ``quantile`` (linear) and ``median`` of each segment.
+    """
+    a = np.abs(v)
+    order = np.lexsort((a, seg))
+    sa = a[order]
+    counts = np.bincount(seg, minlength=k)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    keep = np.ones(v.size, dtype=bool)
+    if opts.trim_fraction > 0:
+        pos = (counts - 1) * (1.0 - opts.trim_fraction)
+        lo = np.floor(pos).astype(np.int64)
+        hi = np.minimum(lo + 1, np.maximum(counts - 1, 0))
+        f = pos - lo
+        base = starts
+        ql = sa[np.minimum(base + lo, sa.size - 1)]
+        qh = sa[np.minimum(base + hi, sa.size - 1)]
+        q = ql + (qh - ql) * f
+        trim = counts > 20
+        keep = ~trim[seg] | (a <= q[seg])
+    if opts.robust is None:
+        w = keep.astype(np.float64)
+        return keep, w, w
+    # median of |v| over the kept residuals of each segment (kept = the smallest ones)
+    nk = np.bincount(seg, weights=keep.astype(np.float64), minlength=k).astype(np.int64)
+    lo = np.maximum((nk - 1) // 2, 0)
+    hi = np.maximum(nk // 2, 0)
+    ml = sa[np.minimum(starts + lo, sa.size - 1)]
+    mh = sa[np.minimum(starts + hi, sa.size - 1)]
+    scale = np.maximum(1.4826 * 0.5 * (ml + mh), 1e-12)[seg]
+    if opts.robust == "tukey":
+        from .icp import TUKEY_C
+
+        u = v / (TUKEY_C * scale)
+        inside = (np.abs(u) < 1.0) & keep
+        u2 = np.where(inside, u * u, 1.0)
+        w = np.where(inside, (1.0 - u2) ** 2, 0.0)
+        dpsi = np.where(inside, (1.0 - u2) * (1.0 - 5.0 * u2), 0.0)
+    else:
+        from .icp import HUBER_K
+
+        aa = a / (HUBER_K * scale)
+        inside = aa <= 1.0
+        w = np.where(inside, 1.0, 1.0 / np.maximum(aa, 1e-300)) * keep
+        dpsi = (inside & keep).astype(np.float64)
+    return keep, w, dpsi
+
+
+def _jacobian(model: str, q: np.ndarray, s: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Rows d v / d (step) of point-to-plane residuals: left rotation and translation
+    (rigid), or ``G`` row-major and translation (affine)."""
+    if model == "rigid":
+        return np.concatenate([np.cross(q, n), n], axis=1)
+    return np.concatenate([(n[:, :, None] * s[:, None, :]).reshape(-1, 9), n], axis=1)
+
+
+class _Matcher:
+    """Nearest before-point of each moved source point within the gate and its cell's box.
+
+    Each source point remembers where it was last queried, its nearest and second-nearest
+    target distances ``d1 <= d2`` and its nearest target. When it has moved by less than
+    ``(d2 - d1) / 2`` since, its nearest target cannot have changed (triangle inequality:
+    the old one is within ``d1 + move``, every other one beyond ``d2 - move``), and it is
+    not queried again; only the others are. The pairs are exactly those of a fresh query,
+    at a fraction of the queries once the steps are small.
+    """
+
+    PARALLEL_MIN = 20_000  # smaller queries run on one thread (thread start-up dominates)
+
+    def __init__(self, before, tree, normals, gate, boxes, centres, n_points):
+        self.before, self.tree, self.normals = before, tree, normals
+        self.gate, self.boxes, self.centres = gate, boxes, centres
+        self.M = len(before)
+        self.last = np.full((n_points, 3), np.nan)
+        self.j = np.full(n_points, self.M, dtype=np.int64)
+        self.d1 = np.full(n_points, np.inf)
+        self.d2 = np.full(n_points, np.inf)
+        self.queried = 0
+
+    def _nearest(self, world: np.ndarray, gi: np.ndarray):
+        move = np.sqrt(np.sum((world - self.last[gi]) ** 2, axis=1))
+        stale = ~(move < 0.5 * (self.d2[gi] - self.d1[gi]))  # NaN (never queried): stale
+        if stale.any():
+            w = world[stale]
+            workers = -1 if len(w) >= self.PARALLEL_MIN else 1
+            dist, jj = self.tree.query(w, k=2, workers=workers)
+            g = gi[stale]
+            self.last[g], self.j[g] = w, jj[:, 0]
+            self.d1[g], self.d2[g] = dist[:, 0], dist[:, 1]
+            self.queried += int(stale.sum())
+        j = self.j[gi]
+        # within the gate: the distance now, from the remembered nearest target
+        dnow = np.sqrt(np.sum((world - self.before[np.minimum(j, self.M - 1)]) ** 2, axis=1))
+        j = np.where((j < self.M) & (dnow <= self.gate), j, self.M)
+        return j
+
+    def __call__(self, q: np.ndarray, seg: np.ndarray, gi: np.ndarray):
+        """q (P', 3) centred per cell, their cells and global point indices -> ok (P',),
+        target (J, 3) centred, normals (J, 3), target ids (J,)."""
+        world = q + self.centres[seg]
+        j = self._nearest(world, gi)
+        ok = j < self.M
+        jj = j[ok]
+        tp = self.before[jj]
+        if self.boxes is not None:
+            bx = self.boxes[seg[ok]]
+            inbox = (
+                (tp[:, 0] >= bx[:, 0])
+                & (tp[:, 0] <= bx[:, 1])
+                & (tp[:, 1] >= bx[:, 2])
+                & (tp[:, 1] <= bx[:, 3])
+            )
+            ok[ok] = inbox
+            jj, tp = jj[inbox], tp[inbox]
+        nrm = self.normals(jj)
+        good = np.all(np.isfinite(nrm), axis=1)
+        ok[ok] = good
+        return ok, tp[good] - self.centres[seg[ok]], nrm[good], jj[good]
+
+
+def fit_cells(
+    src: np.ndarray,
+    seg: np.ndarray,
+    centres: np.ndarray,
+    *,
+    before: np.ndarray,
+    tree,
+    normals,
+    boxes: Optional[np.ndarray],
+    gate: float,
+    opts: _Options,
+    model: str = "rigid",
+    t_init: Optional[np.ndarray] = None,
+    progress=None,
+) -> CellFits:
+    """Point-to-plane ICP of K cells at once.
+
+    Parameters
+    ----------
+    src : (P, 3) float64
+        Source (epoch 2) points, each minus its cell's reference point, metres; sorted by
+        ``seg``.
+    seg : (P,) int64
+        Cell of each point, 0 .. K-1, non-decreasing.
+    centres : (K, 3) float64
+        Reference points of the cells (metres, map coordinates).
+    before : (M, 3) float64
+        Target (epoch 1) points, metres.
+    tree
+        Nearest-neighbour structure with ``query(xyz, distance_upper_bound, workers)`` in map
+        coordinates over ``before``.
+    normals : callable
+        ``normals(ids (J,)) -> (J, 3)`` unit normals of target points (NaN: unusable).
+    boxes : (K, 4) float64 or None
+        ``(xmin, xmax, ymin, ymax)`` of the target points a cell may use, metres.
+    gate : float
+        Largest point-to-point distance of a pair, metres (inf: none).
+    opts
+        The ICP options (iterations, tolerances, robust weights, trimming).
+    model : {"rigid", "affine"}
+    t_init : (K, 3) float64, optional
+        Starting translations (minus the expected ground motion), metres.
+    progress : callable, optional
+        ``progress(fraction, message)`` once per iteration; may raise CancelledError.
+
+    Returns
+    -------
+    CellFits
+    """
+    k = len(centres)
+    p = n_params(model)
+    n_lin = p - 3
+    lin = np.repeat(np.eye(3)[None], k, axis=0)
+    t = np.zeros((k, 3)) if t_init is None else np.array(t_init, dtype=np.float64).reshape(k, 3)
+    active = np.ones(k, dtype=bool)
+    failed = np.zeros(k, dtype=bool)
+    converged = np.zeros(k, dtype=bool)
+    iters = np.zeros(k, dtype=np.int64)
+    factor = np.ones(k)
+    prev = np.zeros((k, p))
+    has_prev = np.zeros(k, dtype=bool)
+    match = _Matcher(before, tree, normals, gate, boxes, centres, len(src))
+    counts_all = np.bincount(seg, minlength=k)
+    active &= counts_all >= _MIN_PAIRS
+    failed |= counts_all < _MIN_PAIRS
+    for it in range(1, opts.max_iterations + 1):
+        if not active.any():
+            break
+        report(
+            progress,
+            (it - 1) / opts.max_iterations,
+            f"ICP iteration {it}: {int(active.sum())} of {k} cells",
+        )
+        pm = np.flatnonzero(active[seg])
+        s, sg = src[pm], seg[pm]
+        q = np.einsum("pij,pj->pi", lin[sg], s) + t[sg]
+        ok, m, nrm, _ = match(q, sg, pm)
+        q, s, sg = q[ok], s[ok], sg[ok]
+        cnt = np.bincount(sg, minlength=k)
+        few = active & (cnt < _MIN_PAIRS)
+        if few.any():
+            failed |= few
+            active &= ~few
+            keep_pts = active[sg]
+            q, s, sg, m, nrm = q[keep_pts], s[keep_pts], sg[keep_pts], m[keep_pts], nrm[keep_pts]
+            cnt = np.bincount(sg, minlength=k)
+        ia = np.flatnonzero(active)
+        if ia.size == 0:
+            break
+        iters[ia] = it
+        v = np.einsum("ij,ij->i", nrm, q - m)
+        keep, w, _ = _seg_weights(v, sg, k, opts)
+        A = _jacobian(model, q, s, nrm)
+        wk = np.where(keep, w, 0.0)
+        N, b = _normal_matrices(A, wk, v, sg, k)
+        radius = np.sqrt(_seg_sum(np.einsum("ij,ij->i", q, q), sg, k) / np.maximum(cnt, 1))
+        radius = np.maximum(radius, 1e-9)
+        x, Ninv, _, undet = _solve_scaled_batch(N[ia], b[ia], radius[ia], n_lin)
+        # step damping (slipmap.core.icp._Damping), per cell
+        sc = x.copy()
+        sc[:, :n_lin] *= radius[ia, None]
+        pv = prev[ia]
+        denom = np.linalg.norm(sc, axis=1) * np.linalg.norm(pv, axis=1)
+        cosine = np.where(
+            denom > 0, np.einsum("ij,ij->i", sc, pv) / np.where(denom > 0, denom, 1), 0
+        )
+        halve = has_prev[ia] & (cosine < -0.5)
+        factor[ia] = np.where(halve, factor[ia] * 0.5, factor[ia])
+        prev[ia] = sc * factor[ia, None]
+        has_prev[ia] = True
+        x = x * factor[ia, None]
+        if model == "rigid":
+            dR = rotation_matrix(x[:, :3]).reshape(-1, 3, 3)
+            lin[ia] = dR @ lin[ia]
+            t[ia] = np.einsum("kij,kj->ki", dR, t[ia]) + x[:, 3:]
+        else:
+            lin[ia] = lin[ia] + x[:, :9].reshape(-1, 3, 3)
+            t[ia] = t[ia] + x[:, 9:]
+        done = (np.linalg.norm(x[:, :n_lin], axis=1) < opts.tolerance_rad) & (
+            np.linalg.norm(x[:, n_lin:], axis=1) < opts.tolerance_m
+        )
+        if opts.tolerance_sigma > 0 and it > 2:
+            wv2 = _seg_sum(wk * v * v, sg, k)[ia]
+            used = np.bincount(sg, weights=(keep & (w > 0)).astype(np.float64), minlength=k)[ia]
+            s0sq = wv2 / np.maximum(used - p, 1)
+            sig = np.sqrt(np.maximum(s0sq[:, None] * np.diagonal(Ninv, axis1=1, axis2=2), 0.0))
+            small = np.all(np.abs(x) <= opts.tolerance_sigma * sig, axis=1) & ~undet.any(axis=1)
+            done |= ~done & small
+        converged[ia[done]] = True
+        active[ia[done]] = False
+    return _final(src, seg, centres, lin, t, match, opts, model, failed, iters, converged)
+
+
+def _final(src, seg, centres, lin, t, match, opts, model, failed, iters, converged) -> CellFits:
+    """Correspondences, residuals and covariance at the final transforms (as
+    :func:`slipmap.core.icp._final_fit`, per cell)."""
+    k = len(centres)
+    p = n_params(model)
+    n_lin = p - 3
+    use = ~failed
+    pm = np.flatnonzero(use[seg])
+    s, sg = src[pm], seg[pm]
+    a = np.einsum("pij,pj->pi", lin[sg], s)
+    ok, m, nrm, tid = match(a + t[sg], sg, pm)
+    a, s, sg = a[ok], s[ok], sg[ok]
+    v = np.einsum("ij,ij->i", nrm, a + t[sg] - m)
+    keep, w, dpsi = _seg_weights(v, sg, k, opts)
+    if model == "rigid":
+        rv = rotation_vector(lin).reshape(k, 3) if k else np.zeros((0, 3))
+        jl = np.stack([left_jacobian(r) for r in rv]) if k else np.zeros((0, 3, 3))
+        A = np.concatenate([np.einsum("pi,pij->pj", np.cross(a, nrm), jl[sg]), nrm], axis=1)
+        params = np.concatenate([rv, t], axis=1)
+    else:
+        A = _jacobian(model, a, s, nrm)
+        params = np.concatenate([(lin - np.eye(3)).reshape(k, 9), t], axis=1)
+    kf = keep.astype(np.float64)
+    nk = np.bincount(sg, weights=kf, minlength=k)
+    used_mask = keep & (w > 0)
+    used = np.bincount(sg, weights=used_mask.astype(np.float64), minlength=k)
+    psi = np.where(keep, w * v, 0.0)
+    ss = np.bincount(sg, weights=psi * psi, minlength=k)
+    mean_dpsi = np.bincount(sg, weights=np.where(keep, dpsi, 0.0), minlength=k) / np.maximum(nk, 1)
+    # shared-target inflation: cluster sums of psi per (cell, target point)
+    key = sg.astype(np.int64) * (int(tid.max()) + 1 if tid.size else 1) + tid
+    _, inv = np.unique(key[keep], return_inverse=True)
+    cl = np.bincount(inv.reshape(-1), weights=psi[keep])
+    cl_seg = np.zeros(cl.size, dtype=np.int64)
+    cl_seg[inv.reshape(-1)] = sg[keep]
+    cl_ss = np.bincount(cl_seg, weights=cl * cl, minlength=k)
+    inflation = np.where(ss > 0, np.maximum(1.0, cl_ss / np.where(ss > 0, ss, 1.0)), 1.0)
+    dof = np.maximum(nk - p, 1)
+    good = use & (used >= _MIN_PAIRS) & (mean_dpsi > 0)
+    s0sq = ss / dof / np.where(mean_dpsi > 0, mean_dpsi, 1.0) ** 2 * inflation
+    cnt = np.bincount(sg, minlength=k)
+    radius = np.maximum(
+        np.sqrt(_seg_sum(np.einsum("ij,ij->i", a, a), sg, k) / np.maximum(cnt, 1)), 1e-9
+    )
+    N, _ = _normal_matrices(A, kf, np.zeros(len(v)), sg, k)
+    gi = np.flatnonzero(good)
+    cov = np.full((k, p, p), np.nan)
+    if gi.size:
+        _, Ninv, _, undet = _solve_scaled_batch(N[gi], np.zeros((gi.size, p)), radius[gi], n_lin)
+        cov[gi] = mark_undetermined(s0sq[gi, None, None] * Ninv, undet)
+    vv = np.bincount(sg, weights=np.where(used_mask, v * v, 0.0), minlength=k)
+    rmse = np.sqrt(vv / np.maximum(used, 1))
+    return CellFits(
+        ok=good,
+        linear=lin,
+        t=t,
+        params=params,
+        covariance=cov,
+        rmse=np.where(good, rmse, np.nan),
+        sigma0=np.where(good, np.sqrt(s0sq), np.nan),
+        n=np.where(good, used, 0).astype(np.int64),
+        iterations=iters,
+        converged=converged & good,
+    )
+
+
+def ground_rotation(fits: CellFits, model: str):
+    """Rotation vector of the ground motion per cell and its 1-sigma, radians, (K, 3) each.
+
+    Rigid: minus the transform's rotation vector. Affine: the antisymmetric part of the
+    motion's gradient ``-G``, ``w = (G_zy - G_yz, G_xz - G_zx, G_yx - G_xy) / 2``.
+    """
+    k = len(fits.ok)
+    if model == "rigid":
+        rot = -fits.params[:, :3]
+        sig = np.sqrt(np.diagonal(fits.covariance, axis1=1, axis2=2)[:, :3])
+        return rot, sig
+    # G row-major: index 3*i + j
+    J = np.zeros((3, 12))
+    for row, (i1, j1, i2, j2) in enumerate(((2, 1, 1, 2), (0, 2, 2, 0), (1, 0, 0, 1))):
+        J[row, 3 * i1 + j1] += 0.5
+        J[row, 3 * i2 + j2] -= 0.5
+    rot = fits.params @ J.T
+    c = np.where(np.isfinite(fits.covariance), fits.covariance, 0.0)
+    var = np.einsum("ij,kjl,il->ki", J, c, J)
+    dvar = np.diagonal(fits.covariance, axis1=1, axis2=2)
+    bad = np.isinf(dvar) @ (J != 0).T.astype(np.int64) > 0 if k else np.zeros((0, 3), bool)
+    return rot, np.where(bad, np.inf, np.sqrt(np.maximum(var, 0.0)))
+
+
+def median_test(
+    row: np.ndarray,
+    col: np.ndarray,
+    values: np.ndarray,
+    usable: np.ndarray,
+    *,
+    n_rows: int,
+    n_cols: int,
+    eps_m: float,
+    threshold: float,
+    min_neighbours: int = 3,
+):
+    """Normalised median test of a cell field (Westerweel & Scarano 2005, as PIV's).
+
+    For each cell and component, ``r = |u - u_m| / (r_m + eps_m)`` with ``u_m`` the median
+    of its usable 8-neighbours and ``r_m`` the median of their ``|u_i - u_m|``. A cell is
+    flagged when ``r > threshold`` for any component and it has at least ``min_neighbours``
+    usable neighbours. Robust: a wrong cell does not move its neighbours' medians much, so
+    good neighbours of a bad cell are not flagged (unlike a test against a fitted plane).
+
+    Parameters
+    ----------
+    row, col : (K,) int64
+        Grid indices of the cells.
+    values : (K, q) float64
+        The cells' motion, metres.
+    usable : (K,) bool
+        Cells that may serve as neighbours (and be tested).
+    n_rows, n_cols : int
+        Grid shape.
+    eps_m : float
+        Noise level added to ``r_m``, metres.
+    threshold : float
+        2 in Westerweel & Scarano (2005).
+    min_neighbours : int
+        Cells with fewer usable neighbours are not tested.
+
+    Returns
+    -------
+    flagged : (K,) bool
+    neighbour_median : (K, q) float64
+        ``u_m`` per component (NaN where a cell has no usable neighbour).
+    score : (K,) float64
+        Largest ``r`` over the components (NaN where not tested).
+    """
+    from .piv import _nanmedian0, _neighbours
+
+    k, q = values.shape
+    flagged = np.zeros(k, dtype=bool)
+    med = np.full((k, q), np.nan)
+    score = np.full(k, np.nan)
+    if k == 0:
+        return flagged, med, score
+    for j in range(q):
+        g = np.full((n_rows, n_cols), np.nan)
+        g[row[usable], col[usable]] = values[usable, j]
+        nb = _neighbours(g)
+        m, cnt = _nanmedian0(nb)
+        rm, _ = _nanmedian0(np.abs(nb - m[None]))
+        with np.errstate(invalid="ignore"):
+            r = np.abs(values[:, j] - m[row, col]) / (rm[row, col] + eps_m)
+        tested = usable & (cnt[row, col] >= min_neighbours) & np.isfinite(r)
+        med[:, j] = m[row, col]
+        score = np.where(tested, np.fmax(score, r), score)
+    with np.errstate(invalid="ignore"):
+        flagged = score > threshold
+    return flagged, med, score

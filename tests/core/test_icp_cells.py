@@ -1,0 +1,170 @@
+"""Batched windowed ICP (issue #18): agreement with the per-cell reference, the affine cell
+model on known linear fields, window deformation on a synthetic lobe, the wrong-minimum
+test."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_icp import UTM, cloud, field_pair, surface
+
+from slipmap.core.errors import InvalidParameterError
+from slipmap.core.icp import windowed_icp
+from slipmap.core.icp_cells import median_test
+from slipmap.core.synthetic import LobeField
+
+
+def _linear_pair(seed, *, noise_m, same_points):
+    """Epoch 1 on 20 x 20 m of rough terrain; epoch 2 moved by a known linear field
+    ``d(p) = d0 + J (p - p0)`` (strain up to 1 %)."""
+    rng = np.random.default_rng(seed)
+    before = cloud(rng, -2.0, 22.0, 60, noise_m)
+    src = before if same_points else cloud(rng, 0.0, 20.0, 60, noise_m)
+    src = src[np.all((src[:, :2] > 0.0) & (src[:, :2] < 20.0), axis=1)]
+    d0 = np.array([0.12, -0.08, 0.03])
+    J = np.array([[0.008, -0.004, 0.002], [0.003, -0.006, -0.001], [0.002, 0.004, 0.001]])
+    p0 = np.array([10.0, 10.0, 0.0])
+    after = src + d0 + (src - p0) @ J.T
+    return before + UTM, after + UTM, d0, J, p0
+
+
+def _truth_linear(c, d0, J, p0):
+    """Motion of the material now at c: c - p_b with p_b + d0 + J (p_b - p0) = c."""
+    pb = np.linalg.solve(np.eye(3) + J, (c - d0 + p0 @ J.T).T).T
+    return c - pb
+
+
+def test_affine_cells_recover_a_linear_field_exactly_without_noise():
+    before, after, d0, J, p0 = _linear_pair(1, noise_m=0.0, same_points=True)
+    res = windowed_icp(
+        before, after, cell_m=5.0, cell_model="affine", sigma_scaling="formal",
+        tolerance_m=1e-9, tolerance_rad=1e-10, tolerance_sigma=0, robust=None,
+        max_iterations=100,
+    )  # fmt: skip
+    c = np.c_[res.x, res.y, res.z] - UTM
+    truth = _truth_linear(c, d0, J, p0)
+    full = res.n_after >= 0.9 * res.n_after.max()
+    assert full.sum() >= 9
+    err = np.c_[res.dx, res.dy, res.dz][full] - truth[full]
+    assert np.abs(err).max() < 1e-6, np.abs(err).max()
+    # the gradient of the motion in the after frame is I - (I + J)^-1
+    grad = np.eye(3) - np.linalg.inv(np.eye(3) + J)
+    np.testing.assert_allclose(res.exx[full], grad[0, 0], atol=1e-6)
+    np.testing.assert_allclose(res.eyy[full], grad[1, 1], atol=1e-6)
+    np.testing.assert_allclose(res.exy[full], 0.5 * (grad[0, 1] + grad[1, 0]), atol=1e-6)
+    # a rigid cell cannot: its errors are millimetres (the strain over the cell)
+    rigid = windowed_icp(before, after, cell_m=5.0, sigma_scaling="formal", robust=None)
+    e_rigid = np.c_[rigid.dx, rigid.dy, rigid.dz][full] - truth[full]
+    assert np.abs(e_rigid).max() > 1e-3
+
+
+def test_affine_cells_recover_a_linear_field_with_noise():
+    before, after, d0, J, p0 = _linear_pair(2, noise_m=0.003, same_points=False)
+    res = windowed_icp(before, after, cell_m=5.0, cell_model="affine")
+    c = np.c_[res.x, res.y, res.z] - UTM
+    truth = _truth_linear(c, d0, J, p0)
+    full = res.n_after >= 0.9 * res.n_after.max()
+    err = np.c_[res.dx, res.dy, res.dz][full] - truth[full]
+    assert np.sqrt(np.mean(err**2)) < 3e-3, err  # 3 mm noise, independent samplings
+    grad = np.eye(3) - np.linalg.inv(np.eye(3) + J)
+    assert np.abs(res.exx[full] - grad[0, 0]).max() < 2e-3
+
+
+@pytest.mark.parametrize("model", ["rigid", "affine"])
+def test_batched_engine_agrees_with_the_per_cell_reference(model):
+    before, after = field_pair(21, shift_left=np.array([0.08, -0.04, 0.02]), density=40)
+    kw = dict(cell_m=5.0, min_points=200, cell_model=model, coarse_to_fine=1, deform_passes=1)
+    fast = windowed_icp(before, after, **kw)
+    slow = windowed_icp(before, after, engine="per_cell", **kw)
+    assert len(fast) == len(slow) > 10
+    for name in ("dx", "dy", "dz", "sigma_dx", "sigma_dz", "rmse", "exx", "rx"):
+        np.testing.assert_allclose(getattr(fast, name), getattr(slow, name), atol=1e-9)
+    np.testing.assert_array_equal(fast.iterations, slow.iterations)
+    np.testing.assert_array_equal(fast.n, slow.n)
+
+
+def test_window_deformation_follows_a_lobe_three_cells_wide():
+    """A lobe of radius 6 m (3 cells of 4 m across) on rough synthetic terrain: a rigid
+    cell measures the mean motion of its points, centimetres from the motion at its
+    centre; two deformation passes get most of the way to the centre values."""
+    rng = np.random.default_rng(0)
+
+    def sample(n):
+        xy = rng.uniform(0.0, 40.0, (n, 2))
+        return np.c_[xy, surface(xy) + rng.normal(0.0, 0.003, n)]
+
+    before, after = sample(96_000), sample(96_000)
+    lobe = LobeField(
+        centre_xy=(20.0, 20.0), radius_x_m=6.0, radius_y_m=6.0, max_d_m=(0, -0.5, -0.2)
+    )
+    after = after + lobe(after[:, :2])
+
+    def errors(res):
+        c = np.c_[res.x, res.y] - UTM[:2]
+        p0 = c.copy()
+        for _ in range(30):
+            p0 = c - lobe(p0)[:, :2]
+        truth = lobe(p0)
+        e = np.linalg.norm(np.c_[res.dx, res.dy, res.dz] - truth, axis=1)
+        full = res.n_after > 0.8 * np.median(res.n_after)
+        inside = full & (np.linalg.norm(truth, axis=1) > 0)
+        return np.sqrt(np.mean(e[inside] ** 2)), np.sqrt(np.mean(e[full & ~inside] ** 2))
+
+    kw = dict(cell_m=4.0, coarse_to_fine=1)
+    rigid_lobe, rigid_stable = errors(windowed_icp(before + UTM, after + UTM, **kw))
+    deformed_lobe, deformed_stable = errors(
+        windowed_icp(before + UTM, after + UTM, deform_passes=2, **kw)
+    )
+    assert rigid_lobe > 0.03  # measured 4.7 cm
+    assert deformed_lobe < 0.022, deformed_lobe  # measured 1.8 cm
+    assert rigid_stable < 0.003 and deformed_stable < 0.008  # measured 1.4 and 4.4 mm
+
+
+def test_median_test_flags_injected_cells_not_their_neighbours():
+    rng = np.random.default_rng(3)
+    n_rows, n_cols = 9, 11
+    row, col = (a.ravel() for a in np.mgrid[0:n_rows, 0:n_cols])
+    # a smooth field (a tilted plane plus a gentle bump) with 3 mm of noise
+    d = np.c_[0.01 * col + 0.02 * np.sin(row / 3.0), -0.005 * row, 0.002 * col]
+    d = d + rng.normal(0.0, 0.003, d.shape)
+    bad = np.zeros(len(row), dtype=bool)
+    bad[[14, 15, 50, 83]] = True  # two adjacent ones
+    d[bad] += rng.choice([-1, 1], (bad.sum(), 3)) * rng.uniform(0.1, 0.6, (bad.sum(), 3))
+    flagged, med, score = median_test(
+        row, col, d, np.ones(len(row), bool), n_rows=n_rows, n_cols=n_cols, eps_m=0.02,
+        threshold=2.0,
+    )  # fmt: skip
+    np.testing.assert_array_equal(flagged, bad)
+    assert np.all(np.isfinite(med)) and np.nanmax(score[~bad]) < 2.0
+
+
+def test_wrong_minima_are_restarted_from_the_neighbours():
+    """Cells started a wavelength off (4.3 m, 3.7 m) on the rough terrain stop in wrong minima;
+    the median test restarts them from their neighbours' motion."""
+    shift = np.array([0.1, -0.05, 0.02])
+    before, after = field_pair(31, shift_left=shift, density=40)
+    after = after[after[:, 0] - UTM[0] < 15.0]  # the moved half only
+    wrong = np.array([[UTM[0] + 7.5, UTM[1] + 7.5], [UTM[0] + 2.5, UTM[1] + 12.5]])
+
+    def start(xy):
+        out = np.tile(shift, (len(xy), 1))
+        for w in wrong:
+            near = np.hypot(*(xy - w).T) < 1.0
+            out[near] += [4.3, 3.7, 0.4]
+        return out
+
+    kw = dict(cell_m=5.0, min_points=200, buffer_m=6.0, initial_displacement=start)
+    off = windowed_icp(before, after, **kw)
+    on = windowed_icp(before, after, median_restart=True, **kw)
+    e_off = np.linalg.norm(np.c_[off.dx, off.dy, off.dz] - shift, axis=1)
+    e_on = np.linalg.norm(np.c_[on.dx, on.dy, on.dz] - shift, axis=1)
+    assert np.sum(e_off > 0.1) >= 1  # the injected wrong minima, flagged
+    np.testing.assert_array_equal(off.flagged, e_off > 0.1)
+    assert np.all(e_on < 0.01), e_on
+    assert not on.flagged.any()
+    with pytest.raises(InvalidParameterError, match="cell_model"):
+        windowed_icp(before, after, cell_model="quadratic")
+    with pytest.raises(InvalidParameterError, match="deform_passes"):
+        windowed_icp(before, after, deform_passes=-1)
+    with pytest.raises(InvalidParameterError, match="median_threshold"):
+        windowed_icp(before, after, median_threshold=-1)
