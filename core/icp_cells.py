@@ -230,8 +230,9 @@ class _Matcher:
         self.queried = 0
 
     def _nearest(self, world: np.ndarray, gi: np.ndarray):
-        move = np.sqrt(np.sum((world - self.last[gi]) ** 2, axis=1))
-        stale = ~(move < 0.5 * (self.d2[gi] - self.d1[gi]))  # NaN (never queried): stale
+        with np.errstate(invalid="ignore"):  # inf - inf (no second target yet): NaN, stale
+            move = np.sqrt(np.sum((world - self.last[gi]) ** 2, axis=1))
+            stale = ~(move < 0.5 * (self.d2[gi] - self.d1[gi]))  # NaN (never queried): stale
         if stale.any():
             w = world[stale]
             workers = -1 if len(w) >= self.PARALLEL_MIN else 1
