@@ -597,6 +597,10 @@ def symmetric_limits(layer, band=1, *, scale=1.0, unit="", ends=None):
         ramp.setLegendSettings(legend)
     renderer.setClassificationMin(-m)
     renderer.setClassificationMax(m)
+    new = renderer.clone()  # set anew (rendererChanged): the legend is rebuilt from it
+    new.setClassificationMin(-m)  # clone() does not carry the classification range
+    new.setClassificationMax(m)
+    layer.setRenderer(new)
     return m
 
 
@@ -640,6 +644,7 @@ def symmetric_classes(layer):
         renderer.updateRangeUpperValue(i, edges[i + 1])
         lo, hi = value_label(edges[i]), value_label(edges[i + 1])
         renderer.updateRangeLabel(i, f"{lo} to {hi} mm")
+    layer.setRenderer(renderer.clone())  # rendererChanged: the legend is rebuilt from it
     return m
 
 

@@ -228,7 +228,7 @@ def test_windows_raster_grid_and_values(tiled_run, core_tiled):
 def test_report_has_plots(tiled_run):
     res, d = tiled_run
     html = open(res["REPORT"], encoding="utf-8").read()
-    assert "right_lateral_slip" in html
+    assert "Right-lateral slip" in html and "right-lateral slip (mm)" in html
     pytest.importorskip("matplotlib")
     for name in ("slip_residuals.png", "slip_normals.png", "slip_strips.png"):
         assert name in html
