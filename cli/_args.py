@@ -11,6 +11,7 @@ tqdm.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from typing import Any, Callable, Dict, Iterable, Optional
 
@@ -19,6 +20,7 @@ from ..app.options import JobSpec, Option, OptionError
 #: subcommand name -> (help, add_arguments(parser), run(args) -> int, JobSpec or None)
 COMMANDS: Dict[str, tuple] = {}
 FACE = "cli"
+log = logging.getLogger("slipmap")
 
 
 def command(name: str, help_text: str, spec: Optional[JobSpec] = None):
@@ -172,5 +174,33 @@ class ProgressBar:
 
 
 def progress_for(args: argparse.Namespace, description: str) -> Optional[ProgressBar]:
-    """A progress bar unless ``--quiet``."""
-    return ProgressBar(description, enabled=not getattr(args, "quiet", False))
+    """A progress bar unless ``--quiet`` (or a command's ``--no-progress``)."""
+    quiet = getattr(args, "quiet", False) or getattr(args, "no_progress", False)
+    return ProgressBar(description, enabled=not quiet)
+
+
+def run_job(
+    args: argparse.Namespace,
+    job,
+    name: str,
+    outputs=None,
+    *,
+    lines_level: int = logging.INFO,
+    overrides: Optional[Dict[str, Any]] = None,
+):
+    """Run ``job`` (an :mod:`slipmap.app` job module) on the parsed arguments: its options
+    (:func:`options_from`), the outputs (default: everything into ``--out``), a progress bar,
+    its summary lines and the files written in the log. ``outputs``: a mapping, or
+    ``f(opts) -> mapping``; ``overrides``: option values the command computed itself. Returns
+    the ``JobResult``."""
+    opts = options_from(args, job.SPEC, **(overrides or {}))
+    if outputs is None:
+        outputs = {"out": opts["out"]}
+    elif callable(outputs):
+        outputs = outputs(opts)
+    with progress_for(args, name) as bar:
+        result = job.run(opts, outputs, progress=bar)
+    for line in result.lines:
+        log.log(lines_level, "%s", line)
+    log.info("wrote %s", ", ".join(str(p) for p in result.files.values()))
+    return result

@@ -6,7 +6,7 @@ import argparse
 import logging
 
 from ..app import accuracy as job
-from ._args import add_options, command, options_from, progress_for
+from ._args import add_options, command, run_job
 
 log = logging.getLogger("slipmap")
 
@@ -17,12 +17,7 @@ log = logging.getLogger("slipmap")
     job.SPEC,
 )
 def _run(args: argparse.Namespace) -> int:
-    opts = options_from(args, job.SPEC)
-    with progress_for(args, "accuracy") as bar:
-        result = job.run(opts, {"output_cloud": opts["output_cloud"]}, progress=bar)
-    for line in result.lines:
-        log.info("%s", line)
-    log.info("wrote %s", result.files["output_cloud"])
+    run_job(args, job, "accuracy", lambda o: {"output_cloud": o["output_cloud"]})
     return 0
 
 

@@ -8,20 +8,9 @@ import argparse
 import logging
 
 from ..app import dem_diff, icp, piv, strain, synthetic
-from ._args import ProgressBar, add_options, command, options_from
+from ._args import add_options, command, run_job
 
 log = logging.getLogger("slipmap")
-
-
-def _run_job(args: argparse.Namespace, job, name: str) -> int:
-    opts = options_from(args, job.SPEC)
-    quiet = getattr(args, "quiet", False) or getattr(args, "no_progress", False)
-    with ProgressBar(name, enabled=not quiet) as bar:
-        result = job.run(opts, {"out": opts["out"]}, progress=bar)
-    for line in result.lines:
-        log.info("%s", line)
-    log.info("wrote %s", ", ".join(str(p) for p in result.files.values()))
-    return 0
 
 
 def _arguments(job):
@@ -33,7 +22,11 @@ def _arguments(job):
 
 
 def _register(name: str, help_text: str, job) -> None:
-    run = command(name, help_text, job.SPEC)(lambda args: _run_job(args, job, name))
+    def run(args: argparse.Namespace) -> int:
+        run_job(args, job, name)
+        return 0
+
+    run = command(name, help_text, job.SPEC)(run)
     run.arguments(_arguments(job))
 
 

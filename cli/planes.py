@@ -6,19 +6,14 @@ import argparse
 import logging
 
 from ..app import planes as job
-from ._args import add_options, command, options_from, progress_for
+from ._args import add_options, command, run_job
 
 log = logging.getLogger("slipmap")
 
 
 @command("planes", "planar segmentation (octree + region growing) of one point cloud", job.SPEC)
 def _run(args: argparse.Namespace) -> int:
-    opts = options_from(args, job.SPEC)
-    with progress_for(args, "planes") as bar:
-        result = job.run(opts, {"out": opts["out"]}, progress=bar)
-    for line in result.lines:
-        log.info("%s", line)
-    log.info("wrote %s", ", ".join(str(p) for p in result.files.values()))
+    run_job(args, job, "planes")
     return 0
 
 

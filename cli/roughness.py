@@ -6,20 +6,15 @@ import argparse
 import logging
 
 from ..app import roughness as job
-from ._args import _parser_type, add_options, command, options_from, progress_for
+from ._args import _parser_type, add_options, command, run_job
 
 log = logging.getLogger("slipmap")
 
 
 @command("roughness", "surface roughness by ODR on a 3D grid, with the OLS comparison", job.SPEC)
 def _run(args: argparse.Namespace) -> int:
-    opts = options_from(args, job.SPEC)
-    outputs = {"out": opts["out"], "points_out": opts["points_out"]}
-    with progress_for(args, "roughness") as bar:
-        result = job.run(opts, outputs, progress=bar)
-    for line in result.lines:
-        log.debug("%s", line)
-    log.info("wrote %s", ", ".join(str(p) for p in result.files.values()))
+    outputs = lambda o: {"out": o["out"], "points_out": o["points_out"]}  # noqa: E731
+    run_job(args, job, "roughness", outputs, lines_level=logging.DEBUG)
     return 0
 
 

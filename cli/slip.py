@@ -7,7 +7,7 @@ import logging
 
 from ..app import slip as job
 from ..app.stochasticmodel import fixed_components_or_error
-from ._args import add_options, command, options_from, progress_for
+from ._args import add_options, command, run_job
 
 log = logging.getLogger("slipmap")
 
@@ -17,12 +17,7 @@ log = logging.getLogger("slipmap")
 )
 def _run(args: argparse.Namespace) -> int:
     fixed = ",".join(args.fixed_components) if args.fixed_components else None
-    opts = options_from(args, job.SPEC, fixed_components=fixed)
-    with progress_for(args, "displacement") as bar:
-        result = job.run(opts, {"out": opts["out"]}, progress=bar)
-    for line in result.lines:
-        log.info("%s", line)
-    log.info("wrote %s", ", ".join(p.name for p in result.files.values()))
+    run_job(args, job, "displacement", overrides={"fixed_components": fixed})
     return 0
 
 
