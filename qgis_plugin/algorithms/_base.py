@@ -274,13 +274,30 @@ def options_from(alg, parameters, context, spec, *, extra=None, run_check=True):
         raise QgsProcessingException(spec.render_error(exc, "qgis")) from exc
 
 
+def cloud_path(alg, parameters, name, context):
+    """An input file parameter's path. A value that is not a file but the id or name of a
+    point-cloud layer of the project (QGIS >= 3.18 with its PDAL provider) resolves to that
+    layer's source file, so an analyst can pick the layer already loaded."""
+    import os
+
+    from qgis.core import QgsMapLayerType, QgsProcessingUtils
+
+    path = alg.parameterAsFile(parameters, name, context)
+    if path and not os.path.isfile(path):
+        layer = QgsProcessingUtils.mapLayerFromString(path, context)
+        kind = getattr(QgsMapLayerType, "PointCloudLayer", None)
+        if layer is not None and kind is not None and layer.type() == kind:
+            return layer.source().split("|")[0]
+    return path
+
+
 def _path_value(alg, parameters, name, context):
     """A path parameter's value: an input file, or the file a destination writes (the dialog
     gives destinations as ``QgsProcessingOutputLayerDefinition``, which ``parameterAsFile``
     reads as empty)."""
     p = alg.parameterDefinition(name)
     if p is None or not p.isDestination():
-        return alg.parameterAsFile(parameters, name, context)
+        return cloud_path(alg, parameters, name, context)
     if p.type() == "fileDestination":
         return alg.parameterAsFileOutput(parameters, name, context)
     if p.type() == "rasterDestination":

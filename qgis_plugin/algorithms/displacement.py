@@ -12,7 +12,6 @@ import json
 import numpy as np
 from qgis.core import (
     QgsGeometry,
-    QgsMapLayerType,
     QgsPoint,
     QgsPointXY,
     QgsProcessing,
@@ -24,7 +23,6 @@ from qgis.core import (
     QgsProcessingParameterFeatureSource,
     QgsProcessingParameterFileDestination,
     QgsProcessingParameterRasterDestination,
-    QgsProcessingUtils,
     QgsWkbTypes,
 )
 
@@ -36,6 +34,7 @@ from ._base import (
     add_parameters,
     apply_diverging_style_on_load,
     apply_style_on_load,
+    cloud_path,
     is_set,
     options_from,
     progress_callback,
@@ -50,20 +49,6 @@ from .accuracy import PA_HELP, add_pa_parameters, pa_values
 _OWN = PA_KEYS + ("pa_model_after",)
 #: vector sinks -> the job's output key (their "asked for" checks)
 _SINKS = {"TILES": "tiles", "STRIPS": "strips"}
-
-
-def cloud_path(alg, parameters, name, context):
-    """A LAS/LAZ path from a file parameter. A value that is not a file but the id or name of
-    a point-cloud layer of the project (QGIS >= 3.18) resolves to that layer's source file."""
-    import os
-
-    path = alg.parameterAsFile(parameters, name, context)
-    if path and not os.path.isfile(path):
-        layer = QgsProcessingUtils.mapLayerFromString(path, context)
-        kind = getattr(QgsMapLayerType, "PointCloudLayer", None)
-        if layer is not None and kind is not None and layer.type() == kind:
-            return layer.source().split("|")[0]
-    return path
 
 
 def _before_crs(path):

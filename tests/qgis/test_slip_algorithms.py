@@ -575,7 +575,9 @@ def test_point_cloud_layer_id_resolves_to_its_file(provider, monkeypatch, tmp_pa
         def mapLayerFromString(value, context):  # noqa: N802
             return Layer() if value == "cloud_layer_id" else None
 
-    monkeypatch.setattr(displacement, "QgsProcessingUtils", Utils)
+    import qgis.core
+
+    monkeypatch.setattr(qgis.core, "QgsProcessingUtils", Utils)
     alg = displacement.DisplacementAlgorithm()
     alg.initAlgorithm()
     context = QgsProcessingContext()
@@ -584,6 +586,13 @@ def test_point_cloud_layer_id_resolves_to_its_file(provider, monkeypatch, tmp_pa
     assert displacement.cloud_path(alg, {"BEFORE": "/no/such.las"}, "BEFORE", context) == (
         "/no/such.las"
     )
+    # every algorithm's cloud inputs resolve the same way (the base's path reading)
+    from slipmap.qgis_plugin.algorithms.planes import PlanesAlgorithm
+
+    planes = PlanesAlgorithm()
+    planes.initAlgorithm()
+    opts = planes.job_options({"INPUT": "cloud_layer_id"}, context)
+    assert opts["input"] == str(las)
 
 
 # --------------------------------------------------------------------------- stochastic model
