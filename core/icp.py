@@ -44,17 +44,14 @@ from typing import Callable, Dict, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .errors import InputDataError, InvalidParameterError
+from .icp_options import EIG_RTOL, HUBER_K, NULL_RTOL, TUKEY_C, _Options
 from .progress import ProgressCallback, report, scaled
 from .rotation import left_jacobian as _left_jacobian
 from .rotation import rotation_matrix, rotation_vector
 
 log = logging.getLogger(__name__)
 
-TUKEY_C = 4.685  # Tukey biweight tuning constant (95 % Gaussian efficiency), in robust sigmas
-HUBER_K = 1.345  # Huber tuning constant (95 % Gaussian efficiency), in robust sigmas
 MAD_TO_SIGMA = 1.4826
-EIG_RTOL = 1e-10  # directions of the (Jacobi-scaled) normal matrix below this are degenerate
-NULL_RTOL = 1e-6  # an output depends on an undetermined direction above this relative size
 NORMAL_PLANARITY_RTOL = 1e-10  # neighbourhoods whose middle eigenvalue is below this are lines
 PREALIGN_MAX_POINTS = 200_000  # source points sampled for the global pre-alignment
 ROBUST_CHOICES = (None, "tukey", "huber")
@@ -209,18 +206,6 @@ def _int_at_least(name: str, value, lo: int) -> int:
     if isinstance(value, bool) or int(value) != value or value < lo:
         raise InvalidParameterError(f"{name} must be an integer >= {lo}, got {value!r}")
     return int(value)
-
-
-@dataclass(frozen=True)
-class _Options:
-    max_iterations: int
-    tolerance_m: float
-    tolerance_rad: float
-    tolerance_sigma: float
-    max_correspondence_m: Optional[float]
-    trim_fraction: float
-    robust: Optional[str]
-    neighbours_k: int
 
 
 def _options(

@@ -31,7 +31,7 @@ from typing import Optional
 
 import numpy as np
 
-from .icp import EIG_RTOL, NULL_RTOL, _Options
+from .icp_options import EIG_RTOL, HUBER_K, NULL_RTOL, TUKEY_C, _Options
 from .progress import report
 from .rotation import left_jacobian, rotation_matrix, rotation_vector
 
@@ -181,16 +181,12 @@ def _seg_weights(v: np.ndarray, seg: np.ndarray, k: int, opts: _Options):
     mh = sa[np.minimum(starts + hi, sa.size - 1)]
     scale = np.maximum(1.4826 * 0.5 * (ml + mh), 1e-12)[seg]
     if opts.robust == "tukey":
-        from .icp import TUKEY_C
-
         u = v / (TUKEY_C * scale)
         inside = (np.abs(u) < 1.0) & keep
         u2 = np.where(inside, u * u, 1.0)
         w = np.where(inside, (1.0 - u2) ** 2, 0.0)
         dpsi = np.where(inside, (1.0 - u2) * (1.0 - 5.0 * u2), 0.0)
     else:
-        from .icp import HUBER_K
-
         aa = a / (HUBER_K * scale)
         inside = aa <= 1.0
         w = np.where(inside, 1.0, 1.0 / np.maximum(aa, 1e-300)) * keep
