@@ -21,3 +21,15 @@ def qgis_app():
 
     Processing.initialize()
     yield app
+
+
+@pytest.fixture(scope="module")
+def provider(qgis_app):
+    """The SlipMap provider registered in Processing (the plugin as QGIS loads it), for one
+    test module."""
+    import slipmap
+
+    plugin = slipmap.classFactory(None)
+    plugin.initProcessing()
+    yield
+    plugin.unload()

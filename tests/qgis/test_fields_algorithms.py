@@ -47,14 +47,6 @@ def _surface(xy, rng_seed=11):
 
 
 @pytest.fixture(scope="module")
-def provider(qgis_app):
-    plugin = slipmap.classFactory(None)
-    plugin.initProcessing()
-    yield
-    plugin.unload()
-
-
-@pytest.fixture(scope="module")
 def epochs(tmp_path_factory):
     """Two independent samplings (64 pts/m2) of one surface, the second moved by SHIFT."""
     from slipmap.core.io.las import PointCloud, read_las, write_las

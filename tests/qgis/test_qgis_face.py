@@ -13,14 +13,6 @@ import slipmap
 pytestmark = pytest.mark.qgis
 
 
-@pytest.fixture(scope="module")
-def provider(qgis_app):
-    plugin = slipmap.classFactory(None)
-    plugin.initProcessing()
-    yield
-    plugin.unload()
-
-
 # --------------------------------------------------------------------------- 1. install hint
 
 

@@ -6,19 +6,9 @@ import hashlib
 import numpy as np
 import pytest
 
-import slipmap
-
 pytestmark = pytest.mark.qgis
 
 X0, Y0 = 512000.0, 4780000.0
-
-
-@pytest.fixture(scope="module")
-def provider(qgis_app):
-    plugin = slipmap.classFactory(None)
-    plugin.initProcessing()
-    yield
-    plugin.unload()
 
 
 def _rough(n, seed, side=20.0):

@@ -4,17 +4,7 @@ import hashlib
 
 import pytest
 
-import slipmap
-
 pytestmark = pytest.mark.qgis
-
-
-@pytest.fixture(scope="module")
-def provider(qgis_app):
-    plugin = slipmap.classFactory(None)
-    plugin.initProcessing()
-    yield
-    plugin.unload()
 
 
 @pytest.fixture(scope="module")

@@ -6,19 +6,9 @@ import hashlib
 import numpy as np
 import pytest
 
-import slipmap
-
 pytestmark = pytest.mark.qgis
 
 ORIGIN = (498000.0, 4234000.0, 20.0)
-
-
-@pytest.fixture(scope="module")
-def provider(qgis_app):
-    plugin = slipmap.classFactory(None)
-    plugin.initProcessing()
-    yield
-    plugin.unload()
 
 
 @pytest.fixture(scope="module")

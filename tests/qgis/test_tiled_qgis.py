@@ -7,17 +7,7 @@ import json
 import numpy as np
 import pytest
 
-import slipmap
-
 pytestmark = pytest.mark.qgis
-
-
-@pytest.fixture(scope="module")
-def provider(qgis_app):
-    plugin = slipmap.classFactory(None)
-    plugin.initProcessing()
-    yield
-    plugin.unload()
 
 
 @pytest.fixture(scope="module")

@@ -8,20 +8,10 @@ import numpy as np
 import pyproj
 import pytest
 
-import slipmap
-
 pytestmark = pytest.mark.qgis
 
 UTM10 = pyproj.CRS.from_epsg(32610)
 ORIGIN = (498000.0, 4234000.0, 20.0)
-
-
-@pytest.fixture(scope="module")
-def provider(qgis_app):
-    plugin = slipmap.classFactory(None)
-    plugin.initProcessing()
-    yield
-    plugin.unload()
 
 
 @pytest.fixture(scope="module")
