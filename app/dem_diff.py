@@ -21,6 +21,7 @@ from .fields import (
     common_grid_of,
     figures,
     output_option,
+    pair_inputs,
     pair_options,
     read_pair,
     write_tif,
@@ -29,6 +30,7 @@ from .job import JobResult, Progress
 from .options import JobSpec, Option
 from .outputs import OutputPlan
 from .summaries import finite_stats, json_text
+from .tiled_fields import check_fields_tiled
 
 log = logging.getLogger("slipmap.app")
 
@@ -47,7 +49,7 @@ SPEC = JobSpec(
         "windowed ICP)."
     ),
     options=(
-        *pair_options(),
+        *pair_options(accepts_tiles=True),
         Option(
             "grid_m",
             "float",
@@ -81,6 +83,7 @@ SPEC = JobSpec(
             file_filter=PNG_FILTER,
         ),
     ),
+    check=lambda opts: check_fields_tiled(opts, refused={}),
 )
 
 
@@ -101,13 +104,17 @@ def run(
     :class:`~slipmap.core.dem.DemDifference`.
     """
     from ..core.dem import dem_difference
+    from .tiled import is_tiled
 
+    tiled = is_tiled(opts, "before", "after")
     plan = OutputPlan.for_outputs(
-        inputs={k: opts.get(k) for k in ("before", "after")},
+        inputs=pair_inputs(opts, "before", "after"),
         outputs=outputs,
         default_names=default_names(opts),
     )
     plan.check()
+    if tiled:
+        return _run_tiled(opts, plan, progress)
     with plan:
         if progress is not None:
             progress(0.0, "reading both epochs")
@@ -167,5 +174,46 @@ def run(
         k: plan.final(k)
         for k in ("raster", "plot", "summary")
         if plan.wants(k) and plan.final(k).exists()
+    }
+    return JobResult(summary, lines, files, data=res)
+
+
+def _run_tiled(opts: Mapping[str, Any], plan: OutputPlan, progress) -> JobResult:
+    """Tiled inputs or a Dask run: blocks of the grid (exact; app/tiled_fields.py), the raster
+    written block by block as a Cloud-Optimized GeoTIFF. No figure: the whole raster is never
+    in memory (the COG's overviews show it in QGIS)."""
+    from .tiled_fields import dem_for_job
+
+    with plan:
+        res, crs = dem_for_job(
+            opts,
+            plan.file("raster") if plan.wants("raster") else None,
+            bands=BANDS,
+            metadata={"method": "DEM difference, dz = z_after - z_before"},
+            progress=progress,
+        )
+        g = res.grid
+        if plan.wants("plot"):
+            log.info("no figure for tiled inputs: open the GeoTIFF (a COG with overviews)")
+        summary = {
+            "command": "dem-diff",
+            "before": str(opts["before"]),
+            "after": str(opts["after"]),
+            "grid_m": g.cell_m,
+            "shape": list(g.shape),
+            "origin_xy": list(g.origin_xy),
+            "dz_m": res.stats(),
+            "files": [plan.final("raster").name] if plan.wants("raster") else [],
+            "crs": None if crs is None else crs.to_wkt(),
+            "slipmap_version": __version__,
+        }
+        if plan.wants("summary"):
+            plan.file("summary").write_text(json_text(summary), encoding="utf-8")
+    lines = [
+        f"DEM difference: {res.n_valid} cells of {g.cell_m:g} m, mean dz {res.mean_m:+.4f} m "
+        f"(std {res.std_m:.4f} m), tiled"
+    ]
+    files = {
+        k: plan.final(k) for k in ("raster", "summary") if plan.wants(k) and plan.final(k).exists()
     }
     return JobResult(summary, lines, files, data=res)

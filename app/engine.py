@@ -57,10 +57,14 @@ class Engine:
         names: Optional[Sequence[str]] = None,
         progress: Optional[ProgressCallback] = None,
         what: str = "tile",
+        each: Optional[Callable[[int, Any], Any]] = None,
     ) -> List[Any]:
         """``[fn(item) for item in items]``, with ``progress(done / n, "tile k/n")`` after each.
 
         ``names`` (one per item) name the item in error messages ("tile (3, 4)").
+        ``each(i, result)``, when given, is called as each result arrives (in the order they
+        finish) and what it returns is kept instead of the result: a job streams large
+        results (raster blocks) to a file this way and keeps only their summaries.
         """
         raise NotImplementedError
 
@@ -96,12 +100,13 @@ class InProcess(Engine):
 
     kind = "in-process"
 
-    def map(self, fn, items, *, names=None, progress=None, what="tile"):
+    def map(self, fn, items, *, names=None, progress=None, what="tile", each=None):
         n = len(items)
         out = []
         report(progress, 0.0, f"{n} {what}(s) in process")
         for i, item in enumerate(items):
-            out.append(fn(item))
+            value = fn(item)
+            out.append(each(i, value) if each is not None else value)
             report(progress, (i + 1) / max(n, 1), f"{what} {i + 1}/{n}")
         return out
 
@@ -194,7 +199,7 @@ class DaskEngine(Engine):
         where = self.scheduler or "local cluster"
         return f"dask ({where}, {self.n_workers} worker(s))"
 
-    def map(self, fn, items, *, names=None, progress=None, what="tile"):
+    def map(self, fn, items, *, names=None, progress=None, what="tile", each=None):
         from distributed import as_completed
 
         try:
@@ -225,7 +230,8 @@ class DaskEngine(Engine):
                     ) from exc
                 if isinstance(value, _Failure):
                     _raise_failure(value)
-                results[i] = value
+                fut.release()  # the worker may drop it now
+                results[i] = each(i, value) if each is not None else value
                 done += 1
                 report(progress, done / n, f"{what} {done}/{n}")
         except BaseException:

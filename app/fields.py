@@ -44,19 +44,29 @@ PNG_FILTER = "PNG (*.png)"
 # --------------------------------------------------------------------------- option rows
 
 
-def pair_options() -> Tuple[Option, ...]:
+TILES_HELP = (
+    "; or tiles: a folder, a glob (quoted) or files separated by commas, read block by block "
+    "(also on Dask: --workers, --scheduler)"
+)
+
+
+def pair_options(*, accepts_tiles: bool = False) -> Tuple[Option, ...]:
     """Both epochs (positionals ``BEFORE AFTER`` on the CLI), ``--out``, ``--crs`` and the
-    class selection (every point by default: fields use the ground)."""
+    class selection (every point by default: fields use the ground); with ``accepts_tiles``
+    the epochs may be tile collections and the Dask options follow."""
+    from .tiled import scale_options
+
+    tiles = TILES_HELP if accepts_tiles else ""
     return (
         cloud_option(
             "before",
-            "first-epoch LAS/LAZ point cloud in a projected CRS (metres)",
+            f"first-epoch LAS/LAZ point cloud in a projected CRS (metres){tiles}",
             "Before epoch",
         ),
         cloud_option(
             "after",
             "second-epoch LAS/LAZ point cloud; reprojected to the first epoch's CRS when "
-            "they differ",
+            f"they differ (tiles are not reprojected){tiles}",
             "After epoch",
         ),
         out_dir_option(),
@@ -66,7 +76,20 @@ def pair_options() -> Tuple[Option, ...]:
             "carry it"
         ),
         *selection_options(ground_default=False),
+        *(scale_options() if accepts_tiles else ()),
     )
+
+
+def pair_inputs(opts: Mapping[str, Any], *keys: str) -> Dict[str, Any]:
+    """The input paths of an OutputPlan: every tile file of a tiled epoch, else the path, for
+    ``before``, ``after`` and the other input options ``keys``."""
+    from .tiled import input_files, is_tiled
+
+    tiled = is_tiled(opts, "before", "after")
+    out = {}
+    for k in keys:
+        out[k] = input_files(opts, k) if tiled and k in ("before", "after") else opts.get(k)
+    return out
 
 
 def control_option() -> Option:

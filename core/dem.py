@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Tuple
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -36,6 +36,7 @@ __all__ = [
     "dem_difference",
     "grid_elevation",
     "grid_points",
+    "grid_for_bounds",
 ]
 
 
@@ -143,6 +144,17 @@ class Grid:
         cols = np.where(inside, fc, -1).astype(np.int64)
         return rows, cols
 
+    def window(self, row0: int, col0: int, n_rows: int, n_cols: int) -> Grid:
+        """The sub-grid of ``n_rows`` x ``n_cols`` cells whose first cell is
+        ``(row0, col0)`` of this grid (it may reach outside this grid)."""
+        return Grid(
+            x_min=float(self.x_min + int(col0) * self.cell_m),
+            y_max=float(self.y_max - int(row0) * self.cell_m),
+            cell_m=self.cell_m,
+            n_rows=int(n_rows),
+            n_cols=int(n_cols),
+        )
+
     def xy_of(self, rows, cols) -> Tuple[np.ndarray, np.ndarray]:
         """Map coordinates of (possibly fractional) cell positions.
 
@@ -226,6 +238,26 @@ def common_grid(*point_sets, cell_m: float, overlap: str = "intersection") -> Gr
     else:
         lo = mins_a.min(axis=0)
         hi = maxs_a.max(axis=0)
+    return grid_for_bounds(lo, hi, cell_m=c)
+
+
+def grid_for_bounds(lo, hi, *, cell_m: float) -> Grid:
+    """The grid :func:`common_grid` gives for the XY box ``lo``..``hi`` (edges on multiples of
+    ``cell_m``; a point on the box falls inside). Used where only the bounds are known (the
+    headers of a tiled survey), so that a tiled run grids on the whole-cloud run's grid.
+
+    Parameters
+    ----------
+    lo, hi : (2,) float
+        South-west and north-east corners (m), ``lo <= hi``.
+    cell_m : float
+        Cell side (m).
+    """
+    c = _check_cell(cell_m)
+    lo = np.asarray(lo, dtype=np.float64)[:2]
+    hi = np.asarray(hi, dtype=np.float64)[:2]
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) or np.any(hi < lo):
+        raise InputDataError(f"grid bounds must be finite with lo <= hi, got {lo} .. {hi}")
     x_min = math.floor(lo[0] / c) * c
     if x_min > lo[0]:  # rounding
         x_min -= c
@@ -256,14 +288,21 @@ class GriddedElevation:
     count: np.ndarray
 
 
-def grid_points(points, *, grid: Grid) -> GriddedElevation:
+def grid_points(
+    points, *, grid: Grid, window: Optional[Tuple[int, int, int, int]] = None
+) -> GriddedElevation:
     """Mean z and point count per cell (no extrapolation, empty cells NaN).
 
     Parameters
     ----------
     points : (N, 3) float64
-        Points (m). Points outside ``grid`` are ignored.
+        Points (m). Points outside ``grid`` (or ``window``) are ignored.
     grid : Grid
+    window : (row0, col0, n_rows, n_cols), optional
+        Grid only this window of ``grid`` (the result's grid is ``grid.window(...)``). The
+        points are indexed on ``grid`` itself, so a block of a tiled run gets exactly the
+        cells of the whole-grid run (a sub-grid's own origin could round a point on an edge
+        into the other cell).
 
     Returns
     -------
@@ -271,6 +310,12 @@ def grid_points(points, *, grid: Grid) -> GriddedElevation:
     """
     a = _as_points(points, "points")
     rows, cols = grid.index(a)
+    if window is not None:
+        r0, c0, nr, nc = (int(v) for v in window)
+        grid = grid.window(r0, c0, nr, nc)
+        rows, cols = rows - r0, cols - c0
+        keep = (rows >= 0) & (rows < nr) & (cols >= 0) & (cols < nc)
+        rows = np.where(keep, rows, -1)
     inside = rows >= 0
     flat = rows[inside] * grid.n_cols + cols[inside]
     z = a[inside, 2]

@@ -596,13 +596,23 @@ class _Layout:
         return self.c0 + (self.size - 1) / 2.0
 
 
-def _layout(n_rows: int, n_cols: int, size: int, step: int) -> _Layout:
-    def one(n):
-        k = (n - size) // step + 1
-        off = ((n - size) - (k - 1) * step) // 2
-        return off + step * np.arange(k)
+def _layout(
+    n_rows: int, n_cols: int, size: int, step: int, frame: Optional[Tuple[int, ...]] = None
+) -> _Layout:
+    """Windows of ``size`` every ``step`` pixels, centred in the DEM; with ``frame = (N_rows,
+    N_cols, row0, col0)`` the windows of a DEM of ``N_rows x N_cols`` of which this one is the
+    part starting at ``(row0, col0)``, those that lie wholly inside this part."""
 
-    return _Layout(r0=one(n_rows), c0=one(n_cols), size=size, step=step)
+    def one(n, n_all, first):
+        k = (n_all - size) // step + 1
+        off = ((n_all - size) - (k - 1) * step) // 2
+        pos = off + step * np.arange(k) - first
+        return pos[(pos >= 0) & (pos + size <= n)]
+
+    if frame is None:
+        frame = (n_rows, n_cols, 0, 0)
+    f_rows, f_cols, row0, col0 = (int(v) for v in frame)
+    return _Layout(r0=one(n_rows, f_rows, row0), c0=one(n_cols, f_cols, col0), size=size, step=step)
 
 
 def _interp_sep(f: np.ndarray, pos_r: np.ndarray, pos_c: np.ndarray) -> np.ndarray:
@@ -760,6 +770,7 @@ def piv(
     min_valid_fraction: float = 0.5,
     interpolation_order: int = 3,
     workers: Optional[int] = None,
+    window_frame: Optional[Tuple[int, int, int, int]] = None,
     progress: Optional[ProgressCallback] = None,
 ) -> PIVResult:
     """3D displacement field between two DEMs on the same grid by multi-pass masked PIV.
@@ -798,6 +809,12 @@ def piv(
         Bilinear or bicubic-spline image warping between passes.
     workers : int, optional
         FFT threads (default all cores).
+    window_frame : (n_rows, n_cols, row0, col0), optional
+        Place the windows of every pass as on a DEM of ``n_rows x n_cols`` pixels of which
+        these DEMs are the block starting at pixel ``(row0, col0)`` (only the windows wholly
+        inside the block are used). A tiled run computes blocks of a DEM too large for memory
+        with the whole DEM's windows this way; the vectors far enough from the block's edges
+        (the windows, search margins and neighbour tests of every pass) are the whole run's.
     progress : ProgressCallback, optional
 
     Returns
@@ -901,7 +918,12 @@ def piv(
         sub = scaled(progress, 0.95 * (weights[k - 1] if k else 0.0), 0.95 * weights[k])
         report(sub, 0.0, f"PIV pass {k + 1}/{len(wins)} ({w} px windows)")
         step = max(1, int(round(w * (1.0 - float(overlap)))))
-        lay = _layout(n_rows, n_cols, w, step)
+        lay = _layout(n_rows, n_cols, w, step, window_frame)
+        if lay.r0.size == 0 or lay.c0.size == 0:
+            raise InvalidParameterError(
+                f"no {w} px window of pass {k + 1} lies inside the DEM block (window_frame "
+                f"{window_frame}): use a larger block"
+            )
         has_data = _window_sums(m1f, lay) >= min_valid_fraction * w * w
         if k == 0 and not has_data.any():
             raise InputDataError(

@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import DependencyError, InvalidParameterError, SlipMapFileError
 from .atomic import PathLike, atomic_path
 
-__all__ = ["band_names", "raster_metadata", "read_geotiff", "write_geotiff"]
+__all__ = ["RasterBlockWriter", "band_names", "raster_metadata", "read_geotiff", "write_geotiff"]
 
 _GDAL_TYPES = {
     np.dtype(np.uint8): "Byte",
@@ -179,3 +179,134 @@ def raster_metadata(path: PathLike) -> dict:
         return dict(ds.GetMetadata() or {})
     finally:
         ds = None  # noqa: F841
+
+
+class RasterBlockWriter:
+    """A float64 raster written block by block and closed as a Cloud-Optimized GeoTIFF.
+
+    For rasters too large to hold in memory (the DEMs of a tiled run): blocks are written into
+    a tiled, DEFLATE-compressed BigTIFF-if-needed scratch file beside ``path``; :meth:`close`
+    translates it into a COG (GDAL's COG driver: internal tiles and overviews, readable by
+    range requests) at a temporary name and moves it onto ``path``. Until then ``path`` is not
+    touched; an error or a missing :meth:`close` (use it as a context manager) leaves nothing.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Final ``.tif``.
+    shape : (bands, rows, cols)
+    origin_xy, pixel_size_m, crs_wkt, band_names, metadata
+        As :func:`write_geotiff` (NaN is the nodata value).
+    """
+
+    def __init__(
+        self,
+        path: PathLike,
+        shape: Tuple[int, int, int],
+        *,
+        origin_xy: Tuple[float, float],
+        pixel_size_m: float,
+        crs_wkt: str | None = None,
+        band_names: Sequence[str] | None = None,
+        metadata: Mapping[str, str] | None = None,
+    ):
+        import tempfile
+
+        gdal = _gdal()
+        self.path = Path(path)
+        bands, rows, cols = (int(v) for v in shape)
+        if min(bands, rows, cols) < 1:
+            raise InvalidParameterError(f"RasterBlockWriter: empty shape {shape}")
+        if band_names is not None and len(band_names) != bands:
+            raise InvalidParameterError(
+                f"RasterBlockWriter: {len(band_names)} band names for {bands} bands"
+            )
+        directory = self.path.parent if str(self.path.parent) else Path(".")
+        fd, name = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=".part.tif", dir=directory)
+        import os
+
+        os.close(fd)
+        self._scratch = Path(name)
+        options = [
+            "TILED=YES",
+            "BLOCKXSIZE=256",
+            "BLOCKYSIZE=256",
+            "COMPRESS=DEFLATE",
+            "PREDICTOR=3",
+            "BIGTIFF=IF_SAFER",
+            "SPARSE_OK=TRUE",
+        ]
+        try:
+            ds = gdal.GetDriverByName("GTiff").Create(
+                str(self._scratch), cols, rows, bands, gdal.GDT_Float64, options
+            )
+        except RuntimeError as exc:
+            self._scratch.unlink(missing_ok=True)
+            raise SlipMapFileError(f"cannot write GeoTIFF {str(path)!r}: {exc}") from exc
+        dx = float(pixel_size_m)
+        ds.SetGeoTransform((float(origin_xy[0]), dx, 0.0, float(origin_xy[1]), 0.0, -dx))
+        if crs_wkt:
+            ds.SetProjection(crs_wkt)
+        if metadata:
+            ds.SetMetadata({str(k): str(v) for k, v in metadata.items()})
+        for b in range(bands):
+            band = ds.GetRasterBand(b + 1)
+            band.SetNoDataValue(float("nan"))
+            if band_names is not None:
+                band.SetDescription(str(band_names[b]))
+        self._ds = ds
+        self.shape = (bands, rows, cols)
+
+    def write(self, block: np.ndarray, row0: int, col0: int) -> None:
+        """Write ``block`` ``(bands, r, c)`` (or ``(r, c)`` for one band) at ``(row0, col0)``;
+        the part outside the raster is dropped."""
+        a = np.asarray(block, dtype=np.float64)
+        if a.ndim == 2:
+            a = a[None]
+        bands, rows, cols = self.shape
+        r0, c0 = int(row0), int(col0)
+        r_lo, c_lo = max(0, -r0), max(0, -c0)
+        r_hi = min(a.shape[1], rows - r0)
+        c_hi = min(a.shape[2], cols - c0)
+        if r_hi <= r_lo or c_hi <= c_lo:
+            return
+        for b in range(min(bands, a.shape[0])):
+            self._ds.GetRasterBand(b + 1).WriteArray(
+                np.ascontiguousarray(a[b, r_lo:r_hi, c_lo:c_hi]), c0 + c_lo, r0 + r_lo
+            )
+
+    def close(self) -> Path:
+        """Finish: the COG replaces ``path`` (atomic)."""
+        gdal = _gdal()
+        ds, self._ds = self._ds, None
+        try:
+            ds.FlushCache()
+            ds = None  # noqa: F841 - closes the scratch file
+            with atomic_path(self.path) as tmp:
+                out = gdal.Translate(
+                    str(tmp),
+                    str(self._scratch),
+                    format="COG",
+                    creationOptions=["COMPRESS=DEFLATE", "PREDICTOR=YES", "BIGTIFF=IF_SAFER"],
+                )
+                if out is None:
+                    raise SlipMapFileError(f"cannot write GeoTIFF {str(self.path)!r}")
+                out = None  # noqa: F841
+        finally:
+            self._scratch.unlink(missing_ok=True)
+        return self.path
+
+    def abort(self) -> None:
+        """Drop everything written (``path`` untouched)."""
+        self._ds = None
+        self._scratch.unlink(missing_ok=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+        return False

@@ -1,0 +1,776 @@
+"""Displacement fields on tiled inputs: DEM difference, PIV and windowed ICP per block of the
+job's global raster, in process or on Dask (issue #17).
+
+The jobs' rasters (the DEM grid of ``dem-diff`` and ``piv``, the cell lattice of ``icp``) are
+defined once for the whole survey, from the tiles' header bounds, exactly as the one-file run
+defines them from the points. They are cut into square blocks of about ``tile_size_m``; a task
+reads one block plus a halo from both epochs' tiles (:class:`~slipmap.core.io.tiles.
+TileCollection`), computes on it with the whole-cloud kernels and returns only what its block
+owns. No point cloud travels to the driver.
+
+* DEM difference (:func:`dem_difference_tiled`): exact. A cell's mean is over the points in
+  it, indexed on the global grid (:func:`~slipmap.core.dem.grid_points` ``window``); blocks
+  are written into the output GeoTIFF as they arrive (:class:`~slipmap.core.io.raster.
+  RasterBlockWriter`: a COG), so the driver never holds the whole raster.
+* PIV (:func:`piv_tiled`): the windows of every pass are placed as on the whole DEM
+  (:func:`~slipmap.core.piv.piv` ``window_frame``); a block's halo covers, for every pass,
+  the window, its search margin and three vector steps (the median test and the predictor's
+  interpolation), plus 24 px for the cubic warper's prefilter (its influence decays by 0.27
+  per pixel). The vectors a block owns are then the whole run's up to rounding, except where
+  an outlier's replacement reaches further than the halo (a hole of more than three vectors
+  next to a block's edge).
+* Windowed ICP (:func:`icp_tiled`): cells on the whole run's lattice; a block's halo covers
+  the target buffer and three cells (median test, deformation passes), doubled per coarse
+  level. Cells are fitted with formal covariances and the field's variance factor is
+  estimated once over all cells, as the one-file run does. Equal to the one-file run up to
+  rounding for the default options; with ``max_points_per_cell`` the random sample of a cell
+  differs, and the stable-ground pre-alignment is refused on tiled inputs (it needs a global
+  fit; see the issue note).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, fields, replace
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..core.errors import InputDataError, InvalidParameterError
+from ..core.io.tiles import Region, TileCollection
+from ..core.progress import ProgressCallback, report
+from .engine import Engine, InProcess
+from .tiled import DEFAULT_TILE_SIZE_M, Selection
+
+log = logging.getLogger("slipmap.app")
+
+__all__ = [
+    "dem_difference_tiled",
+    "icp_tiled",
+    "open_pair",
+    "pair_grid",
+    "piv_tiled",
+]
+
+#: pixels of halo for the cubic warper's spline prefilter (0.268 ** 24 ~ 2e-14)
+SPLINE_HALO_PX = 24
+#: every point (no class selection)
+_ALL = Selection()
+
+
+# --------------------------------------------------------------------------- shared
+
+
+def open_pair(opts, *, keys: Tuple[str, str] = ("before", "after")):
+    """Both epochs' tiles (errors name the option), refused when their CRSs differ or they
+    do not overlap. Returns ``(before, after, selection)``."""
+    from ..core.io.crs import same_crs
+    from .options import OptionError
+    from .outputs import refuse_same_inputs
+    from .tiled import open_input
+
+    refuse_same_inputs([(keys[0], opts[keys[0]]), (keys[1], opts[keys[1]])])
+    before = open_input(opts, keys[0], what="before epoch", crs=opts.get("crs"))
+    after = open_input(opts, keys[1], what="after epoch", crs=opts.get("crs"))
+    for key, coll in zip(keys, (before, after)):
+        if coll.n_points == 0:
+            raise OptionError(key, f"{coll.label}: the tiles hold no point")
+    if before.crs is not None and after.crs is not None and not same_crs(before.crs, after.crs):
+        raise OptionError(
+            keys[1],
+            "the before and after tiles are in different CRSs; tiled inputs are not "
+            "reprojected: reproject one epoch, or give {crs} if both files declare a wrong one",
+            also=("crs",),
+        )
+    (lo_b, hi_b), (lo_a, hi_a) = before.bounds, after.bounds
+    if np.any(np.maximum(lo_b[:2], lo_a[:2]) > np.minimum(hi_b[:2], hi_a[:2])):
+        raise OptionError(
+            keys[1],
+            f"the epochs' tiles do not overlap in x, y (before x {lo_b[0]:.2f}..{hi_b[0]:.2f}, "
+            f"y {lo_b[1]:.2f}..{hi_b[1]:.2f}; after x {lo_a[0]:.2f}..{hi_a[0]:.2f}, y "
+            f"{lo_a[1]:.2f}..{hi_a[1]:.2f}): check that both are in the same CRS",
+            also=("crs",),
+        )
+    selection = Selection(
+        classes=tuple(opts["classes"]) if opts.get("classes") else None,
+        exclude_classes=(
+            tuple(opts["exclude_classes"]) if opts.get("exclude_classes") is not None else None
+        ),
+    )
+    return before, after, selection
+
+
+def pair_grid(before: TileCollection, after: TileCollection, cell_m: float):
+    """The DEM grid of the epochs' overlap: :func:`~slipmap.core.dem.common_grid` of the
+    points, from the tiles' header bounds."""
+    from ..core.dem import grid_for_bounds
+
+    (lo_b, hi_b), (lo_a, hi_a) = before.bounds, after.bounds
+    return grid_for_bounds(np.maximum(lo_b, lo_a), np.minimum(hi_b, hi_a), cell_m=cell_m)
+
+
+def _engine(engine: Optional[Engine]) -> Engine:
+    return engine if engine is not None else InProcess()
+
+
+def _spans(n: int, size: int) -> List[Tuple[int, int]]:
+    """``[lo, hi)`` index spans of ``size`` covering ``0..n``."""
+    size = max(1, int(size))
+    return [(s, min(n, s + size)) for s in range(0, n, size)]
+
+
+def _read(coll: TileCollection, box: Region, selection: Selection) -> np.ndarray:
+    attrs = ("Classification",) if selection.needs_classes else ()
+    cloud = coll.read_region(box, attributes=attrs)
+    sel = selection.indices(cloud)
+    return cloud.xyz[sel] if sel.size < len(cloud) else cloud.xyz
+
+
+def _pixel_box(grid, r0: int, r1: int, c0: int, c1: int) -> Region:
+    """Map box of the pixels rows ``r0..r1-1``, cols ``c0..c1-1`` of ``grid``, grown by one
+    cell (the gridding keeps only the points of the window's cells)."""
+    c = grid.cell_m
+    return Region(
+        grid.x_min + (c0 - 1) * c,
+        grid.y_max - (r1 + 1) * c,
+        grid.x_min + (c1 + 1) * c,
+        grid.y_max - (r0 - 1) * c,
+    )
+
+
+def _block_dems(task) -> Tuple[np.ndarray, np.ndarray]:
+    """Both epochs' mean z on a task's window of the global grid (NaN where empty)."""
+    from ..core.dem import grid_points
+
+    r0, c0, nr, nc = task.window
+    box = _pixel_box(task.grid, r0, r0 + nr, c0, c0 + nc)
+    out = []
+    for coll in (task.before, task.after):
+        pts = _read(coll, box, task.selection)
+        if len(pts):
+            out.append(grid_points(pts, grid=task.grid, window=task.window).z)
+        else:
+            out.append(np.full((nr, nc), np.nan))
+    return out[0], out[1]
+
+
+# --------------------------------------------------------------------------- DEM difference
+
+
+@dataclass(frozen=True)
+class _DemTask:
+    before: TileCollection
+    after: TileCollection
+    grid: Any
+    window: Tuple[int, int, int, int]
+    selection: Selection
+
+
+def _dem_block(task: _DemTask):
+    zb, za = _block_dems(task)
+    return task.window, np.stack([za - zb, zb, za])
+
+
+@dataclass(frozen=True)
+class TiledDem:
+    """What a tiled DEM difference gives the job (the raster itself is in the file)."""
+
+    grid: Any
+    n_valid: int
+    mean_dz: float
+    m2_dz: float  # sum of squared deviations from the mean (Chan et al.'s pairwise update)
+    min_dz: float
+    max_dz: float
+    dz_sample: np.ndarray  # every k-th valid dz of each block (for the median)
+    sample_every: int
+
+    @property
+    def mean_m(self) -> float:
+        return self.mean_dz if self.n_valid else float("nan")
+
+    @property
+    def std_m(self) -> float:
+        """Standard deviation of dz (ddof 0, as the one-file run)."""
+        if not self.n_valid:
+            return float("nan")
+        return math.sqrt(max(self.m2_dz / self.n_valid, 0.0))
+
+    def stats(self) -> Dict[str, Any]:
+        """The summary's ``dz_m`` (:func:`~.summaries.finite_stats`'s keys); the median comes
+        from the sample when ``sample_every > 1`` (``median_from_every``)."""
+        if not self.n_valid:
+            return {"n": 0}
+        out = {
+            "n": self.n_valid,
+            "mean": self.mean_m,
+            "median": float(np.median(self.dz_sample)) if self.dz_sample.size else float("nan"),
+            "std": self.std_m,
+            "min": self.min_dz,
+            "max": self.max_dz,
+        }
+        if self.sample_every > 1:
+            out["median_from_every"] = self.sample_every
+        return out
+
+
+def dem_difference_tiled(
+    before: TileCollection,
+    after: TileCollection,
+    *,
+    cell_m: float,
+    writer_factory,
+    selection: Selection = _ALL,
+    tile_size_m: float = DEFAULT_TILE_SIZE_M,
+    engine: Optional[Engine] = None,
+    progress: Optional[ProgressCallback] = None,
+    sample_every: Optional[int] = None,
+) -> TiledDem:
+    """DEM difference of two tiled epochs, block by block (exact).
+
+    Parameters
+    ----------
+    before, after : TileCollection
+    cell_m : float
+        DEM cell (m).
+    writer_factory : callable
+        ``f(grid) -> writer`` with ``write(block (3, r, c), row0, col0)`` (bands dz,
+        z_before, z_after); None writes nothing.
+    tile_size_m : float
+        Block edge (m), rounded to whole cells.
+    sample_every : int, optional
+        Keep every k-th valid dz of each block for the summary's median (default: about a
+        million values in all; 1 keeps every value, the median is then exact).
+
+    Returns
+    -------
+    TiledDem
+    """
+    grid = pair_grid(before, after, cell_m)
+    b = max(8, int(round(float(tile_size_m) / grid.cell_m)))
+    windows = [
+        (r0, c0, r1 - r0, c1 - c0)
+        for r0, r1 in _spans(grid.n_rows, b)
+        for c0, c1 in _spans(grid.n_cols, b)
+    ]
+    tasks = []
+    for w in windows:
+        box = _pixel_box(grid, w[0], w[0] + w[2], w[1], w[1] + w[3])
+        tb, ta = before.restricted(box), after.restricted(box)
+        if len(tb) and len(ta):
+            tasks.append(_DemTask(tb, ta, grid, w, selection))
+    writer = writer_factory(grid) if writer_factory is not None else None
+    try:
+        out = _dem_blocks(grid, tasks, writer, b, engine, progress, sample_every)
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    if writer is not None:
+        report(progress, 1.0, "writing the Cloud-Optimized GeoTIFF")
+        writer.close()
+    return out
+
+
+def _dem_blocks(grid, tasks, writer, b, engine, progress, sample_every) -> TiledDem:
+    acc = {"n": 0, "mean": 0.0, "m2": 0.0, "lo": math.inf, "hi": -math.inf, "sample": []}
+    if sample_every is None:  # about a million values for the median
+        sample_every = max(1, (grid.n_rows * grid.n_cols) // 1_000_000)
+
+    def each(i, value):
+        (r0, c0, _, _), block = value
+        if writer is not None:
+            writer.write(block, r0, c0)
+        dz = block[0][np.isfinite(block[0])]
+        if dz.size:  # mean and squared deviations combined block by block (stable)
+            n_b, m_b = dz.size, float(dz.mean())
+            m2_b = float(np.dot(dz - m_b, dz - m_b))
+            n = acc["n"] + n_b
+            delta = m_b - acc["mean"]
+            acc["mean"] += delta * n_b / n
+            acc["m2"] += m2_b + delta * delta * acc["n"] * n_b / n
+            acc["n"] = n
+            acc["lo"], acc["hi"] = min(acc["lo"], float(dz.min())), max(acc["hi"], float(dz.max()))
+        acc["sample"].append(dz[:: max(1, int(sample_every))])
+        return None
+
+    report(progress, 0.0, f"DEM difference: {len(tasks)} block(s) of {b} x {b} cells")
+    _engine(engine).map(
+        _dem_block,
+        tasks,
+        names=[f"DEM block at row {t.window[0]}, col {t.window[1]}" for t in tasks],
+        progress=progress,
+        what="block",
+        each=each,
+    )
+    sample = np.concatenate(acc["sample"]) if acc["sample"] else np.zeros(0)
+    return TiledDem(
+        grid, int(acc["n"]), acc["mean"], acc["m2"], acc["lo"], acc["hi"], sample, int(sample_every)
+    )
+
+
+# --------------------------------------------------------------------------- PIV
+
+
+@dataclass(frozen=True)
+class _PivTask:
+    before: TileCollection
+    after: TileCollection
+    grid: Any
+    window: Tuple[int, int, int, int]  # the DEM block read and gridded (with its halo)
+    core: Tuple[int, int, int, int]  # the final vectors it owns: rows i0..i1-1, cols j0..j1-1
+    first_xy: Tuple[float, float]  # centre of the whole run's first final vector
+    spacing_m: float
+    piv_kw: Dict[str, Any]
+    selection: Selection
+
+
+def _piv_block(task: _PivTask):
+    from ..core.piv import piv
+
+    r0, c0, nr, nc = task.window
+    zb, za = _block_dems(task)
+    if not (np.isfinite(zb).any() and np.isfinite(za).any()):
+        return task.core, None
+    frame = (task.grid.n_rows, task.grid.n_cols, r0, c0)
+    try:
+        res = piv(zb, za, grid=task.grid.window(*task.window), window_frame=frame, **task.piv_kw)
+    except InputDataError as exc:  # no window with data, no valid vector: a gap of the survey
+        log.debug("PIV block at (%d, %d): %s", r0, c0, exc)
+        return task.core, None
+    s = task.spacing_m
+    i = np.rint((task.first_xy[1] - res.y[:, 0]) / s).astype(np.int64)
+    j = np.rint((res.x[0, :] - task.first_xy[0]) / s).astype(np.int64)
+    i0, i1, j0, j1 = task.core
+    ri = np.flatnonzero((i >= i0) & (i < i1))
+    cj = np.flatnonzero((j >= j0) & (j < j1))
+    take = np.ix_(ri, cj)
+    part = {k: getattr(res, k)[take] for k in ("dx", "dy", "dz", "snr", "valid")}
+    return (int(i[ri[0]]) if ri.size else i0, int(j[cj[0]]) if cj.size else j0), (
+        part,
+        res.search_px,
+    )
+
+
+def piv_halo_px(windows_px: Sequence[int], overlap: float, margin1: int, refine: Optional[int]):
+    """Halo (pixels) a PIV block needs (see the module docstring)."""
+    h = SPLINE_HALO_PX
+    for k, w in enumerate(windows_px):
+        step = max(1, int(round(w * (1.0 - float(overlap)))))
+        margin = margin1 if k == 0 else (int(refine) if refine is not None else max(3, w // 8))
+        h += w + margin + 3 * step
+    return int(h)
+
+
+def piv_tiled(
+    before: TileCollection,
+    after: TileCollection,
+    *,
+    grid_m: float,
+    windows_px: Sequence[int],
+    overlap: float = 0.5,
+    search_px: Optional[int] = None,
+    expected_max_displacement_m: Optional[float] = None,
+    snr_min: float = 1.2,
+    median_threshold: float = 2.0,
+    selection: Selection = _ALL,
+    tile_size_m: float = DEFAULT_TILE_SIZE_M,
+    engine: Optional[Engine] = None,
+    progress: Optional[ProgressCallback] = None,
+    check_block=None,
+):
+    """Multi-pass PIV of two tiled epochs, block by block of the final vectors.
+
+    Parameters
+    ----------
+    before, after : TileCollection
+    grid_m, windows_px, overlap, search_px, expected_max_displacement_m, snr_min,
+    median_threshold
+        As :func:`~slipmap.core.piv.piv` (``grid_m`` the DEM cell, m).
+    tile_size_m : float
+        Edge of the blocks of final vectors a task owns (m, rounded to whole vector steps);
+        each task grids its block plus the halo of :func:`piv_halo_px`.
+    check_block : callable, optional
+        ``f(n_cells)``, called with the largest block's cell count before any is read (the
+        job's memory check).
+
+    Returns
+    -------
+    (PIVResult, Grid)
+        The whole field on the whole run's vector grid, and the DEM grid.
+    """
+    from ..core.piv import PIVResult, _check_windows, _layout
+
+    grid = pair_grid(before, after, grid_m)
+    wins = _check_windows(windows_px, grid.shape)
+    cell = grid.cell_m
+    w_last = wins[-1]
+    step = max(1, int(round(w_last * (1.0 - float(overlap)))))
+    lay = _layout(grid.n_rows, grid.n_cols, w_last, step)
+    ny, nx = lay.r0.size, lay.c0.size
+    if search_px is not None:
+        margin1 = int(search_px)
+    elif expected_max_displacement_m is not None:
+        margin1 = int(math.ceil(float(expected_max_displacement_m) / cell)) + 2
+    else:
+        margin1 = max(2, wins[0] // 4)
+    halo = piv_halo_px(wins, overlap, margin1, None)
+    nb = max(1, int(round(float(tile_size_m) / (step * cell))))
+    first_x, first_y = grid.xy_of(lay.rc[0], lay.cc[0])
+    piv_kw = dict(
+        windows_px=wins,
+        overlap=overlap,
+        search_px=search_px,
+        expected_max_displacement_m=expected_max_displacement_m,
+        snr_min=snr_min,
+        median_threshold=median_threshold,
+        workers=1,
+    )
+    tasks = []
+    biggest = 0
+    for i0, i1 in _spans(ny, nb):
+        for j0, j1 in _spans(nx, nb):
+            r_lo = max(0, int(lay.r0[i0]) - halo)
+            r_hi = min(grid.n_rows, int(lay.r0[i1 - 1]) + w_last + halo)
+            c_lo = max(0, int(lay.c0[j0]) - halo)
+            c_hi = min(grid.n_cols, int(lay.c0[j1 - 1]) + w_last + halo)
+            window = (r_lo, c_lo, r_hi - r_lo, c_hi - c_lo)
+            box = _pixel_box(grid, r_lo, r_hi, c_lo, c_hi)
+            tb, ta = before.restricted(box), after.restricted(box)
+            biggest = max(biggest, window[2] * window[3])
+            if len(tb) and len(ta):
+                tasks.append(
+                    _PivTask(
+                        tb,
+                        ta,
+                        grid,
+                        window,
+                        (i0, i1, j0, j1),
+                        (float(first_x), float(first_y)),
+                        float(step * cell),
+                        piv_kw,
+                        selection,
+                    )  # fmt: skip
+                )
+    if check_block is not None:
+        check_block(biggest)
+    log.info(
+        "PIV on %d block(s) of %d x %d vectors (halo %d px), DEM %d x %d cells of %g m",
+        len(tasks), nb, nb, halo, grid.n_rows, grid.n_cols, cell,
+    )  # fmt: skip
+    out = {k: np.full((ny, nx), np.nan) for k in ("dx", "dy", "dz", "snr")}
+    out["valid"] = np.zeros((ny, nx), dtype=bool)
+    found = {"search_px": margin1}
+
+    def each(i, value):
+        (i0, j0), payload = value
+        if payload is None:
+            return None
+        part, search = payload
+        found["search_px"] = search
+        r, c = part["dx"].shape
+        for k in out:
+            out[k][i0 : i0 + r, j0 : j0 + c] = part[k]
+        return None
+
+    _engine(engine).map(
+        _piv_block,
+        tasks,
+        names=[f"PIV block of vectors ({t.core[0]}, {t.core[2]})" for t in tasks],
+        progress=progress,
+        what="block",
+        each=each,
+    )
+    if not np.isfinite(out["dx"]).any():
+        raise InputDataError(
+            "PIV found no valid displacement in any block: check that the epochs overlap, "
+            "increase the search margin / largest expected displacement or the windows"
+        )
+    rr, cc = np.meshgrid(lay.rc, lay.cc, indexing="ij")
+    x, y = grid.xy_of(rr, cc)
+    spacing = step * cell
+    res = PIVResult(
+        x=x,
+        y=y,
+        dx=out["dx"],
+        dy=out["dy"],
+        dz=out["dz"],
+        snr=out["snr"],
+        valid=out["valid"],
+        spacing_m=float(spacing),
+        origin_xy=(float(x[0, 0] - spacing / 2.0), float(y[0, 0] + spacing / 2.0)),
+        windows_px=wins,
+        search_px=int(found["search_px"]),
+        cell_m=float(cell),
+    )
+    return res, grid
+
+
+# --------------------------------------------------------------------------- windowed ICP
+
+
+@dataclass(frozen=True)
+class _IcpTask:
+    before: TileCollection
+    after: TileCollection
+    block: Region  # the cells it owns: centres inside
+    halo_m: float
+    x0: float  # the whole run's lattice: west edge of column 0
+    y0: float  # north edge of row 0
+    icp_kw: Dict[str, Any]
+    selection: Selection
+
+
+def _per_cell(res) -> List[str]:
+    k = len(res.x)
+    return [
+        f.name
+        for f in fields(res)
+        if isinstance(getattr(res, f.name), np.ndarray) and len(getattr(res, f.name)) == k
+    ]
+
+
+def _icp_block(task: _IcpTask):
+    from ..core.icp import windowed_icp
+
+    box = task.block.grown(task.halo_m)
+    b = _read(task.before, box, task.selection)
+    a = _read(task.after, box, task.selection)
+    cell = float(task.icp_kw["cell_m"])
+    minp = int(task.icp_kw.get("min_points", 100))
+    # the cells this block owns and why some are not fitted (as the one-file run counts them)
+    ra = np.floor((task.y0 - a[:, 1]) / cell).astype(np.int64)
+    ca = np.floor((a[:, 0] - task.x0) / cell).astype(np.int64)
+    cx = task.x0 + (ca + 0.5) * cell
+    cy = task.y0 - (ra + 0.5) * cell
+    own = task.block.contains(np.column_stack([cx, cy]))
+    keys_a, n_after = np.unique(np.column_stack([ra[own], ca[own]]), axis=0, return_counts=True)
+    rb = np.floor((task.y0 - b[:, 1]) / cell).astype(np.int64)
+    cb = np.floor((b[:, 0] - task.x0) / cell).astype(np.int64)
+    kb, nbc = np.unique(np.column_stack([rb, cb]), axis=0, return_counts=True)
+    nb_of = dict(zip(map(tuple, kb.tolist()), nbc.tolist()))
+    n_before = np.array([nb_of.get(tuple(k), 0) for k in keys_a.tolist()], dtype=np.int64)
+    few_a = n_after < minp
+    few_b = ~few_a & (n_before < minp)
+    counts = {
+        "few_after_points": int(few_a.sum()),
+        "few_before_points": int(few_b.sum()),
+        "icp_failed": 0,
+    }
+    n_fit = int((~few_a & ~few_b).sum())
+    if n_fit == 0 or len(b) == 0:
+        return counts, None
+    try:
+        res = windowed_icp(
+            b, a, origin_xy=(task.x0, task.y0), sigma_scaling="formal", **task.icp_kw
+        )
+    except InputDataError as exc:
+        log.debug("ICP block %s: %s", task.block.as_tuple(), exc)
+        counts["icp_failed"] = n_fit
+        return counts, None
+    mine = task.block.contains(np.column_stack([res.x, res.y]))
+    counts["icp_failed"] = n_fit - int(mine.sum())
+    part = {k: getattr(res, k)[mine] for k in _per_cell(res)}
+    return counts, part
+
+
+def icp_tiled(
+    before: TileCollection,
+    after: TileCollection,
+    *,
+    cell_m: float,
+    buffer_m: Optional[float] = None,
+    coarse_to_fine: int = 0,
+    sigma_scaling: str = "field",
+    origin_xy: Optional[Tuple[float, float]] = None,
+    selection: Selection = _ALL,
+    tile_size_m: float = DEFAULT_TILE_SIZE_M,
+    engine: Optional[Engine] = None,
+    progress: Optional[ProgressCallback] = None,
+    **icp_kw,
+):
+    """Windowed ICP of two tiled epochs, block by block of cells.
+
+    Parameters
+    ----------
+    before, after : TileCollection
+    cell_m, buffer_m, coarse_to_fine, sigma_scaling, origin_xy, **icp_kw
+        As :func:`~slipmap.core.icp.windowed_icp` (``prealign`` is not accepted: it needs one
+        global fit).
+    tile_size_m : float
+        Block edge (m), rounded to whole cells.
+
+    Returns
+    -------
+    WindowedICPResult
+        All cells of the whole run's lattice, in its order (row, then column).
+    """
+    from ..core.icp import WindowedICPResult, _scale_sigmas
+
+    if icp_kw.get("prealign"):
+        raise InvalidParameterError("prealign is not available on tiled inputs")
+    icp_kw.pop("prealign", None)
+    cell = float(cell_m)
+    if not (math.isfinite(cell) and cell > 0):
+        raise InvalidParameterError(f"cell_m must be a positive number, got {cell_m!r}")
+    buf = 0.5 * cell if buffer_m is None else float(buffer_m)
+    levels = int(coarse_to_fine)
+    halo = (2**levels) * (buf + 3.0 * cell)
+    lo, hi = after.bounds
+    ox, oy = (0.0, 0.0) if origin_xy is None else (float(origin_xy[0]), float(origin_xy[1]))
+    x0 = ox + math.floor((lo[0] - ox) / cell) * cell
+    y0 = oy + math.ceil((hi[1] - oy) / cell) * cell
+    n_cols = int(math.floor((hi[0] - x0) / cell)) + 1
+    n_rows = int(math.floor((y0 - lo[1]) / cell)) + 1
+    nb = max(1, int(round(float(tile_size_m) / cell)))
+    kw = dict(icp_kw, cell_m=cell, buffer_m=buffer_m, coarse_to_fine=levels)
+    tasks = []
+    for r0, r1 in _spans(n_rows, nb):
+        for c0, c1 in _spans(n_cols, nb):
+            block = Region(x0 + c0 * cell, y0 - r1 * cell, x0 + c1 * cell, y0 - r0 * cell)
+            # the lattice's rows are closed to the north, regions open: test with the halo
+            ta = after.restricted(block, halo)
+            if not len(ta) or not after.restricted(block, 1e-6 * cell):
+                continue
+            tb = before.restricted(block, halo)
+            tasks.append(_IcpTask(tb, ta, block, halo, x0, y0, kw, selection))
+    log.info(
+        "windowed ICP on %d block(s) of %d x %d cells of %g m (halo %.1f m)",
+        len(tasks), nb, nb, cell, halo,
+    )  # fmt: skip
+    results = _engine(engine).map(
+        _icp_block,
+        tasks,
+        names=[f"ICP block at x {t.block.xmin:.1f}, y {t.block.ymin:.1f}" for t in tasks],
+        progress=progress,
+        what="block",
+    )
+    skipped = {"few_after_points": 0, "few_before_points": 0, "icp_failed": 0}
+    parts = []
+    for counts, part in results:
+        for k in skipped:
+            skipped[k] += counts[k]
+        if part is not None and len(part["x"]):
+            parts.append(part)
+    if not parts:
+        why = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in skipped.items() if v)
+        raise InputDataError(
+            f"no cell could be registered: all {sum(skipped.values())} cells with points were "
+            f"skipped ({why}); use a larger cell_m or a smaller min_points"
+        )
+    cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    row = np.rint((y0 - cols["y"]) / cell - 0.5).astype(np.int64)
+    col = np.rint((cols["x"] - x0) / cell - 0.5).astype(np.int64)
+    order = np.lexsort((col, row))
+    cols = {k: v[order] for k, v in cols.items()}
+    cols["row"], cols["col"] = row[order], col[order]
+    names = {f.name for f in fields(WindowedICPResult)}
+    res = WindowedICPResult(
+        **{k: v for k, v in cols.items() if k in names},
+        origin_xy=(float(x0), float(y0)),
+        cell_m=cell,
+        n_rows=n_rows,
+        n_cols=n_cols,
+        skipped=skipped,
+        prealignment=None,
+        seconds=0.0,
+        cell_model=icp_kw.get("cell_model", "rigid"),
+        deform_passes=int(icp_kw.get("deform_passes", 0)),
+    )
+    if sigma_scaling == "field":
+        res = _scale_sigmas(res)
+    return replace(res, seconds=0.0)
+
+
+# --------------------------------------------------------------------------- the jobs
+
+
+def check_fields_tiled(opts, *, refused: Dict[str, str]) -> None:
+    """Cross-option check of a field job (its JobSpec ``check``): the Dask options' check and,
+    for tiled inputs or Dask runs, the options that need both epochs in one place, refused
+    naming them (``refused``: option key -> what to do instead)."""
+    from .options import OptionError
+    from .tiled import check_scale, is_tiled
+
+    check_scale(opts)
+    if not is_tiled(opts, "before", "after"):
+        return
+    for key, why in refused.items():
+        if opts.get(key):
+            raise OptionError(key, f"is not available for tiled inputs or Dask runs: {why}")
+
+
+def _tile(opts) -> float:
+    return float(opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M)
+
+
+def _wkt(crs) -> Optional[str]:
+    return None if crs is None else crs.to_wkt()
+
+
+def dem_for_job(opts, raster_path, *, bands, metadata, progress=None):
+    """The dem-diff job on tiled inputs: the raster (bands dz, z_before, z_after) written
+    block by block as a COG at ``raster_path`` (None: not written). Returns
+    ``(TiledDem, crs)``."""
+    from ..core.io.raster import RasterBlockWriter
+    from .tiled import engine_from
+
+    before, after, selection = open_pair(opts)
+
+    def writer(grid):
+        if raster_path is None:
+            return None
+        return RasterBlockWriter(
+            raster_path,
+            (3, grid.n_rows, grid.n_cols),
+            origin_xy=grid.origin_xy,
+            pixel_size_m=grid.cell_m,
+            crs_wkt=_wkt(before.crs),
+            band_names=bands,
+            metadata=metadata,
+        )
+
+    with engine_from(opts) as eng:
+        res = dem_difference_tiled(
+            before, after, cell_m=opts["grid_m"], writer_factory=writer, selection=selection,
+            tile_size_m=_tile(opts), engine=eng, progress=progress,
+        )  # fmt: skip
+    return res, before.crs
+
+
+def piv_for_job(opts, windows_px, *, bytes_per_cell: float, progress=None):
+    """The piv job on tiled inputs. Returns ``(PIVResult, Grid, crs)``."""
+    from .resources import check_grid_memory
+    from .tiled import engine_from
+
+    before, after, selection = open_pair(opts)
+
+    def check(n_cells):
+        check_grid_memory(
+            "tile_size_m", n_cells, bytes_per_cell=bytes_per_cell, what="DEM block with its halo"
+        )
+
+    with engine_from(opts) as eng:
+        res, grid = piv_tiled(
+            before, after, grid_m=opts["grid_m"], windows_px=windows_px,
+            overlap=opts["overlap"], search_px=opts.get("search_px"),
+            expected_max_displacement_m=opts.get("max_displacement_m"),
+            snr_min=opts["snr_min"], median_threshold=opts["median_threshold"],
+            selection=selection, tile_size_m=_tile(opts), engine=eng, progress=progress,
+            check_block=check,
+        )  # fmt: skip
+    return res, grid, before.crs
+
+
+def icp_for_job(opts, core_kwargs: Dict[str, Any], *, progress=None):
+    """The icp job on tiled inputs (``core_kwargs``: the job's windowed_icp keywords).
+    Returns ``(WindowedICPResult, crs)``."""
+    from .tiled import engine_from
+
+    before, after, selection = open_pair(opts)
+    with engine_from(opts) as eng:
+        res = icp_tiled(
+            before, after, selection=selection, tile_size_m=_tile(opts), engine=eng,
+            progress=progress, **core_kwargs,
+        )  # fmt: skip
+    return res, before.crs
