@@ -31,6 +31,7 @@ from .fields import (
     figures,
     horizontal_columns,
     output_option,
+    pair_inputs,
     pair_options,
     read_control,
     read_pair,
@@ -40,6 +41,7 @@ from .job import JobResult, Progress
 from .options import JobSpec, Option, OptionError
 from .outputs import OutputPlan
 from .summaries import icp_summary, json_text
+from .tiled_fields import check_fields_tiled, tiled_refusal
 
 log = logging.getLogger("slipmap.app")
 
@@ -57,6 +59,14 @@ def _opt(key, type_, help_, label, **kw):
     return Option(key, type_, help_, label=label, group=_GROUP, **kw)
 
 
+#: options that need both epochs in one place, refused for tiled inputs (key -> what to do)
+CHECK_TILED = {
+    "stable_mask": "the stable-ground pre-alignment is one fit over both whole epochs; align "
+    "the epochs first (e.g. with a global ICP) or run on one file per epoch",
+    "prealign": "the pre-alignment is one fit over both whole epochs; align the epochs first "
+    "or run on one file per epoch",
+}
+
 SPEC = JobSpec(
     name="icp",
     title="Displacement field (windowed ICP)",
@@ -67,7 +77,7 @@ SPEC = JobSpec(
         "variance factor."
     ),
     options=(
-        *pair_options(),
+        *pair_options(accepts_tiles=True),
         _opt(
             "cell_m",
             "float",
@@ -196,6 +206,7 @@ SPEC = JobSpec(
         ),
     ),
     citation=CITATION,
+    check=lambda opts: check_fields_tiled(opts, refused=CHECK_TILED),
 )
 
 #: options passed to ``windowed_icp`` under their own key (add new core options here)
@@ -279,30 +290,40 @@ def run(
         cell_rings, "crs": pyproj CRS or None}``.
     """
     from ..core.icp import windowed_icp
+    from .tiled import is_tiled
 
+    tiled = is_tiled(opts, "before", "after")
+    if tiled and stable_mask is not None:  # QGIS gives the moving area as a layer
+        raise tiled_refusal("stable_mask", CHECK_TILED["stable_mask"])
     plan = OutputPlan.for_outputs(
-        inputs={k: opts.get(k) for k in ("before", "after", "control", "stable_mask")},
+        inputs=pair_inputs(opts, "before", "after", "control", "stable_mask"),
         outputs=outputs,
         default_names=default_names(opts),
     )
     plan.check()
     with plan:
         control = read_control(opts.get("control"))
-        before, after, crs = read_pair(opts)
-        check_overlap(before, after)
-        exclude = None
-        if stable_mask is None and opts.get("stable_mask"):
-            stable_mask = _mask_reader(opts["stable_mask"])
-        if stable_mask is not None:
-            exclude = stable_mask(crs)
-        res = windowed_icp(
-            before,
-            after,
-            prealign=bool(exclude) or bool(opts.get("prealign")),
-            exclude_polygons=exclude,
-            progress=progress,
-            **core_kwargs(opts),
-        )
+        if tiled:  # blocks of cells (app/tiled_fields.py)
+            from .tiled_fields import icp_for_job
+
+            res, crs = icp_for_job(opts, core_kwargs(opts), progress=progress)
+            before = None
+        else:
+            before, after, crs = read_pair(opts)
+            check_overlap(before, after)
+            exclude = None
+            if stable_mask is None and opts.get("stable_mask"):
+                stable_mask = _mask_reader(opts["stable_mask"])
+            if stable_mask is not None:
+                exclude = stable_mask(crs)
+            res = windowed_icp(
+                before,
+                after,
+                prealign=bool(exclude) or bool(opts.get("prealign")),
+                exclude_polygons=exclude,
+                progress=progress,
+                **core_kwargs(opts),
+            )
         comparison = None
         if control is not None:
             field = field_of_columns(
@@ -402,8 +423,12 @@ def _write(plan: OutputPlan, res, columns, rings, crs, before) -> None:
     if report is not None:
         from ..core.dem import common_grid, grid_elevation
 
-        cell = max(res.cell_m / 20.0, 0.05)
-        grid = common_grid(before, cell_m=cell, overlap="union")
+        background, extent = None, None
+        if before is not None:  # tiled inputs: the cells alone (no epoch in memory)
+            cell = max(res.cell_m / 20.0, 0.05)
+            grid = common_grid(before, cell_m=cell, overlap="union")
+            background = report.hillshade(grid_elevation(before, grid=grid), cell_m=cell)
+            extent = (grid.x_min, grid.x_max, grid.y_min, grid.y_max)
         report.plot_vector_field(
             plan.file("plot"),
             x=res.x,
@@ -411,7 +436,7 @@ def _write(plan: OutputPlan, res, columns, rings, crs, before) -> None:
             dx=res.dx,
             dy=res.dy,
             colour=res.dz,
-            background=report.hillshade(grid_elevation(before, grid=grid), cell_m=cell),
-            extent=(grid.x_min, grid.x_max, grid.y_min, grid.y_max),
+            background=background,
+            extent=extent,
             title=f"windowed ICP, {res.cell_m:g} m cells",
         )

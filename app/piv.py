@@ -26,6 +26,7 @@ from .fields import (
     figures,
     horizontal_columns,
     output_option,
+    pair_inputs,
     pair_options,
     read_control,
     read_pair,
@@ -35,6 +36,7 @@ from .job import JobResult, Progress, scaled
 from .options import JobSpec, Option, OptionError
 from .outputs import OutputPlan
 from .summaries import finite_stats, json_text
+from .tiled_fields import check_fields_tiled
 
 log = logging.getLogger("slipmap.app")
 
@@ -62,7 +64,7 @@ SPEC = JobSpec(
         "final window after the horizontal shift."
     ),
     options=(
-        *pair_options(),
+        *pair_options(accepts_tiles=True),
         _num(
             "grid_m",
             "float",
@@ -173,6 +175,13 @@ SPEC = JobSpec(
         ),
     ),
     citation=CITATION,
+    check=lambda opts: check_fields_tiled(
+        opts,
+        refused={
+            "write_dems": "`slipmap dem-diff` writes both DEMs of tiled inputs (bands z_before, "
+            "z_after of a Cloud-Optimized GeoTIFF)"
+        },
+    ),
 )
 
 
@@ -223,11 +232,10 @@ def run(
         ``data``: ``{"result": PIVResult, "columns": vectors' columns with magnitude and
         azimuth_deg, "crs": pyproj CRS or None}``.
     """
-    from ..core.dem import grid_elevation
-    from ..core.piv import piv
+    from .tiled import is_tiled
 
     plan = OutputPlan.for_outputs(
-        inputs={k: opts.get(k) for k in ("before", "after", "control")},
+        inputs=pair_inputs(opts, "before", "after", "control"),
         outputs=outputs,
         default_names=default_names(opts),
     )
@@ -237,36 +245,15 @@ def run(
         control = read_control(opts.get("control"))
         if progress is not None:
             progress(0.0, "reading both epochs")
-        before, after, crs = read_pair(opts)
-        grid = common_grid_of(
-            before, after, opts["grid_m"], key="grid_m", bytes_per_cell=BYTES_PER_CELL
-        )
-        if max(wins) > min(grid.shape):
-            raise OptionError(
-                "windows_px",
-                f"a window of {max(wins)} px does not fit in the {grid.n_rows} x {grid.n_cols} "
-                f"px DEM ({grid.cell_m:g} m cells over the epochs' overlap); use smaller "
-                "windows or a smaller {grid_m}",
-                also=("grid_m",),
+        if is_tiled(opts, "before", "after"):  # blocks of windows (app/tiled_fields.py)
+            from .tiled_fields import piv_for_job
+
+            res, grid, crs = piv_for_job(
+                opts, wins, bytes_per_cell=BYTES_PER_CELL, progress=scaled(progress, 0.0, 0.95)
             )
-        if progress is not None:
-            progress(0.02, "gridding both epochs")
-        zb = grid_elevation(before, grid=grid)
-        za = grid_elevation(after, grid=grid)
-        del before, after
-        log.info("DEMs: %d x %d cells of %.3f m", grid.n_rows, grid.n_cols, grid.cell_m)
-        res = piv(
-            zb,
-            za,
-            grid=grid,
-            windows_px=wins,
-            overlap=opts["overlap"],
-            search_px=opts.get("search_px"),
-            expected_max_displacement_m=opts.get("max_displacement_m"),
-            snr_min=opts["snr_min"],
-            median_threshold=opts["median_threshold"],
-            progress=scaled(progress, 0.05, 0.95),
-        )
+            zb = za = None
+        else:
+            res, grid, crs, zb, za = _compute(opts, wins, progress)
         cols = res.to_columns()
         comparison = None
         if control is not None:
@@ -327,6 +314,45 @@ def run(
 _KEYS = ("table", "dx", "dy", "dz", "dems", "plot", "summary")
 
 
+def _compute(opts: Mapping[str, Any], wins, progress):
+    """One file per epoch: both read whole, gridded, PIV. Returns ``(PIVResult, grid, crs,
+    z_before, z_after)``."""
+    from ..core.dem import grid_elevation
+    from ..core.piv import piv
+
+    before, after, crs = read_pair(opts)
+    grid = common_grid_of(
+        before, after, opts["grid_m"], key="grid_m", bytes_per_cell=BYTES_PER_CELL
+    )
+    if max(wins) > min(grid.shape):
+        raise OptionError(
+            "windows_px",
+            f"a window of {max(wins)} px does not fit in the {grid.n_rows} x {grid.n_cols} "
+            f"px DEM ({grid.cell_m:g} m cells over the epochs' overlap); use smaller "
+            "windows or a smaller {grid_m}",
+            also=("grid_m",),
+        )
+    if progress is not None:
+        progress(0.02, "gridding both epochs")
+    zb = grid_elevation(before, grid=grid)
+    za = grid_elevation(after, grid=grid)
+    del before, after
+    log.info("DEMs: %d x %d cells of %.3f m", grid.n_rows, grid.n_cols, grid.cell_m)
+    res = piv(
+        zb,
+        za,
+        grid=grid,
+        windows_px=wins,
+        overlap=opts["overlap"],
+        search_px=opts.get("search_px"),
+        expected_max_displacement_m=opts.get("max_displacement_m"),
+        snr_min=opts["snr_min"],
+        median_threshold=opts["median_threshold"],
+        progress=scaled(progress, 0.05, 0.95),
+    )
+    return res, grid, crs, zb, za
+
+
 def _written(plan: OutputPlan, key: str) -> bool:
     return plan.wants(key) and plan.file(key).exists()
 
@@ -367,7 +393,7 @@ def _write(plan: OutputPlan, res, cols, zb, za, grid, crs) -> None:
             dy=cols["dy"],
             valid=cols["valid"],
             colour=cols["dz"],
-            background=report.hillshade(zb, cell_m=grid.cell_m),
+            background=None if zb is None else report.hillshade(zb, cell_m=grid.cell_m),
             extent=(grid.x_min, grid.x_max, grid.y_min, grid.y_max),
             title=f"PIV, GR {grid.cell_m:g} m, windows {list(res.windows_px)} px",
         )

@@ -30,6 +30,7 @@ owns. No point cloud travels to the driver.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from dataclasses import dataclass, fields, replace
@@ -55,6 +56,10 @@ __all__ = [
 
 #: pixels of halo for the cubic warper's spline prefilter (0.268 ** 24 ~ 2e-14)
 SPLINE_HALO_PX = 24
+#: extra cells of halo with ICP deformation passes: the field's cubic spline ties every cell
+#: to all others, its influence falling 3.7x per cell (0.268 ** 12 ~ 1e-7; 6 cells left 0.6 mm
+#: on the 5 m cells of tests/app/test_tiled_fields.py, 12 cells 4e-11 m)
+DEFORM_HALO_CELLS = 12
 #: every point (no class selection)
 _ALL = Selection()
 
@@ -108,6 +113,20 @@ def pair_grid(before: TileCollection, after: TileCollection, cell_m: float):
 
     (lo_b, hi_b), (lo_a, hi_a) = before.bounds, after.bounds
     return grid_for_bounds(np.maximum(lo_b, lo_a), np.minimum(hi_b, hi_a), cell_m=cell_m)
+
+
+@contextlib.contextmanager
+def _quiet_core():
+    """The core's per-run INFO lines off while a block runs (one line per block and pass
+    would bury the job's own); warnings still show."""
+    core = logging.getLogger("slipmap.core")
+    level = core.level
+    if core.getEffectiveLevel() < logging.WARNING:
+        core.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        core.setLevel(level)
 
 
 def _engine(engine: Optional[Engine]) -> Engine:
@@ -334,7 +353,10 @@ def _piv_block(task: _PivTask):
         return task.core, None
     frame = (task.grid.n_rows, task.grid.n_cols, r0, c0)
     try:
-        res = piv(zb, za, grid=task.grid.window(*task.window), window_frame=frame, **task.piv_kw)
+        with _quiet_core():
+            res = piv(
+                zb, za, grid=task.grid.window(*task.window), window_frame=frame, **task.piv_kw
+            )
     except InputDataError as exc:  # no window with data, no valid vector: a gap of the survey
         log.debug("PIV block at (%d, %d): %s", r0, c0, exc)
         return task.core, None
@@ -517,6 +539,7 @@ class _IcpTask:
     halo_m: float
     x0: float  # the whole run's lattice: west edge of column 0
     y0: float  # north edge of row 0
+    origin_xy: Optional[Tuple[float, float]]  # the lattices' node (coarse levels too)
     icp_kw: Dict[str, Any]
     selection: Selection
 
@@ -561,9 +584,10 @@ def _icp_block(task: _IcpTask):
     if n_fit == 0 or len(b) == 0:
         return counts, None
     try:
-        res = windowed_icp(
-            b, a, origin_xy=(task.x0, task.y0), sigma_scaling="formal", **task.icp_kw
-        )
+        with _quiet_core():
+            res = windowed_icp(
+                b, a, origin_xy=task.origin_xy, sigma_scaling="formal", **task.icp_kw
+            )
     except InputDataError as exc:
         log.debug("ICP block %s: %s", task.block.as_tuple(), exc)
         counts["icp_failed"] = n_fit
@@ -615,7 +639,8 @@ def icp_tiled(
         raise InvalidParameterError(f"cell_m must be a positive number, got {cell_m!r}")
     buf = 0.5 * cell if buffer_m is None else float(buffer_m)
     levels = int(coarse_to_fine)
-    halo = (2**levels) * (buf + 3.0 * cell)
+    ring = 3 + (DEFORM_HALO_CELLS if int(icp_kw.get("deform_passes") or 0) > 0 else 0)
+    halo = (2**levels) * (buf + ring * cell)
     lo, hi = after.bounds
     ox, oy = (0.0, 0.0) if origin_xy is None else (float(origin_xy[0]), float(origin_xy[1]))
     x0 = ox + math.floor((lo[0] - ox) / cell) * cell
@@ -633,7 +658,7 @@ def icp_tiled(
             if not len(ta) or not after.restricted(block, 1e-6 * cell):
                 continue
             tb = before.restricted(block, halo)
-            tasks.append(_IcpTask(tb, ta, block, halo, x0, y0, kw, selection))
+            tasks.append(_IcpTask(tb, ta, block, halo, x0, y0, origin_xy, kw, selection))
     log.info(
         "windowed ICP on %d block(s) of %d x %d cells of %g m (halo %.1f m)",
         len(tasks), nb, nb, cell, halo,
@@ -689,7 +714,6 @@ def check_fields_tiled(opts, *, refused: Dict[str, str]) -> None:
     """Cross-option check of a field job (its JobSpec ``check``): the Dask options' check and,
     for tiled inputs or Dask runs, the options that need both epochs in one place, refused
     naming them (``refused``: option key -> what to do instead)."""
-    from .options import OptionError
     from .tiled import check_scale, is_tiled
 
     check_scale(opts)
@@ -697,7 +721,14 @@ def check_fields_tiled(opts, *, refused: Dict[str, str]) -> None:
         return
     for key, why in refused.items():
         if opts.get(key):
-            raise OptionError(key, f"is not available for tiled inputs or Dask runs: {why}")
+            raise tiled_refusal(key, why)
+
+
+def tiled_refusal(key: str, why: str):
+    """The OptionError refusing option ``key`` for tiled inputs (``why``: what to do)."""
+    from .options import OptionError
+
+    return OptionError(key, f"is not available for tiled inputs or Dask runs: {why}")
 
 
 def _tile(opts) -> float:

@@ -1048,17 +1048,22 @@ def _cell_index(xy: np.ndarray, x0, y0, cell) -> Tuple[np.ndarray, np.ndarray]:
 
 def _interpolator(res: WindowedICPResult) -> Callable[[np.ndarray], np.ndarray]:
     """Ground motion of a windowed-ICP result at any xy: bilinear between cell centres, the
-    nearest fitted cell where a neighbour is missing, zero when no cell was fitted."""
+    nearest fitted cell where a neighbour is missing, zero when no cell was fitted.
+
+    The grid gets a border of empty cells, so that a point beyond the outermost centres takes
+    the nearest fitted cell whether the grid ends there or holds unfitted cells: the start of
+    a fine cell then does not depend on how far the data (a tiled run's block) reaches.
+    """
     from .fields import GriddedField, sample_field
 
     if len(res) == 0:
         return lambda xy: np.zeros((len(xy), 3))
+    x0, y0 = res.origin_xy
+    s = res.cell_m
     field = GriddedField(
-        origin_xy=res.origin_xy,
-        spacing_m=(res.cell_m, res.cell_m),
-        dx=res.to_grid("dx"),
-        dy=res.to_grid("dy"),
-        dz=res.to_grid("dz"),
+        origin_xy=(x0 - s, y0 + s),
+        spacing_m=(s, s),
+        **{k: np.pad(res.to_grid(k), 1, constant_values=np.nan) for k in ("dx", "dy", "dz")},
     )
 
     def f(xy: np.ndarray) -> np.ndarray:
