@@ -42,7 +42,16 @@ import numpy as np
 
 X0, Y0, Z0 = 500000.0, 4200000.0, 10.0
 EXTENT = 100.0
-TILES = {"slip": 50.0, "roughness": 100.0, "planes": 100.0}
+TILES = {
+    "slip": 50.0,
+    "roughness": 100.0,
+    "planes": 100.0,
+    "dem": 100.0,
+    "piv": 200.0,
+    "icp": 100.0,
+}
+#: the field jobs' settings (DEM cells and PIV windows of the study's scale, 5 m ICP cells)
+FIELDS = {"grid_m": 0.5, "windows_px": (32, 16, 16), "cell_m": 5.0}
 
 
 def _rss_mb() -> float:
@@ -137,8 +146,40 @@ def _run_job(job, before, after, trace, engine):
             "cells": len(g),
             "median_theta_mm": round(1000 * float(np.nanmedian(g.theta_odr)), 4),
         }
+    if job in ("dem", "piv", "icp"):
+        return _run_field(job, before, after, t, engine)
     p = planes_tiled(before, tile_size_m=t, engine=engine)
     return {"planes": len(p), "tile_planes": p.n_tile_planes}
+
+
+def _run_field(job, before, after, t, engine):
+    """The field jobs on tiles: the DEM difference streamed into a COG (a temporary file),
+    PIV and windowed ICP per block with their halos."""
+    import tempfile
+
+    from slipmap.app import tiled_fields as tf
+    from slipmap.core.io.raster import RasterBlockWriter
+
+    if job == "dem":
+        with tempfile.TemporaryDirectory() as tmp:
+
+            def writer(g):
+                path = Path(tmp) / "dem.tif"
+                return RasterBlockWriter(path, (3, *g.shape), origin_xy=g.origin_xy,
+                                         pixel_size_m=g.cell_m)  # fmt: skip
+
+            res = tf.dem_difference_tiled(before, after, cell_m=FIELDS["grid_m"],
+                                          writer_factory=writer, tile_size_m=t,
+                                          engine=engine)  # fmt: skip
+            return {"cells": res.n_valid, "mean_dz_mm": round(1000 * res.mean_m, 4)}
+    if job == "piv":
+        res, _ = tf.piv_tiled(before, after, grid_m=FIELDS["grid_m"],
+                              windows_px=FIELDS["windows_px"], expected_max_displacement_m=0.1,
+                              tile_size_m=t, engine=engine)  # fmt: skip
+        return {"vectors": int(np.isfinite(res.dx).sum()),
+                "median_dy_mm": round(1000 * float(np.nanmedian(res.dy)), 3)}  # fmt: skip
+    res = tf.icp_tiled(before, after, cell_m=FIELDS["cell_m"], tile_size_m=t, engine=engine)
+    return {"cells": len(res.x), "median_dy_mm": round(1000 * float(np.median(res.dy)), 3)}
 
 
 def _worker_peak_mb():
@@ -151,7 +192,8 @@ def run(data: Path, copies: int, job: str, workers: int) -> dict:
     from slipmap.app.engine import make_engine
 
     before, after, trace = _inputs(data, copies)
-    n_points = before.n_points + (after.n_points if job == "slip" else 0)
+    two = job in ("slip", "dem", "piv", "icp")  # jobs that read both epochs
+    n_points = before.n_points + (after.n_points if two else 0)
     out = {"job": job, "copies": copies, "n_points": n_points, "workers": workers}
     if workers == 0:
         eng = _timed_engine()
@@ -160,7 +202,7 @@ def run(data: Path, copies: int, job: str, workers: int) -> dict:
         out["seconds"] = time.perf_counter() - t0
         main = [r for r in eng.records if not r[0].startswith("_pilot")]
         out["tiles"] = len([r for r in main if r[0] in ("_slip_tile", "_roughness_tile",
-                                                        "_planes_tile")])  # fmt: skip
+                            "_planes_tile", "_dem_block", "_piv_block", "_icp_block")])  # fmt: skip
         out["task_seconds"] = sum(r[1] for r in main)
         out["task_cpu_seconds"] = sum(r[3] for r in main)
         out["result_bytes"] = sum(r[2] for r in main)

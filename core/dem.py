@@ -326,7 +326,7 @@ def grid_points(
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = sums / count + z_ref
     mean[count == 0] = np.nan
-    if not z.size:
+    if not z.size and window is None:  # a block of a larger grid may be empty
         log.warning("no point falls inside the grid: the elevation raster is all NaN")
     return GriddedElevation(
         grid=grid,

@@ -203,8 +203,17 @@ def test_dem_diff_of_tiles_is_the_one_file_raster_as_a_cog(epochs, tmp_path, cap
         (tiles, ("before_tiles", "after_tiles/*.laz")),
     ):
         rc, err = _cli(
-            ["dem-diff", str(epochs / b), str(epochs / a), "--grid", "0.5", "--out", str(out),
-             "--tile-size", "12"],  # fmt: skip
+            [
+                "dem-diff",
+                str(epochs / b),
+                str(epochs / a),
+                "--grid",
+                "0.5",
+                "--out",
+                str(out),
+                "--tile-size",
+                "12",
+            ],  # fmt: skip
             capsys,
         )
         assert rc == 0, err

@@ -1,0 +1,130 @@
+"""The field algorithms on tiled inputs in QGIS (issue #17): a glob of tiles per epoch gives
+the one-file DEM difference and ICP cells; the tiles' size and the Dask scheduler are
+advanced parameters; a moving-area layer (a global pre-alignment) is refused for tiles
+naming its label, nothing written."""
+
+import numpy as np
+import pyproj
+import pytest
+
+pytestmark = pytest.mark.qgis
+
+UTM11 = pyproj.CRS.from_epsg(32611)
+ORIGIN = np.array([500_000.0, 4_200_000.0, 0.0])
+
+
+def _ground(rng, n):
+    xy = np.c_[rng.uniform(0, 60.0, n), rng.uniform(0, 48.0, n)]
+    x, y = xy[:, 0], xy[:, 1]
+    z = (
+        0.3 * np.sin(2 * np.pi * x / 4.3)
+        + 0.25 * np.cos(2 * np.pi * y / 3.7)
+        + 0.08 * np.sin(2 * np.pi * x / 1.3) * np.cos(2 * np.pi * y / 1.7)
+        + rng.normal(0.0, 0.005, n)
+    )
+    return np.c_[xy, z]
+
+
+@pytest.fixture(scope="module")
+def epochs(tmp_path_factory):
+    """Two samplings of rough ground, the second moved 4 cm east, as one LAS per epoch and as
+    17 m / 13 m tiles."""
+    from slipmap.core.io.las import PointCloud, write_las
+
+    root = tmp_path_factory.mktemp("q_tiled_fields")
+    rng = np.random.default_rng(5)
+    for name, shift, edge in (("before", 0.0, 17.0), ("after", 0.04, 13.0)):
+        pts = _ground(rng, 43_000) + ORIGIN + [shift, 0.0, 0.0]
+        write_las(root / f"{name}.las", PointCloud(pts, {}, UTM11))
+        folder = root / f"{name}_tiles"
+        folder.mkdir()
+        k = np.floor((pts[:, :2] - pts[:, :2].min(0) + 2.0) / edge).astype(int)
+        for key in np.unique(k, axis=0):
+            m = np.all(k == key, axis=1)
+            write_las(folder / f"t_{key[0]}_{key[1]}.las", PointCloud(pts[m], {}, UTM11))
+    return root
+
+
+def _run(alg, params):
+    import processing
+    from qgis.core import QgsProcessingContext, QgsProcessingFeedback
+
+    return processing.run(
+        f"slipmap:{alg}", params, context=QgsProcessingContext(), feedback=QgsProcessingFeedback()
+    )
+
+
+@pytest.mark.parametrize("alg", ["demdiff", "piv", "windowedicp"])
+def test_tile_size_and_scheduler_are_advanced(provider, alg):
+    from qgis.core import QgsApplication, QgsProcessingParameterDefinition
+
+    a = QgsApplication.processingRegistry().algorithmById(f"slipmap:{alg}")
+    names = {p.name(): p for p in a.parameterDefinitions()}
+    assert "WORKERS" not in names
+    for key in ("SCHEDULER", "TILE_SIZE"):
+        assert names[key].flags() & QgsProcessingParameterDefinition.FlagAdvanced, key
+
+
+def test_dem_difference_and_icp_of_tile_folders_equal_one_file(provider, epochs, tmp_path):
+    from slipmap.core.io.raster import read_geotiff
+
+    rasters, cells = {}, {}
+    for name, b, a in (
+        ("file", epochs / "before.las", epochs / "after.las"),
+        ("tiles", epochs / "before_tiles" / "t_*.las", epochs / "after_tiles" / "t_*.las"),
+    ):
+        out = tmp_path / f"{name}_dem.tif"
+        _run(
+            "demdiff",
+            {"BEFORE": str(b), "AFTER": str(a), "GRID": 0.5, "TILE_SIZE": 11.0,
+             "OUTPUT": str(out), "SUMMARY": str(tmp_path / f"{name}_dem.json")},
+        )  # fmt: skip
+        rasters[name] = read_geotiff(out)[0]
+        res = _run(
+            "windowedicp",
+            {"BEFORE": str(b), "AFTER": str(a), "CELL": 6.0, "MIN_POINTS": 50,
+             "TILE_SIZE": 12.0, "CELLS": "memory:", "VECTORS": "memory:",
+             "SUMMARY": str(tmp_path / f"{name}_icp.json")},
+        )  # fmt: skip
+        layer = res["CELLS"]
+        if isinstance(layer, str):
+            from qgis.core import QgsProcessingUtils, QgsProject
+
+            layer = QgsProject.instance().mapLayer(layer) or QgsProcessingUtils.mapLayerFromString(
+                layer, None
+            )
+        cells[name] = sorted((f["x"], f["y"], f["dx"]) for f in layer.getFeatures())
+    f, t = rasters["file"], rasters["tiles"]
+    assert np.array_equal(np.isnan(f), np.isnan(t))
+    assert np.nanmax(np.abs(f - t)) <= 1e-9
+    assert len(cells["tiles"]) == len(cells["file"]) > 40
+    got, want = np.array(cells["tiles"]), np.array(cells["file"])
+    assert np.max(np.abs(got - want)) <= 1e-9
+    assert np.median(want[:, 2]) == pytest.approx(0.04, abs=0.005)
+
+
+def test_moving_area_layer_refused_for_tiles(provider, epochs, tmp_path):
+    from qgis.core import (
+        QgsFeature,
+        QgsGeometry,
+        QgsPointXY,
+        QgsProcessingException,
+        QgsVectorLayer,
+    )
+
+    mask = QgsVectorLayer("Polygon?crs=EPSG:32611", "moving", "memory")
+    f = QgsFeature()
+    x0, y0 = ORIGIN[0] + 20.0, ORIGIN[1] + 20.0
+    ring = [QgsPointXY(x0 + dx, y0 + dy) for dx, dy in ((0, 0), (10, 0), (10, 10), (0, 10))]
+    f.setGeometry(QgsGeometry.fromPolygonXY([ring]))
+    mask.dataProvider().addFeatures([f])
+    with pytest.raises(QgsProcessingException) as e:
+        _run(
+            "windowedicp",
+            {"BEFORE": str(epochs / "before_tiles" / "*.las"),
+             "AFTER": str(epochs / "after_tiles" / "*.las"),
+             "CELL": 6.0, "STABLE_MASK": mask, "CELLS": "memory:", "VECTORS": "memory:",
+             "SUMMARY": str(tmp_path / "icp.json")},
+        )  # fmt: skip
+    assert "tiled inputs" in str(e.value) and "Moving area" in str(e.value)
+    assert list(tmp_path.iterdir()) == []
