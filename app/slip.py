@@ -578,15 +578,21 @@ _OUTPUT_NEEDS = {"tiles": "tile_size_m", "strips": "strip_width_m", "windows": "
 
 def check_outputs(opts: Mapping[str, Any], wanted) -> None:
     """Refuse an output asked for without the option that makes it (tiles without a tile
-    size, strips without a strip width, windows without a window size).
+    size, except for tiled inputs, which always run on tiles; strips without a strip width,
+    windows without a window size).
 
     Raises
     ------
     OptionError
         Naming the output and the option.
     """
+    from .tiled import is_tiled
+
+    tiled = is_tiled(opts, "before", "after")
     for key in wanted:
         need = _OUTPUT_NEEDS.get(key)
+        if key == "tiles" and tiled:  # tiled inputs always run on tiles (default 100 m)
+            continue
         if need is not None and opts.get(need) is None:
             raise OptionError(
                 key,

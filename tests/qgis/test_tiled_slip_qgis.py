@@ -114,3 +114,31 @@ def test_unreachable_scheduler_named_by_label(provider, epochs, tmp_path, monkey
         )
     assert '"Dask scheduler address (tcp://host:port)"' in str(e.value)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_tiles_layer_without_tile_size_for_tiled_inputs(provider, epochs, tmp_path):
+    """Tiled inputs always run on tiles (100 m by default): the Tiles layer needs no
+    TILE_SIZE then, and its tiles carry the default size."""
+    from qgis.core import QgsProcessingUtils, QgsProject
+
+    root, xy = epochs
+    res = _run(
+        {
+            "BEFORE": str(root / "before_tiles" / "t_*.las"),
+            "AFTER": str(root / "after_tiles" / "t_*.las"),
+            "FAULT": _fault_layer(xy),
+            "SUMMARY": str(tmp_path / "s.json"),
+            "PLANES": "memory:",
+            "TILES": "memory:",
+        }
+    )
+    layer = res["TILES"]
+    if isinstance(layer, str):
+        layer = QgsProject.instance().mapLayer(layer) or QgsProcessingUtils.mapLayerFromString(
+            layer, None
+        )
+    feats = list(layer.getFeatures())
+    assert feats
+    for f in feats:
+        box = f.geometry().boundingBox()
+        assert box.width() == pytest.approx(100.0) and box.height() == pytest.approx(100.0)
