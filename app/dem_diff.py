@@ -146,22 +146,7 @@ def run(
                 diverging=("dz = after - before (m)",),
                 columns=2,
             )
-        summary = {
-            "command": "dem-diff",
-            "before": str(opts["before"]),
-            "after": str(opts["after"]),
-            "grid_m": g.cell_m,
-            "shape": list(g.shape),
-            "origin_xy": list(g.origin_xy),
-            "dz_m": finite_stats(res.dz),
-            "files": [
-                plan.final(k).name
-                for k in ("raster", "plot")
-                if plan.wants(k) and plan.file(k).exists()
-            ],
-            "crs": None if crs is None else crs.to_wkt(),
-            "slipmap_version": __version__,
-        }
+        summary = _summary(opts, g, finite_stats(res.dz), plan, crs)
         if plan.wants("summary"):
             plan.file("summary").write_text(json_text(summary), encoding="utf-8")
         if progress is not None:
@@ -195,18 +180,7 @@ def _run_tiled(opts: Mapping[str, Any], plan: OutputPlan, progress) -> JobResult
         g = res.grid
         if plan.wants("plot"):
             log.info("no figure for tiled inputs: open the GeoTIFF (a COG with overviews)")
-        summary = {
-            "command": "dem-diff",
-            "before": str(opts["before"]),
-            "after": str(opts["after"]),
-            "grid_m": g.cell_m,
-            "shape": list(g.shape),
-            "origin_xy": list(g.origin_xy),
-            "dz_m": res.stats(),
-            "files": [plan.final("raster").name] if plan.wants("raster") else [],
-            "crs": None if crs is None else crs.to_wkt(),
-            "slipmap_version": __version__,
-        }
+        summary = _summary(opts, g, res.stats(), plan, crs)
         if plan.wants("summary"):
             plan.file("summary").write_text(json_text(summary), encoding="utf-8")
     lines = [
@@ -217,3 +191,23 @@ def _run_tiled(opts: Mapping[str, Any], plan: OutputPlan, progress) -> JobResult
         k: plan.final(k) for k in ("raster", "summary") if plan.wants(k) and plan.final(k).exists()
     }
     return JobResult(summary, lines, files, data=res)
+
+
+def _summary(opts: Mapping[str, Any], g, dz_stats, plan: OutputPlan, crs) -> Dict[str, Any]:
+    """``dem_diff.json`` (before it names itself): inputs, grid, dz statistics, files."""
+    return {
+        "command": "dem-diff",
+        "before": str(opts["before"]),
+        "after": str(opts["after"]),
+        "grid_m": g.cell_m,
+        "shape": list(g.shape),
+        "origin_xy": list(g.origin_xy),
+        "dz_m": dz_stats,
+        "files": [
+            plan.final(k).name
+            for k in ("raster", "plot")
+            if plan.wants(k) and plan.file(k).exists()
+        ],
+        "crs": None if crs is None else crs.to_wkt(),
+        "slipmap_version": __version__,
+    }
