@@ -175,6 +175,7 @@ def _run_tiled(opts: Mapping[str, Any], plan: OutputPlan, progress) -> JobResult
             plan.file("raster") if plan.wants("raster") else None,
             bands=BANDS,
             metadata={"method": "DEM difference, dz = z_after - z_before"},
+            bytes_per_cell=BYTES_PER_CELL,
             progress=progress,
         )
         g = res.grid

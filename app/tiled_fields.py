@@ -244,6 +244,7 @@ def dem_difference_tiled(
     engine: Optional[Engine] = None,
     progress: Optional[ProgressCallback] = None,
     sample_every: Optional[int] = None,
+    check_block=None,
 ) -> TiledDem:
     """DEM difference of two tiled epochs, block by block (exact).
 
@@ -257,6 +258,9 @@ def dem_difference_tiled(
         z_before, z_after); None writes nothing.
     tile_size_m : float
         Block edge (m), rounded to whole cells.
+    check_block : callable, optional
+        ``f(n_cells)``, called with a block's cell count before any is read (the job's
+        memory check).
     sample_every : int, optional
         Keep every k-th valid dz of each block for the summary's median (default: about a
         million values in all; 1 keeps every value, the median is then exact).
@@ -267,6 +271,8 @@ def dem_difference_tiled(
     """
     grid = pair_grid(before, after, cell_m)
     b = max(8, int(round(float(tile_size_m) / grid.cell_m)))
+    if check_block is not None:
+        check_block(min(b, grid.n_rows) * min(b, grid.n_cols))
     windows = [
         (r0, c0, r1 - r0, c1 - c0)
         for r0, r1 in _spans(grid.n_rows, b)
@@ -739,7 +745,17 @@ def _wkt(crs) -> Optional[str]:
     return None if crs is None else crs.to_wkt()
 
 
-def dem_for_job(opts, raster_path, *, bands, metadata, progress=None):
+def _memory_check(bytes_per_cell: float, what: str):
+    """A block's memory check, refusing a ``--tile-size`` whose blocks would not fit."""
+    from .resources import check_grid_memory
+
+    def check(n_cells):
+        check_grid_memory("tile_size_m", n_cells, bytes_per_cell=bytes_per_cell, what=what)
+
+    return check
+
+
+def dem_for_job(opts, raster_path, *, bands, metadata, bytes_per_cell: float, progress=None):
     """The dem-diff job on tiled inputs: the raster (bands dz, z_before, z_after) written
     block by block as a COG at ``raster_path`` (None: not written). Returns
     ``(TiledDem, crs)``."""
@@ -765,21 +781,16 @@ def dem_for_job(opts, raster_path, *, bands, metadata, progress=None):
         res = dem_difference_tiled(
             before, after, cell_m=opts["grid_m"], writer_factory=writer, selection=selection,
             tile_size_m=_tile(opts), engine=eng, progress=progress,
+            check_block=_memory_check(bytes_per_cell, "DEM block"),
         )  # fmt: skip
     return res, before.crs
 
 
 def piv_for_job(opts, windows_px, *, bytes_per_cell: float, progress=None):
     """The piv job on tiled inputs. Returns ``(PIVResult, Grid, crs)``."""
-    from .resources import check_grid_memory
     from .tiled import engine_from
 
     before, after, selection = open_pair(opts)
-
-    def check(n_cells):
-        check_grid_memory(
-            "tile_size_m", n_cells, bytes_per_cell=bytes_per_cell, what="DEM block with its halo"
-        )
 
     with engine_from(opts) as eng:
         res, grid = piv_tiled(
@@ -788,7 +799,7 @@ def piv_for_job(opts, windows_px, *, bytes_per_cell: float, progress=None):
             expected_max_displacement_m=opts.get("max_displacement_m"),
             snr_min=opts["snr_min"], median_threshold=opts["median_threshold"],
             selection=selection, tile_size_m=_tile(opts), engine=eng, progress=progress,
-            check_block=check,
+            check_block=_memory_check(bytes_per_cell, "DEM block with its halo"),
         )  # fmt: skip
     return res, grid, before.crs
 

@@ -279,3 +279,28 @@ def test_options_needing_whole_epochs_are_refused_for_tiles(
     assert rc == 2
     assert len(err) == 1 and flag in err[0] and "tiled inputs" in err[0], err
     assert snap.unchanged()
+
+
+def test_blocks_too_large_for_memory_are_refused_naming_the_tile_size(
+    epochs, tmp_path, capsys, snapshot
+):
+    out = tmp_path / "out"
+    out.mkdir()
+    snap = snapshot(out, epochs)
+    rc, err = _cli(
+        [
+            "dem-diff",
+            str(epochs / "before_tiles"),
+            str(epochs / "after_tiles"),
+            "--grid",
+            "0.0005",
+            "--tile-size",
+            "1000",
+            "--out",
+            str(out),
+        ],  # fmt: skip
+        capsys,
+    )
+    assert rc == 2
+    assert len(err) == 1 and "--tile-size" in err[0] and "DEM block" in err[0], err
+    assert snap.unchanged()
