@@ -176,6 +176,18 @@ def common_grid_of(before, after, cell_m: float, *, key: str, bytes_per_cell: fl
     return grid
 
 
+def check_windows_fit(windows_px, grid) -> None:
+    """Refuse PIV windows larger than the DEM (naming ``windows_px`` and ``grid_m``)."""
+    if max(windows_px) > min(grid.shape):
+        raise OptionError(
+            "windows_px",
+            f"a window of {max(windows_px)} px does not fit in the {grid.n_rows} x "
+            f"{grid.n_cols} px DEM ({grid.cell_m:g} m cells over the epochs' overlap); use "
+            "smaller windows or a smaller {grid_m}",
+            also=("grid_m",),
+        )
+
+
 # --------------------------------------------------------------------------- control points
 
 

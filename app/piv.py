@@ -19,6 +19,7 @@ from .fields import (
     JSON_FILTER,
     PNG_FILTER,
     TIF_FILTER,
+    check_windows_fit,
     common_grid_of,
     compare_control,
     control_option,
@@ -33,7 +34,7 @@ from .fields import (
     write_tif,
 )
 from .job import JobResult, Progress, scaled
-from .options import JobSpec, Option, OptionError
+from .options import JobSpec, Option
 from .outputs import OutputPlan
 from .summaries import finite_stats, json_text
 from .tiled_fields import check_fields_tiled
@@ -324,14 +325,7 @@ def _compute(opts: Mapping[str, Any], wins, progress):
     grid = common_grid_of(
         before, after, opts["grid_m"], key="grid_m", bytes_per_cell=BYTES_PER_CELL
     )
-    if max(wins) > min(grid.shape):
-        raise OptionError(
-            "windows_px",
-            f"a window of {max(wins)} px does not fit in the {grid.n_rows} x {grid.n_cols} "
-            f"px DEM ({grid.cell_m:g} m cells over the epochs' overlap); use smaller "
-            "windows or a smaller {grid_m}",
-            also=("grid_m",),
-        )
+    check_windows_fit(wins, grid)
     if progress is not None:
         progress(0.02, "gridding both epochs")
     zb = grid_elevation(before, grid=grid)

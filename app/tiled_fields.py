@@ -788,10 +788,11 @@ def dem_for_job(opts, raster_path, *, bands, metadata, bytes_per_cell: float, pr
 
 def piv_for_job(opts, windows_px, *, bytes_per_cell: float, progress=None):
     """The piv job on tiled inputs. Returns ``(PIVResult, Grid, crs)``."""
+    from .fields import check_windows_fit
     from .tiled import engine_from
 
     before, after, selection = open_pair(opts)
-
+    check_windows_fit(windows_px, pair_grid(before, after, opts["grid_m"]))
     with engine_from(opts) as eng:
         res, grid = piv_tiled(
             before, after, grid_m=opts["grid_m"], windows_px=windows_px,
