@@ -11,9 +11,32 @@
 
 Accuracy of both is printed too (they must recover the injected motion).
 
+``--case lobe`` (issue #18): the lone-star lobe of docs/fields.md (tests/data/lone-star.laz
+split into two disjoint random halves, the second moved by the default lobe, one pair per
+``--seeds``), with the peers run on the same data in the same run:
+
+3. PIV: SlipMap's :func:`~slipmap.core.piv.piv` against OpenPIV's ``windef`` (multi-pass
+   window deformation, ``benchmarks/peers/openpiv_windef.py``) on the same two DEMs
+   (GR 0.1 m with the default windows 64 32 16 16 px, and GR 0.25 m with 32 16 16 px, or
+   ``--grid`` m and ``--windows`` px; 50 % overlap: the vectors sit at the same places).
+   Horizontal error against the true motion at the vector positions, on the vectors both mark
+   valid, over the lobe (``r < 1``) and its interior (``r <= 0.5``).
+4. Windowed ICP: SlipMap's :func:`~slipmap.core.icp.windowed_icp` (rigid cells; with one
+   coarser pass; with two deformation passes) against Open3D's point-to-plane ICP per cell
+   (``benchmarks/peers/open3d_cells.py``) on the same cells (``--lobe-cell`` m; cells with
+   >= 500 correspondences). 3-D error against the true motion at the cell centres, in the
+   lobe and on stable ground.
+
+The peers run in the throw-away venv of ``benchmarks/peers/setup_peer_venv.sh`` (never a
+SlipMap dependency), through a subprocess; a peer whose venv or module is missing is skipped
+with a one-line reason. Times: SlipMap's call, the peer's own timer (its passes / normals and
+ICP of every cell, not the file hand-over).
+
 Usage::
 
     python benchmarks/bench_fields.py [--dem 2500] [--n 5000000] [--cell 5] [--seed 0]
+    python benchmarks/bench_fields.py --case lobe [--seeds 0 1 2] [--grid 0.1]
+        [--windows 64 32 16 16] [--lobe-cell 5]
 
 The last line is JSON.
 """
@@ -22,17 +45,23 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 
-from slipmap.core.dem import Grid
+from slipmap.core.dem import Grid, common_grid, grid_elevation
 from slipmap.core.icp import windowed_icp
 from slipmap.core.piv import piv
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from peers.peer import peer_missing, run_script  # noqa: E402
+
 ORIGIN = (512_000.0, 4_780_000.0)
+LONE_STAR = Path(__file__).resolve().parents[1] / "tests" / "data" / "lone-star.laz"
 
 
 def _sort_seconds(n: int, seed: int) -> float:
@@ -124,13 +153,226 @@ def bench_icp(n: int, cell: float, seed: int) -> dict:
     }
 
 
+def _rms(a) -> float:
+    a = np.asarray(a, dtype=np.float64)
+    return float(np.sqrt(np.mean(a**2))) if a.size else float("nan")
+
+
+def _stats(err: np.ndarray) -> dict:
+    """RMSE and median of error vectors' lengths (m), and their count."""
+    h = np.linalg.norm(err, axis=1) if err.ndim == 2 else np.abs(err)
+    return {
+        "n": int(h.size),
+        "rmse_m": round(_rms(h), 4),
+        "median_m": round(float(np.median(h)), 4) if h.size else None,
+    }
+
+
+def lobe_piv(pair, grid_m: float, windows, overlap: float = 0.5) -> dict:
+    """SlipMap PIV and OpenPIV windef on the same two DEMs of a lobe pair (see the docstring)."""
+    grid = common_grid(pair.before, pair.after, cell_m=grid_m)
+    zb = grid_elevation(pair.before, grid=grid)
+    za = grid_elevation(pair.after, grid=grid)
+    d_max = float(np.max(np.abs(pair.field.max_d_m[:2])))
+    t0 = time.perf_counter()
+    res = piv(
+        zb, za, grid=grid, windows_px=windows, overlap=overlap,
+        expected_max_displacement_m=1.2 * d_max,
+    )  # fmt: skip
+    sec = time.perf_counter() - t0
+    xy = np.column_stack([res.x.ravel(), res.y.ravel()])
+    truth = pair.field(xy)[:, :2]
+    est = np.column_stack([res.dx.ravel(), res.dy.ravel()])
+    valid = res.valid.ravel() & np.all(np.isfinite(est), axis=1)
+    regions = {
+        "lobe": pair.field.interior_mask(xy, fraction=0.999),
+        "interior": pair.field.interior_mask(xy, fraction=0.5),
+    }
+    out = {"grid_m": grid_m, "windows_px": list(windows), "vectors": int(valid.size)}
+    out["slipmap"] = {"seconds": round(sec, 2), "valid": int(valid.sum())}
+    why = peer_missing("openpiv")
+    if why is not None:
+        out["openpiv"] = {"skipped": why}
+        for name, m in regions.items():
+            out["slipmap"][name] = _stats(est[m & valid] - truth[m & valid])
+        return out
+    # SlipMap centres its windows in the DEM, OpenPIV starts them at pixel 0: crop OpenPIV's
+    # images so that the final windows of both sit at the same places
+    w, step = windows[-1], max(1, int(round(windows[-1] * (1.0 - overlap))))
+    r0, c0 = (((n - w) - ((n - w) // step) * step) // 2 for n in zb.shape)
+    o = run_script(
+        "openpiv_windef.py",
+        {
+            "z_before": zb[r0:, c0:],
+            "z_after": za[r0:, c0:],
+            "windows_px": np.asarray(windows, dtype=np.int64),
+            "overlap": np.float64(overlap),
+            "max_displacement_px": np.float64(1.2 * d_max / grid_m + 2),
+        },
+    )
+    # OpenPIV's centres are pixel-edge coordinates (column, row from the upper-left corner);
+    # its v is positive southward
+    ox = grid.x_min + (c0 + np.asarray(o["x"]).ravel()) * grid_m
+    oy = grid.y_max - (r0 + np.asarray(o["y"]).ravel()) * grid_m
+    od = np.column_stack([np.asarray(o["u"]).ravel(), -np.asarray(o["v"]).ravel()]) * grid_m
+    ovalid = np.asarray(o["valid"]).ravel()
+    # the same vector places: match by position (1 mm)
+    key = {(round(a, 3), round(b, 3)): i for i, (a, b) in enumerate(zip(ox, oy))}
+    j = np.array([key.get((round(a, 3), round(b, 3)), -1) for a, b in xy[:, :2]])
+    same = j >= 0
+    both = valid & same & ovalid[np.maximum(j, 0)]
+    od_at = np.where(same[:, None], od[np.maximum(j, 0)], np.nan)
+    out["openpiv"] = {
+        "seconds": round(float(o["seconds"]), 2),
+        "valid": int(ovalid.sum()),
+        "version": o["openpiv_version"],
+        "settings": o["settings"],
+    }
+    out["matched_vectors"] = int(same.sum())
+    if not same.any():
+        raise RuntimeError("no OpenPIV vector at a SlipMap vector's place: check the layouts")
+    for name, m in regions.items():
+        mb = m & both
+        out["slipmap"][name] = _stats(est[mb] - truth[mb])
+        out["openpiv"][name] = _stats(od_at[mb] - truth[mb])
+        out["slipmap"][name + "_own_valid"] = _stats(est[m & valid] - truth[m & valid])
+        ov = np.isfinite(od[:, 0]) & ovalid
+        oxy = np.column_stack([ox, oy])
+        mo = pair.field.interior_mask(oxy, fraction=0.999 if name == "lobe" else 0.5) & ov
+        out["openpiv"][name + "_own_valid"] = _stats(od[mo] - pair.field(oxy[mo])[:, :2])
+    return out
+
+
+def _icp_truth(field, c_xy, iterations=20):
+    """Motion of the material now at ``c_xy`` (after frame): ``field(p0)``, ``p0 + field(p0) = c``
+    (fixed point, as benchmarks/validate_fields.py)."""
+    p0 = c_xy.copy()
+    for _ in range(iterations):
+        p0 = c_xy - field(p0)[:, :2]
+    return field(p0)
+
+
+ICP_RUNS = (
+    ("slipmap rigid", {"coarse_to_fine": 0}),
+    ("slipmap rigid, coarse-to-fine 1", {"coarse_to_fine": 1}),
+    ("slipmap rigid, coarse-to-fine 1, 2 deformation passes",
+     {"coarse_to_fine": 1, "deform_passes": 2}),
+)  # fmt: skip
+
+
+def lobe_icp(pair, cell: float) -> dict:
+    """SlipMap windowed ICP variants and Open3D's per-cell ICP on the same cells."""
+    runs = {}
+    for name, kw in ICP_RUNS:
+        t0 = time.perf_counter()
+        runs[name] = (windowed_icp(pair.before, pair.after, cell_m=cell, **kw), t0)
+        runs[name] = (runs[name][0], time.perf_counter() - t0)
+    ref = runs[ICP_RUNS[0][0]][0]
+    centres = np.column_stack([ref.x, ref.y, ref.z])
+    truth = _icp_truth(pair.field, centres[:, :2])
+    dense = ref.n >= 500
+    masks = {"lobe": dense & (np.linalg.norm(truth, axis=1) > 0)}
+    masks["stable"] = dense & ~masks["lobe"]
+    out = {"cell_m": cell, "cells": len(ref), "methods": {}}
+    for name, (r, sec) in runs.items():
+        if not (np.array_equal(r.row, ref.row) and np.array_equal(r.col, ref.col)):
+            raise RuntimeError(f"{name}: other cells than the first run")
+        d = np.column_stack([r.dx, r.dy, r.dz])
+        out["methods"][name] = {"seconds": round(sec, 2)}
+        for k, m in masks.items():
+            out["methods"][name][k] = _stats(d[m] - truth[m])
+    why = peer_missing("open3d")
+    if why is not None:
+        out["methods"]["open3d"] = {"skipped": why}
+        return out
+    # the same cells: after-points by cell, before-points in the cell grown by the buffer
+    x0, y0 = ref.origin_xy
+    col = np.floor((pair.after[:, 0] - x0) / cell).astype(np.int64)
+    row = np.floor((y0 - pair.after[:, 1]) / cell).astype(np.int64)
+    key = {int(k): i for i, k in enumerate(ref.row * ref.n_cols + ref.col)}
+    inside = (row >= 0) & (row < ref.n_rows) & (col >= 0) & (col < ref.n_cols)
+    flat = np.where(inside, row * ref.n_cols + col, -1)
+    cid = np.array([key.get(int(k), -1) for k in flat], dtype=np.int64)
+    buf = 0.5 * cell
+    boxes = np.column_stack(
+        [x0 + ref.col * cell - buf, x0 + (ref.col + 1) * cell + buf,
+         y0 - (ref.row + 1) * cell - buf, y0 - ref.row * cell + buf]
+    )  # fmt: skip
+    o = run_script(
+        "open3d_cells.py",
+        {
+            "before": pair.before,
+            "after": pair.after,
+            "cell": cid,
+            "centres": centres,
+            "boxes": boxes,
+            "max_corr_m": np.float64(buf),
+            "normal_radius_m": np.float64(1.0),
+        },
+    )
+    d = np.asarray(o["d"], dtype=np.float64)
+    name = f"open3d {o['open3d_version']} per cell"
+    out["methods"][name] = {"seconds": round(float(o["seconds"]), 2)}
+    for k, m in masks.items():
+        ok = m & np.all(np.isfinite(d), axis=1)
+        out["methods"][name][k] = _stats(d[ok] - truth[ok])
+    return out
+
+
+def bench_lobe(seeds, piv_cases, cell) -> list:
+    """The lone-star lobe cases, one per seed (PIV and ICP with their peers)."""
+    from slipmap.core.io.las import read_las
+    from slipmap.core.synthetic import make_lobe_pair
+
+    pts = read_las(str(LONE_STAR)).xyz
+    out = []
+    for seed in seeds:
+        pair = make_lobe_pair(pts, seed=seed)
+        pivs = [lobe_piv(pair, g, w) for g, w in piv_cases]
+        for p in pivs:
+            sp, op = p["slipmap"], p["openpiv"]
+            case = f"seed {seed} PIV GR {p['grid_m']} m, windows {p['windows_px']}"
+            for name in ("lobe", "interior"):
+                line = f"{case}, {name}: SlipMap {sp['seconds']} s {sp[name]}"
+                if "skipped" in op:
+                    line += f"; OpenPIV skipped: {op['skipped']}"
+                else:
+                    line += f"; OpenPIV windef {op['seconds']} s {op[name]}"
+                print(line)
+        i = lobe_icp(pair, cell)
+        for name, r in i["methods"].items():
+            if "skipped" in r:
+                print(f"seed {seed} ICP {name}: skipped: {r['skipped']}")
+            else:
+                lobe, stable = r["lobe"], r["stable"]
+                print(f"seed {seed} ICP {name}: {r['seconds']} s lobe {lobe} stable {stable}")
+        out.append({"seed": seed, "piv": pivs, "icp": i})
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dem", type=int, default=2500)
     ap.add_argument("--n", type=int, default=5_000_000)
     ap.add_argument("--cell", type=float, default=5.0)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--case", choices=("synthetic", "lobe"), default="synthetic")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="lobe case seeds")
+    ap.add_argument(
+        "--grid", type=float, default=None,
+        help="lobe case: one PIV grid (m) instead of 0.1 m (64 32 16 16) and 0.25 m (32 16 16)",
+    )  # fmt: skip
+    ap.add_argument("--windows", type=int, nargs="+", default=None, help="with --grid")
+    ap.add_argument("--lobe-cell", type=float, default=5.0, help="lobe case ICP cell (m)")
     args = ap.parse_args(argv)
+    if args.case == "lobe":
+        logging.basicConfig(level=logging.WARNING)
+        cases = [(0.1, (64, 32, 16, 16)), (0.25, (32, 16, 16))]
+        if args.grid is not None:
+            cases = [(args.grid, tuple(args.windows or (64, 32, 16, 16)))]
+        out = bench_lobe(args.seeds, cases, args.lobe_cell)
+        print(json.dumps({"lobe": out}))
+        return 0
     p = bench_piv(args.dem, args.seed)
     print(
         f"PIV {args.dem}x{args.dem}: {p['vectors']} vectors in {p['seconds']} s "

@@ -1,9 +1,9 @@
-"""Run the Open3D ICP peer estimator (``open3d_icp.py``) from the project's venv.
+"""Run the peer estimators (Open3D, OpenPIV scripts in this folder) from the project's venv.
 
-Open3D is not a SlipMap dependency: it lives in a throw-away venv made by
+Open3D and OpenPIV are not SlipMap dependencies: they live in a throw-away venv made by
 ``benchmarks/peers/setup_peer_venv.sh`` (``$SLIPMAP_PEER_VENV``, default
-``~/.cache/slipmap-peer-venv``). This module only needs numpy; it hands the points to that
-venv's python through a temporary ``.npz`` and reads back its JSON.
+``~/.cache/slipmap-peer-venv``). This module only needs numpy; it hands the arrays to that
+venv's python through a temporary ``.npz`` and reads back the script's JSON.
 """
 
 from __future__ import annotations
@@ -47,6 +47,70 @@ def peer_python() -> str | None:
     """
     python = peer_venv() / "bin" / "python"
     return str(python) if python.is_file() and os.access(python, os.X_OK) else None
+
+
+def peer_missing(module: str) -> str | None:
+    """Why the peer ``module`` cannot run, in one line, or None when it can.
+
+    Parameters
+    ----------
+    module : str
+        The module the peer script imports (``"open3d"``, ``"openpiv"``).
+
+    Returns
+    -------
+    str or None
+        E.g. ``"no peer venv at ...: run bash .../setup_peer_venv.sh"``.
+    """
+    python = peer_python()
+    if python is None:
+        return f"no peer venv at {peer_venv()}: run `bash {SETUP}`"
+    proc = subprocess.run([python, "-c", f"import {module}"], capture_output=True, text=True)
+    if proc.returncode != 0:
+        last = (proc.stderr.strip().splitlines() or ["?"])[-1]
+        return f"{module} does not import in {peer_venv()} ({last}): run `bash {SETUP}`"
+    return None
+
+
+def run_script(script: str, arrays: dict, *, timeout_s: float = 1200) -> dict:
+    """Run a peer script of this folder (``python SCRIPT IN.npz OUT.json``) in the peer venv.
+
+    Parameters
+    ----------
+    script : str
+        File name in ``benchmarks/peers`` (e.g. ``"openpiv_windef.py"``).
+    arrays : dict
+        What goes into ``IN.npz`` (arrays and scalars).
+    timeout_s : float
+        Wall-clock limit of the subprocess.
+
+    Returns
+    -------
+    dict
+        The script's JSON.
+
+    Raises
+    ------
+    RuntimeError
+        If no peer venv is found, or the script fails or times out (with its stderr).
+    """
+    python = peer_python()
+    if python is None:
+        raise RuntimeError(f"no peer venv at {peer_venv()}: run `bash {SETUP}` first")
+    path = Path(__file__).resolve().with_name(script)
+    with tempfile.TemporaryDirectory(prefix="slipmap-peer-") as tmp:
+        in_path, out_path = Path(tmp) / "in.npz", Path(tmp) / "out.json"
+        np.savez(in_path, **arrays)
+        cmd = [python, str(path), str(in_path), str(out_path)]
+        log.debug("running %s", cmd)
+        try:
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+        except subprocess.TimeoutExpired as exc:
+            raise RuntimeError(f"{script} timed out after {timeout_s} s") from exc
+        if proc.returncode != 0 or not out_path.is_file():
+            raise RuntimeError(f"{script} failed (exit {proc.returncode}):\n{proc.stderr.strip()}")
+        with open(out_path, encoding="utf-8") as fh:
+            return json.load(fh)
 
 
 def icp_relative(

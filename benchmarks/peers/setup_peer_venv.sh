@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Create (idempotently) a throw-away venv holding Open3D, for the peer estimators of the
-# accuracy benchmarks (benchmarks/peers/open3d_icp.py). Open3D is NOT a SlipMap dependency:
-# the venv lives outside the repository and is never imported by the project itself.
+# Create (idempotently) a throw-away venv holding Open3D and OpenPIV, for the peer estimators
+# of the benchmarks (benchmarks/peers/open3d_icp.py, open3d_cells.py, openpiv_windef.py).
+# Neither is a SlipMap dependency (OpenPIV is GPLv3): the venv lives outside the repository
+# and is never imported by the project itself.
 #
 # Usage: bash benchmarks/peers/setup_peer_venv.sh
 #   SLIPMAP_PEER_VENV    where the venv goes (default: ~/.cache/slipmap-peer-venv)
@@ -45,5 +46,10 @@ if [[ "$import_error" == *"libusb-1.0.so.0"* ]]; then
   ln -sf "$usb_lib" "$o3d_dir/libusb-1.0.so.0"
 fi
 
-"$py" -c "import numpy, open3d; print('open3d', open3d.__version__, 'numpy', numpy.__version__)" >&2
+# OpenPIV (windef: multi-pass window deformation), the PIV peer of benchmarks/bench_fields.py
+if ! "$py" -c "import openpiv.windef" >/dev/null 2>&1; then
+  "$py" -m pip install --quiet "openpiv>=0.26" >&2
+fi
+
+"$py" -c "import numpy, open3d, openpiv; print('open3d', open3d.__version__, 'openpiv', openpiv.__version__, 'numpy', numpy.__version__)" >&2
 echo "$py"
