@@ -55,7 +55,8 @@ MAD_TO_SIGMA = 1.4826
 NORMAL_PLANARITY_RTOL = 1e-10  # neighbourhoods whose middle eigenvalue is below this are lines
 PREALIGN_MAX_POINTS = 200_000  # source points sampled for the global pre-alignment
 ROBUST_CHOICES = (None, "tukey", "huber")
-SIGMA_SCALING_CHOICES = ("field", "formal")
+SIGMA_SCALING_CHOICES = ("field", "region", "formal")
+SIGMA_REGION_BY = ("roughness", "density", "sigma")
 
 
 # --------------------------------------------------------------------------- rotations
@@ -925,7 +926,8 @@ class WindowedICPResult:
     seconds : float
         Wall time.
     sigma_factor : float
-        The factor the formal sigmas were multiplied by (1 when not scaled).
+        The factor the formal sigmas were multiplied by (1 when not scaled; with
+        ``sigma_scaling="region"`` the median of the cells' factors).
     sigma_factor_estimate : float
         The field's variance factor as estimated (NaN when not estimated or too few cells);
         ``sigma_factor = max(1, sigma_factor_estimate)`` when scaled.
@@ -942,6 +944,12 @@ class WindowedICPResult:
         ``"rigid"`` or ``"affine"``.
     deform_passes : int
         Window-deformation passes run after the first.
+    sigma_factor_cell : (K,) float64 or None
+        With ``sigma_scaling="region"``: the factor each cell's sigmas were multiplied by.
+    sigma_regions : tuple of float
+        With ``sigma_scaling="region"``: the factor of each region (lowest class first).
+    sigma_region : (K,) int64 or None
+        With ``sigma_scaling="region"``: each cell's region (-1: none, the field's factor).
     """
 
     x: np.ndarray
@@ -985,6 +993,9 @@ class WindowedICPResult:
     cell_model: str = "rigid"
     deform_passes: int = 0
     flagged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    sigma_factor_cell: Optional[np.ndarray] = None
+    sigma_regions: Tuple[float, ...] = ()
+    sigma_region: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -1370,6 +1381,8 @@ def windowed_icp(
     coarse_to_fine: int = 0,
     initial_displacement: Optional[Callable[[np.ndarray], np.ndarray]] = None,
     sigma_scaling: str = "field",
+    sigma_regions: int = 3,
+    sigma_region_by: str = "roughness",
     deform_passes: int = 0,
     cell_model: str = "rigid",
     engine: str = "batched",
@@ -1435,7 +1448,18 @@ def windowed_icp(
         (vegetation, scan shadows, the scanner's sampling pattern) break, and on lone-star
         it is 2-3x too small; the factor restores ``err / sigma`` to about 1 there. With
         fewer than 8 cells that have 5 usable neighbours the formal covariances are kept.
+        ``"region"``: one factor per region of cells instead (``sigma_regions`` classes of
+        ``sigma_region_by``; :func:`~slipmap.core.icp_sigma.region_variance_factors`), the
+        regions' factors found together, shrunk towards the field's factor where a region has
+        few cells, estimated without the cells that did not converge or are ``flagged``, and
+        multiplied by :data:`~slipmap.core.icp_sigma.REGION_INFLATION` (neighbour agreement
+        misses the error neighbouring cells share; calibrated on lone-star, docs/fields.md).
         ``"formal"``: keep the formal covariances.
+    sigma_regions : int
+        Number of regions (quantile classes) of ``sigma_scaling="region"`` (>= 1).
+    sigma_region_by : {"roughness", "density", "sigma"}
+        What the regions class: the cells' point-to-plane residual RMS (``rmse``), their
+        after-point density, or their formal 3-D sigma (roughness and density together).
     deform_passes : int
         Window-deformation passes after the first (0: none). Each pass moves every cell's
         after-points back by the field of the previous pass (cubic spline through the cell
@@ -1511,6 +1535,11 @@ def windowed_icp(
     if sigma_scaling not in SIGMA_SCALING_CHOICES:
         raise InvalidParameterError(
             f"sigma_scaling must be one of {SIGMA_SCALING_CHOICES}, got {sigma_scaling!r}"
+        )
+    n_regions = _int_at_least("sigma_regions", sigma_regions, 1)
+    if sigma_region_by not in SIGMA_REGION_BY:
+        raise InvalidParameterError(
+            f"sigma_region_by must be one of {SIGMA_REGION_BY}, got {sigma_region_by!r}"
         )
     passes = _int_at_least("deform_passes", deform_passes, 0)
     if cell_model not in CELL_MODELS:
@@ -1766,8 +1795,64 @@ def windowed_icp(
     )
     if sigma_scaling == "field":
         res = _scale_sigmas(res)
+    elif sigma_scaling == "region":
+        res = _scale_sigmas_by_region(res, n_regions, sigma_region_by)
     log.info("windowed ICP: %d cells fitted, skipped %s, %.1f s", n_ok, skipped, res.seconds)
     return res
+
+
+def _scale_sigmas_by_region(res: WindowedICPResult, n_regions: int, by: str) -> WindowedICPResult:
+    """``res`` with covariances scaled by one variance factor per region (see windowed_icp)."""
+    from .icp_sigma import REGION_INFLATION, quantile_regions, region_variance_factors
+
+    sig = np.column_stack([res.sigma_dx, res.sigma_dy, res.sigma_dz])
+    score = {
+        "roughness": res.rmse,
+        "density": res.n_after / (res.cell_m * res.cell_m),
+        "sigma": np.linalg.norm(sig, axis=1),
+    }[by]
+    usable = res.converged & ~res.flagged
+    region = quantile_regions(score, n_regions=n_regions, usable=usable)
+    est = region_variance_factors(
+        res.row,
+        res.col,
+        np.column_stack([res.dx, res.dy, res.dz]),
+        sig,
+        region,
+        usable=usable,
+        inflation=REGION_INFLATION,
+    )
+    n_tested = int(est.n_cells.sum())
+    res = replace(res, sigma_factor_estimate=est.field_factor, sigma_factor_cells=n_tested)
+    if not math.isfinite(est.field_factor):
+        log.warning(
+            "only %d cells have 5 usable neighbours: the regions' variance factors cannot be "
+            "estimated and the cells' sigmas are the formal ones (likely too small on real "
+            "surfaces); use smaller cells or a larger area",
+            n_tested,
+        )
+        return res
+    f = np.maximum(1.0, est.cell_factor)
+    log.info(
+        "variance factors by %s region (%s): %s from %s cells",
+        by,
+        n_regions,
+        np.round(np.maximum(1.0, est.factors), 2).tolist(),
+        est.n_cells.tolist(),
+    )
+    scaled_cols = {
+        k: getattr(res, k) * f
+        for k in ("sigma_dx", "sigma_dy", "sigma_dz", "sigma_rx", "sigma_ry", "sigma_rz")
+    }
+    return replace(
+        res,
+        **scaled_cols,
+        cov_d=res.cov_d * (f * f)[:, None, None],
+        sigma_factor=float(np.median(f)),
+        sigma_factor_cell=f,
+        sigma_regions=tuple(float(v) for v in np.maximum(1.0, est.factors)),
+        sigma_region=region,
+    )
 
 
 def _scale_sigmas(res: WindowedICPResult) -> WindowedICPResult:
