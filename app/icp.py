@@ -163,6 +163,28 @@ SPEC = JobSpec(
             advanced=True,
         ),
         _opt(
+            "sigma_regions",
+            "int",
+            "variance factors per region: the cells are split into this many classes of "
+            "SIGMA_REGION_BY (quantiles) and each class gets its own factor from the agreement "
+            "of neighbouring cells, without flagged cells (1: one factor for the field)",
+            "Variance-factor regions",
+            default=1,
+            minimum=1,
+            metavar="N",
+            advanced=True,
+        ),
+        _opt(
+            "sigma_region_by",
+            "choice",
+            "what the variance-factor regions class: roughness (the cells' point-to-plane "
+            "residual RMS), density (after-points per m²) or sigma (the formal sigma: both)",
+            "Variance-factor regions by",
+            default="roughness",
+            choices=("roughness", "density", "sigma"),
+            advanced=True,
+        ),
+        _opt(
             "formal_sigma",
             "bool",
             "report the cells' formal sigmas; by default they are multiplied by the field's "
@@ -226,7 +248,15 @@ _KEYS = ("table", "layers", "raster", "plot", "summary")
 def core_kwargs(opts: Mapping[str, Any]) -> Dict[str, Any]:
     """``windowed_icp`` keywords of the options (unset ones left to the core's default)."""
     kw = {k: opts[k] for k in CORE_KEYS if opts.get(k) is not None}
-    kw["sigma_scaling"] = "formal" if opts.get("formal_sigma") else "field"
+    regions = int(opts.get("sigma_regions") or 1)
+    if opts.get("formal_sigma"):
+        kw["sigma_scaling"] = "formal"
+    elif regions > 1:
+        kw["sigma_scaling"] = "region"
+        kw["sigma_regions"] = regions
+        kw["sigma_region_by"] = opts.get("sigma_region_by") or "roughness"
+    else:
+        kw["sigma_scaling"] = "field"
     return kw
 
 

@@ -103,6 +103,8 @@ def icp_summary(res) -> Dict[str, Any]:
             "applied": res.sigma_factor,
             "estimate": res.sigma_factor_estimate,
             "cells": res.sigma_factor_cells,
+            # one factor per region with sigma_scaling="region" (lowest class first)
+            "regions": [float(v) for v in res.sigma_regions],
         },
         "rmse_m": finite_stats(res.rmse),
         "prealignment": None

@@ -635,7 +635,7 @@ def icp_tiled(
     WindowedICPResult
         All cells of the whole run's lattice, in its order (row, then column).
     """
-    from ..core.icp import WindowedICPResult, _scale_sigmas
+    from ..core.icp import WindowedICPResult, _apply_sigma_scaling
 
     if icp_kw.get("prealign"):
         raise InvalidParameterError("prealign is not available on tiled inputs")
@@ -708,8 +708,12 @@ def icp_tiled(
         cell_model=icp_kw.get("cell_model", "rigid"),
         deform_passes=int(icp_kw.get("deform_passes", 0)),
     )
-    if sigma_scaling == "field":
-        res = _scale_sigmas(res)
+    res = _apply_sigma_scaling(
+        res,
+        sigma_scaling,
+        icp_kw.get("sigma_regions", 3),
+        icp_kw.get("sigma_region_by", "roughness"),
+    )
     return replace(res, seconds=0.0)
 
 

@@ -1811,7 +1811,9 @@ def _scale_sigmas_by_region(res: WindowedICPResult, n_regions: int, by: str) -> 
         "density": res.n_after / (res.cell_m * res.cell_m),
         "sigma": np.linalg.norm(sig, axis=1),
     }[by]
-    usable = res.converged & ~res.flagged
+    usable = np.asarray(res.converged, dtype=bool).copy()
+    if np.size(res.flagged) == usable.size:  # (the columns of a tiled run are 0/1 ints)
+        usable &= ~np.asarray(res.flagged, dtype=bool)
     region = quantile_regions(score, n_regions=n_regions, usable=usable)
     est = region_variance_factors(
         res.row,
@@ -1853,6 +1855,21 @@ def _scale_sigmas_by_region(res: WindowedICPResult, n_regions: int, by: str) -> 
         sigma_regions=tuple(float(v) for v in np.maximum(1.0, est.factors)),
         sigma_region=region,
     )
+
+
+def _apply_sigma_scaling(
+    res: WindowedICPResult,
+    sigma_scaling: str,
+    sigma_regions: int = 3,
+    sigma_region_by: str = "roughness",
+) -> WindowedICPResult:
+    """``res`` with its covariances scaled as ``sigma_scaling`` says (see windowed_icp); for
+    results assembled elsewhere (the tiled run)."""
+    if sigma_scaling == "field":
+        return _scale_sigmas(res)
+    if sigma_scaling == "region":
+        return _scale_sigmas_by_region(res, int(sigma_regions), sigma_region_by)
+    return res
 
 
 def _scale_sigmas(res: WindowedICPResult) -> WindowedICPResult:
