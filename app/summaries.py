@@ -104,7 +104,7 @@ def icp_summary(res) -> Dict[str, Any]:
             "estimate": res.sigma_factor_estimate,
             "cells": res.sigma_factor_cells,
             # one factor per region with sigma_scaling="region" (lowest class first)
-            "regions": [float(v) for v in res.sigma_regions],
+            "regions": [float(v) for v in res.sigma_region_factors],
         },
         "rmse_m": finite_stats(res.rmse),
         "prealignment": None

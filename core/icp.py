@@ -946,7 +946,7 @@ class WindowedICPResult:
         Window-deformation passes run after the first.
     sigma_factor_cell : (K,) float64 or None
         With ``sigma_scaling="region"``: the factor each cell's sigmas were multiplied by.
-    sigma_regions : tuple of float
+    sigma_region_factors : tuple of float
         With ``sigma_scaling="region"``: the factor of each region (lowest class first).
     sigma_region : (K,) int64 or None
         With ``sigma_scaling="region"``: each cell's region (-1: none, the field's factor).
@@ -994,7 +994,7 @@ class WindowedICPResult:
     deform_passes: int = 0
     flagged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     sigma_factor_cell: Optional[np.ndarray] = None
-    sigma_regions: Tuple[float, ...] = ()
+    sigma_region_factors: Tuple[float, ...] = ()
     sigma_region: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
@@ -1852,7 +1852,7 @@ def _scale_sigmas_by_region(res: WindowedICPResult, n_regions: int, by: str) -> 
         cov_d=res.cov_d * (f * f)[:, None, None],
         sigma_factor=float(np.median(f)),
         sigma_factor_cell=f,
-        sigma_regions=tuple(float(v) for v in np.maximum(1.0, est.factors)),
+        sigma_region_factors=tuple(float(v) for v in np.maximum(1.0, est.factors)),
         sigma_region=region,
     )
 

@@ -152,8 +152,8 @@ def test_windowed_icp_region_scaling_by_roughness():
     east = res.x - UTM[0] > 15
     assert np.mean(res.sigma_region[east] == 1) > 0.9
     assert np.mean(res.sigma_region[~east] == 0) > 0.9
-    assert len(res.sigma_regions) == 2
-    for f in res.sigma_regions:
+    assert len(res.sigma_region_factors) == 2
+    for f in res.sigma_region_factors:
         assert 0.8 * REGION_INFLATION < f < 1.5 * REGION_INFLATION
     np.testing.assert_allclose(res.sigma_dx, formal.sigma_dx * res.sigma_factor_cell)
     np.testing.assert_allclose(res.cov_d, formal.cov_d * res.sigma_factor_cell[:, None, None] ** 2)
