@@ -143,6 +143,40 @@ SPEC = JobSpec(
             advanced=True,
         ),
         _opt(
+            "field_model",
+            "choice",
+            "what each cell reports: cells (its own transform, the study's) or spline (after "
+            "the cells, one smooth B-spline field fitted to all points at once; each cell "
+            "gives the field at its centre, with its covariance and strain; follows a "
+            "landslide lobe only 3-4 cells wide; one-file runs only)",
+            "Field model",
+            default="cells",
+            choices=("cells", "spline"),
+            advanced=True,
+        ),
+        _opt(
+            "spline_spacing_m",
+            "float",
+            "knot spacing of the spline field, metres (default half a cell; smaller follows "
+            "narrower lobes and is noisier)",
+            "Spline knot spacing (m; default half a cell)",
+            minimum=0,
+            exclusive=True,
+            metavar="M",
+            advanced=True,
+        ),
+        _opt(
+            "spline_smoothing",
+            "float",
+            "second-difference penalty of the spline field relative to its data (larger: "
+            "smoother and less noisy, flatter peaks)",
+            "Spline smoothing",
+            default=0.01,
+            minimum=0,
+            metavar="W",
+            advanced=True,
+        ),
+        _opt(
             "median_threshold",
             "float",
             "normalised median test of each cell against its 8 neighbours (Westerweel & "
@@ -228,8 +262,22 @@ SPEC = JobSpec(
         ),
     ),
     citation=CITATION,
-    check=lambda opts: check_fields_tiled(opts, refused=CHECK_TILED),
+    check=lambda opts: _check(opts),
 )
+
+
+def _check(opts) -> None:
+    """The tiled-input refusals, and the spline field's: one fit over all points."""
+    from .tiled import is_tiled
+
+    check_fields_tiled(opts, refused=CHECK_TILED)
+    if opts.get("field_model") == "spline" and is_tiled(opts, "before", "after"):
+        raise tiled_refusal(
+            "field_model",
+            "the spline field is one fit over all points; use field_model cells (with "
+            "deform_passes) or run on one file per epoch",
+        )
+
 
 #: options passed to ``windowed_icp`` under their own key (add new core options here)
 CORE_KEYS = (
@@ -239,6 +287,9 @@ CORE_KEYS = (
     "coarse_to_fine",
     "deform_passes",
     "cell_model",
+    "field_model",
+    "spline_spacing_m",
+    "spline_smoothing",
     "median_threshold",
     "median_restart",
 )

@@ -93,6 +93,12 @@ def icp_summary(res) -> Dict[str, Any]:
     pre = res.prealignment
     return {
         "cell_m": res.cell_m,
+        # the cells' motion model, and whether the values come from one spline field
+        "model": {
+            "cell": res.cell_model,
+            "field": res.field_model,
+            "deform_passes": res.deform_passes,
+        },
         "n_cells": len(res),
         "skipped": dict(res.skipped),
         "converged": int(np.count_nonzero(res.converged)),

@@ -257,6 +257,8 @@ ICP_RUNS = (
     ("slipmap rigid, coarse-to-fine 1", {"coarse_to_fine": 1}),
     ("slipmap rigid, coarse-to-fine 1, 2 deformation passes",
      {"coarse_to_fine": 1, "deform_passes": 2}),
+    ("slipmap rigid, coarse-to-fine 1, spline field",
+     {"coarse_to_fine": 1, "field_model": "spline"}),
 )  # fmt: skip
 
 
@@ -278,9 +280,13 @@ def lobe_icp(pair, cell: float) -> dict:
         if not (np.array_equal(r.row, ref.row) and np.array_equal(r.col, ref.col)):
             raise RuntimeError(f"{name}: other cells than the first run")
         d = np.column_stack([r.dx, r.dy, r.dz])
+        sig = np.column_stack([r.sigma_dx, r.sigma_dy, r.sigma_dz])
         out["methods"][name] = {"seconds": round(sec, 2)}
         for k, m in masks.items():
             out["methods"][name][k] = _stats(d[m] - truth[m])
+            # share of the components within 2 reported sigma (calibration of the sigmas)
+            inside = np.abs(d[m] - truth[m]) <= 2.0 * sig[m]
+            out["methods"][name][k]["within_2sigma"] = round(float(inside.mean()), 3)
     why = peer_missing("open3d")
     if why is not None:
         out["methods"]["open3d"] = {"skipped": why}

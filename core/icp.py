@@ -944,6 +944,9 @@ class WindowedICPResult:
         ``"rigid"`` or ``"affine"``.
     deform_passes : int
         Window-deformation passes run after the first.
+    field_model : str
+        ``"cells"`` (each cell's own transform) or ``"spline"`` (the values, covariances and
+        gradients at the centres come from one B-spline field fitted to all points).
     sigma_factor_cell : (K,) float64 or None
         With ``sigma_scaling="region"``: the factor each cell's sigmas were multiplied by.
     sigma_region_factors : tuple of float
@@ -992,6 +995,7 @@ class WindowedICPResult:
     exy: np.ndarray = field(default_factory=lambda: np.zeros(0))
     cell_model: str = "rigid"
     deform_passes: int = 0
+    field_model: str = "cells"
     flagged: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     sigma_factor_cell: Optional[np.ndarray] = None
     sigma_region_factors: Tuple[float, ...] = ()
@@ -1088,6 +1092,7 @@ def _interpolator(res: WindowedICPResult) -> Callable[[np.ndarray], np.ndarray]:
 
 
 CELL_MODELS = ("rigid", "affine")
+FIELD_MODELS = ("cells", "spline")
 ENGINES = ("batched", "per_cell")
 
 
@@ -1385,6 +1390,9 @@ def windowed_icp(
     sigma_region_by: str = "roughness",
     deform_passes: int = 0,
     cell_model: str = "rigid",
+    field_model: str = "cells",
+    spline_spacing_m: Optional[float] = None,
+    spline_smoothing: float = 0.01,
     engine: str = "batched",
     median_threshold: float = 2.0,
     median_eps_m: float = 0.02,
@@ -1472,6 +1480,21 @@ def windowed_icp(
         Motion model of a cell: a rigid transform (6 parameters, the study's) or an affine
         one (12: a 3 x 3 matrix and a translation; it follows a straining cell and gives its
         strain). See :mod:`slipmap.core.icp_cells`.
+    field_model : {"cells", "spline"}
+        ``"cells"`` (default): every cell reports its own motion (the study's model).
+        ``"spline"``: after the cell passes, one smooth field, a bicubic B-spline of the
+        horizontal position with knots ``spline_spacing_m`` apart, is fitted to the
+        point-to-plane residuals of all the cells' points at once, started from the cells'
+        field (:func:`slipmap.core.icp_spline.fit_spline_field`); each cell then reports
+        the field's value at its centre, its covariance (``sigma0² A⁻¹`` of the penalised
+        normal matrix), its gradient (``exx, eyy, exy``, the rotations) and the residuals of
+        its points. The field follows a lobe only 3-4 cells wide where a cell's mean motion
+        cannot (docs/fields.md); neighbouring cells' values are then correlated.
+    spline_spacing_m : float, optional
+        Knot spacing of ``field_model="spline"``, metres (default ``cell_m / 2``).
+    spline_smoothing : float
+        Second-difference penalty of ``field_model="spline"`` relative to the median
+        diagonal of its normal matrix (>= 0; default 0.01).
     median_threshold : float
         Wrong-minimum test (0: off): a cell whose motion differs from the median of its
         8-neighbours by more than this many times their median spread (plus
@@ -1545,6 +1568,14 @@ def windowed_icp(
     if cell_model not in CELL_MODELS:
         raise InvalidParameterError(f"cell_model must be one of {CELL_MODELS}, got {cell_model!r}")
     model = cell_model
+    if field_model not in FIELD_MODELS:
+        raise InvalidParameterError(
+            f"field_model must be one of {FIELD_MODELS}, got {field_model!r}"
+        )
+    spline_h = (
+        0.5 * cell if spline_spacing_m is None else _positive("spline_spacing_m", spline_spacing_m)
+    )
+    spline_lam = _positive("spline_smoothing", spline_smoothing, allow_zero=True)
     med_thr = _positive("median_threshold", median_threshold, allow_zero=True)
     med_eps = _positive("median_eps_m", median_eps_m, allow_zero=True)
     if engine not in ENGINES:
@@ -1727,6 +1758,45 @@ def windowed_icp(
                 int(closer.sum()),
                 int(flagged.sum()),
             )
+    rmse, sigma0, n_used = fits.rmse, fits.sigma0, fits.n
+    if field_model == "spline":
+        from .icp_spline import fit_spline_field
+
+        usable = fits.ok & np.all(np.isfinite(d), axis=1)
+        start, _ = _deformation_field(cells, d, usable, n_rows, n_cols, x0, y0, cell)
+        report(progress, 0.9, "fitting one spline field to all cells")
+        sfit = fit_spline_field(
+            a[cells.points],
+            before=b,
+            tree=tree,
+            normals=normals,
+            initial=start,
+            report_xy=cells.centres[:, :2],
+            report_seg=cells.seg,
+            spacing_m=spline_h,
+            smoothing=spline_lam,
+            gate_m=gate,
+            opts=opts,
+            progress=scaled(progress, 0.9, 1.0),
+        )
+        d, grad, cov_d = sfit.d, sfit.gradient, sfit.cov[:, :3, :3]
+        rmse, n_used = sfit.rmse, sfit.n
+        sigma0 = np.full(len(d), sfit.sigma0_m)
+        # the spline's rotations: antisymmetric part of its gradient; rows of sfit.cov are
+        # (d, d d/dx, d d/dy) x (x, y, z): rz = (ddy/dx - ddx/dy) / 2, rx = ddz/dy / 2,
+        # ry = -ddz/dx / 2
+        c9 = sfit.cov
+        spline_sig_rot = 0.5 * np.sqrt(
+            np.maximum(
+                np.column_stack(
+                    [c9[:, 8, 8], c9[:, 5, 5], c9[:, 4, 4] + c9[:, 6, 6] - 2 * c9[:, 4, 6]]
+                ),
+                0.0,
+            )
+        )
+        fits = replace(fits, ok=fits.ok & (n_used >= minp) & np.all(np.isfinite(d), axis=1))
+        if med_thr > 0:
+            flagged, _, _ = _median_flags(cells, d, fits.ok, n_rows, n_cols, med_eps, med_thr)
     ok = fits.ok
     skipped["icp_failed"] = int(np.count_nonzero(~ok))
     n_ok = int(np.count_nonzero(ok))
@@ -1744,14 +1814,14 @@ def windowed_icp(
             n_ok,
             opts.max_iterations,
         )
-    if passes == 0 and model == "rigid":
+    if passes == 0 and model == "rigid" and field_model == "cells":
         rot, sig_rot = fits.rotation, fits.sigma_rotation
     else:
         # rotation of the total motion: antisymmetric part of its gradient; sigma of the
         # last pass's residual model
         w = 0.5 * (grad - np.transpose(grad, (0, 2, 1)))
         rot = np.stack([w[:, 2, 1], w[:, 0, 2], w[:, 1, 0]], axis=1)
-        sig_rot = fits.sigma_rotation
+        sig_rot = spline_sig_rot if field_model == "spline" else fits.sigma_rotation
     sd = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
     res = WindowedICPResult(
         x=cells.centres[ok, 0],
@@ -1770,9 +1840,9 @@ def windowed_icp(
         sigma_rx=sig_rot[ok, 0],
         sigma_ry=sig_rot[ok, 1],
         sigma_rz=sig_rot[ok, 2],
-        rmse=fits.rmse[ok],
-        sigma0=fits.sigma0[ok],
-        n=fits.n[ok],
+        rmse=rmse[ok],
+        sigma0=sigma0[ok],
+        n=n_used[ok],
         n_after=cells.n_after[ok],
         n_before=cells.n_before[ok],
         iterations=fits.iterations[ok],
@@ -1791,6 +1861,7 @@ def windowed_icp(
         exy=0.5 * (grad[ok, 0, 1] + grad[ok, 1, 0]),
         cell_model=model,
         deform_passes=passes,
+        field_model=field_model,
         flagged=flagged[ok],
     )
     if sigma_scaling == "field":
