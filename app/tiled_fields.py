@@ -23,9 +23,9 @@ owns. No point cloud travels to the driver.
   the target buffer and three cells (median test, deformation passes), doubled per coarse
   level. Cells are fitted with formal covariances and the field's variance factor is
   estimated once over all cells, as the one-file run does. Equal to the one-file run up to
-  rounding for the default options; with ``max_points_per_cell`` the random sample of a cell
-  differs, and the stable-ground pre-alignment is refused on tiled inputs (it needs a global
-  fit; see the issue note).
+  rounding (``max_points_per_cell`` samples by the points' coordinates, so a cell draws the
+  same points from tiles); the stable-ground pre-alignment and the spline field are refused
+  on tiled inputs (they need a global fit; see the issue notes).
 """
 
 from __future__ import annotations

@@ -48,7 +48,9 @@ import json
 import logging
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 from scipy import ndimage
@@ -262,8 +264,29 @@ ICP_RUNS = (
 )  # fmt: skip
 
 
-def lobe_icp(pair, cell: float) -> dict:
-    """SlipMap windowed ICP variants and Open3D's per-cell ICP on the same cells."""
+def cap_per_cell(points: np.ndarray, cell: float, cap: int) -> np.ndarray:
+    """At most ``cap`` points per ``cell``-metre square (on multiples of ``cell``, the
+    windowed ICP's lattice): the sample ``max_points_per_cell`` draws
+    (:func:`slipmap.core.icp.sample_priority`, seed 0), so both estimators get the same
+    points."""
+    from slipmap.core.icp import sample_priority
+
+    key = np.floor(points[:, :2] / cell).astype(np.int64)
+    _, cid = np.unique(key, axis=0, return_inverse=True)
+    cid = cid.reshape(-1)
+    pri = sample_priority(points)
+    order = np.lexsort((pri, cid))
+    rank = np.empty(len(points), dtype=np.int64)
+    first = np.searchsorted(cid[order], cid[order])
+    rank[order] = np.arange(len(points)) - first
+    return points[rank < cap]
+
+
+def lobe_icp(pair, cell: float, cap: Optional[int] = None) -> dict:
+    """SlipMap windowed ICP variants and Open3D's per-cell ICP on the same cells (with
+    ``cap``: both on the same sample of at most ``cap`` after-points per cell)."""
+    if cap is not None:
+        pair = replace(pair, after=cap_per_cell(pair.after, cell, cap))
     runs = {}
     for name, kw in ICP_RUNS:
         t0 = time.perf_counter()
@@ -275,7 +298,7 @@ def lobe_icp(pair, cell: float) -> dict:
     dense = ref.n >= 500
     masks = {"lobe": dense & (np.linalg.norm(truth, axis=1) > 0)}
     masks["stable"] = dense & ~masks["lobe"]
-    out = {"cell_m": cell, "cells": len(ref), "methods": {}}
+    out = {"cell_m": cell, "cells": len(ref), "points_per_cell_cap": cap, "methods": {}}
     for name, (r, sec) in runs.items():
         if not (np.array_equal(r.row, ref.row) and np.array_equal(r.col, ref.col)):
             raise RuntimeError(f"{name}: other cells than the first run")
@@ -325,7 +348,7 @@ def lobe_icp(pair, cell: float) -> dict:
     return out
 
 
-def bench_lobe(seeds, piv_cases, cell) -> list:
+def bench_lobe(seeds, piv_cases, cell, cap=None) -> list:
     """The lone-star lobe cases, one per seed (PIV and ICP with their peers)."""
     from slipmap.core.io.las import read_las
     from slipmap.core.synthetic import make_lobe_pair
@@ -345,7 +368,7 @@ def bench_lobe(seeds, piv_cases, cell) -> list:
                 else:
                     line += f"; OpenPIV windef {op['seconds']} s {op[name]}"
                 print(line)
-        i = lobe_icp(pair, cell)
+        i = lobe_icp(pair, cell, cap)
         for name, r in i["methods"].items():
             if "skipped" in r:
                 print(f"seed {seed} ICP {name}: skipped: {r['skipped']}")
@@ -370,13 +393,20 @@ def main(argv=None) -> int:
     )  # fmt: skip
     ap.add_argument("--windows", type=int, nargs="+", default=None, help="with --grid")
     ap.add_argument("--lobe-cell", type=float, default=5.0, help="lobe case ICP cell (m)")
+    ap.add_argument(
+        "--icp-points-per-cell", type=int, default=None,
+        help="lobe case: both ICPs on the same sample of at most N after-points per cell",
+    )  # fmt: skip
+    ap.add_argument("--no-piv", action="store_true", help="lobe case: the ICP part only")
     args = ap.parse_args(argv)
     if args.case == "lobe":
         logging.basicConfig(level=logging.WARNING)
         cases = [(0.1, (64, 32, 16, 16)), (0.25, (32, 16, 16))]
         if args.grid is not None:
             cases = [(args.grid, tuple(args.windows or (64, 32, 16, 16)))]
-        out = bench_lobe(args.seeds, cases, args.lobe_cell)
+        if args.no_piv:
+            cases = []
+        out = bench_lobe(args.seeds, cases, args.lobe_cell, args.icp_points_per_cell)
         print(json.dumps({"lobe": out}))
         return 0
     p = bench_piv(args.dem, args.seed)

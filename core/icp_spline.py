@@ -13,9 +13,11 @@ point of epoch 2 moved back by the field,
 
     v_p = n_p . (a_p - u(a_p) - b_p),        u(x, y) = sum_k B_k(x, y) c_k,
 
-with a small penalty on the coefficients' second differences, ``smoothing`` times the median
-diagonal of the normal matrix (it fixes knots without data and damps the checkerboard
-mode; it also flattens a field's sharpest peaks a little: docs/fields.md).
+with a penalty on the coefficients' second differences (it fixes knots without data and
+damps the noise; it also flattens a field's sharpest peaks a little: docs/fields.md). Its
+weight per component is estimated from the data by variance-component estimation (the
+geodetic way to weigh observations against a prior), or given relative to the median
+diagonal of the normal matrix.
 
 Written here, not taken from a library: the registration libraries at hand (Open3D, py4dgeo,
 scipy) offer rigid or per-point motion only, and the B-spline basis is a few lines of numpy.
@@ -41,6 +43,14 @@ log = logging.getLogger(__name__)
 #: residuals' robust spread, or stops falling for STALL_ITERATIONS iterations
 CHANGE_FLOOR = 0.02
 STALL_ITERATIONS = 3
+#: ``smoothing=None``: the penalty weights are estimated (variance components) from this start
+AUTO_START = 0.01
+TRACE_EXACT_MAX = 300
+#: the estimated weights are kept once no component moves by more than this share
+AUTO_SETTLED = 0.02
+#: bounds of the estimated weights, relative to the median diagonal of the normal matrix
+AUTO_RANGE = (1e-6, 1e4)
+TRACE_PROBES = 32
 
 __all__ = ["SplineField", "SplineFit", "fit_spline_field", "bspline_weights"]
 
@@ -211,6 +221,46 @@ def _assemble(order, bounds, idx16, w16, nrm, v, wt, n_k):
     return n, rhs
 
 
+def _trace_inv_block(factor, r2, j: int, n_k: int, seed: int = 0) -> float:
+    """``tr(A⁻¹[j, j] RᵀR)`` of component ``j`` from ``A``'s sparse LU: exact (``n_k``
+    solves) up to TRACE_EXACT_MAX knots, else Hutchinson's estimate with TRACE_PROBES
+    Rademacher probes."""
+    if n_k <= TRACE_EXACT_MAX:
+        rhs = np.zeros((3 * n_k, n_k))
+        rhs[j * n_k + np.arange(n_k), np.arange(n_k)] = 1.0
+        x = factor.solve(rhs)[j * n_k : (j + 1) * n_k]
+        return float(r2.multiply(x).sum())
+    rng = np.random.default_rng(seed + j)
+    z = rng.choice([-1.0, 1.0], size=(n_k, TRACE_PROBES))
+    rhs = np.zeros((3 * n_k, TRACE_PROBES))
+    rhs[j * n_k : (j + 1) * n_k] = r2 @ z
+    x = factor.solve(rhs)[j * n_k : (j + 1) * n_k]
+    return float(np.mean(np.sum(z * x, axis=0)))
+
+
+def _variance_components(factor, r2, lam_abs, c, wvv: float, n_obs: int) -> np.ndarray:
+    """New penalty weights ``sigma0² / sigma_j²`` by variance-component estimation
+    (Förstner's iteration, as Helmert's for two groups): the observations' variance from
+    their weighted residuals over their redundancy, each component's prior variance of
+    second differences from ``c_jᵀ RᵀR c_j`` over the pseudo-observations' redundancy
+    ``n_R - lam_j tr(A⁻¹_jj RᵀR)``."""
+    n_k = r2.shape[0]
+    n_r = float(np.count_nonzero(r2.diagonal() > 0))  # pseudo-observations, about n_k
+    traces = np.array([_trace_inv_block(factor, r2, j, n_k) for j in range(3)])
+    t = lam_abs * traces  # redundancy the prior gives away per component
+    r_obs = max(n_obs - (3 * n_k - float(np.sum(t))), 1.0)
+    s0sq = wvv / r_obs
+    out = lam_abs.copy()
+    for j in range(3):
+        cj = c[:, j]
+        rough = float(cj @ (r2 @ cj))
+        r_j = max(n_r - t[j], 1.0)
+        if rough > 0:
+            out[j] = s0sq / (rough / r_j)
+    log.debug("spline field: variance components -> weights %s", np.array2string(out))
+    return out
+
+
 def fit_spline_field(
     after: np.ndarray,
     *,
@@ -221,7 +271,7 @@ def fit_spline_field(
     report_xy: np.ndarray,
     report_seg: Optional[np.ndarray] = None,
     spacing_m: float,
-    smoothing: float = 0.01,
+    smoothing: Optional[float] = None,
     gate_m: float = np.inf,
     opts: _Options,
     progress: Optional[ProgressCallback] = None,
@@ -248,9 +298,13 @@ def fit_spline_field(
         ``n`` (-1: none).
     spacing_m : float
         Knot spacing, metres (> 0).
-    smoothing : float
+    smoothing : float, optional
         Weight of the second-difference penalty relative to the median diagonal of the
-        normal matrix (>= 0; > 0 keeps knots without data defined).
+        normal matrix (>= 0). None (default): estimated from the data, one weight per
+        component, by variance-component estimation (:func:`_variance_components`): the
+        ratio of the observations' variance to that of the field's second differences,
+        each over its redundancy. A field without curvature (a uniform shift) is then
+        smoothed hard and one with a lobe less.
     gate_m : float
         Largest point-to-point distance of a correspondence, metres.
     opts
@@ -279,9 +333,11 @@ def fit_spline_field(
     h = float(spacing_m)
     if not (np.isfinite(h) and h > 0):
         raise InvalidParameterError(f"spline_spacing_m must be > 0, got {spacing_m!r}")
-    lam = float(smoothing)
+    auto = smoothing is None
+    lam = AUTO_START if auto else float(smoothing)
     if not (np.isfinite(lam) and lam >= 0):
         raise InvalidParameterError(f"spline_smoothing must be >= 0, got {smoothing!r}")
+    lam_abs = None  # absolute penalty weight per component, set at the first iteration
     a = np.asarray(after, dtype=np.float64)
     rxy = np.asarray(report_xy, dtype=np.float64).reshape(-1, 2)
     lo = np.minimum(a[:, :2].min(axis=0), rxy.min(axis=0)) - 1e-6 * h
@@ -330,13 +386,13 @@ def fit_spline_field(
         nrm[ok] = nn[good]
         v = np.zeros(len(a))
         v[ok] = np.einsum("ij,ij->i", nrm[ok], q[ok] - before[j[ok]])
-        return ok, nrm, v
+        return ok, nrm, v, j
 
     best, since_best = np.inf, 0
     for it in range(1, opts.max_iterations + 1):
         report(progress, (it - 1) / opts.max_iterations, f"spline field: iteration {it}")
         q = a - np.einsum("pk,pkj->pj", w16, c[idx16])
-        ok, nrm, v = pairs(q)
+        ok, nrm, v, _ = pairs(q)
         if np.count_nonzero(ok) < 3 * 16:
             raise InputDataError(
                 f"spline field: only {int(np.count_nonzero(ok))} correspondences within "
@@ -346,16 +402,24 @@ def fit_spline_field(
         wt = np.zeros(len(a))
         wt[ok] = np.where(keep, wv, 0.0)
         nmat, rhs = _assemble(None, bounds, idx16, w16, nrm, v, wt, n_k)
-        if penalty is None:
+        if lam_abs is None:
             dg = nmat.diagonal()
             scale = float(np.median(dg[dg > 0])) if np.any(dg > 0) else 1.0
-            penalty = sp.block_diag([lam * scale * r2] * 3 + [], format="csr")
-            penalty = penalty + sp.identity(3 * n_k, format="csr") * (1e-12 * scale)
+            lam_abs = np.full(3, lam * scale)
+            ridge = sp.identity(3 * n_k, format="csr") * (1e-12 * scale)
+        penalty = sp.block_diag([w * r2 for w in lam_abs], format="csr") + ridge
         cvec = c.T.reshape(-1)  # component-major
         factor = splu((nmat + penalty).tocsc())
         step = factor.solve(rhs - penalty @ cvec)
         dc = step.reshape(3, n_k).T
         c = c + dc
+        if auto:
+            new = _variance_components(
+                factor, r2, lam_abs, c, float(np.sum(wt * v * v)), int(np.count_nonzero(wt))
+            )
+            new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
+            auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
+            lam_abs = new
         du = np.einsum("pk,pkj->pj", w16, dc[idx16])
         rms_du = float(np.sqrt(np.mean(np.sum(du[ok] ** 2, axis=1))))
         log.debug("spline field: iteration %d, RMS change %.2e m", it, rms_du)
@@ -368,14 +432,21 @@ def fit_spline_field(
             converged = True
             break
     # final residuals, sigma0 and the report
-    ok, nrm, v = pairs(a - np.einsum("pk,pkj->pj", w16, c[idx16]))
+    ok, nrm, v, tid = pairs(a - np.einsum("pk,pkj->pj", w16, c[idx16]))
     keep, wv, dpsi = _weights(v[ok], opts)
     psi = np.where(keep, wv * v[ok], 0.0)
     used = int(np.count_nonzero(keep & (wv > 0)))
     data_knots = np.unique(idx16[ok].reshape(-1)).size
     dof = max(used - 3 * data_knots, 1)
     mean_dpsi = float(np.mean(np.where(keep, dpsi, 0.0))) if keep.size else 1.0
-    s0sq = float(np.sum(psi * psi)) / dof / max(mean_dpsi, 1e-12) ** 2
+    # points sharing a target point share its error (as the cells' shared-target inflation,
+    # slipmap.core.icp_cells._final): the variance of the sum of psi per target over that
+    # of psi
+    ss = float(np.sum(psi * psi))
+    _, inv = np.unique(tid[ok][keep], return_inverse=True)
+    cl = np.bincount(inv.reshape(-1), weights=psi[keep])
+    inflation = max(1.0, float(np.sum(cl * cl)) / ss) if ss > 0 else 1.0
+    s0sq = ss / dof / max(mean_dpsi, 1e-12) ** 2 * inflation
     field = SplineField(field.origin_xy, h, n_x, n_y, c.reshape(ky, kx, 3))
     ridx, rw, rwx, rwy = field._basis(rxy, slopes=True)
     k = len(rxy)
@@ -412,8 +483,9 @@ def fit_spline_field(
         ss = np.bincount(s[inside], weights=vs[inside] ** 2, minlength=k)
         rmse = np.where(n_used > 0, np.sqrt(ss / np.maximum(n_used, 1)), np.nan)
     log.info(
-        "spline field: %d knots of %.2f m, %d iterations%s, sigma0 %.4f m",
-        data_knots, h, it, "" if converged else " (not converged)", np.sqrt(s0sq),
+        "spline field: %d knots of %.2f m, %d iterations%s, sigma0 %.4f m (shared-target "
+        "inflation %.2f)",
+        data_knots, h, it, "" if converged else " (not converged)", np.sqrt(s0sq), inflation,
     )  # fmt: skip
     return SplineFit(
         field=field,

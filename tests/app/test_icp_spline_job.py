@@ -37,6 +37,7 @@ def test_spec_declares_the_spline_options_once_with_cells_by_default():
         0.1,
     )
     assert "spline_spacing_m" not in core_kwargs({"field_model": "spline"})
+    assert by_key["spline_smoothing"].default is None  # estimated
 
 
 def _rough(n, seed, side=30.0):

@@ -168,3 +168,18 @@ def test_wrong_minima_are_restarted_from_the_neighbours():
         windowed_icp(before, after, deform_passes=-1)
     with pytest.raises(InvalidParameterError, match="median_threshold"):
         windowed_icp(before, after, median_threshold=-1)
+
+
+def test_the_cells_sample_depends_on_the_points_not_their_order():
+    """``max_points_per_cell`` draws by the points' coordinates (``sample_priority``): the
+    same cells from shuffled input, so a tiled run samples as the one-file run."""
+    before, after = field_pair(22, shift_left=np.array([0.05, -0.02, 0.01]), density=40)
+    kw = dict(cell_m=5.0, min_points=50, max_points_per_cell=300)
+    one = windowed_icp(before, after, **kw)
+    perm = np.random.default_rng(1).permutation(len(after))
+    two = windowed_icp(before, after[perm], **kw)
+    assert len(one) == len(two) > 10 and np.all(one.n <= 300)
+    for name in ("dx", "dy", "dz", "sigma_dx", "rmse"):
+        np.testing.assert_allclose(getattr(two, name), getattr(one, name), atol=1e-9)
+    full = windowed_icp(before, after, cell_m=5.0, min_points=50)
+    assert np.any(full.n > 300)  # the cap did sample
