@@ -348,6 +348,28 @@ def lobe_icp(pair, cell: float, cap: Optional[int] = None) -> dict:
     return out
 
 
+def shift_icp(pts, seed: int, cell: float, cap: Optional[int] = None) -> dict:
+    """The uniform shift of docs/fields.md (one random half of lone-star against the other
+    moved by (0.2, -0.4, 0.05) m): rigid cells against the spline field, cells with >= 500
+    correspondences."""
+    rng = np.random.default_rng(seed)
+    half = rng.random(len(pts)) < 0.5
+    shift = np.array([0.2, -0.4, 0.05])
+    before, after = pts[half], pts[~half] + shift
+    if cap is not None:
+        after = cap_per_cell(after, cell, cap)
+    out = {}
+    for name, kw in (("slipmap rigid", {}), ("slipmap spline field", {"field_model": "spline"})):
+        t0 = time.perf_counter()
+        r = windowed_icp(before, after, cell_m=cell, **kw)
+        m = r.n >= 500
+        e = np.column_stack([r.dx, r.dy, r.dz])[m] - shift
+        sig = np.column_stack([r.sigma_dx, r.sigma_dy, r.sigma_dz])[m]
+        out[name] = {"seconds": round(time.perf_counter() - t0, 2), **_stats(e)}
+        out[name]["within_2sigma"] = round(float(np.mean(np.abs(e) <= 2.0 * sig)), 3)
+    return out
+
+
 def bench_lobe(seeds, piv_cases, cell, cap=None) -> list:
     """The lone-star lobe cases, one per seed (PIV and ICP with their peers)."""
     from slipmap.core.io.las import read_las
@@ -375,7 +397,10 @@ def bench_lobe(seeds, piv_cases, cell, cap=None) -> list:
             else:
                 lobe, stable = r["lobe"], r["stable"]
                 print(f"seed {seed} ICP {name}: {r['seconds']} s lobe {lobe} stable {stable}")
-        out.append({"seed": seed, "piv": pivs, "icp": i})
+        sh = shift_icp(pts, seed, cell, cap)
+        for name, r in sh.items():
+            print(f"seed {seed} ICP uniform shift, {name}: {r}")
+        out.append({"seed": seed, "piv": pivs, "icp": i, "shift": sh})
     return out
 
 
