@@ -44,14 +44,13 @@ from typing import Callable, Dict, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .errors import InputDataError, InvalidParameterError
-from .icp_options import EIG_RTOL, HUBER_K, NULL_RTOL, TUKEY_C, _Options
+from .icp_options import EIG_RTOL, NULL_RTOL, _Options, _weights
 from .progress import ProgressCallback, report, scaled
 from .rotation import left_jacobian as _left_jacobian
 from .rotation import rotation_matrix, rotation_vector
 
 log = logging.getLogger(__name__)
 
-MAD_TO_SIGMA = 1.4826
 NORMAL_PLANARITY_RTOL = 1e-10  # neighbourhoods whose middle eigenvalue is below this are lines
 PREALIGN_MAX_POINTS = 200_000  # source points sampled for the global pre-alignment
 ROBUST_CHOICES = (None, "tukey", "huber")
@@ -316,30 +315,6 @@ def estimate_normals(points: np.ndarray, *, neighbours_k: int = 12, tree=None) -
 # match(q_centred (N, 3)) -> (ok (N,) bool, target_centred (K, 3), normals (K, 3),
 #                             target ids (K,) int), K = ok.sum()
 Matcher = Callable[[np.ndarray], Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
-
-
-def _weights(v: np.ndarray, opts: _Options) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Residuals -> (keep mask, weights w, psi'(v)) for trimming / robust M-estimation."""
-    keep = np.ones(v.size, dtype=bool)
-    if opts.trim_fraction > 0 and v.size > 20:
-        keep = np.abs(v) <= np.quantile(np.abs(v), 1.0 - opts.trim_fraction)
-    if opts.robust is None:
-        w = keep.astype(np.float64)
-        return keep, w, w
-    scale = MAD_TO_SIGMA * float(np.median(np.abs(v[keep])))
-    scale = max(scale, 1e-12)
-    if opts.robust == "tukey":
-        u = v / (TUKEY_C * scale)
-        inside = (np.abs(u) < 1.0) & keep
-        u2 = np.where(inside, u * u, 1.0)
-        w = np.where(inside, (1.0 - u2) ** 2, 0.0)
-        dpsi = np.where(inside, (1.0 - u2) * (1.0 - 5.0 * u2), 0.0)
-    else:  # huber
-        a = np.abs(v) / (HUBER_K * scale)
-        inside = a <= 1.0
-        w = np.where(inside, 1.0, 1.0 / np.maximum(a, 1e-300)) * keep
-        dpsi = (inside & keep).astype(np.float64)
-    return keep, w, dpsi
 
 
 def _solve_scaled(

@@ -148,7 +148,7 @@ def mark_undetermined(cov: np.ndarray, undet: np.ndarray) -> np.ndarray:
 
 
 def _seg_weights(v: np.ndarray, seg: np.ndarray, k: int, opts: _Options):
-    """:func:`slipmap.core.icp._weights` per segment: (keep, w, psi') of (P,) residuals.
+    """:func:`slipmap.core.icp_options._weights` per segment: (keep, w, psi') of (P,) residuals.
 
     The per-segment quantile (trimming) and median (robust scale) come from one sort by
     (segment, |v|); they equal numpy's ``quantile`` (linear) and ``median`` of each segment.

@@ -1,13 +1,16 @@
-"""What the windowed ICP's two engines share (:mod:`.icp`, the per-cell fits and their
-reference; :mod:`.icp_cells`, the batched cells): tuning constants and the fit options. A
-module of its own so that neither engine imports the other at module level."""
+"""What the windowed ICP's engines share (:mod:`.icp`, the per-cell fits and their reference;
+:mod:`.icp_cells`, the batched cells; :mod:`.icp_spline`, the spline field): tuning
+constants, the fit options and the robust weights of residuals. A module of its own so that
+no engine imports another at module level."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Tuple
 
-__all__ = ["EIG_RTOL", "HUBER_K", "NULL_RTOL", "TUKEY_C"]
+import numpy as np
+
+__all__ = ["EIG_RTOL", "HUBER_K", "MAD_TO_SIGMA", "NULL_RTOL", "TUKEY_C"]
 
 TUKEY_C = 4.685  # Tukey biweight tuning constant (95 % Gaussian efficiency), in robust sigmas
 HUBER_K = 1.345  # Huber tuning constant (95 % Gaussian efficiency), in robust sigmas
@@ -25,3 +28,30 @@ class _Options:
     trim_fraction: float
     robust: Optional[str]
     neighbours_k: int
+
+
+MAD_TO_SIGMA = 1.4826
+
+
+def _weights(v: np.ndarray, opts: _Options) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals -> (keep mask, weights w, psi'(v)) for trimming / robust M-estimation."""
+    keep = np.ones(v.size, dtype=bool)
+    if opts.trim_fraction > 0 and v.size > 20:
+        keep = np.abs(v) <= np.quantile(np.abs(v), 1.0 - opts.trim_fraction)
+    if opts.robust is None:
+        w = keep.astype(np.float64)
+        return keep, w, w
+    scale = MAD_TO_SIGMA * float(np.median(np.abs(v[keep])))
+    scale = max(scale, 1e-12)
+    if opts.robust == "tukey":
+        u = v / (TUKEY_C * scale)
+        inside = (np.abs(u) < 1.0) & keep
+        u2 = np.where(inside, u * u, 1.0)
+        w = np.where(inside, (1.0 - u2) ** 2, 0.0)
+        dpsi = np.where(inside, (1.0 - u2) * (1.0 - 5.0 * u2), 0.0)
+    else:  # huber
+        a = np.abs(v) / (HUBER_K * scale)
+        inside = a <= 1.0
+        w = np.where(inside, 1.0, 1.0 / np.maximum(a, 1e-300)) * keep
+        dpsi = (inside & keep).astype(np.float64)
+    return keep, w, dpsi

@@ -34,7 +34,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from .errors import InputDataError, InvalidParameterError
-from .icp_options import _Options
+from .icp_options import _Options, _weights
 from .progress import ProgressCallback, report
 
 log = logging.getLogger(__name__)
@@ -327,7 +327,6 @@ def fit_spline_field(
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
-    from .icp import _weights
     from .icp_cells import _Matcher
 
     h = float(spacing_m)
