@@ -419,6 +419,37 @@ def test_windowedicp_equals_core(provider, epochs, tmp_path):
     assert json.loads((tmp_path / "formal.json").read_text())["sigma_factor"]["applied"] == 1.0
 
 
+def test_windowedicp_spline_field_equals_core(provider, epochs, tmp_path):
+    """FIELD_MODEL (enum: cells, spline) and SPLINE_SPACING reach the core's spline field."""
+    from slipmap.core.icp import windowed_icp
+
+    paths, clouds = epochs
+    res = _run(
+        "windowedicp",
+        {
+            "BEFORE": str(paths["before"]),
+            "AFTER": str(paths["after"]),
+            "CELL": 6.0,
+            "MIN_POINTS": 50,
+            "COARSE_TO_FINE": 0,
+            "FIELD_MODEL": 1,
+            "SPLINE_SPACING": 4.0,
+            "CELLS": str(tmp_path / "cells.gpkg"),
+            "VECTORS": str(tmp_path / "vectors.gpkg"),
+            "SUMMARY": str(tmp_path / "icp.json"),
+        },
+    )
+    ref = windowed_icp(
+        clouds["before"], clouds["after"], cell_m=6.0, min_points=50, coarse_to_fine=0,
+        field_model="spline", spline_spacing_m=4.0,
+    )  # fmt: skip
+    layer, names, rows = _features(res["VECTORS"])
+    assert len(rows) == len(ref)
+    for name in ("dx", "dy", "dz", "sigma_dx"):
+        np.testing.assert_allclose(_col(names, rows, name), getattr(ref, name), rtol=1e-9)
+    assert json.loads(Path(res["SUMMARY"]).read_text())["model"]["field"] == "spline"
+
+
 def test_windowedicp_stable_mask_is_reprojected(provider, epochs, tmp_path):
     from slipmap.core.icp import windowed_icp
 
