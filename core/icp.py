@@ -1881,10 +1881,7 @@ def windowed_icp(
         field_model=field_model,
         flagged=flagged[ok],
     )
-    if sigma_scaling == "field":
-        res = _scale_sigmas(res)
-    elif sigma_scaling == "region":
-        res = _scale_sigmas_by_region(res, n_regions, sigma_region_by)
+    res = _apply_sigma_scaling(res, sigma_scaling, n_regions, sigma_region_by)
     log.info("windowed ICP: %d cells fitted, skipped %s, %.1f s", n_ok, skipped, res.seconds)
     return res
 
@@ -1951,8 +1948,8 @@ def _apply_sigma_scaling(
     sigma_regions: int = 3,
     sigma_region_by: str = "roughness",
 ) -> WindowedICPResult:
-    """``res`` with its covariances scaled as ``sigma_scaling`` says (see windowed_icp); for
-    results assembled elsewhere (the tiled run)."""
+    """``res`` with its covariances scaled as ``sigma_scaling`` says (see windowed_icp; the
+    tiled run assembles its result and scales it here too)."""
     if sigma_scaling == "field":
         return _scale_sigmas(res)
     if sigma_scaling == "region":

@@ -31,7 +31,7 @@ from typing import Optional
 
 import numpy as np
 
-from .icp_options import EIG_RTOL, HUBER_K, NULL_RTOL, TUKEY_C, _Options
+from .icp_options import EIG_RTOL, HUBER_K, NULL_RTOL, TUKEY_C, _Options, _shared_target_inflation
 from .progress import report
 from .rotation import left_jacobian, rotation_matrix, rotation_vector
 
@@ -429,14 +429,7 @@ def _final(src, seg, centres, lin, t, match, opts, model, failed, iters, converg
     psi = np.where(keep, w * v, 0.0)
     ss = np.bincount(sg, weights=psi * psi, minlength=k)
     mean_dpsi = np.bincount(sg, weights=np.where(keep, dpsi, 0.0), minlength=k) / np.maximum(nk, 1)
-    # shared-target inflation: cluster sums of psi per (cell, target point)
-    key = sg.astype(np.int64) * (int(tid.max()) + 1 if tid.size else 1) + tid
-    _, inv = np.unique(key[keep], return_inverse=True)
-    cl = np.bincount(inv.reshape(-1), weights=psi[keep])
-    cl_seg = np.zeros(cl.size, dtype=np.int64)
-    cl_seg[inv.reshape(-1)] = sg[keep]
-    cl_ss = np.bincount(cl_seg, weights=cl * cl, minlength=k)
-    inflation = np.where(ss > 0, np.maximum(1.0, cl_ss / np.where(ss > 0, ss, 1.0)), 1.0)
+    inflation = _shared_target_inflation(psi, keep, sg, tid, ss)
     dof = np.maximum(nk - p, 1)
     good = use & (used >= _MIN_PAIRS) & (mean_dpsi > 0)
     s0sq = ss / dof / np.where(mean_dpsi > 0, mean_dpsi, 1.0) ** 2 * inflation

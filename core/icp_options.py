@@ -55,3 +55,18 @@ def _weights(v: np.ndarray, opts: _Options) -> Tuple[np.ndarray, np.ndarray, np.
         w = np.where(inside, 1.0, 1.0 / np.maximum(a, 1e-300)) * keep
         dpsi = (inside & keep).astype(np.float64)
     return keep, w, dpsi
+
+
+def _shared_target_inflation(psi, keep, seg, tid, ss) -> np.ndarray:
+    """Per segment, the variance of the kept ``psi`` summed per (segment, target point) over
+    that of ``psi`` (``ss``, (K,)), at least 1: points paired with one target point share its
+    error, which independent residuals would miss. ``psi`` (P,) is zero where not ``keep``;
+    ``seg`` (P,) the segments, ``tid`` (P,) the target points. 1 where ``ss`` is 0."""
+    k = len(ss)
+    key = seg.astype(np.int64) * (int(tid.max()) + 1 if tid.size else 1) + tid
+    _, inv = np.unique(key[keep], return_inverse=True)
+    cl = np.bincount(inv.reshape(-1), weights=psi[keep])
+    cl_seg = np.zeros(cl.size, dtype=np.int64)
+    cl_seg[inv.reshape(-1)] = seg[keep]
+    cl_ss = np.bincount(cl_seg, weights=cl * cl, minlength=k)
+    return np.where(ss > 0, np.maximum(1.0, cl_ss / np.where(ss > 0, ss, 1.0)), 1.0)

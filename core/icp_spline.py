@@ -34,7 +34,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from .errors import InputDataError, InvalidParameterError
-from .icp_options import _Options, _weights
+from .icp_options import MAD_TO_SIGMA, _Options, _shared_target_inflation, _weights
 from .progress import ProgressCallback, report
 
 log = logging.getLogger(__name__)
@@ -367,7 +367,6 @@ def fit_spline_field(
     a, idx16, w16 = a[perm], idx16[perm], w16[perm]
     seg_sorted = None if report_seg is None else np.asarray(report_seg)[perm]
     bounds = np.searchsorted(cell_of[perm], np.arange(n_x * n_y + 1))
-    penalty = None
     converged, it = False, 0
     m_pts = len(before)
     factor = None
@@ -425,7 +424,7 @@ def fit_spline_field(
         # the nearest-neighbour pairs flip as the field moves and the steps shrink slowly
         # (by ~0.8 an iteration on lone-star) towards a jitter: stop at CHANGE_FLOOR of the
         # residuals' robust spread (or at tolerance_m), or when the change stalls
-        floor = CHANGE_FLOOR * 1.4826 * float(np.median(np.abs(v[ok])))
+        floor = CHANGE_FLOOR * MAD_TO_SIGMA * float(np.median(np.abs(v[ok])))
         best, since_best = (rms_du, 0) if rms_du < best else (best, since_best + 1)
         if rms_du < max(opts.tolerance_m, floor) or since_best >= STALL_ITERATIONS:
             converged = True
@@ -438,13 +437,10 @@ def fit_spline_field(
     data_knots = np.unique(idx16[ok].reshape(-1)).size
     dof = max(used - 3 * data_knots, 1)
     mean_dpsi = float(np.mean(np.where(keep, dpsi, 0.0))) if keep.size else 1.0
-    # points sharing a target point share its error (as the cells' shared-target inflation,
-    # slipmap.core.icp_cells._final): the variance of the sum of psi per target over that
-    # of psi
+    # points sharing a target point share its error, as in the cells' sigma0
     ss = float(np.sum(psi * psi))
-    _, inv = np.unique(tid[ok][keep], return_inverse=True)
-    cl = np.bincount(inv.reshape(-1), weights=psi[keep])
-    inflation = max(1.0, float(np.sum(cl * cl)) / ss) if ss > 0 else 1.0
+    one = np.zeros(psi.size, dtype=np.int64)
+    inflation = float(_shared_target_inflation(psi, keep, one, tid[ok], np.array([ss]))[0])
     s0sq = ss / dof / max(mean_dpsi, 1e-12) ** 2 * inflation
     field = SplineField(field.origin_xy, h, n_x, n_y, c.reshape(ky, kx, 3))
     ridx, rw, rwx, rwy = field._basis(rxy, slopes=True)
