@@ -1,6 +1,8 @@
 """Test-wide settings: reproducible, deadline-free property tests (CI machines are slow); the
 OpenCL tests skip, with the reason, when the OpenCL runtime cannot start."""
 
+import logging
+
 import pytest
 from hypothesis import HealthCheck, settings
 
@@ -11,6 +13,15 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.load_profile("slipmap")
+
+
+@pytest.fixture
+def drop_cli_log_handlers():
+    """main() points the "slipmap" logger at the stderr of its test; drop that handler before
+    and after (CLI tests: ``pytestmark = pytest.mark.usefixtures("drop_cli_log_handlers")``)."""
+    logging.getLogger("slipmap").handlers.clear()
+    yield
+    logging.getLogger("slipmap").handlers.clear()
 
 
 def pytest_collection_modifyitems(config, items):

@@ -3,7 +3,6 @@ exit 2 and one line naming the flag, inputs byte-identical, the output folder un
 
 from __future__ import annotations
 
-import logging
 import os
 from pathlib import Path
 
@@ -21,11 +20,7 @@ def _need_gdal():
     pytest.importorskip("osgeo.gdal", reason="GDAL's Python bindings (python3-gdal) missing")
 
 
-@pytest.fixture(autouse=True)
-def _drop_cli_log_handlers():
-    logging.getLogger("slipmap").handlers.clear()
-    yield
-    logging.getLogger("slipmap").handlers.clear()
+pytestmark = pytest.mark.usefixtures("drop_cli_log_handlers")
 
 
 def _rough(n, seed, side=20.0):

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import json
-import logging
 
 import numpy as np
 import pytest
@@ -15,11 +14,7 @@ from slipmap.cli import main
 X0, Y0 = 512000.0, 4780000.0
 
 
-@pytest.fixture(autouse=True)
-def _drop_cli_log_handlers():
-    logging.getLogger("slipmap").handlers.clear()
-    yield
-    logging.getLogger("slipmap").handlers.clear()
+pytestmark = pytest.mark.usefixtures("drop_cli_log_handlers")
 
 
 def test_spec_declares_the_options_once_with_the_field_factor_by_default():

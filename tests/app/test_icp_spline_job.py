@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import csv
 import json
-import logging
 
 import numpy as np
 import pytest
@@ -16,11 +15,7 @@ from slipmap.cli import main
 X0, Y0 = 512000.0, 4780000.0
 
 
-@pytest.fixture(autouse=True)
-def _drop_cli_log_handlers():
-    logging.getLogger("slipmap").handlers.clear()
-    yield
-    logging.getLogger("slipmap").handlers.clear()
+pytestmark = pytest.mark.usefixtures("drop_cli_log_handlers")
 
 
 def test_spec_declares_the_spline_options_once_with_cells_by_default():

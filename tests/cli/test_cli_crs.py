@@ -20,12 +20,7 @@ DATA = Path(__file__).resolve().parents[1] / "data"
 UTM12 = "EPSG:32612"  # what lone-star.laz's coordinates are (it declares WGS 84)
 
 
-@pytest.fixture(autouse=True)
-def _drop_cli_log_handlers():
-    """main() points the "slipmap" logger at the stderr of its test; drop that handler."""
-    logging.getLogger("slipmap").handlers.clear()
-    yield
-    logging.getLogger("slipmap").handlers.clear()
+pytestmark = pytest.mark.usefixtures("drop_cli_log_handlers")
 
 
 @pytest.fixture(scope="module")
