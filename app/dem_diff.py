@@ -204,11 +204,7 @@ def _summary(opts: Mapping[str, Any], g, dz_stats, plan: OutputPlan, crs) -> Dic
         "shape": list(g.shape),
         "origin_xy": list(g.origin_xy),
         "dz_m": dz_stats,
-        "files": [
-            plan.final(k).name
-            for k in ("raster", "plot")
-            if plan.wants(k) and plan.file(k).exists()
-        ],
+        "files": plan.written_names(("raster", "plot")),
         "crs": None if crs is None else crs.to_wkt(),
         "slipmap_version": __version__,
     }

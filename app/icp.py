@@ -445,9 +445,7 @@ def run(
         columns = layer_columns(res)
         rings = cell_rings(res)
         _write(plan, res, columns, rings, crs, before)
-        summary["files"] = [
-            plan.final(k).name for k in _KEYS[:-1] if plan.wants(k) and plan.file(k).exists()
-        ]
+        summary["files"] = plan.written_names(_KEYS[:-1])
         if plan.wants("summary"):
             plan.file("summary").write_text(json_text(summary), encoding="utf-8")
     lines = [

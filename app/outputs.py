@@ -137,6 +137,11 @@ class OutputPlan:
         name = self._names[key]
         return self._files[name] if name in self._files else self.out_dir / name
 
+    def written_names(self, keys: Iterable[str]) -> List[str]:
+        """The final file names of those outputs of ``keys`` that are wanted and already
+        written (for a summary's list of files)."""
+        return [self.final(k).name for k in keys if self.wants(k) and self.file(k).exists()]
+
     # ------------------------------------------------------------------ planning
 
     def expect(self, *names: str) -> None:

@@ -292,7 +292,7 @@ def run(
         if progress is not None:
             progress(0.96, "writing")
         _write(plan, res, cols, zb, za, grid, crs)
-        summary["files"] = [plan.final(k).name for k in _KEYS[:-1] if _written(plan, k)]
+        summary["files"] = plan.written_names(_KEYS[:-1])
         if plan.wants("summary"):
             plan.file("summary").write_text(json_text(summary), encoding="utf-8")
         if progress is not None:
@@ -345,10 +345,6 @@ def _compute(opts: Mapping[str, Any], wins, progress):
         progress=scaled(progress, 0.05, 0.95),
     )
     return res, grid, crs, zb, za
-
-
-def _written(plan: OutputPlan, key: str) -> bool:
-    return plan.wants(key) and plan.file(key).exists()
 
 
 def _write(plan: OutputPlan, res, cols, zb, za, grid, crs) -> None:

@@ -342,11 +342,7 @@ def run(
             "origin_xy": list(field.origin_xy),
             "spacing_m": [sx, sy],
             "bands": {k: finite_stats(v) for k, v in bands.items()},
-            "files": [
-                plan.final(k).name
-                for k in ("raster", "plot")
-                if plan.wants(k) and plan.file(k).exists()
-            ],
+            "files": plan.written_names(("raster", "plot")),
             "crs": None if crs is None else crs.to_wkt(),
             "slipmap_version": __version__,
         }
