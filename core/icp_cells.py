@@ -96,10 +96,49 @@ def _seg_sum(values: np.ndarray, seg: np.ndarray, k: int) -> np.ndarray:
     )
 
 
+_LOOP_MIN_MEAN = 64  # mean points per segment from which a loop over segments beats bincount
+
+
+def _blocks(seg: np.ndarray, k: int):
+    """``(start, stop)`` per segment of a sorted ``seg`` (K, 2), and whether a Python loop
+    over the non-empty segments is the faster way (few, large segments: one BLAS product or
+    sort per segment instead of a pass over all points per output entry)."""
+    counts = np.bincount(seg, minlength=k)
+    stop = np.cumsum(counts)
+    bounds = np.stack([stop - counts, stop], axis=1)
+    nonempty = int(np.count_nonzero(counts))
+    return bounds, counts, len(seg) >= _LOOP_MIN_MEAN * max(nonempty, 1)
+
+
+def _transform(lin: np.ndarray, s: np.ndarray, seg: np.ndarray, k: int) -> np.ndarray:
+    """``lin[seg] @ s`` per point: (K, 3, 3) linear parts applied to (P, 3) points of the
+    sorted segments ``seg`` (per segment one product when the segments are large)."""
+    bounds, counts, loop = _blocks(seg, k)
+    if not loop:
+        return np.einsum("pij,pj->pi", lin[seg], s)
+    out = np.empty_like(s)
+    for i in np.flatnonzero(counts):
+        a0, a1 = bounds[i]
+        out[a0:a1] = s[a0:a1] @ lin[i].T
+    return out
+
+
 def _normal_matrices(A: np.ndarray, w: np.ndarray, v: np.ndarray, seg: np.ndarray, k: int):
-    """``N_k = sum w a a'`` and ``b_k = -sum w a v`` per segment, (K, P, P) and (K, P)."""
+    """``N_k = sum w a a'`` and ``b_k = -sum w a v`` per segment, (K, P, P) and (K, P).
+
+    ``seg`` is sorted. Few large segments: one matrix product per segment; many small ones:
+    one weighted ``bincount`` per entry (the reference; they agree to rounding)."""
     p = A.shape[1]
     Aw = A * w[:, None]
+    bounds, counts, loop = _blocks(seg, k)
+    if loop:
+        N = np.zeros((k, p, p))
+        b = np.zeros((k, p))
+        for i in np.flatnonzero(counts):
+            a0, a1 = bounds[i]
+            N[i] = Aw[a0:a1].T @ A[a0:a1]
+            b[i] = -(Aw[a0:a1].T @ v[a0:a1])
+        return N, b
     N = np.zeros((k, p, p))
     for i in range(p):
         for j in range(i, p):
@@ -150,14 +189,20 @@ def mark_undetermined(cov: np.ndarray, undet: np.ndarray) -> np.ndarray:
 def _seg_weights(v: np.ndarray, seg: np.ndarray, k: int, opts: _Options):
     """:func:`slipmap.core.icp_options._weights` per segment: (keep, w, psi') of (P,) residuals.
 
-    The per-segment quantile (trimming) and median (robust scale) come from one sort by
-    (segment, |v|); they equal numpy's ``quantile`` (linear) and ``median`` of each segment.
+    The per-segment quantile (trimming) and median (robust scale) come from |v| sorted within
+    each segment of the sorted ``seg``; they equal numpy's ``quantile`` (linear) and ``median``
+    of each segment.
     """
     a = np.abs(v)
-    order = np.lexsort((a, seg))
-    sa = a[order]
-    counts = np.bincount(seg, minlength=k)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    bounds, counts, loop = _blocks(seg, k)
+    starts = bounds[:, 0]
+    if loop:  # few large segments: one sort each
+        sa = np.empty_like(a)
+        for i in np.flatnonzero(counts):
+            a0, a1 = bounds[i]
+            sa[a0:a1] = np.sort(a[a0:a1])
+    else:
+        sa = a[np.lexsort((a, seg))]
     keep = np.ones(v.size, dtype=bool)
     if opts.trim_fraction > 0:
         pos = (counts - 1) * (1.0 - opts.trim_fraction)
@@ -205,66 +250,97 @@ def _jacobian(model: str, q: np.ndarray, s: np.ndarray, n: np.ndarray) -> np.nda
 class _Matcher:
     """Nearest before-point of each moved source point within the gate and its cell's box.
 
-    Each source point remembers where it was last queried, its nearest and second-nearest
-    target distances ``d1 <= d2`` and its nearest target. When it has moved by less than
-    ``(d2 - d1) / 2`` since, its nearest target cannot have changed (triangle inequality:
-    the old one is within ``d1 + move``, every other one beyond ``d2 - move``), and it is
-    not queried again; only the others are. The pairs are exactly those of a fresh query,
-    at a fraction of the queries once the steps are small.
+    Each source point remembers where it was last queried and its ``CANDIDATES`` nearest
+    targets there, at distances ``d1 <= d2 <= ... <= dc``. When it has moved by less than
+    ``(dc - d1) / 2`` since, its nearest target is one of them (triangle inequality: the old
+    nearest is within ``d1 + move``, every other target beyond ``dc - move``) and is found
+    among them by direct distances; by less than ``(d2 - d1) / 2``, it is still the first.
+    Only the other points are queried again. The pairs are
+    exactly those of a fresh query (up to ties), at a fraction of the tree queries: with four
+    candidates the margin ``dc - d1`` is several point spacings, where ``d2 - d1`` (two) is
+    often nearly zero for a point between two targets (lone-star lobe: 5x fewer queries).
     """
 
     PARALLEL_MIN = 20_000  # smaller queries run on one thread (thread start-up dominates)
+    CANDIDATES = 4
 
     def __init__(self, before, tree, normals, gate, boxes, centres, n_points):
         self.before, self.tree, self.normals = before, tree, normals
         self.gate, self.boxes, self.centres = gate, boxes, centres
         self.M = len(before)
+        self.c = min(self.CANDIDATES, max(self.M, 1))
         self.last = np.full((n_points, 3), np.nan)
-        self.j = np.full(n_points, self.M, dtype=np.int64)
-        self.d1 = np.full(n_points, np.inf)
-        self.d2 = np.full(n_points, np.inf)
+        self.cand = np.full((n_points, self.c), self.M, dtype=np.int64)
+        # (d2 - d1) / 2 and (dc - d1) / 2 at the last query (-inf: query again)
+        self.margin1 = np.full(n_points, -np.inf)
+        self.marginc = np.full(n_points, -np.inf)
         self.queried = 0
+        # the target each point was last paired with, whether it is usable, its normal
+        self.jc = np.full(n_points, -1, dtype=np.int64)
+        self.okc = np.zeros(n_points, dtype=bool)
+        self.nc = np.full((n_points, 3), np.nan)
 
     def _nearest(self, world: np.ndarray, gi: np.ndarray):
-        with np.errstate(invalid="ignore"):  # inf - inf (no second target yet): NaN, stale
-            move = np.sqrt(np.sum((world - self.last[gi]) ** 2, axis=1))
-            stale = ~(move < 0.5 * (self.d2[gi] - self.d1[gi]))  # NaN (never queried): stale
+        with np.errstate(invalid="ignore"):  # never queried: NaN, stale
+            move2 = np.sum((world - self.last[gi]) ** 2, axis=1)
+            m1, mc = self.margin1[gi], self.marginc[gi]
+            # nearest unchanged (first candidate); among the candidates; query again
+            first = (move2 < m1 * m1) & (m1 > 0)
+            among = ~first & (move2 < mc * mc) & (mc > 0)
+        stale = ~(first | among)
         if stale.any():
             w = world[stale]
             workers = -1 if len(w) >= self.PARALLEL_MIN else 1
-            dist, jj = self.tree.query(w, k=2, workers=workers)
+            dist, jj = self.tree.query(w, k=self.c, workers=workers)
+            dist = np.asarray(dist).reshape(len(w), self.c)
+            jj = np.asarray(jj).reshape(len(w), self.c)
             g = gi[stale]
-            self.last[g], self.j[g] = w, jj[:, 0]
-            self.d1[g], self.d2[g] = dist[:, 0], dist[:, 1]
+            self.last[g], self.cand[g] = w, jj
+            with np.errstate(invalid="ignore"):  # inf - inf: fewer targets than candidates
+                self.margin1[g] = np.nan_to_num(0.5 * (dist[:, 1] - dist[:, 0]), nan=-np.inf)
+                self.marginc[g] = np.nan_to_num(0.5 * (dist[:, -1] - dist[:, 0]), nan=-np.inf)
             self.queried += int(stale.sum())
-        j = self.j[gi]
-        # within the gate: the distance now, from the remembered nearest target
-        dnow = np.sqrt(np.sum((world - self.before[np.minimum(j, self.M - 1)]) ** 2, axis=1))
-        j = np.where((j < self.M) & (dnow <= self.gate), j, self.M)
+        j = self.cand[gi, 0]
+        if among.any():
+            cand = self.cand[gi[among]]
+            tp = self.before[np.minimum(cand, self.M - 1)]
+            d2 = np.sum((tp - world[among, None, :]) ** 2, axis=2)
+            d2[cand >= self.M] = np.inf
+            j[among] = cand[np.arange(len(cand)), np.argmin(d2, axis=1)]
+        if np.isfinite(self.gate):  # within the gate: the distance now
+            dnow2 = np.sum((world - self.before[np.minimum(j, self.M - 1)]) ** 2, axis=1)
+            j = np.where(dnow2 <= self.gate * self.gate, j, self.M)
         return j
 
     def __call__(self, q: np.ndarray, seg: np.ndarray, gi: np.ndarray):
         """q (P', 3) centred per cell, their cells and global point indices -> ok (P',),
-        target (J, 3) centred, normals (J, 3), target ids (J,)."""
+        target (J, 3) centred, normals (J, 3), target ids (J,).
+
+        A source point's cell (and box) never changes, so whether its target is usable (in
+        the box, with a normal) is decided once per new target and remembered."""
         world = q + self.centres[seg]
         j = self._nearest(world, gi)
-        ok = j < self.M
+        new = j != self.jc[gi]
+        if new.any():
+            g, jn = gi[new], j[new]
+            okn = jn < self.M
+            jv = jn[okn]
+            if self.boxes is not None:
+                tp = self.before[jv]
+                bx = self.boxes[seg[new][okn]]
+                okn[okn] = (
+                    (tp[:, 0] >= bx[:, 0])
+                    & (tp[:, 0] <= bx[:, 1])
+                    & (tp[:, 1] >= bx[:, 2])
+                    & (tp[:, 1] <= bx[:, 3])
+                )
+            nrm = np.full((len(jn), 3), np.nan)
+            nrm[okn] = self.normals(jn[okn])
+            okn &= np.all(np.isfinite(nrm), axis=1)
+            self.jc[g], self.okc[g], self.nc[g] = jn, okn, nrm
+        ok = self.okc[gi]
         jj = j[ok]
-        tp = self.before[jj]
-        if self.boxes is not None:
-            bx = self.boxes[seg[ok]]
-            inbox = (
-                (tp[:, 0] >= bx[:, 0])
-                & (tp[:, 0] <= bx[:, 1])
-                & (tp[:, 1] >= bx[:, 2])
-                & (tp[:, 1] <= bx[:, 3])
-            )
-            ok[ok] = inbox
-            jj, tp = jj[inbox], tp[inbox]
-        nrm = self.normals(jj)
-        good = np.all(np.isfinite(nrm), axis=1)
-        ok[ok] = good
-        return ok, tp[good] - self.centres[seg[ok]], nrm[good], jj[good]
+        return ok, self.before[jj] - self.centres[seg[ok]], self.nc[gi[ok]], jj
 
 
 def fit_cells(
@@ -342,7 +418,7 @@ def fit_cells(
         )
         pm = np.flatnonzero(active[seg])
         s, sg = src[pm], seg[pm]
-        q = np.einsum("pij,pj->pi", lin[sg], s) + t[sg]
+        q = _transform(lin, s, sg, k) + t[sg]
         ok, m, nrm, _ = match(q, sg, pm)
         q, s, sg = q[ok], s[ok], sg[ok]
         cnt = np.bincount(sg, minlength=k)
@@ -409,7 +485,7 @@ def _final(src, seg, centres, lin, t, match, opts, model, failed, iters, converg
     use = ~failed
     pm = np.flatnonzero(use[seg])
     s, sg = src[pm], seg[pm]
-    a = np.einsum("pij,pj->pi", lin[sg], s)
+    a = _transform(lin, s, sg, k)
     ok, m, nrm, tid = match(a + t[sg], sg, pm)
     a, s, sg = a[ok], s[ok], sg[ok]
     v = np.einsum("ij,ij->i", nrm, a + t[sg] - m)

@@ -192,3 +192,51 @@ def test_the_cells_sample_depends_on_the_points_not_their_order():
         np.testing.assert_allclose(getattr(two, name), getattr(one, name), atol=1e-9)
     full = windowed_icp(before, after, cell_m=5.0, min_points=50)
     assert np.any(full.n > 300)  # the cap did sample
+
+
+def test_matcher_pairs_equal_a_fresh_nearest_neighbour_query():
+    """The candidate cache (``_Matcher``) returns the nearest target of a fresh KD-tree query
+    after every move, small (within the cached margins) and large (queried again)."""
+    from scipy.spatial import cKDTree
+
+    from slipmap.core.icp_cells import _Matcher
+
+    rng = np.random.default_rng(3)
+    before = rng.uniform(0.0, 10.0, (4000, 3)) * [1.0, 1.0, 0.1]
+    tree = cKDTree(before)
+    src = rng.uniform(1.0, 9.0, (700, 3)) * [1.0, 1.0, 0.1]
+    gi = np.arange(len(src))
+    for gate in (np.inf, 0.12):
+        match = _Matcher(before, tree, None, gate, None, np.zeros((1, 3)), len(src))
+        q = src.copy()
+        for step in (0.0, 0.002, 0.01, 0.05, 0.3, 0.001, 0.0005):
+            q = q + rng.normal(0.0, step, q.shape)
+            d, ref = tree.query(q, distance_upper_bound=gate)
+            j = match._nearest(q, gi)
+            np.testing.assert_array_equal(j, np.where(np.isfinite(d), ref, len(before)))
+        assert match.queried < 7 * len(src)  # the cache saved queries
+
+
+@pytest.mark.parametrize("n_cells", [3, 400])
+def test_segment_loops_equal_the_vectorised_reference(monkeypatch, n_cells):
+    """Per-segment products and sorts (few large cells) equal the bincount / lexsort path."""
+    from slipmap.core import icp_cells
+    from slipmap.core.icp import _options
+
+    rng = np.random.default_rng(5)
+    seg = np.sort(rng.integers(0, n_cells, 6000))
+    seg[seg == 1] = 2  # an empty cell
+    A, v, w = rng.normal(size=(6000, 6)), rng.standard_t(3, 6000), rng.random(6000)
+    s, lin = rng.normal(size=(6000, 3)), rng.normal(size=(n_cells, 3, 3))
+    opts = _options(robust="tukey", trim_fraction=0.1)
+    k = n_cells
+    out = {}
+    for loop_min in (0, 10**9):  # every segment large; never
+        monkeypatch.setattr(icp_cells, "_LOOP_MIN_MEAN", loop_min)
+        out[loop_min] = (
+            *icp_cells._normal_matrices(A, w, v, seg, k),
+            *icp_cells._seg_weights(v, seg, k, opts),
+            icp_cells._transform(lin, s, seg, k),
+        )
+    for a, b in zip(out[0], out[10**9]):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
