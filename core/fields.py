@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Tuple
 
 import numpy as np
 
@@ -693,6 +693,30 @@ def _neighbour_args(row, col, values, sigmas, usable):
     return row, col, values, sigmas, ok
 
 
+class _PairCovariance:
+    """Look-up of given pair covariances ``c(i, j)`` (symmetric; 0 for pairs not given and for
+    ``i == j``, whose variances are the sigmas)."""
+
+    def __init__(self, pairs: np.ndarray, cov: np.ndarray, k: int):
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        cov = np.asarray(cov, dtype=np.float64).reshape(len(pairs), -1)
+        i = np.concatenate([pairs[:, 0], pairs[:, 1]])
+        j = np.concatenate([pairs[:, 1], pairs[:, 0]])
+        key = i * k + j
+        order = np.argsort(key, kind="stable")
+        self.key, self.cov, self.k = key[order], np.concatenate([cov, cov])[order], k
+
+    def __call__(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        i, j = np.broadcast_arrays(i, j)
+        key = i * self.k + j
+        pos = np.minimum(np.searchsorted(self.key, key), max(len(self.key) - 1, 0))
+        out = np.zeros(key.shape + (self.cov.shape[1],))
+        if len(self.key):
+            hit = (self.key[pos] == key) & (i != j)
+            out[hit] = self.cov[pos[hit]]
+        return out
+
+
 def neighbour_variance_factor(
     row: np.ndarray,
     col: np.ndarray,
@@ -702,6 +726,7 @@ def neighbour_variance_factor(
     usable: Optional[np.ndarray] = None,
     min_neighbours: int = 5,
     min_cells: int = 8,
+    pair_covariance: Optional[Tuple[np.ndarray, np.ndarray]] = None,
 ) -> NeighbourVarianceFactor:
     """Variance factor of the formal sigmas of a gridded field, from neighbour agreement.
 
@@ -728,6 +753,12 @@ def neighbour_variance_factor(
         At least 3 (a plane), at most 8.
     min_cells : int
         Fewer cells with enough neighbours give ``factor`` NaN.
+    pair_covariance : ((P, 2) int, (P, q) float64), optional
+        Formal covariances between cells (indices into ``row``), per component, of a field
+        whose values are correlated (e.g. one spline fitted to all cells): then
+        ``var(r) = sigma_i² - 2 sum h_j c_ij + sum h_j h_k c_jk``. Pairs not given are
+        uncorrelated. Without it a positively correlated field's ``var(r)`` is overstated and
+        its factor too small.
 
     Returns
     -------
@@ -757,6 +788,13 @@ def neighbour_variance_factor(
     idx = np.maximum(nb, 0)
     pred = np.einsum("kj,kjq->kq", h, values[idx])
     var = sigmas[centre] ** 2 + np.einsum("kj,kjq->kq", h * h, sigmas[idx] ** 2)
+    if pair_covariance is not None:
+        cov = _PairCovariance(*pair_covariance, row.size)
+        ci = np.flatnonzero(centre)
+        c_in = cov(np.repeat(ci[:, None], 8, axis=1), idx)  # (M, 8, q)
+        c_nn = cov(idx[:, :, None], idx[:, None, :])  # (M, 8, 8, q), zero diagonal
+        var = var - 2.0 * np.einsum("kj,kjq->kq", h, c_in) + np.einsum("kj,kl,kjlq->kq", h, h, c_nn)
+        var = np.maximum(var, 1e-6 * sigmas[centre] ** 2)  # rounding of nearly equal values
     normalised[centre] = (values[centre] - pred) / np.sqrt(var)
     if nb.shape[0] < int(min_cells):
         return NeighbourVarianceFactor(float("nan"), int(nb.shape[0]), normalised)
@@ -767,7 +805,15 @@ def neighbour_variance_factor(
 
 
 def _neighbour_variance_factor_reference(
-    row, col, values, sigmas, *, usable=None, min_neighbours=5, min_cells=8
+    row,
+    col,
+    values,
+    sigmas,
+    *,
+    usable=None,
+    min_neighbours=5,
+    min_cells=8,
+    pair_covariance=None,
 ) -> NeighbourVarianceFactor:
     """Slow obvious version of :func:`neighbour_variance_factor` (a loop over cells with
     ``np.linalg.lstsq`` per cell), for testing."""
@@ -782,7 +828,19 @@ def _neighbour_variance_factor_reference(
         j = [k for _, _, k in nbs]
         h = np.linalg.lstsq(X, np.eye(len(j)), rcond=None)[0][0]  # prediction at (0, 0)
         r_i = values[i] - h @ values[j]
-        normalised[i] = r_i / np.sqrt(sigmas[i] ** 2 + (h**2) @ sigmas[j] ** 2)
+        # var(r) = var(e_i - h' e_J) from the full covariance of (cell, neighbours)
+        members = [i] + j
+        c = np.zeros((len(members), len(members), values.shape[1]))
+        for a, m in enumerate(members):
+            c[a, a] = sigmas[m] ** 2
+        if pair_covariance is not None:
+            for (p, q), cv in zip(np.asarray(pair_covariance[0]), np.asarray(pair_covariance[1])):
+                if p in members and q in members and p != q:
+                    c[members.index(p), members.index(q)] = cv
+                    c[members.index(q), members.index(p)] = cv
+        u = np.concatenate([[1.0], -h])
+        var = np.maximum(np.einsum("a,b,abq->q", u, u, c), 1e-6 * sigmas[i] ** 2)
+        normalised[i] = r_i / np.sqrt(var)
     tested = np.all(np.isfinite(normalised), axis=1)
     n = int(tested.sum())
     if n < min_cells:

@@ -1248,6 +1248,19 @@ def _fit_pass(
     )
 
 
+def _near_pairs(row: np.ndarray, col: np.ndarray, *, reach: int) -> np.ndarray:
+    """(Q, 2) index pairs ``i < j`` of the cells at most ``reach`` rows and columns apart."""
+    key = {(int(r), int(c)): i for i, (r, c) in enumerate(zip(row, col))}
+    out = [
+        (i, key[(int(r) + a, int(c) + b)])
+        for i, (r, c) in enumerate(zip(row, col))
+        for a in range(-reach, reach + 1)
+        for b in range(-reach, reach + 1)
+        if (a or b) and key.get((int(r) + a, int(c) + b), -1) > i
+    ]
+    return np.array(out, dtype=np.int64).reshape(-1, 2)
+
+
 def _fit_cells_per_cell(src, seg, centres, *, before, tree, normals, boxes, gate, opts, model,
                         t_init, progress=None):  # fmt: skip
     """Slow obvious reference of :func:`slipmap.core.icp_cells.fit_cells`: one cell at a time
@@ -1782,6 +1795,7 @@ def windowed_icp(
         usable = fits.ok & np.all(np.isfinite(d), axis=1)
         start, _ = _deformation_field(cells, d, usable, n_rows, n_cols, x0, y0, cell)
         report(progress, 0.9, "fitting one spline field to all cells")
+        near = _near_pairs(cells.row, cells.col, reach=2)
         sfit = fit_spline_field(
             a[cells.points],
             before=b,
@@ -1790,6 +1804,7 @@ def windowed_icp(
             initial=start,
             report_xy=cells.centres[:, :2],
             report_seg=cells.seg,
+            report_pairs=near,
             spacing_m=spline_h,
             smoothing=spline_lam,
             gate_m=gate,
@@ -1881,7 +1896,12 @@ def windowed_icp(
         field_model=field_model,
         flagged=flagged[ok],
     )
-    res = _apply_sigma_scaling(res, sigma_scaling, n_regions, sigma_region_by)
+    pair_cov = None
+    if field_model == "spline":  # the cells share one field: their errors are correlated
+        new = np.cumsum(ok) - 1
+        both = ok[near[:, 0]] & ok[near[:, 1]]
+        pair_cov = (new[near[both]], sfit.pair_cov[both])
+    res = _apply_sigma_scaling(res, sigma_scaling, n_regions, sigma_region_by, pair_cov)
     log.info("windowed ICP: %d cells fitted, skipped %s, %.1f s", n_ok, skipped, res.seconds)
     return res
 
@@ -1947,18 +1967,22 @@ def _apply_sigma_scaling(
     sigma_scaling: str,
     sigma_regions: int = 3,
     sigma_region_by: str = "roughness",
+    pair_cov=None,
 ) -> WindowedICPResult:
     """``res`` with its covariances scaled as ``sigma_scaling`` says (see windowed_icp; the
-    tiled run assembles its result and scales it here too)."""
+    tiled run assembles its result and scales it here too). ``pair_cov``: the formal
+    covariances between cells of a correlated field (spline), for the field's factor."""
     if sigma_scaling == "field":
-        return _scale_sigmas(res)
+        return _scale_sigmas(res, pair_cov)
     if sigma_scaling == "region":
         return _scale_sigmas_by_region(res, int(sigma_regions), sigma_region_by)
     return res
 
 
-def _scale_sigmas(res: WindowedICPResult) -> WindowedICPResult:
-    """``res`` with covariances scaled by the field's variance factor (see windowed_icp)."""
+def _scale_sigmas(res: WindowedICPResult, pair_cov=None) -> WindowedICPResult:
+    """``res`` with covariances scaled by the field's variance factor (see windowed_icp).
+    ``pair_cov`` ((Q, 2) cell pairs, (Q, 3) covariances): the cells' formal errors are
+    correlated (one spline field); neighbour agreement must know it."""
     from .fields import neighbour_variance_factor
 
     est = neighbour_variance_factor(
@@ -1967,6 +1991,7 @@ def _scale_sigmas(res: WindowedICPResult) -> WindowedICPResult:
         np.column_stack([res.dx, res.dy, res.dz]),
         np.column_stack([res.sigma_dx, res.sigma_dy, res.sigma_dz]),
         usable=res.converged,
+        pair_covariance=pair_cov,
     )
     res = replace(res, sigma_factor_estimate=est.factor, sigma_factor_cells=est.n_cells)
     if not math.isfinite(est.factor):

@@ -165,6 +165,10 @@ class SplineFit:
     converged : bool
     n_coefficients : int
         Knots carrying data (x 3 components).
+    pair_cov : (Q, 3) float64 or None
+        Covariances between the displacements at the ``report_pairs`` positions, per
+        component (x with x, y with y, z with z), m²: the field is one estimate, so nearby
+        positions' errors are correlated. ``None`` without ``report_pairs``.
     """
 
     field: SplineField
@@ -177,6 +181,7 @@ class SplineFit:
     iterations: int
     converged: bool
     n_coefficients: int
+    pair_cov: Optional[np.ndarray] = None
 
 
 def _second_differences(kx: int, ky: int):
@@ -270,6 +275,7 @@ def fit_spline_field(
     initial: Callable[[np.ndarray], np.ndarray],
     report_xy: np.ndarray,
     report_seg: Optional[np.ndarray] = None,
+    report_pairs: Optional[np.ndarray] = None,
     spacing_m: float,
     smoothing: Optional[float] = None,
     gate_m: float = np.inf,
@@ -296,6 +302,9 @@ def fit_spline_field(
     report_seg : (P,) int64, optional
         Cell (index into ``report_xy``) of each after-point, for the per-cell ``rmse`` and
         ``n`` (-1: none).
+    report_pairs : (Q, 2) int64, optional
+        Pairs of report positions (indices into ``report_xy``) whose covariances are wanted
+        (``SplineFit.pair_cov``; e.g. neighbouring cells, for their variance factor).
     spacing_m : float
         Knot spacing, metres (> 0).
     smoothing : float, optional
@@ -453,6 +462,8 @@ def fit_spline_field(
         g[:, 6 + comp, comp] = rwy
     cols = (np.arange(3)[:, None] * n_k + ridx[:, None, :]).reshape(k, 48)
     cov = np.zeros((k, 9, 9))
+    pairs = None if report_pairs is None else np.asarray(report_pairs, np.int64).reshape(-1, 2)
+    pair_cov = None if pairs is None else np.full((len(pairs), 3), np.nan)
     chunk = 64
     for s0 in range(0, k, chunk):
         part = slice(s0, min(s0 + chunk, k))
@@ -465,6 +476,13 @@ def fit_spline_field(
         sol = factor.solve(np.asarray(rows_g.T.todense()))  # (3K, kk*9)
         full = np.asarray(rows_g @ sol).reshape(kk, 9, kk, 9)
         cov[part] = s0sq * full[np.arange(kk), :, np.arange(kk), :]
+        if pairs is not None:  # g_d(j) A^-1 g_d(i)' for the pairs whose first cell is here
+            sel = np.flatnonzero((pairs[:, 0] >= part.start) & (pairs[:, 0] < part.stop))
+            pj = pairs[sel, 1]
+            for comp in range(3):
+                column = (pairs[sel, 0] - part.start) * 9 + comp
+                vals = sol[comp * n_k + ridx[pj], column[:, None]]  # (S, 16)
+                pair_cov[sel, comp] = s0sq * np.sum(vals * rw[pj], axis=1)
     rmse = np.full(k, np.nan)
     n_used = np.zeros(k, dtype=np.int64)
     if seg_sorted is not None:
@@ -493,4 +511,5 @@ def fit_spline_field(
         iterations=it,
         converged=converged,
         n_coefficients=3 * data_knots,
+        pair_cov=pair_cov,
     )

@@ -356,6 +356,47 @@ def test_variance_factor_fast_equals_loop_reference():
         assert np.isfinite(fast.normalised).all(axis=1).sum() == fast.n_cells
 
 
+def _correlated_field(seed, *, shape=(24, 30), length_cells=1.5, sigma=0.002):
+    """A 3-component field of correlated Gaussian errors (squared-exponential covariance,
+    ``length_cells`` grid cells) on a plane; the pairs within 2 cells and their covariances."""
+    rng = np.random.default_rng(seed)
+    rr, cc = np.mgrid[0 : shape[0], 0 : shape[1]]
+    row, col = rr.ravel(), cc.ravel()
+    d2 = (row[:, None] - row[None]) ** 2 + (col[:, None] - col[None]) ** 2
+    C = sigma**2 * np.exp(-0.5 * d2 / length_cells**2)
+    L = np.linalg.cholesky(C + 1e-12 * sigma**2 * np.eye(row.size))
+    values = (L @ rng.standard_normal((row.size, 3))) + np.column_stack(
+        [0.01 * col, 0 * row, 0.1 + 0 * row]
+    )
+    near = (np.abs(row[:, None] - row[None]) <= 2) & (np.abs(col[:, None] - col[None]) <= 2)
+    i, j = np.nonzero(np.triu(near, 1))
+    pairs = np.column_stack([i, j])
+    cov = np.repeat(C[i, j][:, None], 3, axis=1)
+    return row, col, values, np.full((row.size, 3), sigma), (pairs, cov)
+
+
+def test_variance_factor_of_a_correlated_field_needs_its_pair_covariances():
+    """Honest sigmas of a field whose errors are correlated between neighbours: with the
+    pair covariances the factor is 1; without them neighbour agreement looks too good."""
+    with_cov, without = [], []
+    for seed in range(4):
+        row, col, values, sig, pc = _correlated_field(seed)
+        with_cov.append(neighbour_variance_factor(row, col, values, sig, pair_covariance=pc).factor)
+        without.append(neighbour_variance_factor(row, col, values, sig).factor)
+    np.testing.assert_allclose(np.mean(with_cov), 1.0, rtol=0.1)
+    assert np.mean(without) < 0.5
+
+
+def test_variance_factor_with_pair_covariances_fast_equals_loop_reference():
+    row, col, values, sig, pc = _correlated_field(3, shape=(9, 11))
+    usable = np.random.default_rng(2).random(row.size) < 0.85
+    kw = dict(usable=usable, min_neighbours=5, min_cells=1, pair_covariance=pc)
+    fast = neighbour_variance_factor(row, col, values, sig, **kw)
+    ref = _neighbour_variance_factor_reference(row, col, values, sig, **kw)
+    assert fast.n_cells == ref.n_cells > 0
+    np.testing.assert_allclose(fast.normalised, ref.normalised, rtol=1e-9)
+
+
 @given(
     a=st.floats(-5, 5),
     b=st.floats(-1, 1),

@@ -159,3 +159,33 @@ def test_hutchinson_trace_agrees_with_the_exact_one():
     est = icp_spline._trace_inv_block(f, r2, 0, n_k)  # n_k > TRACE_EXACT_MAX: Hutchinson
     assert n_k > icp_spline.TRACE_EXACT_MAX
     assert abs(est - exact) < 0.1 * exact, (est, exact)
+
+
+def test_pair_covariances_are_the_fields_cross_covariances():
+    """``report_pairs``: a pair (i, i) gives cell i's variances, (i, j) equals (j, i), and
+    neighbouring cells of one field are positively correlated (what the field's variance
+    factor then accounts for)."""
+    from scipy.spatial import cKDTree
+
+    from slipmap.core.icp import _NormalCache, _options
+    from slipmap.core.icp_spline import fit_spline_field
+
+    rng = np.random.default_rng(6)
+    before = cloud(rng, -3.0, 23.0, 40, 0.002)
+    after = cloud(rng, 0.0, 20.0, 40, 0.002) + [0.05, -0.03, 0.01]
+    tree = cKDTree(before)
+    g = np.arange(2.5, 20.0, 5.0)
+    rxy = np.array([(x, y) for y in g for x in g])
+    k = len(rxy)
+    pairs = np.array([(i, j) for i in range(k) for j in range(k)])
+    fit = fit_spline_field(
+        after, before=before, tree=tree, normals=_NormalCache(before, tree, 12),
+        initial=lambda xy: np.zeros((len(xy), 3)), report_xy=rxy, report_pairs=pairs,
+        spacing_m=2.5, opts=_options(),
+    )  # fmt: skip
+    pc = fit.pair_cov.reshape(k, k, 3)
+    diag = np.diagonal(fit.cov[:, :3, :3], axis1=1, axis2=2)
+    np.testing.assert_allclose(pc[np.arange(k), np.arange(k)], diag, rtol=1e-10)
+    np.testing.assert_allclose(pc, np.transpose(pc, (1, 0, 2)), rtol=1e-8, atol=1e-18)
+    corr = pc[0, 1] / np.sqrt(diag[0] * diag[1])  # two cells 5 m apart, knots 2.5 m
+    assert np.all((corr > 0.0) & (corr < 1.0))
