@@ -1481,6 +1481,8 @@ def windowed_icp(
         (vegetation, scan shadows, the scanner's sampling pattern) break, and on lone-star
         it is 2-3x too small; the factor restores ``err / sigma`` to about 1 there. With
         fewer than 8 cells that have 5 usable neighbours the formal covariances are kept.
+        With ``field_model="spline"`` the neighbour agreement counts the formal covariances
+        between neighbouring cells (one field: their errors are correlated).
         ``"region"``: one factor per region of cells instead (``sigma_regions`` classes of
         ``sigma_region_by``; :func:`~slipmap.core.icp_sigma.region_variance_factors`), the
         regions' factors found together, shrunk towards the field's factor where a region has
