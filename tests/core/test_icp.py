@@ -415,3 +415,24 @@ def test_coarse_to_fine_recovers_motion_large_against_the_cell():
         windowed_icp(before, after, coarse_to_fine=-1, **kw)
     with pytest.raises(InvalidParameterError, match="initial_displacement"):
         windowed_icp(before, after, initial_displacement=3.0, **kw)
+
+
+def test_closed_form_normals_equal_eigh():
+    """``_pca_normals`` (closed-form 3 x 3 eigen) against ``eigh``: rough planes at UTM
+    offsets, steep and flat, lines and repeated points marked NaN by both."""
+    from slipmap.core.icp import _pca_normals, _pca_normals_reference
+
+    rng = np.random.default_rng(11)
+    k = 4000
+    xy = rng.uniform(-0.2, 0.2, (k, 12, 2))
+    slope = rng.normal(0.0, 3.0, (k, 1, 2))
+    z = np.sum(slope * xy, axis=2) + rng.normal(0.0, 0.003, (k, 12))
+    nb = np.concatenate([xy, z[..., None]], axis=2) + UTM
+    nb[:10, :, 1] = nb[:10, :1, 1]  # lines (x and z vary, y constant with x... degenerate)
+    nb[:10, :, 2] = nb[:10, :1, 2]
+    nb[10:15] = nb[10:15, :1]  # one point repeated
+    fast, ref = _pca_normals(nb), _pca_normals_reference(nb)
+    np.testing.assert_array_equal(np.isnan(fast), np.isnan(ref))
+    assert np.isnan(fast[:15]).all()
+    ok = ~np.isnan(ref[:, 0])
+    np.testing.assert_allclose(fast[ok], ref[ok], atol=1e-9)
