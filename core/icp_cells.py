@@ -31,7 +31,14 @@ from typing import Optional
 
 import numpy as np
 
-from .icp_options import EIG_RTOL, HUBER_K, NULL_RTOL, TUKEY_C, _Options, _shared_target_inflation
+from .icp_options import (
+    EIG_RTOL,
+    MAD_TO_SIGMA,
+    NULL_RTOL,
+    _Options,
+    _robust_weights,
+    _shared_target_inflation,
+)
 from .progress import report
 from .rotation import left_jacobian, rotation_matrix, rotation_vector
 
@@ -224,18 +231,8 @@ def _seg_weights(v: np.ndarray, seg: np.ndarray, k: int, opts: _Options):
     hi = np.maximum(nk // 2, 0)
     ml = sa[np.minimum(starts + lo, sa.size - 1)]
     mh = sa[np.minimum(starts + hi, sa.size - 1)]
-    scale = np.maximum(1.4826 * 0.5 * (ml + mh), 1e-12)[seg]
-    if opts.robust == "tukey":
-        u = v / (TUKEY_C * scale)
-        inside = (np.abs(u) < 1.0) & keep
-        u2 = np.where(inside, u * u, 1.0)
-        w = np.where(inside, (1.0 - u2) ** 2, 0.0)
-        dpsi = np.where(inside, (1.0 - u2) * (1.0 - 5.0 * u2), 0.0)
-    else:
-        aa = a / (HUBER_K * scale)
-        inside = aa <= 1.0
-        w = np.where(inside, 1.0, 1.0 / np.maximum(aa, 1e-300)) * keep
-        dpsi = (inside & keep).astype(np.float64)
+    scale = np.maximum(MAD_TO_SIGMA * 0.5 * (ml + mh), 1e-12)[seg]
+    w, dpsi = _robust_weights(v, scale, keep, opts.robust)
     return keep, w, dpsi
 
 

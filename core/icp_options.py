@@ -42,8 +42,14 @@ def _weights(v: np.ndarray, opts: _Options) -> Tuple[np.ndarray, np.ndarray, np.
         w = keep.astype(np.float64)
         return keep, w, w
     scale = MAD_TO_SIGMA * float(np.median(np.abs(v[keep])))
-    scale = max(scale, 1e-12)
-    if opts.robust == "tukey":
+    w, dpsi = _robust_weights(v, max(scale, 1e-12), keep, opts.robust)
+    return keep, w, dpsi
+
+
+def _robust_weights(v: np.ndarray, scale, keep: np.ndarray, robust: str):
+    """(w, psi'(v)) of residuals ``v`` (P,) at robust ``scale`` (scalar or (P,)), zero where
+    not ``keep``: Tukey's biweight or Huber's M-estimator (``robust``)."""
+    if robust == "tukey":
         u = v / (TUKEY_C * scale)
         inside = (np.abs(u) < 1.0) & keep
         u2 = np.where(inside, u * u, 1.0)
@@ -54,7 +60,7 @@ def _weights(v: np.ndarray, opts: _Options) -> Tuple[np.ndarray, np.ndarray, np.
         inside = a <= 1.0
         w = np.where(inside, 1.0, 1.0 / np.maximum(a, 1e-300)) * keep
         dpsi = (inside & keep).astype(np.float64)
-    return keep, w, dpsi
+    return w, dpsi
 
 
 def _shared_target_inflation(psi, keep, seg, tid, ss) -> np.ndarray:
