@@ -345,23 +345,28 @@ def _mask_layer(ring_utm):
     return layer
 
 
+def _icp_params(paths, tmp_path, **params):
+    """slipmap:windowedicp's parameters for the two epochs (6 m cells, 50 points, one pass,
+    outputs in ``tmp_path``), updated by ``params``."""
+    out = {
+        "BEFORE": str(paths["before"]),
+        "AFTER": str(paths["after"]),
+        "CELL": 6.0,
+        "MIN_POINTS": 50,
+        "COARSE_TO_FINE": 0,
+        "CELLS": str(tmp_path / "cells.gpkg"),
+        "VECTORS": str(tmp_path / "vectors.gpkg"),
+        "SUMMARY": str(tmp_path / "icp.json"),
+    }
+    out.update(params)
+    return out
+
+
 def test_windowedicp_equals_core(provider, epochs, tmp_path):
     from slipmap.core.icp import windowed_icp
 
     paths, clouds = epochs
-    res = _run(
-        "windowedicp",
-        {
-            "BEFORE": str(paths["before"]),
-            "AFTER": str(paths["after"]),
-            "CELL": 6.0,
-            "MIN_POINTS": 50,
-            "COARSE_TO_FINE": 0,
-            "CELLS": str(tmp_path / "cells.gpkg"),
-            "VECTORS": str(tmp_path / "vectors.gpkg"),
-            "SUMMARY": str(tmp_path / "icp.json"),
-        },
-    )
+    res = _run("windowedicp", _icp_params(paths, tmp_path))
     ref = windowed_icp(
         clouds["before"], clouds["after"], cell_m=6.0, min_points=50, coarse_to_fine=0
     )
@@ -400,18 +405,11 @@ def test_windowedicp_equals_core(provider, epochs, tmp_path):
     # formal sigmas on request: the field's sigmas divided by the factor
     formal = _run(
         "windowedicp",
-        {
-            "BEFORE": str(paths["before"]),
-            "AFTER": str(paths["after"]),
-            "CELL": 6.0,
-            "MIN_POINTS": 50,
-            "COARSE_TO_FINE": 0,
-            "FORMAL_SIGMA": True,
-            "CELLS": "TEMPORARY_OUTPUT",
-            "VECTORS": str(tmp_path / "formal.gpkg"),
-            "SUMMARY": str(tmp_path / "formal.json"),
-        },
-    )
+        _icp_params(
+            paths, tmp_path, FORMAL_SIGMA=True, CELLS="TEMPORARY_OUTPUT",
+            VECTORS=str(tmp_path / "formal.gpkg"), SUMMARY=str(tmp_path / "formal.json"),
+        ),
+    )  # fmt: skip
     _, names, rows = _features(formal["VECTORS"])
     np.testing.assert_allclose(
         _col(names, rows, "sigma_dx"), ref.sigma_dx / ref.sigma_factor, rtol=1e-12
@@ -424,21 +422,7 @@ def test_windowedicp_spline_field_equals_core(provider, epochs, tmp_path):
     from slipmap.core.icp import windowed_icp
 
     paths, clouds = epochs
-    res = _run(
-        "windowedicp",
-        {
-            "BEFORE": str(paths["before"]),
-            "AFTER": str(paths["after"]),
-            "CELL": 6.0,
-            "MIN_POINTS": 50,
-            "COARSE_TO_FINE": 0,
-            "FIELD_MODEL": 1,
-            "SPLINE_SPACING": 4.0,
-            "CELLS": str(tmp_path / "cells.gpkg"),
-            "VECTORS": str(tmp_path / "vectors.gpkg"),
-            "SUMMARY": str(tmp_path / "icp.json"),
-        },
-    )
+    res = _run("windowedicp", _icp_params(paths, tmp_path, FIELD_MODEL=1, SPLINE_SPACING=4.0))
     ref = windowed_icp(
         clouds["before"], clouds["after"], cell_m=6.0, min_points=50, coarse_to_fine=0,
         field_model="spline", spline_spacing_m=4.0,
@@ -465,18 +449,11 @@ def test_windowedicp_stable_mask_is_reprojected(provider, epochs, tmp_path):
     )
     res = _run(
         "windowedicp",
-        {
-            "BEFORE": str(paths["before"]),
-            "AFTER": str(paths["after"]),
-            "CELL": 8.0,
-            "MIN_POINTS": 50,
-            "COARSE_TO_FINE": 0,
-            "STABLE_MASK": _mask_layer(ring),
-            "CELLS": "TEMPORARY_OUTPUT",
-            "VECTORS": str(tmp_path / "v.gpkg"),
-            "SUMMARY": str(tmp_path / "icp.json"),
-        },
-    )
+        _icp_params(
+            paths, tmp_path, CELL=8.0, STABLE_MASK=_mask_layer(ring), CELLS="TEMPORARY_OUTPUT",
+            VECTORS=str(tmp_path / "v.gpkg"),
+        ),
+    )  # fmt: skip
     ref = windowed_icp(
         clouds["before"],
         clouds["after"],
