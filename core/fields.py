@@ -661,13 +661,18 @@ class NeighbourVarianceFactor:
     normalised: np.ndarray
 
 
-def _neighbour_table(row: np.ndarray, col: np.ndarray) -> np.ndarray:
-    """(K, 8) index of each cell's 8 neighbours (-1 where there is none)."""
+def _neighbour_table(row: np.ndarray, col: np.ndarray, reach: int = 1) -> np.ndarray:
+    """(K, (2 reach + 1)² - 1) index of each cell's neighbours up to ``reach`` rows and
+    columns away (-1 where there is none); ``reach=1``: the 8 neighbours in ``_OFFSETS``
+    order."""
+    offsets = _OFFSETS if reach == 1 else [
+        (a, b) for a in range(-reach, reach + 1) for b in range(-reach, reach + 1) if a or b
+    ]  # fmt: skip
     r0, c0 = int(row.min()), int(col.min())
-    rr, cc = row - r0 + 1, col - c0 + 1  # one empty ring around the grid
-    grid = np.full((int(rr.max()) + 2, int(cc.max()) + 2), -1, dtype=np.int64)
+    rr, cc = row - r0 + reach, col - c0 + reach  # an empty ring around the grid
+    grid = np.full((int(rr.max()) + reach + 1, int(cc.max()) + reach + 1), -1, dtype=np.int64)
     grid[rr, cc] = np.arange(row.size)
-    return np.stack([grid[rr + a, cc + b] for a, b in _OFFSETS], axis=1)
+    return np.stack([grid[rr + a, cc + b] for a, b in offsets], axis=1)
 
 
 _OFFSETS = [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]

@@ -1297,15 +1297,13 @@ def _fit_pass(
 
 def _near_pairs(row: np.ndarray, col: np.ndarray, *, reach: int) -> np.ndarray:
     """(Q, 2) index pairs ``i < j`` of the cells at most ``reach`` rows and columns apart."""
-    key = {(int(r), int(c)): i for i, (r, c) in enumerate(zip(row, col))}
-    out = [
-        (i, key[(int(r) + a, int(c) + b)])
-        for i, (r, c) in enumerate(zip(row, col))
-        for a in range(-reach, reach + 1)
-        for b in range(-reach, reach + 1)
-        if (a or b) and key.get((int(r) + a, int(c) + b), -1) > i
-    ]
-    return np.array(out, dtype=np.int64).reshape(-1, 2)
+    from .fields import _neighbour_table
+
+    if np.size(row) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    nb = _neighbour_table(np.asarray(row, np.int64), np.asarray(col, np.int64), reach)
+    i, m = np.nonzero(nb > np.arange(len(nb))[:, None])
+    return np.column_stack([i, nb[i, m]]).astype(np.int64)
 
 
 def _fit_cells_per_cell(src, seg, centres, *, before, tree, normals, boxes, gate, opts, model,
