@@ -43,7 +43,7 @@ from typing import Callable, Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .errors import InputDataError, InvalidParameterError
+from .errors import DependencyError, InputDataError, InvalidParameterError
 from .icp_options import EIG_RTOL, NULL_RTOL, _Options, _weights
 from .progress import ProgressCallback, report, scaled
 from .rotation import left_jacobian as _left_jacobian
@@ -1151,6 +1151,7 @@ def _interpolator(res: WindowedICPResult) -> Callable[[np.ndarray], np.ndarray]:
 CELL_MODELS = ("rigid", "affine")
 FIELD_MODELS = ("cells", "spline")
 ENGINES = ("batched", "per_cell")
+BACKENDS = ("numpy", "opencl", "auto")
 
 
 @dataclass(frozen=True)
@@ -1255,6 +1256,7 @@ def _fit_pass(
     gate,
     opts,
     engine,
+    grid=None,
     residual: bool = False,
     progress: Optional[ProgressCallback] = None,
 ) -> _PassFits:
@@ -1271,8 +1273,9 @@ def _fit_pass(
     kw = dict(before=before, tree=tree, normals=normals, boxes=boxes, gate=gate, opts=opts)
     if engine == "batched":
         fits = fit_cells(
-            src, cells.seg, centres, model=model, t_init=t_init, progress=progress, **kw
-        )
+            src, cells.seg, centres, model=model, t_init=t_init, progress=progress, grid=grid,
+            **kw,
+        )  # fmt: skip
     else:
         fits = _fit_cells_per_cell(
             src, cells.seg, centres, model=model, t_init=t_init, progress=progress, **kw
@@ -1293,6 +1296,21 @@ def _fit_pass(
         iterations=fits.iterations,
         converged=fits.converged,
     )
+
+
+def _target_grid(before: np.ndarray, backend: str):
+    """The epoch-1 points on an OpenCL device for the batched matcher, or None (numpy)."""
+    if backend == "numpy":
+        return None
+    try:
+        from .opencl.nearest import GridTargets
+
+        return GridTargets(before)
+    except DependencyError as exc:
+        if backend == "auto":
+            log.info("OpenCL unavailable (%s); the ICP pairs come from numpy", exc)
+            return None
+        raise
 
 
 def _near_pairs(row: np.ndarray, col: np.ndarray, *, reach: int) -> np.ndarray:
@@ -1462,6 +1480,7 @@ def windowed_icp(
     spline_spacing_m: Optional[float] = None,
     spline_smoothing: Optional[float] = None,
     engine: str = "batched",
+    backend: str = "numpy",
     median_threshold: float = 2.0,
     median_eps_m: float = 0.02,
     median_restart: bool = False,
@@ -1589,6 +1608,11 @@ def windowed_icp(
     engine : {"batched", "per_cell"}
         ``"batched"`` (default) fits all cells together (one KD-tree query per iteration,
         stacked solves); ``"per_cell"`` is the slow obvious reference, one cell at a time.
+    backend : {"numpy", "opencl", "auto"}
+        Where the batched engine finds its pairs: numpy and a KD-tree (the reference), or an
+        OpenCL device through PyOpenCL (:mod:`slipmap.core.opencl.nearest`; the same pairs,
+        hence the same results up to exact distance ties); ``"auto"`` takes OpenCL when a
+        device starts. Only the batched engine uses it.
     seed : int
         Seed of the samples.
     progress : callable, optional
@@ -1657,6 +1681,8 @@ def windowed_icp(
     med_eps = _positive("median_eps_m", median_eps_m, allow_zero=True)
     if engine not in ENGINES:
         raise InvalidParameterError(f"engine must be one of {ENGINES}, got {engine!r}")
+    if backend not in BACKENDS:
+        raise InvalidParameterError(f"backend must be one of {BACKENDS}, got {backend!r}")
     if initial_displacement is not None and not callable(initial_displacement):
         raise InvalidParameterError("initial_displacement must be a function xy -> (K, 3)")
     _check_overlap(b, a)
@@ -1677,6 +1703,7 @@ def windowed_icp(
             initial_displacement=initial_displacement,
             sigma_scaling="formal",
             engine=engine,
+            backend=backend,
             median_threshold=median_threshold,
             median_eps_m=median_eps_m,
             median_restart=median_restart,
@@ -1693,6 +1720,7 @@ def windowed_icp(
     off = b.mean(axis=0)
     tree = _OffsetTree(cKDTree(b - off), off)
     normals = _NormalCache(b, tree.tree, opts.neighbours_k, offset=off)
+    grid = _target_grid(b, backend) if engine == "batched" else None
 
     pre: Optional[ICPFit] = None
     if isinstance(prealign, ICPFit):
@@ -1759,7 +1787,9 @@ def windowed_icp(
         a, idx_parts, uk[sel], counts[sel], nb_cell[uk[sel]], x0, y0, cell, buf, n_cols
     )
     report(progress, 0.1 if pre is not None else 0.02, f"ICP: {len(sel)} cells")
-    fit_kw = dict(before=b, tree=tree, normals=normals, gate=gate, opts=opts, engine=engine)
+    fit_kw = dict(
+        before=b, tree=tree, normals=normals, gate=gate, opts=opts, engine=engine, grid=grid
+    )
     n_pass = 1 + passes
     pass_progress = scaled(progress, 0.1 if pre is not None else 0.02, 1.0)
     d0 = start_d[sel]

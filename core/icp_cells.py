@@ -354,6 +354,7 @@ def fit_cells(
     model: str = "rigid",
     t_init: Optional[np.ndarray] = None,
     progress=None,
+    grid=None,
 ) -> CellFits:
     """Point-to-plane ICP of K cells at once.
 
@@ -384,6 +385,9 @@ def fit_cells(
         Starting translations (minus the expected ground motion), metres.
     progress : callable, optional
         ``progress(fraction, message)`` once per iteration; may raise CancelledError.
+    grid : slipmap.core.opencl.nearest.GridTargets, optional
+        ``before`` on an OpenCL device: the pairs are found there
+        (:class:`~slipmap.core.opencl.nearest.CellNearest`, the same pairs up to exact ties).
 
     Returns
     -------
@@ -401,7 +405,12 @@ def fit_cells(
     factor = np.ones(k)
     prev = np.zeros((k, p))
     has_prev = np.zeros(k, dtype=bool)
-    match = _Matcher(before, tree, normals, gate, boxes, centres, len(src))
+    if grid is None:
+        match = _Matcher(before, tree, normals, gate, boxes, centres, len(src))
+    else:
+        from .opencl.nearest import CellNearest
+
+        match = CellNearest(before, grid, normals, gate, boxes, centres, len(src))
     counts_all = np.bincount(seg, minlength=k)
     active &= counts_all >= _MIN_PAIRS
     failed |= counts_all < _MIN_PAIRS
