@@ -208,6 +208,17 @@ SPEC = JobSpec(
             advanced=True,
         ),
         _opt(
+            "backend",
+            "choice",
+            "where the cells' point pairs are found: numpy (the reference) or an OpenCL "
+            "device through PyOpenCL (the same pairs and results, faster on many points); "
+            "auto uses OpenCL when a device is available",
+            "Backend",
+            default="numpy",
+            choices=("numpy", "opencl", "auto"),
+            advanced=True,
+        ),
+        _opt(
             "sigma_regions",
             "int",
             "variance factors per region: the cells are split into this many classes of "
@@ -304,6 +315,7 @@ CORE_KEYS = (
     "spline_smoothing",
     "median_threshold",
     "median_restart",
+    "backend",
 )
 _KEYS = ("table", "layers", "raster", "plot", "summary")
 
