@@ -26,7 +26,8 @@ split into two disjoint random halves, the second moved by the default lobe, one
    (``benchmarks/peers/open3d_cells.py``) on the same cells (``--lobe-cell`` m; cells with
    >= 500 correspondences). 3-D error against the true motion at the cell centres, in the
    lobe and on stable ground; for SlipMap also on the lobe cells whose reported σ are all
-   ≤ 1 cm (where the data constrain the motion to a centimetre).
+   ≤ 1 cm (where the data constrain the motion to a centimetre). When an OpenCL device
+   starts, the rigid run again with the pairs found there (``backend="opencl"``).
 
 The peers run in the throw-away venv of ``benchmarks/peers/setup_peer_venv.sh`` (never a
 SlipMap dependency), through a subprocess; a peer whose venv or module is missing is skipped
@@ -38,7 +39,7 @@ Usage::
     python benchmarks/bench_fields.py [--dem 2500] [--n 5000000] [--cell 5] [--seed 0]
     python benchmarks/bench_fields.py --case lobe [--seeds 0 1 2] [--grid 0.1]
         [--windows 64 32 16 16] [--lobe-cell 5] [--icp-points-per-cell N] [--no-piv]
-        [--repeat N]
+        [--repeat N] [--icp-timing-only]
 
 The last line is JSON.
 """
@@ -266,6 +267,15 @@ ICP_RUNS = (
 )  # fmt: skip
 
 
+def opencl_runs() -> tuple:
+    """The rigid run with the pairs on an OpenCL device, when one starts (else none)."""
+    from slipmap.core.opencl.backend import probe_runtime
+
+    if probe_runtime() is not None:
+        return ()
+    return (("slipmap rigid, OpenCL pairs", {"coarse_to_fine": 0, "backend": "opencl"}),)
+
+
 def cap_per_cell(points: np.ndarray, cell: float, cap: int) -> np.ndarray:
     """At most ``cap`` points per ``cell``-metre square (on multiples of ``cell``, the
     windowed ICP's lattice): the sample ``max_points_per_cell`` draws
@@ -284,16 +294,20 @@ def cap_per_cell(points: np.ndarray, cell: float, cap: int) -> np.ndarray:
     return points[rank < cap]
 
 
-def lobe_icp(pair, cell: float, cap: Optional[int] = None, repeat: int = 1) -> dict:
+def lobe_icp(
+    pair, cell: float, cap: Optional[int] = None, repeat: int = 1, timing_only: bool = False
+) -> dict:
     """SlipMap windowed ICP variants and Open3D's per-cell ICP on the same cells (with
     ``cap``: both on the same sample of at most ``cap`` after-points per cell). With
     ``repeat`` > 1 SlipMap's rigid run and Open3D's run ``repeat`` times more, alternately,
     and each reports every time (``runs_s``) and the fastest (``min_s``): on a shared VM the
-    spread between runs of the same work is larger than the difference asked about."""
+    spread between runs of the same work is larger than the difference asked about.
+    ``timing_only``: the rigid runs (numpy and OpenCL pairs) alone."""
     if cap is not None:
         pair = replace(pair, after=cap_per_cell(pair.after, cell, cap))
     runs = {}
-    for name, kw in ICP_RUNS:
+    todo = (ICP_RUNS[:1] if timing_only else ICP_RUNS) + opencl_runs()
+    for name, kw in todo:
         t0 = time.perf_counter()
         runs[name] = (windowed_icp(pair.before, pair.after, cell_m=cell, **kw), t0)
         runs[name] = (runs[name][0], time.perf_counter() - t0)
@@ -352,12 +366,14 @@ def lobe_icp(pair, cell: float, cap: Optional[int] = None, repeat: int = 1) -> d
         ok = m & np.all(np.isfinite(d), axis=1)
         out["methods"][name][k] = _stats(d[ok] - truth[ok])
     if repeat > 1:
-        rigid_name, rigid_kw = ICP_RUNS[0]
-        times = {rigid_name: [runs[rigid_name][1]], name: [float(o["seconds"])]}
+        timed = (ICP_RUNS[0],) + opencl_runs()
+        times = {n: [runs[n][1]] for n, _ in timed}
+        times[name] = [float(o["seconds"])]
         for _ in range(repeat - 1):
-            t0 = time.perf_counter()
-            windowed_icp(pair.before, pair.after, cell_m=cell, **rigid_kw)
-            times[rigid_name].append(time.perf_counter() - t0)
+            for rigid_name, rigid_kw in timed:
+                t0 = time.perf_counter()
+                windowed_icp(pair.before, pair.after, cell_m=cell, **rigid_kw)
+                times[rigid_name].append(time.perf_counter() - t0)
             times[name].append(float(run_script("open3d_cells.py", peer_in)["seconds"]))
         for n, ts in times.items():
             out["methods"][n]["runs_s"] = [round(t, 2) for t in ts]
@@ -387,7 +403,7 @@ def shift_icp(pts, seed: int, cell: float, cap: Optional[int] = None) -> dict:
     return out
 
 
-def bench_lobe(seeds, piv_cases, cell, cap=None, repeat=1) -> list:
+def bench_lobe(seeds, piv_cases, cell, cap=None, repeat=1, timing_only=False) -> list:
     """The lone-star lobe cases, one per seed (PIV and ICP with their peers)."""
     from slipmap.core.io.las import read_las
     from slipmap.core.synthetic import make_lobe_pair
@@ -407,7 +423,7 @@ def bench_lobe(seeds, piv_cases, cell, cap=None, repeat=1) -> list:
                 else:
                     line += f"; OpenPIV windef {op['seconds']} s {op[name]}"
                 print(line)
-        i = lobe_icp(pair, cell, cap, repeat)
+        i = lobe_icp(pair, cell, cap, repeat, timing_only)
         for name, r in i["methods"].items():
             if "skipped" in r:
                 print(f"seed {seed} ICP {name}: skipped: {r['skipped']}")
@@ -419,7 +435,7 @@ def bench_lobe(seeds, piv_cases, cell, cap=None, repeat=1) -> list:
                 if "min_s" in r:
                     line += f" runs {r['runs_s']} s, fastest {r['min_s']} s"
                 print(line)
-        sh = shift_icp(pts, seed, cell, cap)
+        sh = {} if timing_only else shift_icp(pts, seed, cell, cap)
         for name, r in sh.items():
             print(f"seed {seed} ICP uniform shift, {name}: {r}")
         out.append({"seed": seed, "piv": pivs, "icp": i, "shift": sh})
@@ -449,6 +465,10 @@ def main(argv=None) -> int:
         "--repeat", type=int, default=1,
         help="lobe case: run SlipMap's rigid ICP and Open3D's N times, alternately (times)",
     )  # fmt: skip
+    ap.add_argument(
+        "--icp-timing-only", action="store_true",
+        help="lobe case: SlipMap's rigid ICP (numpy and OpenCL pairs) and Open3D's only",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     if args.case == "lobe":
         logging.basicConfig(level=logging.WARNING)
@@ -457,7 +477,10 @@ def main(argv=None) -> int:
             cases = [(args.grid, tuple(args.windows or (64, 32, 16, 16)))]
         if args.no_piv:
             cases = []
-        out = bench_lobe(args.seeds, cases, args.lobe_cell, args.icp_points_per_cell, args.repeat)
+        out = bench_lobe(
+            args.seeds, cases, args.lobe_cell, args.icp_points_per_cell, args.repeat,
+            args.icp_timing_only,
+        )  # fmt: skip
         print(json.dumps({"lobe": out}))
         return 0
     p = bench_piv(args.dem, args.seed)

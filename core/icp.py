@@ -1887,6 +1887,7 @@ def windowed_icp(
             gate_m=gate,
             opts=opts,
             progress=scaled(progress, 0.9, 1.0),
+            grid=grid,
         )
         d, grad, cov_d = sfit.d, sfit.gradient, sfit.cov[:, :3, :3]
         rmse, n_used = sfit.rmse, sfit.n

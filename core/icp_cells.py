@@ -196,41 +196,55 @@ def mark_undetermined(cov: np.ndarray, undet: np.ndarray) -> np.ndarray:
 def _seg_weights(v: np.ndarray, seg: np.ndarray, k: int, opts: _Options):
     """:func:`slipmap.core.icp_options._weights` per segment: (keep, w, psi') of (P,) residuals.
 
-    The per-segment quantile (trimming) and median (robust scale) come from |v| sorted within
-    each segment of the sorted ``seg``; they equal numpy's ``quantile`` (linear) and ``median``
-    of each segment.
+    The per-segment quantile (trimming) and median (robust scale) are order statistics of |v|
+    within each segment of the sorted ``seg``; they equal numpy's ``quantile`` (linear) and
+    ``median`` of each segment. Many small segments: one ``lexsort`` of all; few large ones:
+    ``np.partition`` per segment (linear time, the same order statistics).
     """
     a = np.abs(v)
     bounds, counts, loop = _blocks(seg, k)
-    starts = bounds[:, 0]
-    if loop:  # few large segments: one sort each
-        sa = np.empty_like(a)
+    trimming = opts.trim_fraction > 0
+    # positions of the trimming quantile in each segment's sorted |v|
+    pos = (counts - 1) * (1.0 - opts.trim_fraction)
+    qlo = np.floor(pos).astype(np.int64)
+    qhi = np.minimum(qlo + 1, np.maximum(counts - 1, 0))
+    q = np.full(k, np.inf)
+    ml, mh = np.zeros(k), np.zeros(k)
+    if loop:  # few large segments: partitions per segment
         for i in np.flatnonzero(counts):
             a0, a1 = bounds[i]
-            sa[a0:a1] = np.sort(a[a0:a1])
+            x = a[a0:a1]
+            nk = a1 - a0
+            if trimming:
+                x = np.partition(x, [qlo[i], qhi[i]])
+                q[i] = x[qlo[i]] + (x[qhi[i]] - x[qlo[i]]) * (pos[i] - qlo[i])
+                if nk > 20:
+                    nk = int(np.count_nonzero(x <= q[i]))
+            if opts.robust is not None:  # median of the kept (the nk smallest)
+                lo, hi = max((nk - 1) // 2, 0), max(nk // 2, 0)
+                x = np.partition(x, [lo, hi])
+                ml[i], mh[i] = x[lo], x[hi]
     else:
         sa = a[np.lexsort((a, seg))]
+        starts = bounds[:, 0]
+        last = max(sa.size - 1, 0)
+        if trimming:
+            ql = sa[np.minimum(starts + qlo, last)]
+            qh = sa[np.minimum(starts + qhi, last)]
+            q = ql + (qh - ql) * (pos - qlo)
     keep = np.ones(v.size, dtype=bool)
-    if opts.trim_fraction > 0:
-        pos = (counts - 1) * (1.0 - opts.trim_fraction)
-        lo = np.floor(pos).astype(np.int64)
-        hi = np.minimum(lo + 1, np.maximum(counts - 1, 0))
-        f = pos - lo
-        base = starts
-        ql = sa[np.minimum(base + lo, sa.size - 1)]
-        qh = sa[np.minimum(base + hi, sa.size - 1)]
-        q = ql + (qh - ql) * f
+    if trimming:
         trim = counts > 20
         keep = ~trim[seg] | (a <= q[seg])
     if opts.robust is None:
         w = keep.astype(np.float64)
         return keep, w, w
-    # median of |v| over the kept residuals of each segment (kept = the smallest ones)
-    nk = np.bincount(seg, weights=keep.astype(np.float64), minlength=k).astype(np.int64)
-    lo = np.maximum((nk - 1) // 2, 0)
-    hi = np.maximum(nk // 2, 0)
-    ml = sa[np.minimum(starts + lo, sa.size - 1)]
-    mh = sa[np.minimum(starts + hi, sa.size - 1)]
+    if not loop:  # median of |v| over the kept residuals (kept = the smallest ones)
+        nk = np.bincount(seg, weights=keep.astype(np.float64), minlength=k).astype(np.int64)
+        lo = np.maximum((nk - 1) // 2, 0)
+        hi = np.maximum(nk // 2, 0)
+        ml = sa[np.minimum(starts + lo, last)]
+        mh = sa[np.minimum(starts + hi, last)]
     scale = np.maximum(MAD_TO_SIGMA * 0.5 * (ml + mh), 1e-12)[seg]
     w, dpsi = _robust_weights(v, scale, keep, opts.robust)
     return keep, w, dpsi

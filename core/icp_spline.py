@@ -281,6 +281,7 @@ def fit_spline_field(
     gate_m: float = np.inf,
     opts: _Options,
     progress: Optional[ProgressCallback] = None,
+    grid=None,
 ) -> SplineFit:
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
 
@@ -321,6 +322,8 @@ def fit_spline_field(
         points), ``robust``, ``trim_fraction``.
     progress : callable, optional
         ``progress(fraction, message)`` per iteration; may raise CancelledError.
+    grid : slipmap.core.opencl.nearest.GridTargets, optional
+        ``before`` on an OpenCL device: the pairs are found there (the same pairs).
 
     Returns
     -------
@@ -381,10 +384,21 @@ def fit_spline_field(
     factor = None
     every = np.arange(len(a))
     # nearest targets re-queried only for points that may have changed pair
-    matcher = _Matcher(before, tree, normals, gate_m, None, np.zeros((1, 3)), len(a))
+    if grid is None:
+        matcher = _Matcher(before, tree, normals, gate_m, None, np.zeros((1, 3)), len(a))
+        nearest = matcher._nearest
+    else:
+        from .opencl.nearest import CellNearest
+
+        matcher = CellNearest(before, grid, normals, gate_m, None, np.zeros((1, 3)), len(a))
+        one_cell = np.zeros(len(a), dtype=np.int64)
+
+        def nearest(q, gi):
+            j = matcher.nearest(q, one_cell, gi)
+            return np.where(j < 0, m_pts, j)
 
     def pairs(q):
-        j = matcher._nearest(q, every)
+        j = nearest(q, every)
         ok = j < m_pts
         nrm = np.zeros((len(a), 3))
         nn = normals(j[ok])

@@ -228,15 +228,16 @@ def test_segment_loops_equal_the_vectorised_reference(monkeypatch, n_cells):
     seg[seg == 1] = 2  # an empty cell
     A, v, w = rng.normal(size=(6000, 6)), rng.standard_t(3, 6000), rng.random(6000)
     s, lin = rng.normal(size=(6000, 3)), rng.normal(size=(n_cells, 3, 3))
-    opts = _options(robust="tukey", trim_fraction=0.1)
     k = n_cells
-    out = {}
-    for loop_min in (0, 10**9):  # every segment large; never
-        monkeypatch.setattr(icp_cells, "_LOOP_MIN_MEAN", loop_min)
-        out[loop_min] = (
-            *icp_cells._normal_matrices(A, w, v, seg, k),
-            *icp_cells._seg_weights(v, seg, k, opts),
-            icp_cells._transform(lin, s, seg, k),
-        )
-    for a, b in zip(out[0], out[10**9]):
-        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    for robust, trim in (("tukey", 0.1), (None, 0.1), ("huber", 0.0)):
+        opts = _options(robust=robust, trim_fraction=trim)
+        out = {}
+        for loop_min in (0, 10**9):  # every segment large (partitions); never (lexsort)
+            monkeypatch.setattr(icp_cells, "_LOOP_MIN_MEAN", loop_min)
+            out[loop_min] = (
+                *icp_cells._normal_matrices(A, w, v, seg, k),
+                *icp_cells._seg_weights(v, seg, k, opts),
+                icp_cells._transform(lin, s, seg, k),
+            )
+        for a, b in zip(out[0], out[10**9]):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)

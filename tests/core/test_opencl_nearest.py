@@ -85,11 +85,17 @@ def test_outside_the_grid_far_points_and_the_cells_box():
     assert np.all(j_cl[:2] < 0) and j_cl[2] >= 0 and (j_cl >= 0).sum() > 50
 
 
-@pytest.mark.parametrize("model", ["rigid", "affine"])
-def test_windowed_icp_on_opencl_equals_numpy(model):
-    """The whole field (passes, coarse level) with the OpenCL pairs equals the numpy one."""
+@pytest.mark.parametrize(
+    "extra",
+    [dict(cell_model="rigid", deform_passes=1), dict(cell_model="affine", deform_passes=1),
+     dict(field_model="spline")],
+    ids=["rigid", "affine", "spline"],
+)  # fmt: skip
+def test_windowed_icp_on_opencl_equals_numpy(extra):
+    """The whole field (passes, coarse level, the spline field) with the OpenCL pairs equals
+    the numpy one."""
     before, after = field_pair(21, shift_left=np.array([0.08, -0.04, 0.02]), density=40)
-    kw = dict(cell_m=5.0, min_points=200, cell_model=model, coarse_to_fine=1, deform_passes=1)
+    kw = dict(cell_m=5.0, min_points=200, coarse_to_fine=1, **extra)
     try:
         fast = windowed_icp(before, after, backend="opencl", **kw)
     except DependencyError as exc:
