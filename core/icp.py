@@ -313,6 +313,8 @@ class _NormalCache:
         self.offset = offset
         self.normals = np.full((len(points), 3), np.nan)
         self.done = np.zeros(len(points), dtype=bool)
+        # an OpenCL GridTargets of the same points (same offset) that computes the normals
+        self.device = None
 
     def __call__(self, idx: np.ndarray) -> np.ndarray:
         need = idx[~self.done[idx]]
@@ -320,12 +322,21 @@ class _NormalCache:
             need = np.unique(need)
             for s in range(0, need.size, self.CHUNK):
                 part = need[s : s + self.CHUNK]
-                q = self.points[part] if self.offset is None else self.points[part] - self.offset
-                _, nb = self.tree.query(q, k=self.k, workers=-1)
-                nb = np.asarray(nb).reshape(len(part), self.k)
-                self.normals[part] = _pca_normals(self.points[nb])
+                if self.device is not None:
+                    # neighbourhoods and the closed form on the device; its hard cases here
+                    n, hard = self.device.normals(part, self.k)
+                    if hard.any():
+                        n[hard] = _pca_normals_reference(self._neighbourhoods(part[hard]))
+                    self.normals[part] = n
+                else:
+                    self.normals[part] = _pca_normals(self._neighbourhoods(part))
             self.done[need] = True
         return self.normals[idx]
+
+    def _neighbourhoods(self, part: np.ndarray) -> np.ndarray:
+        q = self.points[part] if self.offset is None else self.points[part] - self.offset
+        _, nb = self.tree.query(q, k=self.k, workers=-1)
+        return self.points[np.asarray(nb).reshape(len(part), self.k)]
 
 
 def estimate_normals(points: np.ndarray, *, neighbours_k: int = 12, tree=None) -> np.ndarray:
@@ -1721,6 +1732,8 @@ def windowed_icp(
     tree = _OffsetTree(cKDTree(b - off), off)
     normals = _NormalCache(b, tree.tree, opts.neighbours_k, offset=off)
     grid = _target_grid(b, backend) if engine == "batched" else None
+    if grid is not None and opts.neighbours_k <= grid.MAX_NORMAL_K:
+        normals.device = grid
 
     pre: Optional[ICPFit] = None
     if isinstance(prealign, ICPFit):

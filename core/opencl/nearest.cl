@@ -15,6 +15,7 @@
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 
 #define KC 4
+#define KMAX 64
 
 static double dist2(__global const double *tp, int k, double x, double y, double z)
 {
@@ -22,13 +23,13 @@ static double dist2(__global const double *tp, int k, double x, double y, double
     return dx * dx + dy * dy + dz * dz;
 }
 
-// the KC nearest targets of (x, y, z): sorted squared distances d[] (INFINITY: none) and
-// sorted-target indices j[] (-1: none)
+// the kk nearest targets of (x, y, z): sorted squared distances d[] (INFINITY: none) and
+// sorted-target indices j[] (-1: none); ties go to the smaller sorted index
 static void grid_knn(__global const double *tp, __global const int *colstart, long nx,
                      long ny, double x0, double y0, double h, double x, double y, double z,
-                     double *d, int *j)
+                     int kk, double *d, int *j)
 {
-    for (int m = 0; m < KC; m++) {
+    for (int m = 0; m < kk; m++) {
         d[m] = INFINITY;
         j[m] = -1;
     }
@@ -43,7 +44,7 @@ static void grid_knn(__global const double *tp, __global const int *colstart, lo
     for (long r = r0; r <= rmax; r++) {
         if (r > 0) {
             double lb = ((double)(r - 1) * h + e) * (1.0 - 1.0e-12);
-            if (lb > 0.0 && lb * lb > d[KC - 1]) break;
+            if (lb > 0.0 && lb * lb > d[kk - 1]) break;
         }
         long ylo = max(cy - r, (long)0), yhi = min(cy + r, ny - 1);
         for (long yy = ylo; yy <= yhi; yy++) {
@@ -57,8 +58,8 @@ static void grid_knn(__global const double *tp, __global const int *colstart, lo
                 int k1 = colstart[c + 1];
                 for (int k = colstart[c]; k < k1; k++) {
                     double dk = dist2(tp, k, x, y, z);
-                    if (dk < d[KC - 1] || (dk == d[KC - 1] && k < j[KC - 1])) {
-                        int m = KC - 1;
+                    if (dk < d[kk - 1] || (dk == d[kk - 1] && k < j[kk - 1])) {
+                        int m = kk - 1;
                         while (m > 0 && (dk < d[m - 1] || (dk == d[m - 1] && k < j[m - 1]))) {
                             d[m] = d[m - 1];
                             j[m] = j[m - 1];
@@ -115,7 +116,7 @@ __kernel void cell_nearest(__global const double *tp, __global const int *colsta
     } else {
         double d[KC];
         int jj[KC];
-        grid_knn(tp, colstart, nx, ny, x0, y0, h, x, y, z, d, jj);
+        grid_knn(tp, colstart, nx, ny, x0, y0, h, x, y, z, KC, d, jj);
         last[3 * g] = x;
         last[3 * g + 1] = y;
         last[3 * g + 2] = z;
@@ -133,4 +134,83 @@ __kernel void cell_nearest(__global const double *tp, __global const int *colsta
             j = -1;
     }
     out[i] = j >= 0 ? perm[j] : -1;
+}
+
+// Unit normals of targets ids[0 .. n-1] (original indices; iperm: original -> sorted) from
+// their kk nearest targets (the point itself included): the smallest-eigenvalue eigenvector
+// of the neighbourhood's covariance, oriented z >= 0, by the closed form of
+// slipmap.core.icp._pca_normals (the characteristic cubic's trigonometric roots, the largest
+// cross product of two rows of C - e0 I). hard[i] = 1 where the two smallest eigenvalues
+// nearly coincide: the host recomputes those with eigh (as _pca_normals does).
+__kernel void target_normals(__global const double *tp, __global const int *colstart,
+                             const long nx, const long ny, const double x0, const double y0,
+                             const double h, __global const int *iperm,
+                             __global const long *ids, const long n, const int kk,
+                             __global double *out, __global int *hard)
+{
+    long i = get_global_id(0);
+    if (i >= n) return;
+    int s = iperm[ids[i]];
+    double d[KMAX];
+    int jj[KMAX];
+    grid_knn(tp, colstart, nx, ny, x0, y0, h, tp[3 * s], tp[3 * s + 1], tp[3 * s + 2], kk, d,
+             jj);
+    double mx = 0.0, my = 0.0, mz = 0.0;
+    for (int m = 0; m < kk; m++) {
+        mx += tp[3 * jj[m]];
+        my += tp[3 * jj[m] + 1];
+        mz += tp[3 * jj[m] + 2];
+    }
+    mx /= kk;
+    my /= kk;
+    mz /= kk;
+    double a00 = 0.0, a11 = 0.0, a22 = 0.0, a01 = 0.0, a02 = 0.0, a12 = 0.0;
+    for (int m = 0; m < kk; m++) {
+        double ux = tp[3 * jj[m]] - mx, uy = tp[3 * jj[m] + 1] - my, uz = tp[3 * jj[m] + 2] - mz;
+        a00 += ux * ux;
+        a11 += uy * uy;
+        a22 += uz * uz;
+        a01 += ux * uy;
+        a02 += ux * uz;
+        a12 += uy * uz;
+    }
+    double q = (a00 + a11 + a22) / 3.0;
+    double b00 = a00 - q, b11 = a11 - q, b22 = a22 - q;
+    double p = sqrt((b00 * b00 + b11 * b11 + b22 * b22
+                     + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0);
+    double det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02)
+                 + a02 * (a01 * a12 - b11 * a02);
+    double pp = p > 0.0 ? p : 1.0;
+    double r = clamp(det / (2.0 * pp * pp * pp), -1.0, 1.0);
+    double phi = acos(r) / 3.0;
+    double e2 = q + 2.0 * p * cos(phi);
+    double e0 = q + 2.0 * p * cos(phi + 2.0 * M_PI / 3.0);
+    double e1 = 3.0 * q - e2 - e0;
+    double r0[3] = {a00 - e0, a01, a02}, r1[3] = {a01, a11 - e0, a12}, r2[3] = {a02, a12, a22 - e0};
+    double c[3][3];
+    c[0][0] = r0[1] * r1[2] - r0[2] * r1[1];
+    c[0][1] = r0[2] * r1[0] - r0[0] * r1[2];
+    c[0][2] = r0[0] * r1[1] - r0[1] * r1[0];
+    c[1][0] = r0[1] * r2[2] - r0[2] * r2[1];
+    c[1][1] = r0[2] * r2[0] - r0[0] * r2[2];
+    c[1][2] = r0[0] * r2[1] - r0[1] * r2[0];
+    c[2][0] = r1[1] * r2[2] - r1[2] * r2[1];
+    c[2][1] = r1[2] * r2[0] - r1[0] * r2[2];
+    c[2][2] = r1[0] * r2[1] - r1[1] * r2[0];
+    int best = 0;
+    double nn = -1.0;
+    for (int m = 0; m < 3; m++) {
+        double v = c[m][0] * c[m][0] + c[m][1] * c[m][1] + c[m][2] * c[m][2];
+        if (v > nn) {
+            nn = v;
+            best = m;
+        }
+    }
+    double norm = sqrt(fmax(nn, 1e-300));
+    double sgn = c[best][2] < 0.0 ? -1.0 : 1.0;
+    out[3 * i] = sgn * c[best][0] / norm;
+    out[3 * i + 1] = sgn * c[best][1] / norm;
+    out[3 * i + 2] = sgn * c[best][2] / norm;
+    double scale = fmax(e2, 1e-300);
+    hard[i] = !((e1 - e0 > 1e-3 * scale) && (e1 > 1e-6 * scale));
 }

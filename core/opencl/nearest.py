@@ -23,7 +23,7 @@ import logging
 import math
 import warnings
 from pathlib import Path
-from typing import Any, Optional
+from typing import Optional
 
 import numpy as np
 
@@ -34,32 +34,39 @@ log = logging.getLogger(__name__)
 KERNEL_FILE = Path(__file__).parent / "nearest.cl"
 _PER_COLUMN = 2.0  # targets per grid column on average (measured: 2 beats 1, 4 and 8)
 _MAX_COLUMN_FACTOR = 4  # at most this many columns per target
+MAX_NORMAL_K = 64  # KMAX of nearest.cl: larger neighbourhoods stay on the host
 
 
 class _Program:
-    """The compiled ``nearest.cl`` of the process's runtime."""
+    """The compiled ``nearest.cl`` of the process's runtime: its two kernels and their
+    work-group sizes."""
 
     _cache: dict = {}
 
     @classmethod
-    def get(cls, rt) -> Any:
+    def get(cls, rt) -> dict:
         key = (id(rt), rt.pid)
         if key not in cls._cache:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # a non-empty build log is a CompilerWarning
                 prog = rt.cl.Program(rt.ctx, KERNEL_FILE.read_text(encoding="utf-8")).build()
-            k = rt.cl.Kernel(prog, "cell_nearest")
             i8, f8, i4 = np.int64, np.float64, np.int32
-            k.set_scalar_arg_dtypes(
-                [None, None, None, i8, i8, f8, f8, f8, None, None, i4, f8]
-                + [None, None, None, i8, None, None, None, None, None]
-            )
-            info = rt.cl.kernel_work_group_info.WORK_GROUP_SIZE
-            most = int(k.get_work_group_info(info, rt.device))
-            local = 64
-            while local > max(1, most):
-                local //= 2
-            cls._cache[key] = (k, local)
+            grid = [None, None, i8, i8, f8, f8, f8]
+            kernels = {}
+            for name, dtypes in (
+                ("cell_nearest", [None, None, None, i8, i8, f8, f8, f8, None, None, i4, f8]
+                 + [None, None, None, i8, None, None, None, None, None]),
+                ("target_normals", grid + [None, None, i8, i4, None, None]),
+            ):  # fmt: skip
+                k = rt.cl.Kernel(prog, name)
+                k.set_scalar_arg_dtypes(dtypes)
+                info = rt.cl.kernel_work_group_info.WORK_GROUP_SIZE
+                most = int(k.get_work_group_info(info, rt.device))
+                local = 64
+                while local > max(1, most):
+                    local //= 2
+                kernels[name] = (k, local)
+            cls._cache[key] = kernels
         return cls._cache[key]
 
 
@@ -72,9 +79,13 @@ class GridTargets:
         Target (epoch 1) points, metres (map coordinates).
     """
 
+    MAX_NORMAL_K = MAX_NORMAL_K
+
     def __init__(self, before: np.ndarray) -> None:
         self.rt = _runtime()
-        self.kernel, self.local = _Program.get(self.rt)
+        kernels = _Program.get(self.rt)
+        self.kernel, self.local = kernels["cell_nearest"]
+        self.k_normals, self.local_normals = kernels["target_normals"]
         b = np.asarray(before, dtype=np.float64)
         self.M = len(b)
         if self.M >= np.iinfo(np.int32).max:
@@ -103,7 +114,33 @@ class GridTargets:
         self.buf_points = self.rt.to_device(self.points)
         self.buf_colstart = self.rt.to_device(colstart)
         self.buf_perm = self.rt.to_device(self.perm)
+        iperm = np.empty(self.M, dtype=np.int32)
+        iperm[order] = np.arange(self.M, dtype=np.int32)
+        self.buf_iperm = self.rt.to_device(iperm)
         log.debug("OpenCL target grid: %d x %d columns of %.3f m for %d points", nx, ny, h, self.M)
+
+    def normals(self, ids: np.ndarray, k: int):
+        """Normals of targets ``ids`` (J,) from their ``k`` nearest targets: (J, 3) unit
+        normals (z >= 0) and a (J,) mask of the neighbourhoods whose two smallest eigenvalues
+        nearly coincide (to be recomputed with ``eigh``: :func:`slipmap.core.icp._pca_normals`).
+        """
+        ids = np.ascontiguousarray(ids, dtype=np.int64)
+        n = len(ids)
+        out = np.empty((n, 3))
+        hard = np.empty(n, dtype=np.int32)
+        if n == 0:
+            return out, hard.astype(bool)
+        rt = self.rt
+        bo, bh = rt.empty(out.nbytes), rt.empty(hard.nbytes)
+        size = -(-n // self.local_normals) * self.local_normals
+        self.k_normals(
+            rt.queue, (size,), (self.local_normals,),
+            self.buf_points, self.buf_colstart, self.nx, self.ny, self.lo[0], self.lo[1],
+            self.h, self.buf_iperm, rt.to_device(ids), n, int(k), bo, bh,
+        )  # fmt: skip
+        rt.read(out, bo)
+        rt.read(hard, bh)
+        return out, hard.astype(bool)
 
     @staticmethod
     def _columns(c, lo, ext, h):
