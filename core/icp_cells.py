@@ -253,8 +253,13 @@ def _seg_weights(v: np.ndarray, seg: np.ndarray, k: int, opts: _Options):
 def _jacobian(model: str, q: np.ndarray, s: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Rows d v / d (step) of point-to-plane residuals: left rotation and translation
     (rigid), or ``G`` row-major and translation (affine)."""
-    if model == "rigid":
-        return np.concatenate([np.cross(q, n), n], axis=1)
+    if model == "rigid":  # [q x n, n], the cross product by columns (np.cross: 2x slower)
+        A = np.empty((len(q), 6))
+        A[:, 0] = q[:, 1] * n[:, 2] - q[:, 2] * n[:, 1]
+        A[:, 1] = q[:, 2] * n[:, 0] - q[:, 0] * n[:, 2]
+        A[:, 2] = q[:, 0] * n[:, 1] - q[:, 1] * n[:, 0]
+        A[:, 3:] = n
+        return A
     return np.concatenate([(n[:, :, None] * s[:, None, :]).reshape(-1, 9), n], axis=1)
 
 
@@ -426,6 +431,7 @@ def fit_cells(
 
         match = CellNearest(before, grid, normals, gate, boxes, centres, len(src))
     counts_all = np.bincount(seg, minlength=k)
+    every = np.arange(len(src))
     active &= counts_all >= _MIN_PAIRS
     failed |= counts_all < _MIN_PAIRS
     for it in range(1, opts.max_iterations + 1):
@@ -436,18 +442,23 @@ def fit_cells(
             (it - 1) / opts.max_iterations,
             f"ICP iteration {it}: {int(active.sum())} of {k} cells",
         )
-        pm = np.flatnonzero(active[seg])
-        s, sg = src[pm], seg[pm]
+        if active.all():  # no gathers while every cell iterates
+            pm, s, sg = every, src, seg
+        else:
+            pm = np.flatnonzero(active[seg])
+            s, sg = src[pm], seg[pm]
         q = _transform(lin, s, sg, k) + t[sg]
         ok, m, nrm, _ = match(q, sg, pm)
-        q, s, sg = q[ok], s[ok], sg[ok]
+        q, sg = q[ok], sg[ok]
+        s = s[ok] if model != "rigid" else s  # the rigid Jacobian needs q only
         cnt = np.bincount(sg, minlength=k)
         few = active & (cnt < _MIN_PAIRS)
         if few.any():
             failed |= few
             active &= ~few
             keep_pts = active[sg]
-            q, s, sg, m, nrm = q[keep_pts], s[keep_pts], sg[keep_pts], m[keep_pts], nrm[keep_pts]
+            q, sg, m, nrm = q[keep_pts], sg[keep_pts], m[keep_pts], nrm[keep_pts]
+            s = s[keep_pts] if model != "rigid" else s
             cnt = np.bincount(sg, minlength=k)
         ia = np.flatnonzero(active)
         if ia.size == 0:
