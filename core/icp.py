@@ -317,6 +317,11 @@ class _NormalCache:
         self.device = None
 
     def __call__(self, idx: np.ndarray) -> np.ndarray:
+        self.ensure(idx)
+        return self.normals[idx]
+
+    def ensure(self, idx: np.ndarray) -> None:
+        """Compute the normals of targets ``idx`` not yet computed (into ``self.normals``)."""
         need = idx[~self.done[idx]]
         if need.size:
             need = np.unique(need)
@@ -331,7 +336,6 @@ class _NormalCache:
                 else:
                     self.normals[part] = _pca_normals(self._neighbourhoods(part))
             self.done[need] = True
-        return self.normals[idx]
 
     def _neighbourhoods(self, part: np.ndarray) -> np.ndarray:
         q = self.points[part] if self.offset is None else self.points[part] - self.offset

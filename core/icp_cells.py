@@ -430,6 +430,10 @@ def fit_cells(
         from .opencl.nearest import CellNearest
 
         match = CellNearest(before, grid, normals, gate, boxes, centres, len(src))
+    # rigid cells with a normal cache: each iteration's rows come from the device
+    fused = grid is not None and model == "rigid" and hasattr(normals, "ensure")
+    if fused:
+        match.load_sources(src, seg)
     counts_all = np.bincount(seg, minlength=k)
     every = np.arange(len(src))
     active &= counts_all >= _MIN_PAIRS
@@ -443,33 +447,37 @@ def fit_cells(
             f"ICP iteration {it}: {int(active.sum())} of {k} cells",
         )
         if active.all():  # no gathers while every cell iterates
-            pm, s, sg = every, src, seg
+            pm, sg = every, seg
         else:
             pm = np.flatnonzero(active[seg])
-            s, sg = src[pm], seg[pm]
-        q = _transform(lin, s, sg, k) + t[sg]
-        ok, m, nrm, _ = match(q, sg, pm)
-        q, sg = q[ok], sg[ok]
-        s = s[ok] if model != "rigid" else s  # the rigid Jacobian needs q only
+            sg = seg[pm]
+        if fused:  # pairs, residuals and Jacobian rows on the device
+            ok, v, A, qq = match.step(lin, t, pm)
+            sg = sg[ok]
+        else:
+            s = src if pm is every else src[pm]
+            q = _transform(lin, s, sg, k) + t[sg]
+            ok, m, nrm, _ = match(q, sg, pm)
+            q, sg = q[ok], sg[ok]
+            v = np.einsum("ij,ij->i", nrm, q - m)
+            A = _jacobian(model, q, s[ok] if model != "rigid" else None, nrm)
+            qq = np.einsum("ij,ij->i", q, q)
         cnt = np.bincount(sg, minlength=k)
         few = active & (cnt < _MIN_PAIRS)
         if few.any():
             failed |= few
             active &= ~few
             keep_pts = active[sg]
-            q, sg, m, nrm = q[keep_pts], sg[keep_pts], m[keep_pts], nrm[keep_pts]
-            s = s[keep_pts] if model != "rigid" else s
+            sg, v, A, qq = sg[keep_pts], v[keep_pts], A[keep_pts], qq[keep_pts]
             cnt = np.bincount(sg, minlength=k)
         ia = np.flatnonzero(active)
         if ia.size == 0:
             break
         iters[ia] = it
-        v = np.einsum("ij,ij->i", nrm, q - m)
         keep, w, _ = _seg_weights(v, sg, k, opts)
-        A = _jacobian(model, q, s, nrm)
         wk = np.where(keep, w, 0.0)
         N, b = _normal_matrices(A, wk, v, sg, k)
-        radius = np.sqrt(_seg_sum(np.einsum("ij,ij->i", q, q), sg, k) / np.maximum(cnt, 1))
+        radius = np.sqrt(_seg_sum(qq, sg, k) / np.maximum(cnt, 1))
         radius = np.maximum(radius, 1e-9)
         x, Ninv, _, undet = _solve_scaled_batch(N[ia], b[ia], radius[ia], n_lin)
         # step damping (slipmap.core.icp._Damping), per cell

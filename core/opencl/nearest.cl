@@ -74,27 +74,14 @@ static void grid_knn(__global const double *tp, __global const int *colstart, lo
     }
 }
 
-// For each of n moved source points: q (centred on its cell), its cell seg, its index g
-// into the per-point cache (last, margin1, marginc, cand). out[i]: the original index of
-// its nearest target when within the gate and the cell's box, else -1.
-__kernel void cell_nearest(__global const double *tp, __global const int *colstart,
-                           __global const int *perm, const long nx, const long ny,
-                           const double x0, const double y0, const double h,
-                           __global const double *centres, __global const double *boxes,
-                           const int use_boxes, const double gate2,
-                           __global const double *q, __global const int *seg,
-                           __global const int *gi, const long n,
-                           __global double *last, __global double *margin1,
-                           __global double *marginc, __global int *cand,
-                           __global int *out)
+// The nearest target (sorted index, -1: none) of the moved source point (x, y, z) of cell c
+// with cache slot g: within the gate and the cell's box.
+static int match_point(__global const double *tp, __global const int *colstart, long nx,
+                       long ny, double x0, double y0, double h, __global const double *boxes,
+                       int use_boxes, double gate2, int c, long g, double x, double y,
+                       double z, __global double *last, __global double *margin1,
+                       __global double *marginc, __global int *cand)
 {
-    long i = get_global_id(0);
-    if (i >= n) return;
-    int c = seg[i];
-    long g = gi[i];
-    double x = q[3 * i] + centres[3 * c];
-    double y = q[3 * i + 1] + centres[3 * c + 1];
-    double z = q[3 * i + 2] + centres[3 * c + 2];
     double mx = x - last[3 * g], my = y - last[3 * g + 1], mz = z - last[3 * g + 2];
     double move2 = mx * mx + my * my + mz * mz;
     double m1 = margin1[g], mc = marginc[g];
@@ -133,7 +120,104 @@ __kernel void cell_nearest(__global const double *tp, __global const int *colsta
               && ty <= boxes[4 * c + 3]))
             j = -1;
     }
+    return j;
+}
+
+// q = lin[c] s + t[c] of source point s (centred on its cell) of a rigid or affine cell
+static void transform(__global const double *lin, __global const double *t, int c, double sx,
+                      double sy, double sz, double *q)
+{
+    for (int r = 0; r < 3; r++)
+        q[r] = lin[9 * c + 3 * r] * sx + lin[9 * c + 3 * r + 1] * sy + lin[9 * c + 3 * r + 2] * sz
+               + t[3 * c + r];
+}
+
+// For each of n moved source points: q (centred on its cell), its cell seg, its index g
+// into the per-point cache (last, margin1, marginc, cand). out[i]: the original index of
+// its nearest target when within the gate and the cell's box, else -1.
+__kernel void cell_nearest(__global const double *tp, __global const int *colstart,
+                           __global const int *perm, const long nx, const long ny,
+                           const double x0, const double y0, const double h,
+                           __global const double *centres, __global const double *boxes,
+                           const int use_boxes, const double gate2,
+                           __global const double *q, __global const int *seg,
+                           __global const int *gi, const long n,
+                           __global double *last, __global double *margin1,
+                           __global double *marginc, __global int *cand,
+                           __global int *out)
+{
+    long i = get_global_id(0);
+    if (i >= n) return;
+    int c = seg[i];
+    long g = gi[i];
+    int j = match_point(tp, colstart, nx, ny, x0, y0, h, boxes, use_boxes, gate2, c, g,
+                        q[3 * i] + centres[3 * c], q[3 * i + 1] + centres[3 * c + 1],
+                        q[3 * i + 2] + centres[3 * c + 2], last, margin1, marginc, cand);
     out[i] = j >= 0 ? perm[j] : -1;
+}
+
+// One iteration's pairs of the source points pm[0 .. n-1] (indices into src, seg and the
+// cache): each moved by its cell's transform (lin, t), then cell_nearest. out: original
+// target index (-1: none); out_sorted: its index in tp.
+__kernel void cell_match(__global const double *tp, __global const int *colstart,
+                         __global const int *perm, const long nx, const long ny,
+                         const double x0, const double y0, const double h,
+                         __global const double *centres, __global const double *boxes,
+                         const int use_boxes, const double gate2,
+                         __global const double *src, __global const int *seg,
+                         __global const int *pm, const long n, __global const double *lin,
+                         __global const double *t, __global double *last,
+                         __global double *margin1, __global double *marginc,
+                         __global int *cand, __global int *out, __global int *out_sorted)
+{
+    long i = get_global_id(0);
+    if (i >= n) return;
+    long g = pm[i];
+    int c = seg[g];
+    double q[3];
+    transform(lin, t, c, src[3 * g], src[3 * g + 1], src[3 * g + 2], q);
+    int j = match_point(tp, colstart, nx, ny, x0, y0, h, boxes, use_boxes, gate2, c, g,
+                        q[0] + centres[3 * c], q[1] + centres[3 * c + 1],
+                        q[2] + centres[3 * c + 2], last, margin1, marginc, cand);
+    out[i] = j >= 0 ? perm[j] : -1;
+    out_sorted[i] = j;
+}
+
+// The rigid point-to-plane rows of the pairs of cell_match: ok[i] (a pair with a finite
+// normal), the residual v = n . (q - m), the Jacobian row (q x n, n) and q . q, with m the
+// target relative to the cell's centre and n its normal (normals: original order).
+__kernel void cell_residuals(__global const double *tp, __global const double *centres,
+                             __global const double *src, __global const int *seg,
+                             __global const int *pm, const long n,
+                             __global const double *lin, __global const double *t,
+                             __global const double *normals, __global const int *out,
+                             __global const int *out_sorted, __global int *ok,
+                             __global double *v, __global double *A, __global double *qq)
+{
+    long i = get_global_id(0);
+    if (i >= n) return;
+    int j = out[i], js = out_sorted[i];
+    ok[i] = 0;
+    if (j < 0) return;
+    double nx = normals[3 * (long)j], ny = normals[3 * (long)j + 1];
+    double nz = normals[3 * (long)j + 2];
+    if (!(isfinite(nx) && isfinite(ny) && isfinite(nz))) return;
+    long g = pm[i];
+    int c = seg[g];
+    double q[3];
+    transform(lin, t, c, src[3 * g], src[3 * g + 1], src[3 * g + 2], q);
+    double dx = q[0] - (tp[3 * js] - centres[3 * c]);
+    double dy = q[1] - (tp[3 * js + 1] - centres[3 * c + 1]);
+    double dz = q[2] - (tp[3 * js + 2] - centres[3 * c + 2]);
+    ok[i] = 1;
+    v[i] = nx * dx + ny * dy + nz * dz;
+    A[6 * i] = q[1] * nz - q[2] * ny;
+    A[6 * i + 1] = q[2] * nx - q[0] * nz;
+    A[6 * i + 2] = q[0] * ny - q[1] * nx;
+    A[6 * i + 3] = nx;
+    A[6 * i + 4] = ny;
+    A[6 * i + 5] = nz;
+    qq[i] = q[0] * q[0] + q[1] * q[1] + q[2] * q[2];
 }
 
 // Unit normals of targets ids[0 .. n-1] (original indices; iperm: original -> sorted) from

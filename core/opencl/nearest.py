@@ -56,6 +56,9 @@ class _Program:
             for name, dtypes in (
                 ("cell_nearest", [None, None, None, i8, i8, f8, f8, f8, None, None, i4, f8]
                  + [None, None, None, i8, None, None, None, None, None]),
+                ("cell_match", [None, None, None, i8, i8, f8, f8, f8, None, None, i4, f8]
+                 + [None, None, None, i8] + [None] * 8),
+                ("cell_residuals", [None] * 5 + [i8] + [None] * 9),
                 ("target_normals", grid + [None, None, i8, i4, None, None]),
             ):  # fmt: skip
                 k = rt.cl.Kernel(prog, name)
@@ -83,7 +86,7 @@ class GridTargets:
 
     def __init__(self, before: np.ndarray) -> None:
         self.rt = _runtime()
-        kernels = _Program.get(self.rt)
+        self.kernels = kernels = _Program.get(self.rt)
         self.kernel, self.local = kernels["cell_nearest"]
         self.k_normals, self.local_normals = kernels["target_normals"]
         b = np.asarray(before, dtype=np.float64)
@@ -182,6 +185,55 @@ class CellNearest:
         self.buf_cand = rt.cl.Buffer(
             rt.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.full(4 * n, -1, np.int32)
         )
+
+    # ------------------------------------------------------------- the fused rigid step
+    def load_sources(self, src: np.ndarray, seg: np.ndarray) -> None:
+        """Put the cells' source points (P, 3) (centred per cell) and their cells (P,) on the
+        device for :meth:`step`."""
+        rt = self.rt
+        self.buf_src = rt.to_device(np.ascontiguousarray(src, dtype=np.float64))
+        self.buf_seg = rt.to_device(np.asarray(seg, dtype=np.int32))
+
+    def step(self, lin: np.ndarray, t: np.ndarray, pm: np.ndarray):
+        """One rigid iteration's rows for the source points ``pm`` (P',): each moved by its
+        cell's ``lin`` (K, 3, 3) and ``t`` (K, 3), paired, and its point-to-plane residual.
+
+        Returns ``ok`` (P',) bool (a pair with a normal) and, for those, the residuals ``v``,
+        the Jacobian rows ``A`` (J, 6) = ``(q x n, n)`` and ``q . q`` (the same as
+        :func:`slipmap.core.icp_cells.fit_cells` computes on the host).
+        """
+        rt, g = self.rt, self.grid
+        n = len(pm)
+        out = np.empty(n, dtype=np.int32)
+        if n == 0:
+            return np.zeros(0, bool), np.zeros(0), np.zeros((0, 6)), np.zeros(0)
+        b_pm = rt.to_device(np.asarray(pm, dtype=np.int32))
+        b_lin = rt.to_device(np.ascontiguousarray(lin, dtype=np.float64).reshape(-1, 9))
+        b_t = rt.to_device(np.ascontiguousarray(t, dtype=np.float64).reshape(-1, 3))
+        b_out, b_sorted = rt.empty(out.nbytes), rt.empty(out.nbytes)
+        kernel, local = g.kernels["cell_match"]
+        kernel(
+            rt.queue, (-(-n // local) * local,), (local,),
+            g.buf_points, g.buf_colstart, g.buf_perm, g.nx, g.ny, g.lo[0], g.lo[1], g.h,
+            self.buf_centres, self.buf_boxes, int(self.use_boxes), self.gate2,
+            self.buf_src, self.buf_seg, b_pm, n, b_lin, b_t,
+            self.buf_last, self.buf_m1, self.buf_mc, self.buf_cand, b_out, b_sorted,
+        )  # fmt: skip
+        rt.read(out, b_out)
+        self.normals.ensure(out[out >= 0])  # the normals of new targets (on the host array)
+        ok = np.empty(n, dtype=np.int32)
+        v, A, qq = np.empty(n), np.empty((n, 6)), np.empty(n)
+        b_ok, b_v, b_A, b_qq = (rt.empty(a.nbytes) for a in (ok, v, A, qq))
+        kernel, local = g.kernels["cell_residuals"]
+        kernel(
+            rt.queue, (-(-n // local) * local,), (local,),
+            g.buf_points, self.buf_centres, self.buf_src, self.buf_seg, b_pm, n, b_lin, b_t,
+            rt.to_device(self.normals.normals), b_out, b_sorted, b_ok, b_v, b_A, b_qq,
+        )  # fmt: skip
+        for arr, buf in ((ok, b_ok), (v, b_v), (A, b_A), (qq, b_qq)):
+            rt.read(arr, buf)
+        okb = ok.astype(bool)
+        return okb, v[okb], A[okb], qq[okb]
 
     def nearest(self, q: np.ndarray, seg: np.ndarray, gi: np.ndarray) -> np.ndarray:
         """(P',) original index of each moved point's nearest usable target, -1: none (beyond
