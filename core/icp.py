@@ -1317,6 +1317,14 @@ def _target_grid(before: np.ndarray, backend: str):
     """The epoch-1 points on an OpenCL device for the batched matcher, or None (numpy)."""
     if backend == "numpy":
         return None
+    if backend == "auto":
+        from .opencl.backend import probe_runtime
+
+        # some drivers abort the process instead of raising: try them in a child first
+        reason = probe_runtime()
+        if reason is not None:
+            log.info("OpenCL unavailable (%s); the ICP pairs come from numpy", reason)
+            return None
     try:
         from .opencl.nearest import GridTargets
 
