@@ -320,8 +320,9 @@ class _NormalCache:
         self.ensure(idx)
         return self.normals[idx]
 
-    def ensure(self, idx: np.ndarray) -> None:
-        """Compute the normals of targets ``idx`` not yet computed (into ``self.normals``)."""
+    def ensure(self, idx: np.ndarray) -> int:
+        """Compute the normals of targets ``idx`` not yet computed (into ``self.normals``);
+        returns how many were new."""
         need = idx[~self.done[idx]]
         if need.size:
             need = np.unique(need)
@@ -336,6 +337,7 @@ class _NormalCache:
                 else:
                     self.normals[part] = _pca_normals(self._neighbourhoods(part))
             self.done[need] = True
+        return int(need.size)
 
     def _neighbourhoods(self, part: np.ndarray) -> np.ndarray:
         q = self.points[part] if self.offset is None else self.points[part] - self.offset

@@ -14,7 +14,7 @@
 
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 
-#define KC 4
+#define KC 4  // nearest.py CANDIDATES
 #define KMAX 64
 
 static double dist2(__global const double *tp, int k, double x, double y, double z)

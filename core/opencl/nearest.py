@@ -4,8 +4,10 @@
 obvious reference is a fresh ``cKDTree`` query, which the numpy matcher is tested against):
 the same pairs (up to exact ties), the same cache of four candidate targets per source point,
 but the cache test, the grid search, the gate and the cell's box are one kernel pass over the
-moved points (``nearest.cl``) instead of a dozen numpy passes and a tree query. The target
-normals stay on the host (:class:`slipmap.core.icp._NormalCache`, computed on first use).
+moved points (``nearest.cl``) instead of a dozen numpy passes and a tree query. For rigid
+cells :meth:`CellNearest.step` also moves the points and computes their residual rows there.
+The target normals are computed on the device too (:meth:`GridTargets.normals`), on first
+use, into the host's :class:`slipmap.core.icp._NormalCache`.
 
 Why a kernel and not numpy/scipy: at 0.3-0.5 million source points per iteration the numpy
 matcher spends about 0.6 microseconds per point and iteration in passes over the points
@@ -23,7 +25,6 @@ import logging
 import math
 import warnings
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -34,11 +35,12 @@ log = logging.getLogger(__name__)
 KERNEL_FILE = Path(__file__).parent / "nearest.cl"
 _PER_COLUMN = 2.0  # targets per grid column on average (measured: 2 beats 1, 4 and 8)
 _MAX_COLUMN_FACTOR = 4  # at most this many columns per target
+CANDIDATES = 4  # KC of nearest.cl: the cached nearest targets per source point
 MAX_NORMAL_K = 64  # KMAX of nearest.cl: larger neighbourhoods stay on the host
 
 
 class _Program:
-    """The compiled ``nearest.cl`` of the process's runtime: its two kernels and their
+    """The compiled ``nearest.cl`` of the process's runtime: its kernels and their
     work-group sizes."""
 
     _cache: dict = {}
@@ -51,16 +53,17 @@ class _Program:
                 warnings.simplefilter("ignore")  # a non-empty build log is a CompilerWarning
                 prog = rt.cl.Program(rt.ctx, KERNEL_FILE.read_text(encoding="utf-8")).build()
             i8, f8, i4 = np.int64, np.float64, np.int32
+            # tp, colstart, nx, ny, x0, y0, h
             grid = [None, None, i8, i8, f8, f8, f8]
+            # tp, colstart, perm, nx, ny, x0, y0, h, centres, boxes, use_boxes, gate2
+            match = grid[:2] + [None] + grid[2:] + [None, None, i4, f8]
             kernels = {}
             for name, dtypes in (
-                ("cell_nearest", [None, None, None, i8, i8, f8, f8, f8, None, None, i4, f8]
-                 + [None, None, None, i8, None, None, None, None, None]),
-                ("cell_match", [None, None, None, i8, i8, f8, f8, f8, None, None, i4, f8]
-                 + [None, None, None, i8] + [None] * 8),
+                ("cell_nearest", match + [None, None, None, i8] + [None] * 5),
+                ("cell_match", match + [None, None, None, i8] + [None] * 8),
                 ("cell_residuals", [None] * 5 + [i8] + [None] * 9),
                 ("target_normals", grid + [None, None, i8, i4, None, None]),
-            ):  # fmt: skip
+            ):
                 k = rt.cl.Kernel(prog, name)
                 k.set_scalar_arg_dtypes(dtypes)
                 info = rt.cl.kernel_work_group_info.WORK_GROUP_SIZE
@@ -86,9 +89,7 @@ class GridTargets:
 
     def __init__(self, before: np.ndarray) -> None:
         self.rt = _runtime()
-        self.kernels = kernels = _Program.get(self.rt)
-        self.kernel, self.local = kernels["cell_nearest"]
-        self.k_normals, self.local_normals = kernels["target_normals"]
+        self.kernels = _Program.get(self.rt)
         b = np.asarray(before, dtype=np.float64)
         self.M = len(b)
         if self.M >= np.iinfo(np.int32).max:
@@ -122,6 +123,12 @@ class GridTargets:
         self.buf_iperm = self.rt.to_device(iperm)
         log.debug("OpenCL target grid: %d x %d columns of %.3f m for %d points", nx, ny, h, self.M)
 
+    def run(self, name: str, n: int, *args) -> None:
+        """Enqueue kernel ``name`` over ``n`` work-items (rounded up to whole work groups;
+        the kernels bound-check)."""
+        kernel, local = self.kernels[name]
+        kernel(self.rt.queue, (-(-int(n) // local) * local,), (local,), *args)
+
     def normals(self, ids: np.ndarray, k: int):
         """Normals of targets ``ids`` (J,) from their ``k`` nearest targets: (J, 3) unit
         normals (z >= 0) and a (J,) mask of the neighbourhoods whose two smallest eigenvalues
@@ -135,9 +142,8 @@ class GridTargets:
             return out, hard.astype(bool)
         rt = self.rt
         bo, bh = rt.empty(out.nbytes), rt.empty(hard.nbytes)
-        size = -(-n // self.local_normals) * self.local_normals
-        self.k_normals(
-            rt.queue, (size,), (self.local_normals,),
+        self.run(
+            "target_normals", n,
             self.buf_points, self.buf_colstart, self.nx, self.ny, self.lo[0], self.lo[1],
             self.h, self.buf_iperm, rt.to_device(ids), n, int(k), bo, bh,
         )  # fmt: skip
@@ -183,7 +189,7 @@ class CellNearest:
         self.buf_m1 = rt.cl.Buffer(rt.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=neg)
         self.buf_mc = rt.cl.Buffer(rt.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=neg)
         self.buf_cand = rt.cl.Buffer(
-            rt.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.full(4 * n, -1, np.int32)
+            rt.ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.full(CANDIDATES * n, -1, np.int32)
         )
 
     # ------------------------------------------------------------- the fused rigid step
@@ -193,6 +199,7 @@ class CellNearest:
         rt = self.rt
         self.buf_src = rt.to_device(np.ascontiguousarray(src, dtype=np.float64))
         self.buf_seg = rt.to_device(np.asarray(seg, dtype=np.int32))
+        self.buf_normals = None  # the normals array on the device (see step)
 
     def step(self, lin: np.ndarray, t: np.ndarray, pm: np.ndarray):
         """One rigid iteration's rows for the source points ``pm`` (P',): each moved by its
@@ -211,24 +218,24 @@ class CellNearest:
         b_lin = rt.to_device(np.ascontiguousarray(lin, dtype=np.float64).reshape(-1, 9))
         b_t = rt.to_device(np.ascontiguousarray(t, dtype=np.float64).reshape(-1, 3))
         b_out, b_sorted = rt.empty(out.nbytes), rt.empty(out.nbytes)
-        kernel, local = g.kernels["cell_match"]
-        kernel(
-            rt.queue, (-(-n // local) * local,), (local,),
+        g.run(
+            "cell_match", n,
             g.buf_points, g.buf_colstart, g.buf_perm, g.nx, g.ny, g.lo[0], g.lo[1], g.h,
             self.buf_centres, self.buf_boxes, int(self.use_boxes), self.gate2,
             self.buf_src, self.buf_seg, b_pm, n, b_lin, b_t,
             self.buf_last, self.buf_m1, self.buf_mc, self.buf_cand, b_out, b_sorted,
         )  # fmt: skip
         rt.read(out, b_out)
-        self.normals.ensure(out[out >= 0])  # the normals of new targets (on the host array)
+        # the normals of new targets (into the host array), on the device again when any
+        if self.normals.ensure(out[out >= 0]) or self.buf_normals is None:
+            self.buf_normals = rt.to_device(self.normals.normals)
         ok = np.empty(n, dtype=np.int32)
         v, A, qq = np.empty(n), np.empty((n, 6)), np.empty(n)
         b_ok, b_v, b_A, b_qq = (rt.empty(a.nbytes) for a in (ok, v, A, qq))
-        kernel, local = g.kernels["cell_residuals"]
-        kernel(
-            rt.queue, (-(-n // local) * local,), (local,),
+        g.run(
+            "cell_residuals", n,
             g.buf_points, self.buf_centres, self.buf_src, self.buf_seg, b_pm, n, b_lin, b_t,
-            rt.to_device(self.normals.normals), b_out, b_sorted, b_ok, b_v, b_A, b_qq,
+            self.buf_normals, b_out, b_sorted, b_ok, b_v, b_A, b_qq,
         )  # fmt: skip
         for arr, buf in ((ok, b_ok), (v, b_v), (A, b_A), (qq, b_qq)):
             rt.read(arr, buf)
@@ -247,9 +254,8 @@ class CellNearest:
         bs = rt.to_device(np.asarray(seg, dtype=np.int32))
         bg = rt.to_device(np.asarray(gi, dtype=np.int32))
         bo = rt.empty(out.nbytes)
-        size = -(-n // self.grid.local) * self.grid.local
-        g.kernel(
-            rt.queue, (size,), (g.local,),
+        g.run(
+            "cell_nearest", n,
             g.buf_points, g.buf_colstart, g.buf_perm, g.nx, g.ny, g.lo[0], g.lo[1], g.h,
             self.buf_centres, self.buf_boxes, int(self.use_boxes), self.gate2,
             bq, bs, bg, n,
@@ -268,8 +274,3 @@ class CellNearest:
             ok[np.flatnonzero(ok)[~fin]] = False
             jj, nrm = jj[fin], nrm[fin]
         return ok, self.before[jj] - self.centres[seg[ok]], nrm, jj
-
-
-def grid_targets(before: np.ndarray) -> Optional[GridTargets]:
-    """:class:`GridTargets` of ``before`` (raises DependencyError without a usable device)."""
-    return GridTargets(before)
