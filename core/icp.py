@@ -1562,7 +1562,7 @@ def windowed_icp(
     initial_displacement : callable, optional
         ``f(xy (K, 2)) -> (K, 3)`` starting ground motion at cell centres (e.g. from PIV);
         used by the finest pass (or the coarsest, with ``coarse_to_fine``).
-    sigma_scaling : {"field", "formal"}
+    sigma_scaling : {"field", "region", "formal"}
         ``"field"`` (default): the cells' covariances are multiplied by the square of the
         field's a-posteriori variance factor (:func:`~slipmap.core.fields.
         neighbour_variance_factor` of dx, dy, dz over the converged cells, at least 1): each
@@ -1577,7 +1577,8 @@ def windowed_icp(
         regions' factors found together, shrunk towards the field's factor where a region has
         few cells, estimated without the cells that did not converge or are ``flagged``, and
         multiplied by :data:`~slipmap.core.icp_sigma.REGION_INFLATION` (neighbour agreement
-        misses the error neighbouring cells share; calibrated on lone-star, docs/fields.md).
+        misses the error neighbouring cells share; calibrated on lone-star, docs/fields.md);
+        with ``field_model="spline"`` they count the pair covariances too.
         ``"formal"``: keep the formal covariances.
     sigma_regions : int
         Number of regions (quantile classes) of ``sigma_scaling="region"`` (>= 1).
@@ -2011,8 +2012,11 @@ def windowed_icp(
     return res
 
 
-def _scale_sigmas_by_region(res: WindowedICPResult, n_regions: int, by: str) -> WindowedICPResult:
-    """``res`` with covariances scaled by one variance factor per region (see windowed_icp)."""
+def _scale_sigmas_by_region(
+    res: WindowedICPResult, n_regions: int, by: str, pair_cov=None
+) -> WindowedICPResult:
+    """``res`` with covariances scaled by one variance factor per region (see windowed_icp).
+    ``pair_cov``: as in :func:`_scale_sigmas`."""
     from .icp_sigma import REGION_INFLATION, quantile_regions, region_variance_factors
 
     sig = np.column_stack([res.sigma_dx, res.sigma_dy, res.sigma_dz])
@@ -2033,6 +2037,7 @@ def _scale_sigmas_by_region(res: WindowedICPResult, n_regions: int, by: str) -> 
         region,
         usable=usable,
         inflation=REGION_INFLATION,
+        pair_covariance=pair_cov,
     )
     n_tested = int(est.n_cells.sum())
     res = replace(res, sigma_factor_estimate=est.field_factor, sigma_factor_cells=n_tested)
@@ -2080,7 +2085,7 @@ def _apply_sigma_scaling(
     if sigma_scaling == "field":
         return _scale_sigmas(res, pair_cov)
     if sigma_scaling == "region":
-        return _scale_sigmas_by_region(res, int(sigma_regions), sigma_region_by)
+        return _scale_sigmas_by_region(res, int(sigma_regions), sigma_region_by, pair_cov)
     return res
 
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -121,6 +121,7 @@ def region_variance_factors(
     inflation: float = 1.0,
     max_iterations: int = 50,
     tolerance: float = 1e-4,
+    pair_covariance: Optional[Tuple[np.ndarray, np.ndarray]] = None,
 ) -> RegionVarianceFactors:
     """Variance factor of the formal sigmas of a gridded field, one per region of cells.
 
@@ -150,6 +151,11 @@ def region_variance_factors(
         Limit of the fixed-point iteration.
     tolerance : float
         Stop when no factor changes by more than this fraction.
+    pair_covariance : ((P, 2) int, (P, q) float64), optional
+        Formal covariances between cells of a correlated field (e.g. one spline fitted to all
+        cells), as in :func:`~slipmap.core.fields.neighbour_variance_factor`. A covariance
+        between cells ``i`` and ``j`` is scaled by ``f_i f_j`` with their regions' factors.
+        Without it a positively correlated field's factors come out too small.
 
     Returns
     -------
@@ -168,7 +174,18 @@ def region_variance_factors(
     if np.shape(values)[0] != k:
         raise InvalidParameterError(f"region must have one entry per cell ({k} vs {len(values)})")
     n_reg = int(region.max()) + 1 if k and region.max() >= 0 else 0
-    base = neighbour_variance_factor(row, col, values, sigmas, usable=usable, min_cells=min_cells)
+    if pair_covariance is not None:
+        pairs = np.asarray(pair_covariance[0], dtype=np.int64).reshape(-1, 2)
+        pcov = np.asarray(pair_covariance[1], dtype=np.float64).reshape(len(pairs), -1)
+    base = neighbour_variance_factor(
+        row,
+        col,
+        values,
+        sigmas,
+        usable=usable,
+        min_cells=min_cells,
+        pair_covariance=pair_covariance,
+    )
     field_f = base.factor
     if not math.isfinite(field_f) or n_reg == 0:
         return RegionVarianceFactors(
@@ -189,8 +206,17 @@ def region_variance_factors(
     for _ in range(int(max_iterations)):
         it += 1
         cf = np.where(region >= 0, f[np.maximum(region, 0)], field_f)
+        scaled = None
+        if pair_covariance is not None:  # cov(f_i e_i, f_j e_j) = f_i f_j c_ij
+            scaled = (pairs, pcov * (cf[pairs[:, 0]] * cf[pairs[:, 1]])[:, None])
         est = neighbour_variance_factor(
-            row, col, values, sig2d * cf[:, None], usable=usable, min_cells=1
+            row,
+            col,
+            values,
+            sig2d * cf[:, None],
+            usable=usable,
+            min_cells=1,
+            pair_covariance=scaled,
         )
         z2 = est.normalised.reshape(k, -1) ** 2
         step = np.ones(n_reg)

@@ -62,6 +62,25 @@ def test_coverage_is_calibrated_in_each_region_over_seeds():
         assert 0.93 < frac < 0.97, (r, frac)
 
 
+def test_regions_of_a_correlated_field_need_its_pair_covariances():
+    """A field whose errors are correlated between neighbouring cells (one spline fitted to
+    all cells): errors 1x and 3x the formal sigmas in the two halves. With the formal pair
+    covariances (scaled by the regions' factors in the fixed point) each half gets its factor;
+    without them neighbour agreement looks too good in both."""
+    from test_fields import _correlated_field
+
+    with_cov, without = [], []
+    for seed in range(4):
+        row, col, v, s, pc = _correlated_field(seed)
+        region = (col >= col.max() // 2 + 1).astype(np.int64)
+        trend = np.column_stack([0.01 * col, 0 * row, 0.1 + 0 * row])
+        v = trend + np.array([1.0, 3.0])[region][:, None] * (v - trend)
+        with_cov.append(region_variance_factors(row, col, v, s, region, pair_covariance=pc).factors)
+        without.append(region_variance_factors(row, col, v, s, region).factors)
+    np.testing.assert_allclose(np.mean(with_cov, axis=0), [1.0, 3.0], rtol=0.12)
+    assert np.all(np.mean(without, axis=0) < 0.6 * np.array([1.0, 3.0]))
+
+
 def test_one_factor_per_field_misses_both_regions():
     # the point of regions: one factor over-covers the quiet region and under-covers the noisy
     region = halves()
@@ -163,3 +182,34 @@ def test_windowed_icp_region_scaling_by_roughness():
         windowed_icp(before, after, cell_m=5.0, sigma_scaling="region", sigma_region_by="x")
     with pytest.raises(InvalidParameterError, match="sigma_regions"):
         windowed_icp(before, after, cell_m=5.0, sigma_scaling="region", sigma_regions=0)
+
+
+def test_spline_field_region_factors_get_the_fields_pair_covariances(monkeypatch):
+    """``field_model="spline"`` with ``sigma_scaling="region"``: the region factors are
+    estimated with the formal covariances of neighbouring cells (one field: positive between
+    adjacent cells), as the field's single factor is."""
+    from slipmap.core import icp_sigma
+
+    seen = {}
+    real = icp_sigma.region_variance_factors
+
+    def spy(*args, **kw):
+        seen.update(kw)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(icp_sigma, "region_variance_factors", spy)
+    rng = np.random.default_rng(5)
+    before = cloud(rng, -3.0, 23.0, 50, 0.003)
+    src = before[np.all((before[:, :2] > 0.0) & (before[:, :2] < 20.0), axis=1)]
+    after = src + np.array([0.05, -0.03, 0.01]) + rng.normal(0.0, 0.003, src.shape)
+    res = windowed_icp(
+        before + UTM, after + UTM, cell_m=5.0, field_model="spline", sigma_scaling="region",
+        sigma_regions=2,
+    )  # fmt: skip
+    pairs, cov = seen["pair_covariance"]
+    assert pairs.shape[1] == 2 and cov.shape == (len(pairs), 3) and len(pairs) > 0
+    assert pairs.min() >= 0 and pairs.max() < len(res)
+    adjacent = (np.abs(res.row[pairs[:, 0]] - res.row[pairs[:, 1]]) <= 1) & (
+        np.abs(res.col[pairs[:, 0]] - res.col[pairs[:, 1]]) <= 1
+    )
+    assert adjacent.any() and np.all(cov[adjacent] > 0)
