@@ -13,7 +13,7 @@ from pathlib import Path
 # shared with the field styles (run as a script, this directory is on sys.path)
 from make_styles import _app, _save
 
-STYLES = Path(sys.argv[1] if len(sys.argv) > 1 else "qgis_plugin/styles")
+STYLES = Path(sys.argv[1] if len(sys.argv) > 1 else "styles")
 LABEL = (
     "CASE WHEN \"status\" = 'ok' THEN "
     "format_number(\"fault_parallel\" * 1000, 1) || ' ± ' || "

@@ -4,7 +4,7 @@ Run from the repository root with QGIS's Python (headless is fine)::
 
     QT_QPA_PLATFORM=offscreen .venv/bin/python scripts/make_styles.py
 
-and commit the files it writes to ``qgis_plugin/styles/``:
+and commit the files it writes to ``styles/``:
 
 * ``piv_vectors.qml`` -- points drawn as arrows rotated by ``azimuth_deg`` (clockwise from
   north, QGIS's marker rotation convention) and sized by ``magnitude`` relative to the layer's
@@ -25,7 +25,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-STYLES = Path(__file__).resolve().parents[1] / "qgis_plugin" / "styles"
+STYLES = Path(__file__).resolve().parents[1] / "styles"
 
 #: ColorBrewer RdBu (reversed: blue negative) and PRGn, 7 classes
 RDBU = ("#2166ac", "#67a9cf", "#d1e5f0", "#f7f7f7", "#fddbc7", "#ef8a62", "#b2182b")

@@ -74,10 +74,11 @@ def _layer(name: str) -> str:
 ALLOWED = {
     "core": {"core"},
     "core.io": {"core", "core.io"},
-    "app": {"core", "core.io", "app", "_version"},
-    "cli": {"core", "core.io", "app", "cli", "_version"},
-    "qgis_plugin": {"core", "core.io", "app", "qgis_plugin", "_version"},
-    "pdal_filters": {"core", "core.io", "app", "pdal_filters", "_version"},
+    "styles": {"styles"},
+    "app": {"core", "core.io", "app", "styles", "_version"},
+    "cli": {"core", "core.io", "app", "cli", "styles", "_version"},
+    "qgis_plugin": {"core", "core.io", "app", "qgis_plugin", "styles", "_version"},
+    "pdal_filters": {"core", "core.io", "app", "pdal_filters", "styles", "_version"},
 }
 
 

@@ -47,8 +47,8 @@ def test_top_folder_is_the_plugin(plugin_zip):
         "slipmap/app/pointaccuracy.py",
     ):
         assert required in names, required
-    styles = [n for n in names if re.fullmatch(r"slipmap/qgis_plugin/styles/[^/]+\.qml", n)]
-    on_disk = sorted(p.name for p in (ROOT / "qgis_plugin" / "styles").glob("*.qml"))
+    styles = [n for n in names if re.fullmatch(r"slipmap/styles/[^/]+\.qml", n)]
+    on_disk = sorted(p.name for p in (ROOT / "styles").glob("*.qml"))
     assert sorted(Path(n).name for n in styles) == on_disk
     assert "slip_tiles.qml" in on_disk
 

@@ -244,7 +244,7 @@ def options_from(alg, parameters, context, spec, *, extra=None, run_check=True):
     raw = {}
     for opt in spec.for_face("qgis"):
         name = opt.name_in("qgis")
-        if not is_set(parameters, name):
+        if not is_set(parameters, name, context):
             continue
         t = opt.type
         if t in ("float", "int"):
@@ -305,10 +305,51 @@ def _path_value(alg, parameters, name, context):
     return destination_path(parameters.get(name), context)
 
 
-def is_set(parameters, name):
-    """True when the optional parameter ``name`` was given (not absent, None or empty)."""
-    value = parameters.get(name)
-    return value is not None and value != ""
+def is_set(parameters, name, context=None):
+    """True when the optional parameter ``name`` was given a value.
+
+    The one place that says what "not given" is, for every caller and QGIS version:
+    absent, ``None``, a NULL ``QVariant`` (what the real dialog passes for an empty optional
+    file or number field), an empty or blank string, an empty list, a ``QgsProperty`` that is
+    invalid or whose static value (or, with ``context``, evaluated value) is one of these, and
+    a destination or feature-source definition whose sink or source is. A layer, a number
+    (0 included), a boolean and a non-blank text are given. See :func:`is_empty_value`.
+    """
+    return not is_empty_value(parameters.get(name), context)
+
+
+def is_empty_value(value, context=None):
+    """True when a Processing parameter value stands for "nothing given" (see :func:`is_set`)."""
+    if value is None:
+        return True
+    from qgis.core import (
+        QgsProcessingFeatureSourceDefinition,
+        QgsProcessingOutputLayerDefinition,
+        QgsProperty,
+    )
+    from qgis.PyQt.QtCore import QVariant
+
+    if isinstance(value, QVariant):
+        return value.isNull() or not value.isValid() or is_empty_value(value.value(), context)
+    if isinstance(value, QgsProperty):
+        kind = value.propertyType()
+        if kind == QgsProperty.InvalidProperty:
+            return True
+        if kind == QgsProperty.StaticProperty:
+            return is_empty_value(value.staticValue(), context)
+        if context is None:
+            return False  # an expression or a field: a value, known only when evaluated
+        text, ok = value.valueAsString(context.expressionContext())
+        return not ok or is_empty_value(text)
+    if isinstance(value, QgsProcessingOutputLayerDefinition):
+        return is_empty_value(value.sink, context)
+    if isinstance(value, QgsProcessingFeatureSourceDefinition):
+        return is_empty_value(value.source, context)
+    if isinstance(value, str):
+        return not value.strip()
+    if isinstance(value, (list, tuple, set)):
+        return all(is_empty_value(v, context) for v in value)
+    return False
 
 
 def advanced(param):
@@ -507,11 +548,10 @@ _POST_PROCESSORS = []
 
 
 def style_path(name):
-    """Path of a bundled QML style ``qgis_plugin/styles/<name>.qml`` (None when missing)."""
-    from pathlib import Path
+    """Path of a bundled QML style ``styles/<name>.qml`` (None when missing)."""
+    from ...styles import style_path as _style_path
 
-    p = Path(__file__).resolve().parents[1] / "styles" / f"{name}.qml"
-    return str(p) if p.is_file() else None
+    return _style_path(name)
 
 
 def apply_style_on_load(

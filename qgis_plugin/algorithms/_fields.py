@@ -66,7 +66,7 @@ def file_outputs(alg, parameters, context, spec, keys):
         name = spec[key].name_in("qgis")
         p = alg.parameterDefinition(name)
         optional = bool(p.flags() & QgsProcessingParameterDefinition.FlagOptional)
-        if optional and not is_set(parameters, name):
+        if optional and not is_set(parameters, name, context):
             out[key] = None
         elif p.type() == "rasterDestination":
             out[key] = raster_output(alg, parameters, name, context)

@@ -132,7 +132,7 @@ def pa_values(alg, parameters, context, model_name, crs=None):
                 f'"{_SCANNER_FILE_LABEL}": choose a scanner specification JSON file, or pick a '
                 f'built-in "{PA_SPEC["scanner"].dialog_label}" ({", ".join(SCANNER_NAMES)})'
             )
-    if is_set(parameters, "SCANNER_POSITION"):
+    if is_set(parameters, "SCANNER_POSITION", context):
         crs = crs if crs is not None else QgsCoordinateReferenceSystem()
         pt = alg.parameterAsPoint(parameters, "SCANNER_POSITION", context, crs)
         z = alg.parameterAsDouble(parameters, "SCANNER_HEIGHT", context)
@@ -142,7 +142,7 @@ def pa_values(alg, parameters, context, model_name, crs=None):
 
 def _input_crs(alg, parameters, context):
     """The CRS the points will be in: the CRS parameter, else the file's (header only)."""
-    if is_set(parameters, "CRS"):
+    if is_set(parameters, "CRS", context):
         crs = alg.parameterAsCrs(parameters, "CRS", context)
         if crs.isValid():
             return crs

@@ -171,8 +171,8 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         opts = options_from(
             self, parameters, context, job.SPEC, extra=self._extra(parameters, context)
         )
-        wanted = [key for name, key in _SINKS.items() if is_set(parameters, name)]
-        wanted += ["windows"] if is_set(parameters, "WINDOWS") else []
+        wanted = [key for name, key in _SINKS.items() if is_set(parameters, name, context)]
+        wanted += ["windows"] if is_set(parameters, "WINDOWS", context) else []
         with slipmap_errors(job.SPEC):
             job.check_outputs(opts, wanted)
         return opts
@@ -202,7 +202,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
 
         summary = self.parameterAsFileOutput(parameters, "SUMMARY", context)
         windows = None
-        if is_set(parameters, "WINDOWS"):
+        if is_set(parameters, "WINDOWS", context):
             windows = raster_output(self, parameters, "WINDOWS", context)
         elif opts["window_size_m"] is not None:
             feedback.pushInfo("WINDOW_SIZE is set but no WINDOWS output is asked for: no windows")
@@ -239,7 +239,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             columns,
         )
         apply_style_on_load(context, results["PLANES"], "slip_planes")
-        if data["tiles"] is not None and is_set(parameters, "TILES"):
+        if data["tiles"] is not None and is_set(parameters, "TILES", context):
             rings = [
                 QgsGeometry.fromPolygonXY([[QgsPointXY(*map(float, p)) for p in r]])
                 for r in data["tile_rings"]
@@ -248,7 +248,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
                 self, parameters, "TILES", context, crs, QgsWkbTypes.Polygon, rings, data["tiles"]
             )
             apply_style_on_load(context, results["TILES"], "slip_tiles")
-        if data["strips"] is not None and is_set(parameters, "STRIPS"):
+        if data["strips"] is not None and is_set(parameters, "STRIPS", context):
             points = [QgsGeometry(QgsPoint(float(x), float(y))) for x, y in data["strip_points"]]
             results["STRIPS"] = write_sink(
                 self, parameters, "STRIPS", context, crs, QgsWkbTypes.Point, points, data["strips"]

@@ -76,7 +76,7 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
         opts = self.job_options(parameters, context)
         outputs = file_outputs(self, parameters, context, job.SPEC, _FILES)
         stable_mask = None
-        if is_set(parameters, "STABLE_MASK"):
+        if is_set(parameters, "STABLE_MASK", context):
             source = self.parameterAsSource(parameters, "STABLE_MASK", context)
             label = f'"{job.SPEC["stable_mask"].dialog_label}"'
             if source is None:

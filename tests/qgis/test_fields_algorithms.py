@@ -16,7 +16,7 @@ UTM12 = pyproj.CRS.from_epsg(32612)
 X0, Y0, SIDE = 512000.0, 4300000.0, 24.0
 SHIFT = (0.40, -0.30, 0.05)  # true motion before -> after (m): east, north, up
 IDS = ("piv", "windowedicp", "demdiff", "strain")
-STYLES = Path(slipmap.__file__).resolve().parent / "qgis_plugin" / "styles"
+STYLES = Path(slipmap.__file__).resolve().parent / "styles"
 ICP_FIELDS = (
     "x",
     "y",
