@@ -526,18 +526,35 @@ def output_folder_problem(alg, parameters, context):
     return None
 
 
+#: (id of a context, parameter name) -> the raster path resolved for it (see raster_output)
+_RESOLVED_RASTERS = {}
+
+
 def raster_output(alg, parameters, name, context):
     """The path of raster destination ``name`` (None when not asked for), ``.tif`` added
-    when the name has no suffix, so that the GeoTIFF written there opens as one."""
+    when the name has no suffix, so that the GeoTIFF written there opens as one.
+
+    Resolved once per run: ``parameterAsOutputLayer`` makes a new temporary file name at each
+    call for a temporary output and adds each to the layers QGIS loads when the run ends, so
+    the check before the run (``checkParameterValues``, same context in the dialog and in
+    qgis_process) and the run itself would leave a second name that is never written ("The
+    following layers were not correctly generated"). A path already resolved in this context
+    and still waiting to be loaded is given again."""
     from pathlib import Path
 
+    key = (id(context), name)
+    cached = _RESOLVED_RASTERS.get(key)
+    if cached is not None and cached in context.layersToLoadOnCompletion():
+        return cached
     path = alg.parameterAsOutputLayer(parameters, name, context)
     if not path or Path(path).suffix:
+        _RESOLVED_RASTERS[key] = path or None
         return path or None
     layers = context.layersToLoadOnCompletion()
     if path in layers:  # load the file that is written, under the name it gets
         layers[path + ".tif"] = layers.pop(path)
         context.setLayersToLoadOnCompletion(layers)
+    _RESOLVED_RASTERS[key] = path + ".tif"
     return path + ".tif"
 
 
