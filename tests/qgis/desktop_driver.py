@@ -22,8 +22,8 @@ import traceback
 
 from qgis.core import (
     QgsApplication,
-    QgsGraduatedSymbolRenderer,
     QgsCategorizedSymbolRenderer,
+    QgsGraduatedSymbolRenderer,
     QgsMapLayerType,
     QgsProject,
     QgsRasterLayer,
@@ -129,9 +129,11 @@ def legend_and_data(layer):
             stats = layer.dataProvider().bandStatistics(band)
             out["data_min"] = _finite(stats.minimumValue)
             out["data_max"] = _finite(stats.maximumValue)
-        out["legend"] = [t for t, _ in layer.legendSymbologyItems()] if hasattr(
-            layer, "legendSymbologyItems"
-        ) else []
+        out["legend"] = (
+            [t for t, _ in layer.legendSymbologyItems()]
+            if hasattr(layer, "legendSymbologyItems")
+            else []
+        )
         return out
     r = layer.renderer()
     out["features"] = layer.featureCount()
@@ -145,7 +147,8 @@ def legend_and_data(layer):
     elif isinstance(r, QgsCategorizedSymbolRenderer):
         out["attribute"] = r.classAttribute()
         out["categories"] = [[str(c.value()), c.label()] for c in r.categories()]
-        out["data_values"] = sorted({str(v) for v in _expression_values(layer, r.classAttribute(), numeric=False)})
+        values = _expression_values(layer, r.classAttribute(), numeric=False)
+        out["data_values"] = sorted({str(v) for v in values})
     elif isinstance(r, QgsRuleBasedRenderer):
         out["rules"] = [c.label() for c in r.rootRule().children()]
     return out
@@ -329,9 +332,11 @@ class Scenario:
             self.rec["progress"] = self.progress_seen
             self.rec["completed"] = "Execution completed in" in self.rec["log"]
             self.rec["results"] = {k: repr(v) for k, v in (self.dlg.results() or {}).items()}
-            self.rec["message_bar"] = [
-                it.text() for it in self.dlg.messageBar().items()
-            ] if hasattr(self.dlg.messageBar(), "items") else []
+            self.rec["message_bar"] = (
+                [it.text() for it in self.dlg.messageBar().items()]
+                if hasattr(self.dlg.messageBar(), "items")
+                else []
+            )
             project = QgsProject.instance()
             root = project.layerTreeRoot()
             self.rec["layers"] = [

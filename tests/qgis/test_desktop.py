@@ -208,9 +208,11 @@ def _launch(profile, plan, tmp, *, block=(), timeout=600):
         tail = ("timeout", str(exc.stdout)[-3000:], str(exc.stderr)[-3000:])
     assert out.is_file(), f"the desktop wrote no record: {tail}"
     record = json.loads(out.read_text())
-    record["messages"] = [
-        json.loads(line) for line in messages.read_text().splitlines()
-    ] if messages.is_file() else []
+    record["messages"] = (
+        [json.loads(line) for line in messages.read_text().splitlines()]
+        if messages.is_file()
+        else []
+    )
     record["process"] = tail
     assert not record.get("unexpected_dialogs"), record["unexpected_dialogs"]
     return record
@@ -414,9 +416,7 @@ def test_fault_slip_maps_open_styled_with_one_sign(desktop):
     slip = summary["relative"]["right_lateral_slip"]
     assert abs(slip - DEXTRAL_M) < 0.005, slip
     for layer in layers:
-        labels = " ".join(r[2] for r in layer.get("ranges", [])) + " ".join(
-            layer.get("labels", [])
-        )
+        labels = " ".join(r[2] for r in layer.get("ranges", [])) + " ".join(layer.get("labels", []))
         assert "left-lateral" not in labels or "right-lateral" in labels, labels
 
 
