@@ -14,10 +14,11 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 # qgis (the desktop), xvfb and xauth (xvfb-run needs it): the desktop tests drive the real
-# QGIS application's dialogs under a virtual X server (tests/qgis/desktop).
+# QGIS application's dialogs under a virtual X server (tests/qgis/test_desktop.py); git:
+# scripts/plugin_zip.sh lists the plugin's files with it.
 APT_PACKAGES=(python3-qgis qgis-providers qgis python3-gdal gdal-bin python3-pyopencl pocl-opencl-icd
   python3-numpy python3-scipy python3-pyproj proj-data python3-matplotlib python3-venv python3-pip
-  xvfb xauth)
+  xvfb xauth git)
 
 what=${1:-all}
 
