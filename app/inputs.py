@@ -136,8 +136,8 @@ def read_cloud(path, *, key: str = "input", crs=None, what: str = ""):
 
     crs = as_crs(crs)
     label = f"{what} " if what else ""
-    try:
-        cloud = read_las(path)
+    try:  # a CRS the user gave replaces the file's, unparsed: no warning about the file's
+        cloud = read_las(path, crs=crs)
     except OptionError:
         raise
     except SlipMapError as exc:

@@ -199,7 +199,11 @@ class OutputPlan:
     def _check_writable(key: str, folder: Path) -> None:
         probe = _existing_ancestor(folder)
         if not probe.is_dir():
-            raise OptionError(key, f"{str(probe)!r} exists and is not a folder")
+            raise OptionError(
+                key,
+                f"{str(probe)!r} is a file, not a folder: nothing can be written under it; "
+                "choose a folder",
+            )
         if not os.access(probe, os.W_OK | os.X_OK):
             raise OptionError(key, f"cannot write in {str(probe)!r}; choose a writable place")
 

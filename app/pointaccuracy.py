@@ -254,6 +254,51 @@ def settings_from_options(opts: Mapping[str, Any], prefix: str = "") -> Dict[str
     return {"before": s, "after": s}
 
 
+#: the settings each model reads (beside ``model``), with the defaults it then uses
+MODEL_SETTINGS: Dict[str, Dict[str, Any]] = {
+    "constant": {"sigma": 0.05},
+    "axis": {"sigma_xyz": None},
+    "columns": {"columns": ["SigmaX", "SigmaY", "SigmaZ"]},
+    "propagated": {
+        "scanner": None,
+        "scanner_position": None,
+        "trajectory": None,
+        "trajectory_accuracy": None,
+        "footprint": True,
+    },
+}
+
+
+def settings_in_effect(settings: Mapping[str, Any]) -> Dict[str, Any]:
+    """The settings the model uses, for the record of a run (JSON, report): the model and
+    what it reads, its defaults filled in; none of another model (a dialog's defaults for the
+    scanner or the footprint mean nothing to the constant model). A static scan's
+    ``scanner_position`` leaves the trajectory files out.
+
+    Parameters
+    ----------
+    settings : mapping
+        As :func:`settings_from_options` gives per epoch.
+
+    Returns
+    -------
+    dict
+        ``{"model": name, setting: value, ...}``.
+    """
+    model = settings.get("model", "constant")
+    out: Dict[str, Any] = {"model": model}
+    for name, default in MODEL_SETTINGS.get(model, {}).items():
+        value = settings.get(name)
+        if value is None:
+            value = default
+        if value is not None:
+            out[name] = value
+    if model == "propagated" and out.get("scanner_position") is not None:
+        out.pop("trajectory", None)
+        out.pop("trajectory_accuracy", None)
+    return out
+
+
 def check_options(opts: Mapping[str, Any], prefix: str = "") -> None:
     """Cross-option check of :func:`pa_options` (for a JobSpec's ``check``): what the model
     needs that can be known before reading the point cloud.

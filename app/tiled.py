@@ -407,13 +407,13 @@ def _slip_tile(task: _SlipTask):
                 raise InputDataError(
                     f"{b_pts.shape[0]} / {a_pts.shape[0]} points in the two epochs"
                 )
-            pb = segment_planes(b_pts, **task.plane_options)
-            pa = segment_planes(a_pts, **task.plane_options)
+            pb = segment_planes(b_pts, quiet=True, **task.plane_options)
+            pa = segment_planes(a_pts, quiet=True, **task.plane_options)
         except InputDataError as exc:
             entry["status"] = f"skipped: no planes ({exc})"
             out[side] = entry
             continue
-        m = match_planes(pb, pa, **task.match_options)
+        m = match_planes(pb, pa, quiet=True, **task.match_options)
         k = len(m)
         lb = _labels_for_matches(pb.labels, m.before)
         la = _labels_for_matches(pa.labels, m.after)
@@ -514,6 +514,7 @@ def slip_tiled(
         SideResult,
         SlipResult,
         _merge_planesets,
+        side_summary,
         tile_adjustments,
     )
     from ..core.fault import mean_strike_rad
@@ -610,10 +611,8 @@ def slip_tiled(
             angle_rad=cat(m_ang, np.float64),
             distance_m=cat(m_dist, np.float64),
         )
-        log.info(
-            "%s side: %d tiles of %g m, %d / %d planes, %d matched",
-            side, len(tile_info), t, len(pb_all), len(pa_all), len(matches),
-        )  # fmt: skip
+        log.debug("%s", side_summary(side, pb_all, pa_all, len(matches),
+                                     f"{len(tile_info)} tiles of {t:g} m, "))  # fmt: skip
         if len(matches) < 3:
             raise InputDataError(
                 f"{side} side: only {len(matches)} matched planes over all tiles of {t:g} m "
@@ -759,7 +758,7 @@ def _planes_tile(task: _PlaneTask):
     if pts.shape[0] < 3 or n_own == 0:
         return n_own, None
     try:
-        ps = segment_planes(pts, **task.options)
+        ps = segment_planes(pts, quiet=True, **task.options)
     except InputDataError:
         return n_own, None
     lab = np.where(own, ps.labels, -1)
@@ -809,7 +808,7 @@ def _label_tile(task: _LabelTask) -> int:
     pts = cloud.xyz[sel]
     if pts.shape[0] >= 3:
         try:
-            local = segment_planes(pts, **pt.options).labels
+            local = segment_planes(pts, quiet=True, **pt.options).labels
         except InputDataError:
             local = np.full(pts.shape[0], -1)
         lut = task.lut

@@ -1073,7 +1073,11 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
                                          f"{s_rob * 1000:.2f} mm)"))  # fmt: skip
                         weights[j] = 0.0
                     active = trial
-                    log.info("robust start: %d gross outlier planes rejected", len(drop))
+                    log.info(
+                        "robust start: %d gross outlier plane%s rejected",
+                        len(drop),
+                        "" if len(drop) == 1 else "s",
+                    )
                     continue
         est = _stoch.estimate_components(
             cfg.model, idx, e, xd, t_s, p_s, which=which, fixed=fixed,

@@ -452,10 +452,10 @@ def register_side(
         the side's points) and ``components`` for :func:`.adjustment.adjust_rigid`.
     """
     opts = dict(plane_options or {})
-    pb = segment_planes(before, progress=scaled(progress, 0.0, 0.35), **opts)
-    pa = segment_planes(after, progress=scaled(progress, 0.35, 0.7), **opts)
-    m = match_planes(pb, pa, **(match_options or {}))
-    log.info("%s side: %d / %d planes, %d matched", side, len(pb), len(pa), len(m))
+    pb = segment_planes(before, progress=scaled(progress, 0.0, 0.35), quiet=True, **opts)
+    pa = segment_planes(after, progress=scaled(progress, 0.35, 0.7), quiet=True, **opts)
+    m = match_planes(pb, pa, quiet=True, **(match_options or {}))
+    log.info("%s", side_summary(side, pb, pa, len(m)))
     if len(m) < 3:
         raise InputDataError(
             f"{side} side: only {len(m)} matched planes (need at least 3 with several "
@@ -598,6 +598,45 @@ def _adjust_labelled(
     return rigid, mean_res
 
 
+def side_summary(side: str, pb: PlaneSet, pa: PlaneSet, n_matched: int, tiles: str = "") -> str:
+    """The one log line of a side: planes per epoch, matched pairs, and the scales the
+    segmentation estimated (point spacing, noise, leaf; before / after epoch), e.g.
+    ``left side: 22 planes before, 22 after, 22 matched (point spacing 0.106 / 0.118 m,
+    noise 18.7 / 18.5 mm, leaf 0.757 / 0.746 m)``; ``tiles`` (``"3 tiles of 50 m, "``) is put
+    after the side."""
+    text = f"{side} side: {tiles}{len(pb)} planes before, {len(pa)} after, {n_matched} matched"
+    p, q = pb.parameters, pa.parameters
+    if p is not None and q is not None and not tiles:
+        text += (
+            f" (point spacing {p.point_spacing_m:.3g} / {q.point_spacing_m:.3g} m, noise "
+            f"{1e3 * p.noise_m:.3g} / {1e3 * q.noise_m:.3g} mm, leaf {p.min_node_size_m:.3g} / "
+            f"{q.min_node_size_m:.3g} m)"
+        )
+    return text
+
+
+def _skip_reason(status: str) -> str:
+    """A skipped tile's reason in a few words (for the side's log line)."""
+    if status.startswith("skipped: no planes"):
+        return "no planes"
+    if "matched planes (need 3)" in status:
+        return "fewer than 3 matched planes"
+    return "no regular adjustment"
+
+
+def skipped_text(statuses) -> str:
+    """``2 skipped: 1 with no planes, 1 with fewer than 3 matched planes`` ("" when none)."""
+    counts: Dict[str, int] = {}
+    for st in statuses:
+        if st != "ok":
+            why = _skip_reason(st)
+            counts[why] = counts.get(why, 0) + 1
+    if not counts:
+        return ""
+    parts = ", ".join(f"{n} with {why}" for why, n in counts.items())
+    return f"{sum(counts.values())} skipped: {parts}"
+
+
 def _merge_planesets(parts, n_points: int) -> PlaneSet:
     """One PlaneSet for a side from per-tile PlaneSets ``[(point_index, PlaneSet), ...]``."""
     labels = np.full(n_points, -1, dtype=np.int32)
@@ -692,12 +731,12 @@ def _register_side_tiled(
         try:
             if ib.size < 3 or ia.size < 3:
                 raise InputDataError(f"{ib.size} / {ia.size} points in the two epochs")
-            pb = segment_planes(before[ib], **opts)
-            pa = segment_planes(after[ia], **opts)
+            pb = segment_planes(before[ib], quiet=True, **opts)
+            pa = segment_planes(after[ia], quiet=True, **opts)
         except InputDataError as exc:
             status = f"skipped: no planes ({exc})"
         else:
-            m = match_planes(pb, pa, **(match_options or {}))
+            m = match_planes(pb, pa, quiet=True, **(match_options or {}))
             k = len(m)
             parts_b.append((ib, pb))
             parts_a.append((ia, pa))
@@ -726,15 +765,9 @@ def _register_side_tiled(
         angle_rad=cat(m_ang, np.float64),
         distance_m=cat(m_dist, np.float64),
     )
-    log.info(
-        "%s side: %d tiles of %g m, %d / %d planes, %d matched",
-        side,
-        len(keys),
-        t,
-        len(pb_all),
-        len(pa_all),
-        len(matches),
-    )
+    log.debug(
+        "%s", side_summary(side, pb_all, pa_all, len(matches), f"{len(keys)} tiles of {t:g} m, ")
+    )  # the side's INFO line comes with the tiles' adjustments (tile_adjustments)
 
     # only points of clean planar leaves enter the adjustments (see CLEAN_LEAF_RATIO)
     lb = np.where(pb_all.planarity >= CLEAN_LEAF_RATIO, lb, -1)
@@ -826,8 +859,16 @@ def tile_adjustments(tile_info, adjust_tile, *, side, tile_size_m, combine, join
                 status=status,
             )
         )
-    if n_skipped:
-        log.info("%s side: %d of %d tiles not adjusted", side, n_skipped, len(tiles))
+    skipped = skipped_text(x.status for x in tiles)
+    log.info(
+        "%s side: %d tiles of %g m, %d matched planes; %d adjusted%s",
+        side,
+        len(tiles),
+        t,
+        sum(int(x.n_planes) for x in tiles),
+        len(tiles) - n_skipped,
+        f", {skipped}" if skipped else "",
+    )
 
     comb_d = comb_c = None
     if combine == "tiles":
@@ -1387,12 +1428,12 @@ def window_field(
         sub = scaled(progress, 0.3 * k, 0.3 * (k + 1))
         bp, ap = before[mb], after[ma]
         try:
-            pb = segment_planes(bp, progress=scaled(sub, 0.0, 0.5), **opts)
-            pa = segment_planes(ap, progress=scaled(sub, 0.5, 1.0), **opts)
+            pb = segment_planes(bp, progress=scaled(sub, 0.0, 0.5), quiet=True, **opts)
+            pa = segment_planes(ap, progress=scaled(sub, 0.5, 1.0), quiet=True, **opts)
         except InputDataError as exc:
             log.info("%s side: no planes (%s)", side, exc)
             continue
-        m = match_planes(pb, pa, **(match_options or {}))
+        m = match_planes(pb, pa, quiet=True, **(match_options or {}))
         lb = _labels_for_matches(pb.labels, m.before)
         la = _labels_for_matches(pa.labels, m.after)
         kb = (lb >= 0) & (pb.planarity >= CLEAN_LEAF_RATIO)

@@ -1939,7 +1939,7 @@ def windowed_icp(
     skipped["icp_failed"] = int(np.count_nonzero(~ok))
     n_ok = int(np.count_nonzero(ok))
     if n_ok == 0:
-        why = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in skipped.items() if v)
+        why = "; ".join(f"{v} {_SKIP_WORDS[k]}" for k, v in skipped.items() if v)
         raise InputDataError(
             f"no cell could be registered: all {sum(skipped.values())} cells with points were "
             f"skipped ({why}); use a larger cell_m or a smaller min_points (now {minp})"
@@ -2008,8 +2008,27 @@ def windowed_icp(
         both = ok[near[:, 0]] & ok[near[:, 1]]
         pair_cov = (new[near[both]], sfit.pair_cov[both])
     res = _apply_sigma_scaling(res, sigma_scaling, n_regions, sigma_region_by, pair_cov)
-    log.info("windowed ICP: %d cells fitted, skipped %s, %.1f s", n_ok, skipped, res.seconds)
+    log.info("windowed ICP: %d cells fitted%s, %.1f s", n_ok, skipped_cells_text(skipped),
+             res.seconds)  # fmt: skip
     return res
+
+
+#: words for the reasons a cell is skipped (the keys of the ``skipped`` counts)
+_SKIP_WORDS = {
+    "few_before_points": "too few points in the first epoch",
+    "few_after_points": "too few points in the second epoch",
+    "icp_failed": "no usable ICP fit",
+}
+
+
+def skipped_cells_text(skipped: Dict[str, int]) -> str:
+    """``, 3 skipped (1 with too few points in the second epoch, 2 …)`` ("" when none):
+    the counts of skipped cells in words, for a log line."""
+    parts = [f"{n} {_SKIP_WORDS.get(k, k.replace('_', ' '))}" for k, n in skipped.items() if n]
+    if not parts:
+        return ""
+    total = sum(skipped.values())
+    return f", {total} skipped ({'; '.join(parts)})"
 
 
 def _scale_sigmas_by_region(

@@ -54,6 +54,7 @@ def match_planes(
     angle_threshold_deg: float = 3.0,
     distance_threshold_m: float = 0.5,
     overlap_margin_m: Optional[float] = None,
+    quiet: bool = False,
 ) -> PlaneMatches:
     """One-to-one correspondences between the planes of two epochs.
 
@@ -72,6 +73,8 @@ def match_planes(
         The bounding boxes of matched planes must overlap when grown by this margin (default:
         ``distance_threshold_m``), so that coplanar but separate surfaces (two roofs at the
         same height) are not paired.
+    quiet : bool
+        Log the count at DEBUG instead of INFO (callers that log one summary line).
 
     Returns
     -------
@@ -130,5 +133,11 @@ def match_planes(
     keep = np.array(sorted(keep, key=lambda k: i[k]), dtype=np.int64)
     if keep.size == 0:
         return empty
-    log.info("%d of %d / %d planes matched", keep.size, len(before), len(after))
+    log.log(
+        logging.DEBUG if quiet else logging.INFO,
+        "%d plane pairs matched (%d planes in the first epoch, %d in the second)",
+        keep.size,
+        len(before),
+        len(after),
+    )
     return PlaneMatches(i[keep], j[keep], angle[keep], dist[keep])

@@ -840,6 +840,7 @@ def segment_planes(
     min_leaf_points: Optional[int] = None,
     backend: str = "numpy",
     progress: Optional[ProgressCallback] = None,
+    quiet: bool = False,
 ) -> PlaneSet:
     """Find the planar surfaces of a point cloud.
 
@@ -873,6 +874,9 @@ def segment_planes(
         Kernel implementation; both give the same labels.
     progress : callable, optional
         ``progress(fraction, message)``.
+    quiet : bool
+        Log the estimated scales (spacing, noise, leaf) at DEBUG instead of INFO: for callers
+        that segment many pieces (tiles, sides) and log one summary line themselves.
 
     Returns
     -------
@@ -954,7 +958,8 @@ def segment_planes(
         noise = 0.01 * leaf_size
         typical_n = float(min_leaf_points)
         log.warning("too few points per leaf to estimate the noise; assuming %.3g m", noise)
-    log.info("%s; leaf %.3g m", scales.describe(), leaf_size)
+    log.log(logging.DEBUG if quiet else logging.INFO, "%s; leaf %.3g m", scales.describe(),
+            leaf_size)  # fmt: skip
     if planarity_ratio is None:
         # clutter inside surface leaves (vegetation, noise points) must not fail them
         share = scales.outlier_share if np.isfinite(scales.outlier_share) else 0.0

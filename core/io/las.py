@@ -38,7 +38,7 @@ import numpy as np
 
 from ..errors import DependencyError, InvalidParameterError, SlipMapError, SlipMapFileError
 from .atomic import atomic_path, check_not_input, ensure_output_dir
-from .crs import crs_from_las, same_crs
+from .crs import crs_from_las, parse_crs, same_crs
 
 if TYPE_CHECKING:  # pragma: no cover
     import pyproj
@@ -409,7 +409,9 @@ def read_las_header(path: PathLike) -> Tuple[LasHeaderInfo, pyproj.CRS | None]:
         return _header_info(header), crs_from_las(header, source=p)
 
 
-def read_las(path: PathLike, *, attributes: Sequence[str] | None = None) -> PointCloud:
+def read_las(
+    path: PathLike, *, attributes: Sequence[str] | None = None, crs: Any = None
+) -> PointCloud:
     """Read a LAS/LAZ file.
 
     Parameters
@@ -425,6 +427,10 @@ def read_las(path: PathLike, *, attributes: Sequence[str] | None = None) -> Poin
         ``PointSourceId`` (uint16) — plus every extra-bytes dimension by its name. Any other
         standard dimension (``UserData``, ``Withheld``, ``Red``, ...) can be asked for by its
         PDAL name. ``X``/``Y``/``Z`` are always read into ``xyz``.
+    crs : pyproj.CRS, str or int, optional
+        The CRS the user gave for the file: it replaces the file's own, which is then not
+        parsed (no warning about a missing or wrong CRS in the file: the user has answered
+        it).
 
     Returns
     -------
@@ -444,7 +450,7 @@ def read_las(path: PathLike, *, attributes: Sequence[str] | None = None) -> Poin
         header = reader.header
         names = _resolve_attributes(attributes, header.point_format, p)
         info = _header_info(header)
-        crs = crs_from_las(header, source=p)
+        crs = crs_from_las(header, source=p) if crs is None else parse_crs(crs)
         try:
             las = reader.read()
         except Exception as exc:

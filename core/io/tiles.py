@@ -175,12 +175,13 @@ def _is_copc(header) -> bool:
         return False
 
 
-def _index_file(p: Path) -> Tuple[TileFile, Optional[object]]:
-    """Header of one tile; errors name the tile."""
+def _index_file(p: Path, *, parse_crs: bool = True) -> Tuple[TileFile, Optional[object]]:
+    """Header of one tile; errors name the tile. ``parse_crs=False`` (the user gave the CRS)
+    leaves the tile's own CRS unread: no warning about it."""
     try:
         with _las._open_reader(p) as reader:
             header = reader.header
-            crs = _las.crs_from_las(header, source=p)
+            crs = _las.crs_from_las(header, source=p) if parse_crs else None
             tf = TileFile(
                 path=p,
                 n_points=int(header.point_count),
@@ -464,7 +465,7 @@ def open_collection(
     first_crs = None
     first_path = None
     for p in paths:
-        tf, tcrs = _index_file(p)
+        tf, tcrs = _index_file(p, parse_crs=crs is None)
         files.append(tf)
         if crs is None and tcrs is not None:
             if first_crs is None:

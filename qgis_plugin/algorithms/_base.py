@@ -516,6 +516,14 @@ def output_folder_problem(alg, parameters, context):
         target = Path(path).expanduser()
         label = f'"{p.description()}"'
         if not target.parent.is_dir():
+            above = target.parent
+            while not above.exists() and above.parent != above:
+                above = above.parent
+            if above.exists() and not above.is_dir():  # e.g. …/slip.json/out.gpkg
+                return (
+                    f"{label}: {above} is a file, not a folder, so {target.name} cannot be "
+                    "written under it; choose a folder for the file"
+                )
             return (
                 f"{label}: the folder {target.parent} does not exist; create it or choose "
                 "another place for the file"

@@ -204,15 +204,22 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         windows = None
         if is_set(parameters, "WINDOWS", context):
             windows = raster_output(self, parameters, "WINDOWS", context)
-        elif opts["window_size_m"] is not None:
-            feedback.pushInfo("WINDOW_SIZE is set but no WINDOWS output is asked for: no windows")
+        wanted = [key for name, key in _SINKS.items() if is_set(parameters, name, context)]
+        for note in job.unused_settings(opts, wanted + (["windows"] if windows else [])):
+            _warn(feedback, job.SPEC.render_error(note, "qgis"))
         outputs = {
             "summary": summary,
             "report": summary.rsplit(".", 1)[0] + ".html",
             "windows": windows,
         }
         with slipmap_errors(job.SPEC):
-            result = job.run(opts, outputs, trace=trace, progress=progress_callback(feedback))
+            result = job.run(
+                opts,
+                outputs,
+                trace=trace,
+                trace_source=fault_source(self, parameters, context),
+                progress=progress_callback(feedback),
+            )
         for line in result.lines:
             feedback.pushInfo(line)
         return self._results(parameters, context, result, outputs)
@@ -275,8 +282,31 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         results["STOCHASTIC_MODEL"] = stoch["model"]
         for side in ("left", "right"):
             results[f"N_EFF_{side.upper()}"] = (stoch.get(side) or {}).get("n_eff")
-        results["VARIANCE_COMPONENTS"] = json.dumps(stoch)
+        # compact (no blank): the dialog's log prints the results with pprint, which cuts a
+        # text at its blanks into one line per word group (20 lines of JSON before)
+        results["VARIANCE_COMPONENTS"] = json.dumps(stoch, separators=(",", ":"))
         return results
+
+
+def _warn(feedback, text):
+    push = getattr(feedback, "pushWarning", None) or feedback.pushInfo  # pushWarning: 3.20+
+    push(text)
+
+
+def fault_source(alg, parameters, context):
+    """The fault layer's source for the record of the run (JSON, report): its file (with the
+    GeoPackage layer, as QGIS writes it: ``f.gpkg|layername=trace``), or, for a layer held in
+    memory, ``memory layer 'name' (not saved to a file)``; None when it cannot be told."""
+    try:
+        layer = alg.parameterAsVectorLayer(parameters, "FAULT", context)
+    except Exception:  # noqa: BLE001 - the record is best effort; the run reads the source
+        layer = None
+    if layer is None:
+        value = parameters.get("FAULT")
+        return str(value) if isinstance(value, str) and value else None
+    if layer.providerType() == "memory":
+        return f"memory layer {layer.name()!r} (not saved to a file)"
+    return layer.source() or layer.name()
 
 
 def _concat(a, b):

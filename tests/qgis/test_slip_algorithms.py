@@ -750,3 +750,106 @@ def test_white_model_and_fixed_components(provider, drift_epochs, tmp_path):
     for side in ("left", "right"):
         assert vc[side]["plane_source"] == "fixed"
         assert vc[side]["plane_m"] == pytest.approx(0.002, abs=1e-12)
+
+
+class _Feedback:
+    """A QgsProcessingFeedback that keeps what the algorithm pushes (the dialog's log)."""
+
+    def __new__(cls):
+        from qgis.core import QgsProcessingFeedback
+
+        class Kept(QgsProcessingFeedback):
+            def __init__(self):
+                super().__init__()
+                self.warnings, self.infos = [], []
+
+            def pushWarning(self, text):  # noqa: N802 (QGIS API name)
+                self.warnings.append(text)
+
+            def pushInfo(self, text):  # noqa: N802 (QGIS API name)
+                self.infos.append(text)
+
+        return Kept()
+
+
+def test_record_and_unused_settings_in_the_dialogs_words(provider, epochs, tmp_path):
+    """A fault from a file layer is recorded by its file; the point accuracy lists only the
+    constant model's sigma (not the dialog's scanner and footprint defaults); a strip width
+    and a window size without their outputs are named by the dialog's labels (strips into the
+    JSON, no windows computed); VARIANCE_COMPONENTS prints on one line in the dialog's
+    results (QGIS prints them with pprint)."""
+    from pprint import pformat
+
+    import processing
+    from qgis.core import QgsVectorFileWriter, QgsVectorLayer
+
+    fp, (before, after), _ = epochs
+    path = str(tmp_path / "trace.gpkg")
+    mem = _fault_layer(fp.trace_xy)
+    opts = QgsVectorFileWriter.SaveVectorOptions()
+    opts.driverName, opts.layerName = "GPKG", "trace"
+    QgsVectorFileWriter.writeAsVectorFormatV3(
+        mem, path, mem.transformContext(), opts
+    )  # fmt: skip
+    layer = QgsVectorLayer(f"{path}|layername=trace", "trace", "ogr")
+    assert layer.isValid()
+    feedback = _Feedback()
+    res = processing.run(
+        "slipmap:displacement",
+        {
+            "BEFORE": str(before),
+            "AFTER": str(after),
+            "FAULT": layer,
+            "STRIP_WIDTH": 50.0,
+            "WINDOW_SIZE": 40.0,
+            "SUMMARY": str(tmp_path / "s.json"),
+            "PLANES": "TEMPORARY_OUTPUT",
+        },
+        feedback=feedback,
+    )
+    assert feedback.warnings == [
+        '"Strip width (m)": is set but no "Strips" output is asked for: the strips go only '
+        'into the summary JSON and the report; ask for "Strips" to get the layer',
+        '"Moving-window size (m)": is set but no "Moving windows" output is asked for: no '
+        'windows are computed; ask for "Moving windows" to get them',
+    ]
+    assert not any("WINDOW_SIZE" in t for t in feedback.infos + feedback.warnings)
+    js = json.loads((tmp_path / "s.json").read_text())
+    assert js["strips"] and "windows" not in {p.stem for p in tmp_path.iterdir()}
+    prm = js["parameters"]
+    assert prm["fault"] == layer.source() and prm["fault"].startswith(path)
+    assert prm["point_accuracy"]["before"] == {"model": "constant", "sigma": 0.05}
+    html = open(res["REPORT"], encoding="utf-8").read()
+    assert "trace.gpkg (layername=trace)" in html and "(layer)" not in html
+    assert "scanner" not in html and "footprint" not in html
+    text = pformat({k: v for k, v in res.items() if k == "VARIANCE_COMPONENTS"})
+    assert len(text.splitlines()) == 1, text
+    assert json.loads(res["VARIANCE_COMPONENTS"])["model"] == "full"
+
+
+def test_memory_fault_layer_is_recorded_as_such(tiled_run):
+    res, d = tiled_run
+    js = json.loads((d / "slip.json").read_text())
+    assert js["parameters"]["fault"] == "memory layer 'fault' (not saved to a file)"
+
+
+def test_output_under_a_file_says_it_is_a_file(provider, epochs, tmp_path):
+    import processing
+    from qgis.core import QgsProcessingException
+
+    fp, (before, after), _ = epochs
+    (tmp_path / "slip.json").write_text("{}")
+    with pytest.raises(QgsProcessingException) as e:
+        processing.run(
+            "slipmap:displacement",
+            {
+                "BEFORE": str(before),
+                "AFTER": str(after),
+                "FAULT": _fault_layer(fp.trace_xy),
+                "SUMMARY": str(tmp_path / "slip.json" / "out.json"),
+                "PLANES": "TEMPORARY_OUTPUT",
+            },
+        )
+    text = str(e.value)
+    assert '"Summary": ' in text and "slip.json is a file, not a folder" in text, text
+    assert "does not exist" not in text
