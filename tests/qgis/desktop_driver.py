@@ -376,7 +376,10 @@ class Scenario:
         save()
         try:
             if self.dlg is not None:
-                self.dlg.close()
+                # hidden, not closed: QGIS 3.40's dialog deletes itself on close, and the
+                # Python wrapper's own delete would then crash QGIS; kept to the end instead
+                self.dlg.hide()
+                DIALOGS.append(self.dlg)
         except Exception:  # noqa: BLE001
             pass
         later(500, self.done)
@@ -469,6 +472,7 @@ def main():
 
 
 ALIVE = []
+DIALOGS = []
 
 
 WATCHDOG = QTimer()

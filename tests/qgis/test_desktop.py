@@ -326,6 +326,9 @@ def desktop(provider, data, profile, tmp_path_factory):
             "cancel_at_progress": 3,
         }
     )
+    only = os.environ.get("SLIPMAP_DESKTOP_ONLY")  # scenario ids, comma-separated (debugging)
+    if only:
+        scenarios = [s for s in scenarios if s["id"] in only.split(",")]
     record = _launch(profile, {"scenarios": scenarios}, tmp, timeout=900)
     by_id = {s["id"]: s for s in record["scenarios"]}
     return record, by_id, {"full": full, "cancelled": cancelled}
