@@ -143,6 +143,44 @@ def _warning_to_feedback(message, category, filename, lineno, file=None, line=No
         _ORIGINAL_SHOWWARNING[0](message, category, filename, lineno, file, line)
 
 
+#: what a cancelled run leaves in its context's layers to load (see :func:`watch_cancel`)
+CANCELLED_MARK = "slipmap:cancelled"
+
+
+def watch_cancel(feedback, context):
+    """After Cancel, make the algorithm dialog stop without "Algorithm … finished".
+
+    QGIS's dialog (``AlgorithmDialog.finish``, 3.22 to 3.40) runs ``handleAlgorithmResults``
+    after every run, failed and cancelled ones too, and prints "Algorithm '…' finished" (and
+    "HTML output has been generated" for an algorithm with an HTML output) unless that returns
+    False, which it does for a cancelled feedback only while there is a layer to load. So when
+    the user cancels (``feedback.canceled``, emitted in the thread that cancels: the dialog's),
+    a mark is added to the layers to load of the run's context; nothing else reads it, and
+    :meth:`SlipMapAlgorithm.postProcessAlgorithm` (a run that finished) takes it out.
+    """
+    if feedback is None or context is None:
+        return
+    from qgis.core import QgsProcessingContext, QgsProject
+
+    def cancelled():
+        try:
+            if not context.willLoadLayerOnCompletion(CANCELLED_MARK):
+                project = context.project() or QgsProject.instance()
+                details = QgsProcessingContext.LayerDetails("", project, "")
+                context.addLayerToLoadOnCompletion(CANCELLED_MARK, details)
+        except RuntimeError:  # the dialog deleted its context: nothing left to say
+            pass
+
+    feedback.canceled.connect(cancelled)
+
+
+def _unmark_cancelled(context):
+    layers = context.layersToLoadOnCompletion()
+    if CANCELLED_MARK in layers:
+        del layers[CANCELLED_MARK]
+        context.setLayersToLoadOnCompletion(layers)
+
+
 @contextlib.contextmanager
 def slipmap_errors(spec=None):
     """Turn SlipMap errors into ``QgsProcessingException``; with ``spec`` (the job's
@@ -385,6 +423,14 @@ def icon_path(name):
     return str(Path(__file__).resolve().parents[1] / "icons" / name)
 
 
+def _in_qgis_process():
+    """Whether this is ``qgis_process`` (its ``help`` prints the short description above the
+    help text; the dialog shows the help text only, the toolbox the short description)."""
+    from qgis.core import QgsApplication
+
+    return QgsApplication.platform() == "qgis_process"
+
+
 class SlipMapAlgorithm(QgsProcessingAlgorithm):
     """Base of the SlipMap algorithms: no state is kept on ``self`` between runs.
 
@@ -416,7 +462,9 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         return type(self)()
 
     def canExecute(self):  # noqa: N802 (QGIS API name)
-        return can_execute()
+        """``(False, "Missing: … <the command>")`` while a package this algorithm needs is
+        missing (``compat.needs``): the toolbox then refuses to open it with that text."""
+        return can_execute(self._id)
 
     def icon(self):
         from qgis.PyQt.QtGui import QIcon
@@ -430,6 +478,13 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         return list(dict.fromkeys(COMMON_TAGS + GROUP_TAGS.get(self._group_id, ()) + self._tags))
 
     def shortDescription(self):  # noqa: N802 (QGIS API name)
+        # the toolbox tooltip and the first line of `qgis_process help`: QGIS 3.22 and 3.40
+        # grey nothing out for canExecute(), so a missing package is said here
+        ok, message = self.canExecute()
+        if not ok:
+            return f"Cannot run yet. {message}"
+        if _in_qgis_process():  # its help prints this, then the help, which starts with it
+            return ""
         if self.spec is not None:
             return self.spec.description.split(". ")[0].rstrip(".") + "."
         return self._name
@@ -438,10 +493,15 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         return f"{HELP_URL}#{self._id}"
 
     def prepareAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
+        ok, message = self.canExecute()
+        if not ok:  # processing.run, models and qgis_process reach here without the toolbox
+            raise QgsProcessingException(message)
         attach_feedback(feedback)
+        watch_cancel(feedback, context)
         return True
 
     def postProcessAlgorithm(self, context, feedback):  # noqa: N802 (QGIS API name)
+        _unmark_cancelled(context)
         _HANDLER.flush_repeats()
         unique_layer_names(self, context)
         return {}
@@ -459,12 +519,20 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         extra = self.job_extra(parameters, context)
         return options_from(self, parameters, context, self.spec, extra=extra)
 
-    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
+    def check_options(self, parameters, context):
+        """Raise ``QgsProcessingException`` for parameters the job refuses (the dialog's
+        words); :meth:`checkParameterValues` calls it after the packages' check."""
         if self.spec is not None:
-            try:
-                self.job_options(parameters, context)
-            except QgsProcessingException as exc:
-                return False, str(exc)
+            self.job_options(parameters, context)
+
+    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
+        ok, message = self.canExecute()
+        if not ok:  # qgis_process: refused at once, with the command that installs them
+            return False, message
+        try:
+            self.check_options(parameters, context)
+        except QgsProcessingException as exc:
+            return False, str(exc)
         problem = output_folder_problem(self, parameters, context)
         if problem:
             return False, problem
