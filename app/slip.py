@@ -401,8 +401,7 @@ def compute(
     )
     want_strips = opts.get("strip_width_m") is not None
     want_windows = windows and opts.get("window_size_m") is not None
-    n = 1 + want_strips + want_windows
-    parts = iter(scaled(progress, k / n, (k + 1) / n) for k in range(n))
+    parts = iter(_phase_progress(progress, before, opts, want_strips, want_windows))
     result = estimate_slip(
         before,
         after,
@@ -436,6 +435,26 @@ def compute(
             **common,
         )
     return SlipRun(result, strips, wf)
+
+
+def _phase_progress(progress, before, opts, want_strips: bool, want_windows: bool):
+    """One progress callback per phase (slip, strips, windows), each its share of the bar by
+    its cost (``core.displacement``'s cost model), so the bar matches the log: with 2115
+    windows the window loop holds most of the bar, not its last sixth."""
+    from ..core.displacement import STRIPS_COST, window_count, window_progress_shares
+
+    costs = [1.0]
+    if want_strips:
+        costs.append(STRIPS_COST)
+    if want_windows:
+        step = opts.get("window_step_m") or opts["window_size_m"] / 4
+        n = window_count(np.asarray(before)[:, :2], opts["window_size_m"], step)
+        costs.append(window_progress_shares(n)[2])
+    total, edge, out = sum(costs), 0.0, []
+    for c in costs:
+        out.append(scaled(progress, edge / total, (edge + c) / total))
+        edge += c
+    return out
 
 
 # --------------------------------------------------------------------------- columns

@@ -18,13 +18,15 @@ pytestmark = pytest.mark.qgis
 
 def test_install_hint_renders_and_names_each_platform(provider, monkeypatch):
     """The canExecute message is shown as rich text (toolbox tooltip, message box): nothing
-    in it may read as a tag, and it gives a command that works on each platform."""
+    in it may read as a tag; it names what is missing and ends with the one command for this
+    platform (tests/qgis/test_dependencies.py: each platform's command)."""
     from qgis.core import QgsApplication
     from qgis.PyQt.QtGui import QTextDocument
 
     from slipmap.qgis_plugin import compat
 
-    monkeypatch.setattr(compat, "missing_packages", lambda: ["laspy", "lazrs"])
+    monkeypatch.setattr(compat, "missing_packages", lambda names=None: ["laspy", "lazrs"])
+    command = compat.install_command(["laspy", "lazrs"])
     for alg in QgsApplication.processingRegistry().providerById("slipmap").algorithms():
         ok, message = alg.canExecute()
         assert not ok
@@ -32,11 +34,17 @@ def test_install_hint_renders_and_names_each_platform(provider, monkeypatch):
         doc.setHtml(message)
         assert doc.toPlainText() == message  # rendered as written: no tag swallowed
         assert "<" not in message and ">" not in message
-        assert message.startswith("Missing: laspy, lazrs.")
-        # Debian 12/13: PEP 668 refuses a plain `pip install --user`
-        assert "python3 -m pip install --user --break-system-packages laspy lazrs" in message
-        assert "OSGeo4W Shell, python -m pip install laspy lazrs" in message
-        assert "QGIS.app/Contents/MacOS/bin/python3 -m pip install laspy lazrs" in message
+        assert message.startswith("SlipMap needs the Python packages laspy, lazrs,")
+        assert message.endswith(f"then restart QGIS: {command}")
+        if compat.platform_kind() == "debian" and compat._externally_managed():
+            # Debian 12/13: PEP 668 refuses a plain `pip install --user`
+            assert command.endswith(
+                "python3 -m pip install --user --break-system-packages laspy lazrs"
+            )
+    for text in (compat.INSTALL_HINT,):
+        doc = QTextDocument()
+        doc.setHtml(text)
+        assert doc.toPlainText() == text
 
 
 # --------------------------------------------------------------------------- inputs
@@ -183,7 +191,11 @@ class _Feedback:
         class Feedback(QgsProcessingFeedback):
             def __init__(self):
                 super().__init__()
-                self.lines, self.texts = [], []
+                self.lines, self.texts, self.values, self.text_at = [], [], [], []
+
+            def setProgress(self, value):  # noqa: N802 (QGIS API name)
+                self.values.append(value)
+                super().setProgress(value)
 
             def pushInfo(self, text):  # noqa: N802 (QGIS API name)
                 self.lines.append(text)
@@ -199,24 +211,17 @@ class _Feedback:
 
             def setProgressText(self, text):  # noqa: N802 (QGIS API name)
                 self.texts.append(text)
+                self.text_at.append((text, self.values[-1] if self.values else 0.0))
 
         return Feedback()
 
 
 @pytest.fixture(scope="module")
-def loaded_slip(provider, tmp_path_factory):
-    """One Fault slip run with every output, loaded into the project as the dialog does."""
+def slip_pair(provider, tmp_path_factory):
+    """The synthetic pair (18.1 mm dextral) as before.las, after.las and a fault layer."""
     import numpy as np
-    import processing
     import pyproj
-    from qgis.core import (
-        QgsFeature,
-        QgsGeometry,
-        QgsPointXY,
-        QgsProcessingContext,
-        QgsProject,
-        QgsVectorLayer,
-    )
+    from qgis.core import QgsFeature, QgsGeometry, QgsPointXY, QgsVectorLayer
 
     from slipmap.core.io.las import PointCloud, write_las
     from slipmap.core.synthetic import make_fault_pair
@@ -233,6 +238,16 @@ def loaded_slip(provider, tmp_path_factory):
     f = QgsFeature()
     f.setGeometry(QgsGeometry.fromPolylineXY([QgsPointXY(*p) for p in np.asarray(fp.trace_xy)]))
     fault.dataProvider().addFeatures([f])
+    return d, fault
+
+
+@pytest.fixture(scope="module")
+def loaded_slip(slip_pair):
+    """One Fault slip run with every output, loaded into the project as the dialog does."""
+    import processing
+    from qgis.core import QgsProcessingContext, QgsProject
+
+    d, fault = slip_pair
     project = QgsProject.instance()
     project.removeAllMapLayers()
     context = QgsProcessingContext()
@@ -438,6 +453,103 @@ def test_cancel_says_run_cancelled_once(provider, small_cloud, tmp_path):
     assert sum(t.lower().count("cancel") for t in said) <= 2, said  # the exception, its log line
     assert not any("cancelled by the user" in t for t in said), said
     assert _listing(tmp_path) == []
+
+
+# --------------------------------------------------------------------------- progress, cancel
+
+
+def test_progress_bar_follows_the_log(loaded_slip):
+    """The bar never goes back and ends full, and the moving windows (the job's last phase,
+    one adjustment per window) hold their share of it: while the log says "window k/N", the
+    bar still has at least 20 % of the run for every remaining whole loop (issue #28: 85 % at
+    "window 287/2115" left 10 % for 86 % of the loop). The job ends its computing at 95 %
+    (the writing of the outputs is the last 5 %)."""
+    _, _, feedback, _ = loaded_slip
+    values = feedback.values
+    run = values[: values.index(100.0) + 1]  # then QGIS loads the layers, from 0 again
+    back = [(i, a, b) for i, (a, b) in enumerate(zip(run, run[1:])) if b < a]
+    assert not back, back[:5]
+    windows = [
+        (int(m.group(1)) / int(m.group(2)), at)
+        for text, at in feedback.text_at
+        if (m := re.fullmatch(r"window (\d+)/(\d+)", text))
+    ]
+    assert windows, feedback.text_at
+    for k, at in windows:
+        assert 95.0 - at >= 20.0 * (1.0 - k), (k, at, feedback.text_at)
+        assert at > 50.0, (k, at)  # after the slip and the strips
+
+
+def test_cancel_mid_run_leaves_nothing_and_no_finished(slip_pair, tmp_path):
+    """Cancel after a few progress steps of a Fault slip run (an algorithm with an HTML
+    output): the run raises "Run cancelled.", writes nothing, logs no "finished", and what the
+    algorithm dialog runs next (``handleAlgorithmResults``, QGIS's Postprocessing) returns
+    False, so the dialog resets instead of printing "Algorithm … finished" and "HTML output
+    has been generated"; no layer is loaded."""
+    import processing
+    from processing.gui.Postprocessing import handleAlgorithmResults
+    from qgis.core import (
+        QgsApplication,
+        QgsProcessingContext,
+        QgsProcessingException,
+        QgsProject,
+    )
+
+    d, fault = slip_pair
+    out = tmp_path / "out"
+    out.mkdir()
+    project = QgsProject.instance()
+    project.removeAllMapLayers()
+    context = QgsProcessingContext()
+    context.setProject(project)
+    feedback = _Feedback.make()
+    calls = []
+
+    def progress(value):
+        calls.append(value)
+        if len(calls) == 5:
+            feedback.cancel()
+
+    feedback.setProgress = progress
+    with pytest.raises(QgsProcessingException, match="Run cancelled"):
+        processing.run(
+            "slipmap:displacement",
+            {
+                "BEFORE": str(d / "before.las"),
+                "AFTER": str(d / "after.las"),
+                "FAULT": fault,
+                "SUMMARY": str(out / "slip.json"),
+                "PLANES": str(out / "planes.gpkg"),
+                "STRIP_WIDTH": 30.0,
+            },
+            context=context,
+            feedback=feedback,
+        )
+    assert len(calls) == 5
+    assert _listing(out) == []
+    said = feedback.lines + feedback.texts
+    assert not [t for t in said if "finished" in t.lower() or "html output" in t.lower()], said
+    alg = QgsApplication.processingRegistry().createAlgorithmById("slipmap:displacement")
+    assert alg.hasHtmlOutputs()  # the dialog would print "HTML output has been generated"
+    assert handleAlgorithmResults(alg, context, feedback, False, {}) is False
+    assert project.mapLayers() == {}
+
+
+def test_a_finished_run_leaves_no_cancel_mark(provider, small_cloud, tmp_path):
+    from qgis.core import QgsApplication, QgsProcessingContext, QgsProcessingFeedback
+
+    from slipmap.qgis_plugin.algorithms._base import CANCELLED_MARK
+
+    alg = QgsApplication.processingRegistry().createAlgorithmById("slipmap:roughness")
+    context, feedback = QgsProcessingContext(), QgsProcessingFeedback()
+    params = {
+        "INPUT": str(small_cloud),
+        "CELL": 2.0,
+        "OUTPUT": str(tmp_path / "t.tif"),
+        "CSV": str(tmp_path / "c.csv"),
+    }
+    results, ok = alg.run(params, context, feedback)
+    assert ok and CANCELLED_MARK not in context.layersToLoadOnCompletion()
 
 
 # --------------------------------------------------------------------------- 5. help
