@@ -5,6 +5,7 @@ before running, loaded outputs (styles, legends, names, order), log, help; throu
 from __future__ import annotations
 
 import re
+import shutil
 
 import pytest
 
@@ -625,3 +626,159 @@ def test_qgis_process_help_reads_as_plain_text(tmp_path):
     assert not _TAG.search(description), _TAG.search(description).group()
     assert "\nPoint accuracy models (one per epoch): constant =" in description
     assert description.count("Kusari") == 1
+
+
+def _write_gpkg(layer, path):
+    from qgis.core import QgsCoordinateTransformContext, QgsVectorFileWriter
+
+    options = QgsVectorFileWriter.SaveVectorOptions()
+    options.driverName = "GPKG"
+    error = QgsVectorFileWriter.writeAsVectorFormatV3(
+        layer, str(path), QgsCoordinateTransformContext(), options
+    )
+    assert error[0] == QgsVectorFileWriter.NoError, error
+
+
+def _doc_blocks():
+    """The two sh blocks of docs/qgis.md's "qgis_process examples": the Debian 12 shell
+    function, and the commands."""
+    from pathlib import Path
+
+    text = (Path(slipmap.__file__).resolve().parent / "docs" / "qgis.md").read_text()
+    section = text.split("## qgis_process examples", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```sh\n(.*?)```", section, re.S)
+    assert len(blocks) == 2, blocks
+    return blocks
+
+
+@pytest.mark.skipif(_qgis_process() is None, reason="no qgis_process binary (QGIS desktop)")
+def test_documented_qgis_process_examples(slip_pair, tmp_path):
+    """docs/qgis.md's qgis_process commands, run as printed with bash (on Debian 12 after the
+    documented shell function, since the qgis_process wrapper fails there), in a folder with
+    the synthetic epochs as before.laz / after.laz and the trace as fault.gpkg, the plugin
+    enabled in a throw-away profile and QGIS's Python given laspy and lazrs (as the user's
+    ~/.local would): every command succeeds and writes what it names; the help gives
+    defaults and no CLI flag."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    import laspy
+    import lazrs
+
+    from slipmap.core.io.las import read_las, write_las
+
+    d, fault = slip_pair
+    work = tmp_path / "work"
+    work.mkdir()
+    for name in ("before", "after"):
+        write_las(work / f"{name}.laz", read_las(d / f"{name}.las"))
+    _write_gpkg(fault, work / "fault.gpkg")
+    site = tmp_path / "site"  # only laspy and lazrs, not the test venv's other packages
+    site.mkdir()
+    for module in (laspy, lazrs):
+        (site / module.__name__).symlink_to(Path(module.__file__).parent)
+    plugins = tmp_path / "profile" / "profiles" / "default" / "python" / "plugins"
+    plugins.mkdir(parents=True)
+    (plugins / "slipmap").symlink_to(Path(slipmap.__file__).resolve().parent)
+    env = dict(
+        os.environ,
+        QGIS_CUSTOM_CONFIG_PATH=str(tmp_path / "profile"),
+        PYTHONPATH=str(site),
+    )
+    env.pop("QT_QPA_PLATFORM", None)  # the documented function sets it
+    function, commands = _doc_blocks()
+    script = ("set -e\n" + function if shutil.which("qgis_process.bin") else "set -e\n") + (
+        commands
+    )
+    run = subprocess.run(
+        ["bash", "-c", script], cwd=work, env=env, capture_output=True, text=True, timeout=900
+    )
+    assert run.returncode == 0, (run.stdout[-3000:], run.stderr[-3000:])
+    written = {p.name for p in work.iterdir()}
+    for name in (
+        "before_planes.laz",
+        "planes.json",
+        "slip.json",
+        "matched_planes.gpkg",
+        "slip_windows.json",
+        "tiles.gpkg",
+        "strips.gpkg",
+        "windows.tif",
+        "roughness_2.tif",
+        "roughness_2.csv",
+        "before_sigma.laz",
+    ):
+        assert name in written, (name, sorted(written))
+    import json
+
+    summary = json.loads((work / "slip_windows.json").read_text())
+    assert summary["relative"]["right_lateral_slip"] == pytest.approx(OFFSET, abs=0.0015)
+    help_text = run.stdout.split("Fault slip (displacement) (slipmap:displacement)", 1)[1]
+    help_text = help_text.split("Planar segmentation", 1)[0]
+    assert "Default: full" in help_text or "Default: " in help_text
+    assert "--workers" not in help_text and "--scheduler" not in help_text
+
+
+@pytest.mark.skipif(_qgis_process() is None, reason="no qgis_process binary (QGIS desktop)")
+def test_qgis_process_needs_no_output_and_takes_enum_names(slip_pair, tmp_path):
+    """qgis_process 3.22 without SUMMARY/PLANES, with STOCHASTIC_MODEL by name and PIV
+    without GRID: the outputs go to temporary files, the name is taken, the dialog's default
+    grid is used (finding 9); a wrong name is refused naming the choices."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    import laspy
+    import lazrs
+
+    d, _ = slip_pair
+    site = tmp_path / "site"
+    site.mkdir()
+    for module in (laspy, lazrs):
+        (site / module.__name__).symlink_to(Path(module.__file__).parent)
+    profile = tmp_path / "profile"
+    plugins = profile / "profiles" / "default" / "python" / "plugins"
+    plugins.mkdir(parents=True)
+    (plugins / "slipmap").symlink_to(Path(slipmap.__file__).resolve().parent)
+    env = dict(
+        os.environ,
+        QGIS_CUSTOM_CONFIG_PATH=str(profile),
+        PYTHONPATH=str(site),
+        QT_QPA_PLATFORM="offscreen",
+    )
+    exe = [_qgis_process()]
+    subprocess.run(exe + ["plugins", "enable", "slipmap"], env=env, capture_output=True)
+
+    def run(*args):
+        r = subprocess.run(
+            exe + ["run", *args], env=env, capture_output=True, text=True, timeout=600
+        )
+        return r.returncode, r.stdout + r.stderr
+
+    fault = tmp_path / "fault.gpkg"
+    _write_gpkg(slip_pair[1], fault)
+    before, after = str(d / "before.las"), str(d / "after.las")
+    code, out = run(
+        "slipmap:displacement",
+        "--",
+        f"BEFORE={before}",
+        f"AFTER={after}",
+        f"FAULT={fault}",
+        "STOCHASTIC_MODEL=white",
+    )
+    assert code == 0, out[-3000:]
+    results = out.split("Results", 1)[1]  # temporary files: gone when qgis_process ends
+    assert re.search(r"SUMMARY:\s+\S+\.json", results), results
+    assert re.search(r"STOCHASTIC_MODEL:\s+white\n", results), results
+    code, out = run(
+        "slipmap:displacement",
+        "--",
+        f"BEFORE={before}",
+        f"AFTER={after}",
+        f"FAULT={fault}",
+        "STOCHASTIC_MODEL=fulll",
+    )
+    assert code != 0 and '"Stochastic model": must be one of white, plane, full' in out, out
+    code, out = run("slipmap:piv", "--", f"BEFORE={before}")
+    assert code != 0 and "AFTER" in out and "GRID" not in out, out[-2000:]
