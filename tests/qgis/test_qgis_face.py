@@ -782,3 +782,29 @@ def test_qgis_process_needs_no_output_and_takes_enum_names(slip_pair, tmp_path):
     assert code != 0 and '"Stochastic model": must be one of white, plane, full' in out, out
     code, out = run("slipmap:piv", "--", f"BEFORE={before}")
     assert code != 0 and "AFTER" in out and "GRID" not in out, out[-2000:]
+
+
+def test_parameter_help_gives_defaults_in_the_dialogs_words(provider):
+    """Each option parameter's help (tooltip; qgis_process help's Arguments) says its default
+    or what leaving it empty does, and names no CLI flag; a destination is optional (a
+    temporary file when left out) and an enum reads an option's name."""
+    from qgis.core import QgsApplication, QgsProcessingParameterDefinition
+
+    registry = QgsApplication.processingRegistry()
+    piv = registry.algorithmById("slipmap:piv")
+    assert piv.parameterDefinition("GRID").help().endswith("Default: 0.25")
+    assert piv.parameterDefinition("GRID").defaultValue() == 0.25
+    assert piv.parameterDefinition("PASSES").help().endswith("Left empty: one per window")
+    slip = registry.algorithmById("slipmap:displacement")
+    assert slip.parameterDefinition("STOCHASTIC_MODEL").help().endswith("by REML (default)")
+    assert slip.parameterDefinition("BUFFER").help().count("efault") == 1  # said once
+    for alg in registry.providerById("slipmap").algorithms():
+        for p in alg.parameterDefinitions():
+            assert "--" not in p.help(), (alg.id(), p.name(), p.help())
+            if p.isDestination():
+                assert p.flags() & QgsProcessingParameterDefinition.FlagOptional, p.name()
+    alg = registry.createAlgorithmById("slipmap:displacement")
+    run = alg.run_parameters({"STOCHASTIC_MODEL": "Plane", "COMBINE": "1", "UNITS": "gps-time"})
+    assert (run["STOCHASTIC_MODEL"], run["COMBINE"], run["UNITS"]) == (1, 1, 2)
+    assert run["SUMMARY"] == run["PLANES"] == "TEMPORARY_OUTPUT"
+    assert alg.run_parameters({"STOCHASTIC_MODEL": "nope"})["STOCHASTIC_MODEL"] == "nope"
