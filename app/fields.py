@@ -46,7 +46,7 @@ PNG_FILTER = "PNG (*.png)"
 
 TILES_HELP = (
     "; or tiles: a folder, a glob (quoted) or files separated by commas, read block by block "
-    "(also on Dask: --workers, --scheduler)"
+    "(also on Dask: {workers}, {scheduler})"
 )
 
 

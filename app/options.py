@@ -426,6 +426,34 @@ class JobSpec:
             self.check(out)
         return out
 
+    def help_in(self, opt: Option | str, face: str) -> str:
+        """``opt``'s help with the other options it names (``{key}``) as ``face`` calls them
+        (``--workers``, "Dask scheduler address (tcp://host:port)", ``scheduler``).
+
+        A named option that ``face`` does not have is left out with its separator, and a
+        parenthesis left empty goes with it, so no face shows another face's names.
+        """
+        import re
+
+        o = self._by_key[opt] if isinstance(opt, str) else opt
+
+        def name(key: str) -> Optional[str]:
+            other = self._by_key.get(key)
+            if other is None or other.name_in(face) is None:
+                return None
+            return other.display_in(face)
+
+        def clause(match: re.Match) -> str:
+            inner = match.group(1)
+            head, sep, tail = inner.rpartition(":")
+            names = [n for n in (name(k) for k in re.findall(r"\{(\w+)\}", tail)) if n]
+            if not names:
+                return ""
+            return f" ({head}{sep} {', '.join(names)})" if sep else f" ({', '.join(names)})"
+
+        text = re.sub(r"\s?\(([^()]*\{\w+\}[^()]*)\)", clause, o.help)
+        return re.sub(r"\{(\w+)\}", lambda m: name(m.group(1)) or m.group(1), text)
+
     def render_error(self, exc: OptionError, face: str) -> str:
         """``exc``'s message with the option named as ``face`` calls it."""
         opt = self._by_key.get(exc.key)
@@ -442,6 +470,7 @@ class JobSpec:
         rows = ["| Option | Type | Default | Description |", "|---|---|---|---|"]
         for o in self.for_face(face):
             rows.append(
-                f"| `{o.name_in(face)}` | {o.type_text()} | {o.default_text()} | {o.help} |"
+                f"| `{o.name_in(face)}` | {o.type_text()} | {o.default_text()} | "
+                f"{self.help_in(o, face)} |"
             )
         return "\n".join(rows)

@@ -440,8 +440,7 @@ def compute(
     # side's adjustment (tiles cut planes at their borders: another set of planes, another
     # estimate, e.g. 16.37 ± 2.97 mm against 16.32 ± 4.03 mm on the demo with 50 m tiles)
     map_tiles = tile is not None and combine == "joint"
-    n = 1 + map_tiles + want_strips + want_windows
-    parts = iter(scaled(progress, k / n, (k + 1) / n) for k in range(n))
+    parts = iter(_phase_progress(progress, before, opts, map_tiles, want_strips, want_windows))
     result = estimate_slip(
         before,
         after,
@@ -492,6 +491,29 @@ def compute(
             **common,
         )
     return SlipRun(result, strips, wf, tile_planes)
+
+
+def _phase_progress(progress, before, opts, map_tiles: bool, want_strips: bool, want_windows: bool):
+    """One progress callback per phase (slip, the tile map, strips, windows), each its share
+    of the bar by its cost (``core.displacement``'s cost model; the tile map is a second
+    adjustment of each side, costed as the first), so the bar matches the log: with 2115
+    windows the window loop holds most of the bar, not its last sixth."""
+    from ..core.displacement import STRIPS_COST, window_count, window_progress_shares
+
+    costs = [1.0]
+    if map_tiles:
+        costs.append(1.0)
+    if want_strips:
+        costs.append(STRIPS_COST)
+    if want_windows:
+        step = opts.get("window_step_m") or opts["window_size_m"] / 4
+        n = window_count(np.asarray(before)[:, :2], opts["window_size_m"], step)
+        costs.append(window_progress_shares(n)[2])
+    total, edge, out = sum(costs), 0.0, []
+    for c in costs:
+        out.append(scaled(progress, edge / total, (edge + c) / total))
+        edge += c
+    return out
 
 
 # --------------------------------------------------------------------------- columns

@@ -85,7 +85,7 @@ def add_options(
             target = groups.get(opt.group)
             if target is None:
                 target = groups[opt.group] = parser.add_argument_group(opt.group)
-        help_text = opt.help
+        help_text = spec.help_in(opt, FACE)  # other options by their CLI names
         if not opt.required and opt.type != "bool" and "default" not in opt.help:
             help_text += f" (default: {opt.default_text()})"
         kw: Dict[str, Any] = {"help": help_text, "dest": opt.key}

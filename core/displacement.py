@@ -1356,6 +1356,30 @@ class WindowField:
         return np.meshgrid(xs, ys)
 
 
+#: progress cost of one phase, in units of one :func:`estimate_slip` on the same points
+#: (measured on the synthetic mls pair, 2 cores: the planes of both sides and epochs 0.65,
+#: one moving window 0.025, the strips of a trace 2.5 together)
+WINDOW_PLANES_COST, WINDOW_COST, STRIPS_COST = 0.65, 0.025, 2.5
+
+
+def window_progress_shares(n_windows: int):
+    """``(planes, window loop)`` shares of :func:`window_field`'s progress for ``n_windows``
+    windows, and its cost in units of one :func:`estimate_slip` (third item)."""
+    loop = WINDOW_COST * max(1, int(n_windows))
+    total = WINDOW_PLANES_COST + loop
+    return WINDOW_PLANES_COST / total, loop / total, total
+
+
+def window_count(points_xy: np.ndarray, window_size_m: float, window_step_m: float) -> int:
+    """How many windows :func:`window_field` lays over points ``(N, 2)`` (the bounding box
+    of both sides, without the buffer: a close upper bound for the progress weights)."""
+    lo, hi = points_xy.min(axis=0), points_xy.max(axis=0)
+    size, step = float(window_size_m), float(window_step_m)
+    nx = max(1, int(math.ceil((hi[0] - lo[0] - size) / step - 1e-9)) + 1)
+    ny = max(1, int(math.ceil((hi[1] - lo[1] - size) / step - 1e-9)) + 1)
+    return nx * ny
+
+
 def window_field(
     before: np.ndarray,
     after: np.ndarray,
@@ -1421,11 +1445,19 @@ def window_field(
     sigma_after = _packed(sigma_after, "sigma_after")
     opts = dict(plane_options or {})
 
+    # the window grid first: the bar's share of the planes and of the window loop follows
+    # their cost (window_progress_shares), so "window k/N" reads where the bar stands
+    pts = np.concatenate([before[masks[s][0], :2] for s in SIDES])
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    nx = max(1, int(math.ceil((hi[0] - lo[0] - size) / step - 1e-9)) + 1)
+    ny = max(1, int(math.ceil((hi[1] - lo[1] - size) / step - 1e-9)) + 1)
+    planes_share = window_progress_shares(nx * ny)[0]
+
     # planes once per side and epoch
     sides = {}
     for k, side in enumerate(SIDES):
         mb, ma = masks[side]
-        sub = scaled(progress, 0.3 * k, 0.3 * (k + 1))
+        sub = scaled(progress, planes_share / 2 * k, planes_share / 2 * (k + 1))
         bp, ap = before[mb], after[ma]
         try:
             pb = segment_planes(bp, progress=scaled(sub, 0.0, 0.5), quiet=True, **opts)
@@ -1450,10 +1482,6 @@ def window_field(
         )
         log.info("%s side: %d matched planes for the windows", side, len(m))
 
-    pts = np.concatenate([before[masks[s][0], :2] for s in SIDES])
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    nx = max(1, int(math.ceil((hi[0] - lo[0] - size) / step - 1e-9)) + 1)
-    ny = max(1, int(math.ceil((hi[1] - lo[1] - size) / step - 1e-9)) + 1)
     x0, y0 = lo[0] + size / 2, hi[1] - size / 2
     xs = x0 + step * np.arange(nx)
     ys = y0 - step * np.arange(ny)
@@ -1473,7 +1501,11 @@ def window_field(
     for r in range(ny):
         for c in range(nx):
             n_done += 1
-            report(progress, 0.6 + 0.4 * n_done / (nx * ny), f"window {n_done}/{nx * ny}")
+            report(
+                progress,
+                planes_share + (1 - planes_share) * n_done / (nx * ny),
+                f"window {n_done}/{nx * ny}",
+            )
             s = int(cside[r, c])
             if s == 0 or SIDES[(s + 1) // 2] not in sides:
                 continue

@@ -3,31 +3,154 @@
 from __future__ import annotations
 
 import importlib.util
+import os
+import sys
 
-#: what to run where laspy/lazrs are missing; plain text (no "<...>": QGIS shows the message in
-#: rich-text tooltips and message boxes, which would swallow it as a tag)
-INSTALL_HINT = (
-    "SlipMap needs the Python packages laspy and lazrs in the Python that QGIS runs; install "
-    "them and restart QGIS. "
-    "Debian or Ubuntu (QGIS from the distribution; its Python is externally managed and there "
-    "is no Debian package of laspy): python3 -m pip install --user --break-system-packages "
-    "laspy lazrs. "
-    "Windows: in the OSGeo4W Shell, python -m pip install laspy lazrs. "
-    "macOS: /Applications/QGIS.app/Contents/MacOS/bin/python3 -m pip install laspy lazrs "
-    "(QGIS-LTR.app for the LTR)."
+#: the optional Python packages SlipMap's algorithms need inside QGIS's Python (scipy comes
+#: with QGIS, except a Debian QGIS installed with --no-install-recommends)
+PACKAGES = ("laspy", "lazrs", "scipy")
+#: what each algorithm needs (``slipmap:<id>`` -> packages); strain reads a table or GeoTIFF
+NEEDS = {"strain": ("scipy",)}
+DEFAULT_NEEDS = PACKAGES
+#: package -> (Debian package, conda-forge package); None: not packaged (pip)
+_DEBIAN = {"scipy": "python3-scipy"}
+_CONDA = {"lazrs": "lazrs-python"}
+
+
+def needs(algorithm_id: str = "") -> tuple:
+    """The packages algorithm ``algorithm_id`` (``"piv"``; empty: any) needs."""
+    return NEEDS.get(algorithm_id, DEFAULT_NEEDS)
+
+
+def missing_packages(names=None) -> list:
+    """Names of the packages (default: all of :data:`PACKAGES`) that cannot be imported."""
+    return [name for name in (names or PACKAGES) if not _importable(name)]
+
+
+def _importable(name: str) -> bool:
+    """Whether ``import name`` can find the package (without importing it: scipy is slow)."""
+    try:
+        return importlib.util.find_spec(name) is not None
+    except (ImportError, ValueError):  # a finder refuses it, or a broken entry in sys.modules
+        return False
+
+
+def platform_kind() -> str:
+    """Where this QGIS runs, for the install command: ``conda``, ``osgeo4w`` (Windows),
+    ``macos`` (qgis.org's QGIS.app), ``debian`` (a Linux distribution's QGIS) or ``linux``."""
+    prefix = sys.base_prefix or sys.prefix
+    if os.path.isdir(os.path.join(sys.prefix, "conda-meta")) or os.environ.get("CONDA_PREFIX"):
+        return "conda"
+    if sys.platform.startswith("win"):
+        return "osgeo4w"
+    if sys.platform == "darwin":
+        return "macos"
+    if os.path.exists("/etc/debian_version") or prefix == "/usr":
+        return "debian"
+    return "linux"
+
+
+def _externally_managed() -> bool:
+    """Whether pip refuses to install here without --break-system-packages (PEP 668)."""
+    import sysconfig
+
+    return os.path.exists(os.path.join(sysconfig.get_path("stdlib"), "EXTERNALLY-MANAGED"))
+
+
+def _macos_python() -> str:
+    """The Python inside the running QGIS.app (QGIS-LTR.app, ...), else qgis.org's path."""
+    for path in (sys.executable, sys.prefix):
+        if ".app/" in path:
+            return path.split(".app/")[0] + ".app/Contents/MacOS/bin/python3"
+    return "/Applications/QGIS.app/Contents/MacOS/bin/python3"
+
+
+def _quoted(path: str) -> str:
+    return f'"{path}"' if " " in path else path
+
+
+def install_command(missing, kind: str = "") -> str:
+    """ONE shell command that installs ``missing`` into the Python QGIS runs, as printed for
+    platform ``kind`` (default: this one, :func:`platform_kind`).
+
+    Debian 12/13 (and Ubuntu 23.04+) mark their Python "externally managed" (PEP 668): pip
+    then needs ``--user --break-system-packages`` (it writes only under ~/.local, which QGIS
+    reads, and leaves the system's packages alone); scipy comes from apt (python3-scipy), and
+    pip itself from python3-pip where it is missing. There is no ``python`` on Debian: the
+    command names ``python3``.
+    """
+    kind = kind or platform_kind()
+    missing = list(missing)
+    if kind == "conda":
+        return "conda install -c conda-forge " + " ".join(_CONDA.get(m, m) for m in missing)
+    if kind == "osgeo4w":
+        return "python -m pip install " + " ".join(missing)
+    if kind == "macos":
+        return f"{_quoted(_macos_python())} -m pip install " + " ".join(missing)
+    apt = [_DEBIAN[m] for m in missing if m in _DEBIAN] if kind == "debian" else []
+    pip = [m for m in missing if m not in _DEBIAN or kind != "debian"]
+    if pip and kind == "debian" and not _importable("pip"):
+        apt.insert(0, "python3-pip")
+    parts = []
+    if apt:
+        parts.append("sudo apt install " + " ".join(apt))
+    if pip:
+        flags = "--user --break-system-packages" if _externally_managed() else "--user"
+        parts.append(f"python3 -m pip install {flags} " + " ".join(pip))
+    return " && ".join(parts)
+
+
+#: where to run the command, per platform (plain text: no "<...>", see INSTALL_HINT)
+_WHERE = {
+    "conda": "in the conda environment QGIS runs from",
+    "osgeo4w": "in the OSGeo4W Shell (Start menu)",
+    "macos": "in a Terminal",
+    "debian": "in a terminal",
+    "linux": "in a terminal",
+}
+#: the command for every platform, for the docs and the Plugin Manager (``about``)
+PLATFORM_COMMANDS = (
+    (
+        "Debian 12/13 or Ubuntu, in a terminal",
+        "python3 -m pip install --user --break-system-packages laspy lazrs",
+    ),
+    ("Windows, in the OSGeo4W Shell", "python -m pip install laspy lazrs"),
+    (
+        "macOS, in a Terminal",
+        "/Applications/QGIS.app/Contents/MacOS/bin/python3 -m pip install laspy lazrs",
+    ),
+    ("conda, in QGIS's environment", "conda install -c conda-forge laspy lazrs-python"),
 )
 
 
-def missing_packages() -> list:
-    """Names of the required packages that cannot be imported (empty when all are there)."""
-    return [name for name in ("laspy", "lazrs") if importlib.util.find_spec(name) is None]
+def missing_message(missing, kind: str = "") -> str:
+    """What is missing and the one command that installs it here, as one plain-text line
+    (no "<...>": QGIS shows it in rich-text tooltips and message boxes). The command ends the
+    text, with nothing after it, so that it can be copied as it is."""
+    kind = kind or platform_kind()
+    s = "s" if len(missing) > 1 else ""
+    return (
+        f"SlipMap needs the Python package{s} {', '.join(missing)}, missing in the Python that "
+        f"QGIS runs. Run this command {_WHERE[kind]}, then restart QGIS: "
+        f"{install_command(missing, kind)}"
+    )
 
 
-def can_execute():
-    """``(True, "")`` or ``(False, install hint)`` for ``QgsProcessingAlgorithm.canExecute``."""
-    missing = missing_packages()
+#: what to run where laspy/lazrs are missing, every platform (docs, metadata ``about``); the
+#: commands are separated by " -- " so that none ends with a full stop
+INSTALL_HINT = (
+    "It needs the Python packages laspy and lazrs in the Python that QGIS runs; install them "
+    "with the command for your platform and restart QGIS -- "
+    + " -- ".join(f"{where}: {command}" for where, command in PLATFORM_COMMANDS)
+)
+
+
+def can_execute(algorithm_id: str = ""):
+    """``(True, "")`` or ``(False, what is missing and the command)`` for ``canExecute()``
+    of algorithm ``algorithm_id`` (its :func:`needs`)."""
+    missing = missing_packages(needs(algorithm_id))
     if missing:
-        return False, f"Missing: {', '.join(missing)}. {INSTALL_HINT}"
+        return False, missing_message(missing)
     return True, ""
 
 

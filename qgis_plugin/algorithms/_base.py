@@ -21,23 +21,26 @@ def progress_callback(feedback, *, text_every_s=2.0):
     """A SlipMap ``callback(fraction, message)`` that drives ``feedback`` and cancels.
 
     Raises :class:`~slipmap.core.errors.CancelledError` as soon as ``feedback.isCanceled()``.
-    The progress bar follows every call; the progress *text* (the dialog also writes it as a
-    line of the Processing log) is shown for the first call, then at most every
-    ``text_every_s`` seconds, and for the last (fraction 1), so a loop over 90 windows or the
-    sub-stages of 16 plane extractions write a few lines, not 90.
+    The progress bar follows every call and never goes back (the jobs give each phase its
+    share of the bar by its cost, e.g. the moving windows by their number); the progress
+    *text* (the dialog also writes it as a line of the Processing log) is shown for the first
+    call, then at most every ``text_every_s`` seconds, and for the last (fraction 1), so a
+    loop over 90 windows or the sub-stages of 16 plane extractions write a few lines, not 90.
     """
     import time
 
     from ...core.errors import CancelledError
 
-    state = {"t": -1e9}
+    state = {"t": -1e9, "max": 0.0}
 
     def callback(fraction, message=""):
         if feedback is None:
             return
         if feedback.isCanceled():
             raise CancelledError("cancelled by the user")
-        feedback.setProgress(100.0 * float(fraction))
+        # the bar never goes back (a phase that reports late, a tile that finishes early)
+        state["max"] = max(state["max"], min(1.0, float(fraction)))
+        feedback.setProgress(100.0 * state["max"])
         if message:
             now = time.monotonic()
             if now - state["t"] >= text_every_s or fraction >= 1:
@@ -143,6 +146,44 @@ def _warning_to_feedback(message, category, filename, lineno, file=None, line=No
         _ORIGINAL_SHOWWARNING[0](message, category, filename, lineno, file, line)
 
 
+#: what a cancelled run leaves in its context's layers to load (see :func:`watch_cancel`)
+CANCELLED_MARK = "slipmap:cancelled"
+
+
+def watch_cancel(feedback, context):
+    """After Cancel, make the algorithm dialog stop without "Algorithm … finished".
+
+    QGIS's dialog (``AlgorithmDialog.finish``, 3.22 to 3.40) runs ``handleAlgorithmResults``
+    after every run, failed and cancelled ones too, and prints "Algorithm '…' finished" (and
+    "HTML output has been generated" for an algorithm with an HTML output) unless that returns
+    False, which it does for a cancelled feedback only while there is a layer to load. So when
+    the user cancels (``feedback.canceled``, emitted in the thread that cancels: the dialog's),
+    a mark is added to the layers to load of the run's context; nothing else reads it, and
+    :meth:`SlipMapAlgorithm.postProcessAlgorithm` (a run that finished) takes it out.
+    """
+    if feedback is None or context is None:
+        return
+    from qgis.core import QgsProcessingContext, QgsProject
+
+    def cancelled():
+        try:
+            if not context.willLoadLayerOnCompletion(CANCELLED_MARK):
+                project = context.project() or QgsProject.instance()
+                details = QgsProcessingContext.LayerDetails("", project, "")
+                context.addLayerToLoadOnCompletion(CANCELLED_MARK, details)
+        except RuntimeError:  # the dialog deleted its context: nothing left to say
+            pass
+
+    feedback.canceled.connect(cancelled)
+
+
+def _unmark_cancelled(context):
+    layers = context.layersToLoadOnCompletion()
+    if CANCELLED_MARK in layers:
+        del layers[CANCELLED_MARK]
+        context.setLayersToLoadOnCompletion(layers)
+
+
 @contextlib.contextmanager
 def slipmap_errors(spec=None):
     """Turn SlipMap errors into ``QgsProcessingException``; with ``spec`` (the job's
@@ -165,7 +206,22 @@ def slipmap_errors(spec=None):
 # --------------------------------------------------------------------------- job options
 
 
-def _parameter(opt):
+def parameter_help(opt, spec=None):
+    """A parameter's help (its tooltip in the dialog, its text under *Arguments* in
+    ``qgis_process help``): the option's help with other options named as the dialog names
+    them (:meth:`JobSpec.help_in`; no CLI flags), then its default ("Default: 0.25") or what
+    leaving it empty does, unless the help says so already."""
+    text = spec.help_in(opt, "qgis") if spec is not None else opt.help
+    if opt.required and opt.default is None or "default" in text.lower():
+        return text
+    if opt.default is None:
+        return f"{text}. Left empty: {opt.unset_text}" if opt.unset_text else text
+    from dataclasses import replace
+
+    return f"{text}. Default: {replace(opt, required=False).default_text()}"
+
+
+def _parameter(opt, spec=None):
     """The Processing parameter of one job option (see ``slipmap.app.options``)."""
     from qgis.core import (
         QgsProcessingParameterBoolean,
@@ -219,7 +275,7 @@ def _parameter(opt):
         elif isinstance(default, dict):
             default = ",".join(f"{k}={v}" for k, v in default.items())
         p = QgsProcessingParameterString(name, label, defaultValue=default, optional=optional)
-    p.setHelp(opt.help)
+    p.setHelp(parameter_help(opt, spec))
     if opt.advanced:
         p.setFlags(p.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
     return p
@@ -230,7 +286,7 @@ def add_parameters(alg, spec, *, skip=(), roles=("setting",)):
     None), skipping the keys in ``skip`` (the algorithm declares those itself)."""
     for opt in spec.for_face("qgis", roles=roles):
         if opt.key not in skip:
-            alg.addParameter(_parameter(opt))
+            alg.addParameter(_parameter(opt, spec))
 
 
 def options_from(alg, parameters, context, spec, *, extra=None, run_check=True):
@@ -241,11 +297,17 @@ def options_from(alg, parameters, context, spec, *, extra=None, run_check=True):
     """
     from ...app.options import OptionError
 
-    raw = {}
+    raw, missing = {}, []
     for opt in spec.for_face("qgis"):
         name = opt.name_in("qgis")
         if not is_set(parameters, name, context):
-            continue
+            definition = alg.parameterDefinition(name)
+            if definition is None or is_empty_value(definition.defaultValue()):
+                if opt.required and opt.key not in (extra or {}):
+                    missing.append(opt)
+                continue
+            # a value the dialog pre-fills is the definition's default: qgis_process and
+            # processing.run get it too (parameterAs* below read it)
         t = opt.type
         if t in ("float", "int"):
             value = (
@@ -256,7 +318,11 @@ def options_from(alg, parameters, context, spec, *, extra=None, run_check=True):
         elif t == "bool":
             value = alg.parameterAsBoolean(parameters, name, context)
         elif t == "choice":
-            value = opt.choices[alg.parameterAsEnum(parameters, name, context)]
+            index = enum_index(alg.parameterDefinition(name), parameters.get(name))
+            if isinstance(index, str):  # not one of the options: the job's error names them
+                value = index
+            else:
+                value = opt.choices[alg.parameterAsEnum({name: index}, name, context)]
         elif t == "path":
             value = _path_value(alg, parameters, name, context)
         elif t == "crs":
@@ -268,6 +334,9 @@ def options_from(alg, parameters, context, spec, *, extra=None, run_check=True):
                 value = None
         raw[opt.key] = value
     raw.update(extra or {})
+    if len(missing) > 1:  # every missing one at once, not one error per run
+        labels = ", ".join(o.display_in("qgis") for o in missing)
+        raise QgsProcessingException(f"{labels}: are required; give a value for each")
     try:
         return spec.parse(raw, face="qgis", run_check=run_check)
     except OptionError as exc:
@@ -352,6 +421,35 @@ def is_empty_value(value, context=None):
     return False
 
 
+def enum_index(definition, value):
+    """The index of enum ``value`` for ``definition``: an index (int or its text) as it is,
+    the name of an option (case-insensitive; ``gps-time`` for ``gps_time``) as its index;
+    anything else unchanged (QGIS then refuses it as an incorrect value)."""
+    from qgis.PyQt.QtCore import QVariant
+
+    if isinstance(value, QVariant):
+        value = value.value()
+    if not isinstance(value, str) or not value.strip():
+        return value
+    text = value.strip()
+    if text.lstrip("-").isdigit():
+        return int(text)
+    options = [str(o) for o in definition.options()]
+
+    def squeezed(t):
+        return t.lower().replace("-", "").replace("_", "").replace(" ", "")
+
+    for i, option in enumerate(options):
+        if squeezed(option) == squeezed(text):
+            return i
+    for i, option in enumerate(options):  # "constant" for "constant (one sigma)"
+        if squeezed(option).startswith(squeezed(text)) and [
+            o for o in options if squeezed(o).startswith(squeezed(text))
+        ] == [option]:
+            return i
+    return value
+
+
 def advanced(param):
     """``param`` flagged as advanced (shown under "Advanced parameters")."""
     param.setFlags(param.flags() | QgsProcessingParameterDefinition.FlagAdvanced)
@@ -385,6 +483,14 @@ def icon_path(name):
     return str(Path(__file__).resolve().parents[1] / "icons" / name)
 
 
+def _in_qgis_process():
+    """Whether this is ``qgis_process`` (its ``help`` prints the short description above the
+    help text; the dialog shows the help text only, the toolbox the short description)."""
+    from qgis.core import QgsApplication
+
+    return QgsApplication.platform() == "qgis_process"
+
+
 class SlipMapAlgorithm(QgsProcessingAlgorithm):
     """Base of the SlipMap algorithms: no state is kept on ``self`` between runs.
 
@@ -415,8 +521,56 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
     def createInstance(self):  # noqa: N802 (QGIS API name)
         return type(self)()
 
+    def addParameter(self, definition, createOutput=True):  # noqa: N802, N803 (QGIS API)
+        """``QgsProcessingAlgorithm.addParameter``, with every destination optional.
+
+        QGIS 3.22's ``qgis_process`` refuses a run that does not name every mandatory
+        destination (a default value does not count), so a destination the user must not be
+        made to name (the summary, the matched planes) is declared optional, created by
+        default; a run that leaves it out writes it to a temporary file (a memory layer for a
+        vector), as the dialog's "[Save to temporary file]" does (:meth:`run_parameters`)."""
+        optional = definition.flags() & QgsProcessingParameterDefinition.FlagOptional
+        if definition.isDestination() and not optional:
+            definition.setFlags(definition.flags() | QgsProcessingParameterDefinition.FlagOptional)
+            definition.setCreateByDefault(True)
+            self.__dict__.setdefault("_temporary_by_default", set()).add(definition.name())
+        return super().addParameter(definition, createOutput)
+
+    def run_parameters(self, parameters):
+        """``parameters`` as the algorithm reads them: a destination that must be written
+        and was left out (:meth:`addParameter`) is ``TEMPORARY_OUTPUT``, and an enum given
+        by the name of its option (``STOCHASTIC_MODEL=full``, as ``qgis_process`` passes it)
+        is its index. The one place for both: :meth:`checkParameterValues` and every
+        ``processAlgorithm`` (wrapped by ``__init_subclass__``) read through it."""
+        from qgis.core import QgsProcessing
+
+        out = dict(parameters)
+        for name in self.__dict__.get("_temporary_by_default", ()):
+            if not is_set(out, name):
+                out[name] = QgsProcessing.TEMPORARY_OUTPUT
+        for definition in self.parameterDefinitions():
+            name = definition.name()
+            if definition.type() == "enum" and name in out:
+                out[name] = enum_index(definition, out[name])
+        return out
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        own = cls.__dict__.get("processAlgorithm")
+        if own is not None and not getattr(own, "_reads_run_parameters", False):
+            import functools
+
+            @functools.wraps(own)
+            def processAlgorithm(self, parameters, context, feedback):  # noqa: N802
+                return own(self, self.run_parameters(parameters), context, feedback)
+
+            processAlgorithm._reads_run_parameters = True
+            cls.processAlgorithm = processAlgorithm
+
     def canExecute(self):  # noqa: N802 (QGIS API name)
-        return can_execute()
+        """``(False, "Missing: … <the command>")`` while a package this algorithm needs is
+        missing (``compat.needs``): the toolbox then refuses to open it with that text."""
+        return can_execute(self._id)
 
     def icon(self):
         from qgis.PyQt.QtGui import QIcon
@@ -430,6 +584,13 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         return list(dict.fromkeys(COMMON_TAGS + GROUP_TAGS.get(self._group_id, ()) + self._tags))
 
     def shortDescription(self):  # noqa: N802 (QGIS API name)
+        # the toolbox tooltip and the first line of `qgis_process help`: QGIS 3.22 and 3.40
+        # grey nothing out for canExecute(), so a missing package is said here
+        ok, message = self.canExecute()
+        if not ok:
+            return f"Cannot run yet. {message}"
+        if _in_qgis_process():  # its help prints this, then the help, which starts with it
+            return ""
         if self.spec is not None:
             return self.spec.description.split(". ")[0].rstrip(".") + "."
         return self._name
@@ -438,10 +599,15 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         return f"{HELP_URL}#{self._id}"
 
     def prepareAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
+        ok, message = self.canExecute()
+        if not ok:  # processing.run, models and qgis_process reach here without the toolbox
+            raise QgsProcessingException(message)
         attach_feedback(feedback)
+        watch_cancel(feedback, context)
         return True
 
     def postProcessAlgorithm(self, context, feedback):  # noqa: N802 (QGIS API name)
+        _unmark_cancelled(context)
         _HANDLER.flush_repeats()
         unique_layer_names(self, context)
         return {}
@@ -459,12 +625,21 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         extra = self.job_extra(parameters, context)
         return options_from(self, parameters, context, self.spec, extra=extra)
 
-    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
+    def check_options(self, parameters, context):
+        """Raise ``QgsProcessingException`` for parameters the job refuses (the dialog's
+        words); :meth:`checkParameterValues` calls it after the packages' check."""
         if self.spec is not None:
-            try:
-                self.job_options(parameters, context)
-            except QgsProcessingException as exc:
-                return False, str(exc)
+            self.job_options(parameters, context)
+
+    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
+        ok, message = self.canExecute()
+        if not ok:  # qgis_process: refused at once, with the command that installs them
+            return False, message
+        parameters = self.run_parameters(parameters)
+        try:
+            self.check_options(parameters, context)
+        except QgsProcessingException as exc:
+            return False, str(exc)
         problem = output_folder_problem(self, parameters, context)
         if problem:
             return False, problem

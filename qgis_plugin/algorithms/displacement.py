@@ -177,12 +177,8 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             job.check_outputs(opts, wanted)
         return opts
 
-    def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
-        try:
-            self._options(parameters, context)
-        except QgsProcessingException as exc:
-            return False, str(exc)
-        return super().checkParameterValues(parameters, context)
+    def check_options(self, parameters, context):
+        self._options(parameters, context)
 
     # ------------------------------------------------------------------ run
 

@@ -115,7 +115,10 @@ class StrainAlgorithm(SlipMapAlgorithm):
         p = QgsProcessingParameterFeatureSource(
             "FIELD", field.dialog_label, [QgsProcessing.TypeVectorPoint, QgsProcessing.TypeVector]
         )
-        p.setHelp(field.help)
+        p.setHelp(  # the CLI's option also reads GeoTIFFs (with --dy): not this layer's
+            "the displacement field: the vectors layer of slipmap:piv or slipmap:windowedicp, "
+            "or a CSV table (piv.csv / icp.csv: columns x, y, dx, dy[, dz, valid])"
+        )
         self.addParameter(p)
         add_parameters(self, job.SPEC, roles=("input", "setting"))
         self.addParameter(

@@ -239,8 +239,9 @@ def test_missing_laspy_blocks_execution_not_loading(provider, monkeypatch):
 
     from slipmap.qgis_plugin import compat
 
-    monkeypatch.setattr(compat, "missing_packages", lambda: ["laspy", "lazrs"])
+    monkeypatch.setattr(compat, "missing_packages", lambda names=None: ["laspy", "lazrs"])
     alg = QgsApplication.processingRegistry().algorithmById("slipmap:planes")
     ok, message = alg.canExecute()
     assert not ok
-    assert message.startswith("Missing: laspy, lazrs.") and "laspy lazrs" in message
+    assert message.startswith("SlipMap needs the Python packages laspy, lazrs,")
+    assert message.endswith("laspy lazrs")

@@ -5,6 +5,7 @@ before running, loaded outputs (styles, legends, names, order), log, help; throu
 from __future__ import annotations
 
 import re
+import shutil
 
 import pytest
 
@@ -18,13 +19,15 @@ pytestmark = pytest.mark.qgis
 
 def test_install_hint_renders_and_names_each_platform(provider, monkeypatch):
     """The canExecute message is shown as rich text (toolbox tooltip, message box): nothing
-    in it may read as a tag, and it gives a command that works on each platform."""
+    in it may read as a tag; it names what is missing and ends with the one command for this
+    platform (tests/qgis/test_dependencies.py: each platform's command)."""
     from qgis.core import QgsApplication
     from qgis.PyQt.QtGui import QTextDocument
 
     from slipmap.qgis_plugin import compat
 
-    monkeypatch.setattr(compat, "missing_packages", lambda: ["laspy", "lazrs"])
+    monkeypatch.setattr(compat, "missing_packages", lambda names=None: ["laspy", "lazrs"])
+    command = compat.install_command(["laspy", "lazrs"])
     for alg in QgsApplication.processingRegistry().providerById("slipmap").algorithms():
         ok, message = alg.canExecute()
         assert not ok
@@ -32,11 +35,17 @@ def test_install_hint_renders_and_names_each_platform(provider, monkeypatch):
         doc.setHtml(message)
         assert doc.toPlainText() == message  # rendered as written: no tag swallowed
         assert "<" not in message and ">" not in message
-        assert message.startswith("Missing: laspy, lazrs.")
-        # Debian 12/13: PEP 668 refuses a plain `pip install --user`
-        assert "python3 -m pip install --user --break-system-packages laspy lazrs" in message
-        assert "OSGeo4W Shell, python -m pip install laspy lazrs" in message
-        assert "QGIS.app/Contents/MacOS/bin/python3 -m pip install laspy lazrs" in message
+        assert message.startswith("SlipMap needs the Python packages laspy, lazrs,")
+        assert message.endswith(f"then restart QGIS: {command}")
+        if compat.platform_kind() == "debian" and compat._externally_managed():
+            # Debian 12/13: PEP 668 refuses a plain `pip install --user`
+            assert command.endswith(
+                "python3 -m pip install --user --break-system-packages laspy lazrs"
+            )
+    for text in (compat.INSTALL_HINT,):
+        doc = QTextDocument()
+        doc.setHtml(text)
+        assert doc.toPlainText() == text
 
 
 # --------------------------------------------------------------------------- inputs
@@ -183,7 +192,11 @@ class _Feedback:
         class Feedback(QgsProcessingFeedback):
             def __init__(self):
                 super().__init__()
-                self.lines, self.texts = [], []
+                self.lines, self.texts, self.values, self.text_at = [], [], [], []
+
+            def setProgress(self, value):  # noqa: N802 (QGIS API name)
+                self.values.append(value)
+                super().setProgress(value)
 
             def pushInfo(self, text):  # noqa: N802 (QGIS API name)
                 self.lines.append(text)
@@ -199,24 +212,17 @@ class _Feedback:
 
             def setProgressText(self, text):  # noqa: N802 (QGIS API name)
                 self.texts.append(text)
+                self.text_at.append((text, self.values[-1] if self.values else 0.0))
 
         return Feedback()
 
 
 @pytest.fixture(scope="module")
-def loaded_slip(provider, tmp_path_factory):
-    """One Fault slip run with every output, loaded into the project as the dialog does."""
+def slip_pair(provider, tmp_path_factory):
+    """The synthetic pair (18.1 mm dextral) as before.las, after.las and a fault layer."""
     import numpy as np
-    import processing
     import pyproj
-    from qgis.core import (
-        QgsFeature,
-        QgsGeometry,
-        QgsPointXY,
-        QgsProcessingContext,
-        QgsProject,
-        QgsVectorLayer,
-    )
+    from qgis.core import QgsFeature, QgsGeometry, QgsPointXY, QgsVectorLayer
 
     from slipmap.core.io.las import PointCloud, write_las
     from slipmap.core.synthetic import make_fault_pair
@@ -233,6 +239,16 @@ def loaded_slip(provider, tmp_path_factory):
     f = QgsFeature()
     f.setGeometry(QgsGeometry.fromPolylineXY([QgsPointXY(*p) for p in np.asarray(fp.trace_xy)]))
     fault.dataProvider().addFeatures([f])
+    return d, fault
+
+
+@pytest.fixture(scope="module")
+def loaded_slip(slip_pair):
+    """One Fault slip run with every output, loaded into the project as the dialog does."""
+    import processing
+    from qgis.core import QgsProcessingContext, QgsProject
+
+    d, fault = slip_pair
     project = QgsProject.instance()
     project.removeAllMapLayers()
     context = QgsProcessingContext()
@@ -440,6 +456,103 @@ def test_cancel_says_run_cancelled_once(provider, small_cloud, tmp_path):
     assert _listing(tmp_path) == []
 
 
+# --------------------------------------------------------------------------- progress, cancel
+
+
+def test_progress_bar_follows_the_log(loaded_slip):
+    """The bar never goes back and ends full, and the moving windows (the job's last phase,
+    one adjustment per window) hold their share of it: while the log says "window k/N", the
+    bar still has at least 20 % of the run for every remaining whole loop (issue #28: 85 % at
+    "window 287/2115" left 10 % for 86 % of the loop). The job ends its computing at 95 %
+    (the writing of the outputs is the last 5 %)."""
+    _, _, feedback, _ = loaded_slip
+    values = feedback.values
+    run = values[: values.index(100.0) + 1]  # then QGIS loads the layers, from 0 again
+    back = [(i, a, b) for i, (a, b) in enumerate(zip(run, run[1:])) if b < a]
+    assert not back, back[:5]
+    windows = [
+        (int(m.group(1)) / int(m.group(2)), at)
+        for text, at in feedback.text_at
+        if (m := re.fullmatch(r"window (\d+)/(\d+)", text))
+    ]
+    assert windows, feedback.text_at
+    for k, at in windows:
+        assert 95.0 - at >= 20.0 * (1.0 - k), (k, at, feedback.text_at)
+        assert at > 50.0, (k, at)  # after the slip and the strips
+
+
+def test_cancel_mid_run_leaves_nothing_and_no_finished(slip_pair, tmp_path):
+    """Cancel after a few progress steps of a Fault slip run (an algorithm with an HTML
+    output): the run raises "Run cancelled.", writes nothing, logs no "finished", and what the
+    algorithm dialog runs next (``handleAlgorithmResults``, QGIS's Postprocessing) returns
+    False, so the dialog resets instead of printing "Algorithm … finished" and "HTML output
+    has been generated"; no layer is loaded."""
+    import processing
+    from processing.gui.Postprocessing import handleAlgorithmResults
+    from qgis.core import (
+        QgsApplication,
+        QgsProcessingContext,
+        QgsProcessingException,
+        QgsProject,
+    )
+
+    d, fault = slip_pair
+    out = tmp_path / "out"
+    out.mkdir()
+    project = QgsProject.instance()
+    project.removeAllMapLayers()
+    context = QgsProcessingContext()
+    context.setProject(project)
+    feedback = _Feedback.make()
+    calls = []
+
+    def progress(value):
+        calls.append(value)
+        if len(calls) == 5:
+            feedback.cancel()
+
+    feedback.setProgress = progress
+    with pytest.raises(QgsProcessingException, match="Run cancelled"):
+        processing.run(
+            "slipmap:displacement",
+            {
+                "BEFORE": str(d / "before.las"),
+                "AFTER": str(d / "after.las"),
+                "FAULT": fault,
+                "SUMMARY": str(out / "slip.json"),
+                "PLANES": str(out / "planes.gpkg"),
+                "STRIP_WIDTH": 30.0,
+            },
+            context=context,
+            feedback=feedback,
+        )
+    assert len(calls) == 5
+    assert _listing(out) == []
+    said = feedback.lines + feedback.texts
+    assert not [t for t in said if "finished" in t.lower() or "html output" in t.lower()], said
+    alg = QgsApplication.processingRegistry().createAlgorithmById("slipmap:displacement")
+    assert alg.hasHtmlOutputs()  # the dialog would print "HTML output has been generated"
+    assert handleAlgorithmResults(alg, context, feedback, False, {}) is False
+    assert project.mapLayers() == {}
+
+
+def test_a_finished_run_leaves_no_cancel_mark(provider, small_cloud, tmp_path):
+    from qgis.core import QgsApplication, QgsProcessingContext, QgsProcessingFeedback
+
+    from slipmap.qgis_plugin.algorithms._base import CANCELLED_MARK
+
+    alg = QgsApplication.processingRegistry().createAlgorithmById("slipmap:roughness")
+    context, feedback = QgsProcessingContext(), QgsProcessingFeedback()
+    params = {
+        "INPUT": str(small_cloud),
+        "CELL": 2.0,
+        "OUTPUT": str(tmp_path / "t.tif"),
+        "CSV": str(tmp_path / "c.csv"),
+    }
+    results, ok = alg.run(params, context, feedback)
+    assert ok and CANCELLED_MARK not in context.layersToLoadOnCompletion()
+
+
 # --------------------------------------------------------------------------- 5. help
 
 _TAG = re.compile(r"</?[A-Za-z][^>]*>")
@@ -513,3 +626,185 @@ def test_qgis_process_help_reads_as_plain_text(tmp_path):
     assert not _TAG.search(description), _TAG.search(description).group()
     assert "\nPoint accuracy models (one per epoch): constant =" in description
     assert description.count("Kusari") == 1
+
+
+def _write_gpkg(layer, path):
+    from qgis.core import QgsCoordinateTransformContext, QgsVectorFileWriter
+
+    options = QgsVectorFileWriter.SaveVectorOptions()
+    options.driverName = "GPKG"
+    error = QgsVectorFileWriter.writeAsVectorFormatV3(
+        layer, str(path), QgsCoordinateTransformContext(), options
+    )
+    assert error[0] == QgsVectorFileWriter.NoError, error
+
+
+def _doc_blocks():
+    """The two sh blocks of docs/qgis.md's "qgis_process examples": the Debian 12 shell
+    function, and the commands."""
+    from pathlib import Path
+
+    text = (Path(slipmap.__file__).resolve().parent / "docs" / "qgis.md").read_text()
+    section = text.split("## qgis_process examples", 1)[1].split("\n## ", 1)[0]
+    blocks = re.findall(r"```sh\n(.*?)```", section, re.S)
+    assert len(blocks) == 2, blocks
+    return blocks
+
+
+@pytest.mark.skipif(_qgis_process() is None, reason="no qgis_process binary (QGIS desktop)")
+def test_documented_qgis_process_examples(slip_pair, tmp_path):
+    """docs/qgis.md's qgis_process commands, run as printed with bash (on Debian 12 after the
+    documented shell function, since the qgis_process wrapper fails there), in a folder with
+    the synthetic epochs as before.laz / after.laz and the trace as fault.gpkg, the plugin
+    enabled in a throw-away profile and QGIS's Python given laspy and lazrs (as the user's
+    ~/.local would): every command succeeds and writes what it names; the help gives
+    defaults and no CLI flag."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    import laspy
+    import lazrs
+
+    from slipmap.core.io.las import read_las, write_las
+
+    d, fault = slip_pair
+    work = tmp_path / "work"
+    work.mkdir()
+    for name in ("before", "after"):
+        write_las(work / f"{name}.laz", read_las(d / f"{name}.las"))
+    _write_gpkg(fault, work / "fault.gpkg")
+    site = tmp_path / "site"  # only laspy and lazrs, not the test venv's other packages
+    site.mkdir()
+    for module in (laspy, lazrs):
+        (site / module.__name__).symlink_to(Path(module.__file__).parent)
+    plugins = tmp_path / "profile" / "profiles" / "default" / "python" / "plugins"
+    plugins.mkdir(parents=True)
+    (plugins / "slipmap").symlink_to(Path(slipmap.__file__).resolve().parent)
+    env = dict(
+        os.environ,
+        QGIS_CUSTOM_CONFIG_PATH=str(tmp_path / "profile"),
+        PYTHONPATH=str(site),
+    )
+    env.pop("QT_QPA_PLATFORM", None)  # the documented function sets it
+    function, commands = _doc_blocks()
+    script = ("set -e\n" + function if shutil.which("qgis_process.bin") else "set -e\n") + (
+        commands
+    )
+    run = subprocess.run(
+        ["bash", "-c", script], cwd=work, env=env, capture_output=True, text=True, timeout=900
+    )
+    assert run.returncode == 0, (run.stdout[-3000:], run.stderr[-3000:])
+    written = {p.name for p in work.iterdir()}
+    for name in (
+        "before_planes.laz",
+        "planes.json",
+        "slip.json",
+        "matched_planes.gpkg",
+        "slip_windows.json",
+        "tiles.gpkg",
+        "strips.gpkg",
+        "windows.tif",
+        "roughness_2.tif",
+        "roughness_2.csv",
+        "before_sigma.laz",
+    ):
+        assert name in written, (name, sorted(written))
+    import json
+
+    summary = json.loads((work / "slip_windows.json").read_text())
+    assert summary["relative"]["right_lateral_slip"] == pytest.approx(OFFSET, abs=0.0015)
+    help_text = run.stdout.split("Fault slip (displacement) (slipmap:displacement)", 1)[1]
+    help_text = help_text.split("Planar segmentation", 1)[0]
+    assert "Default: full" in help_text or "Default: " in help_text
+    assert "--workers" not in help_text and "--scheduler" not in help_text
+
+
+@pytest.mark.skipif(_qgis_process() is None, reason="no qgis_process binary (QGIS desktop)")
+def test_qgis_process_needs_no_output_and_takes_enum_names(slip_pair, tmp_path):
+    """qgis_process 3.22 without SUMMARY/PLANES, with STOCHASTIC_MODEL by name and PIV
+    without GRID: the outputs go to temporary files, the name is taken, the dialog's default
+    grid is used (finding 9); a wrong name is refused naming the choices."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    import laspy
+    import lazrs
+
+    d, _ = slip_pair
+    site = tmp_path / "site"
+    site.mkdir()
+    for module in (laspy, lazrs):
+        (site / module.__name__).symlink_to(Path(module.__file__).parent)
+    profile = tmp_path / "profile"
+    plugins = profile / "profiles" / "default" / "python" / "plugins"
+    plugins.mkdir(parents=True)
+    (plugins / "slipmap").symlink_to(Path(slipmap.__file__).resolve().parent)
+    env = dict(
+        os.environ,
+        QGIS_CUSTOM_CONFIG_PATH=str(profile),
+        PYTHONPATH=str(site),
+        QT_QPA_PLATFORM="offscreen",
+    )
+    exe = [_qgis_process()]
+    subprocess.run(exe + ["plugins", "enable", "slipmap"], env=env, capture_output=True)
+
+    def run(*args):
+        r = subprocess.run(
+            exe + ["run", *args], env=env, capture_output=True, text=True, timeout=600
+        )
+        return r.returncode, r.stdout + r.stderr
+
+    fault = tmp_path / "fault.gpkg"
+    _write_gpkg(slip_pair[1], fault)
+    before, after = str(d / "before.las"), str(d / "after.las")
+    code, out = run(
+        "slipmap:displacement",
+        "--",
+        f"BEFORE={before}",
+        f"AFTER={after}",
+        f"FAULT={fault}",
+        "STOCHASTIC_MODEL=white",
+    )
+    assert code == 0, out[-3000:]
+    results = out.split("Results", 1)[1]  # temporary files: gone when qgis_process ends
+    assert re.search(r"SUMMARY:\s+\S+\.json", results), results
+    assert re.search(r"STOCHASTIC_MODEL:\s+white\n", results), results
+    code, out = run(
+        "slipmap:displacement",
+        "--",
+        f"BEFORE={before}",
+        f"AFTER={after}",
+        f"FAULT={fault}",
+        "STOCHASTIC_MODEL=fulll",
+    )
+    assert code != 0 and '"Stochastic model": must be one of white, plane, full' in out, out
+    code, out = run("slipmap:piv", "--", f"BEFORE={before}")
+    assert code != 0 and "AFTER" in out and "GRID" not in out, out[-2000:]
+
+
+def test_parameter_help_gives_defaults_in_the_dialogs_words(provider):
+    """Each option parameter's help (tooltip; qgis_process help's Arguments) says its default
+    or what leaving it empty does, and names no CLI flag; a destination is optional (a
+    temporary file when left out) and an enum reads an option's name."""
+    from qgis.core import QgsApplication, QgsProcessingParameterDefinition
+
+    registry = QgsApplication.processingRegistry()
+    piv = registry.algorithmById("slipmap:piv")
+    assert piv.parameterDefinition("GRID").help().endswith("Default: 0.25")
+    assert piv.parameterDefinition("GRID").defaultValue() == 0.25
+    assert piv.parameterDefinition("PASSES").help().endswith("Left empty: one per window")
+    slip = registry.algorithmById("slipmap:displacement")
+    assert slip.parameterDefinition("STOCHASTIC_MODEL").help().endswith("by REML (default)")
+    assert slip.parameterDefinition("BUFFER").help().count("efault") == 1  # said once
+    for alg in registry.providerById("slipmap").algorithms():
+        for p in alg.parameterDefinitions():
+            assert "--" not in p.help(), (alg.id(), p.name(), p.help())
+            if p.isDestination():
+                assert p.flags() & QgsProcessingParameterDefinition.FlagOptional, p.name()
+    alg = registry.createAlgorithmById("slipmap:displacement")
+    run = alg.run_parameters({"STOCHASTIC_MODEL": "Plane", "COMBINE": "1", "UNITS": "gps-time"})
+    assert (run["STOCHASTIC_MODEL"], run["COMBINE"], run["UNITS"]) == (1, 1, 2)
+    assert run["SUMMARY"] == run["PLANES"] == "TEMPORARY_OUTPUT"
+    assert alg.run_parameters({"STOCHASTIC_MODEL": "nope"})["STOCHASTIC_MODEL"] == "nope"
