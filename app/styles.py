@@ -5,7 +5,7 @@ The QML templates live in :mod:`slipmap.styles` (written by ``scripts/make_style
 ``{slipmap.NAME}`` (class limits and labels, the arrow scale, the sigma above which a cell is
 flagged); its raster ramp is stored on [-1, 1]. :func:`vector_qml` and :func:`raster_qml`
 fill them in from the data: symmetric classes / ramp limits ``[-M, M]`` with M = max |value|
-rounded up (white stays at 0, colours mean the same sign on every map), legend labels in mm
+(white stays at 0, colours mean the same sign on every map), legend labels in mm
 stating the sign convention (+ = right-lateral, + = up, + = east / north).
 
 Every face stores the fitted style with the data, so an output opens styled wherever it is
@@ -33,6 +33,7 @@ log = logging.getLogger("slipmap.app")
 
 __all__ = [
     "OUTPUT_STYLES",
+    "VECTOR_STYLES",
     "Classes",
     "RasterStyle",
     "VectorStyle",
@@ -110,6 +111,12 @@ PIV_VECTORS = VectorStyle(
     "piv_vectors", Classes("dz", ends=("down", "up"), where=("valid", 1)), arrows=True
 )
 
+#: the vector styles by template name (the QGIS algorithms name the style of each sink)
+VECTOR_STYLES = {
+    s.name: s
+    for s in (TILES, STRIPS, PLANES, TRACE, ICP_CELLS, ICP_VECTORS, ICP_VECTOR_LINES, PIV_VECTORS)
+}
+
 WINDOWS = RasterStyle("slip_windows", ends=("left-lateral", "right-lateral"))
 DX = RasterStyle("diverging", ends=("west", "east"))
 DY = RasterStyle("diverging", ends=("south", "north"))
@@ -155,14 +162,6 @@ def template(name: str) -> str:
         return f.read()
 
 
-def nice_up(value: float) -> float:
-    """``value`` (> 0) rounded up to two significant digits (18.13 -> 19, 0.304 -> 0.31)."""
-    if not (value > 0 and math.isfinite(value)):
-        return 1.0
-    e = 10.0 ** (math.floor(math.log10(value)) - 1)
-    return math.ceil(value / e - 1e-9) * e
-
-
 def nice_down(value: float) -> float:
     """The largest 1, 2 or 5 times a power of ten not above ``value`` (> 0)."""
     if not (value > 0 and math.isfinite(value)):
@@ -202,7 +201,7 @@ def class_tokens(classes: Classes, columns: Mapping[str, Any], n: int) -> Dict[s
         values = values[keep]
     v = _finite(values)
     m = float(np.max(np.abs(v))) * classes.scale if v.size else 0.0
-    big = nice_up(m) if m > 0 else 1.0  # display units
+    big = m if m > 0 else 1.0  # display units
     edges = np.linspace(-big, big, n + 1)
     tokens = {}
     for i in range(n):
@@ -283,12 +282,11 @@ def vector_qml(style: VectorStyle, columns: Optional[Mapping[str, Any]] = None) 
 
 def raster_qml(style: RasterStyle, values=None, *, limit: Optional[float] = None) -> str:
     """The QML text of ``style`` with its ramp over ``[-M, M]``: M = ``limit`` or max |v| of
-    ``values`` (the band's array), rounded up (:func:`nice_up`, in legend units)."""
+    ``values`` (the band's array; 1 legend unit when there is none)."""
     if limit is None:
         v = _finite(values)
         limit = float(np.max(np.abs(v))) if v.size else 0.0
-    shown = limit * style.scale
-    big = (nice_up(shown) if shown > 0 else 1.0) / style.scale
+    big = limit if limit > 0 and math.isfinite(limit) else 1.0 / style.scale
     root = ET.fromstring(template(style.name).split("\n", 1)[1])
     renderer = root.find(".//rasterrenderer")
     renderer.set("band", str(style.band))

@@ -32,6 +32,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "VectorLayer",
+    "gpkg_layer_names",
     "read_fault_trace",
     "read_gpkg_layer",
     "read_polygons",
@@ -561,6 +562,20 @@ _STYLE_FIELDS = (
     ("ui", "str", 30),
     ("update_time", "datetime", 0),
 )
+
+
+def gpkg_layer_names(path: PathLike) -> List[str]:
+    """The data layers of a GeoPackage (its ``layer_styles`` table left out)."""
+    ogr, _ = _ogr()
+    try:
+        ds = ogr.Open(str(path), 0)
+    except RuntimeError as exc:
+        raise SlipMapFileError(f"cannot read GeoPackage {str(path)!r}: {exc}") from exc
+    try:
+        names = [ds.GetLayer(i).GetName() for i in range(ds.GetLayerCount())]
+    finally:
+        ds = None  # noqa: F841
+    return [n for n in names if n != "layer_styles"]
 
 
 def write_gpkg_styles(
