@@ -290,7 +290,7 @@ def _qgis_process():
 
 
 @pytest.mark.skipif(_qgis_process() is None, reason="no qgis_process binary (QGIS desktop)")
-def test_qgis_process_outputs_open_styled(field_epochs, tmp_path):
+def test_qgis_process_outputs_open_styled(qgis_app, field_epochs, tmp_path):
     """``qgis_process run slipmap:windowedicp``: its cells GeoPackage opens styled."""
     import os
     import subprocess
@@ -301,6 +301,9 @@ def test_qgis_process_outputs_open_styled(field_epochs, tmp_path):
     plugins.mkdir(parents=True)
     (plugins / "slipmap").symlink_to(Path(slipmap.__file__).resolve().parent)
     env = dict(os.environ, QGIS_CUSTOM_CONFIG_PATH=str(tmp_path), QT_QPA_PLATFORM="offscreen")
+    laspy = pytest.importorskip("laspy")  # QGIS's Python finds this environment's laspy
+    site = str(Path(laspy.__file__).resolve().parents[1])
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (site, env.get("PYTHONPATH")) if p)
     run = [_qgis_process()]
     subprocess.run(
         run + ["plugins", "enable", "slipmap"], env=env, capture_output=True, timeout=120
