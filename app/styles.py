@@ -218,19 +218,19 @@ def class_tokens(classes: Classes, columns: Mapping[str, Any], n: int) -> Dict[s
 
 
 #: page length (mm) of the arrow shown in the legend as the scale
-ARROW_LEGEND_MM = 8.0
+ARROW_LEGEND_MM = 6.0
 
 
 def arrow_tokens(columns: Mapping[str, Any]) -> Dict[str, str]:
-    """The arrow scale: a round length R (1, 2 or 5 times a power of ten, at most the 90th
+    """The arrow scale: a round length R (1, 2 or 5 times a power of ten, at most the 95th
     percentile of ``magnitude``) is drawn ``ARROW_LEGEND_MM`` long, every arrow in proportion;
     the legend says so."""
     mag = _finite(_column(columns, "magnitude"))
     mag = mag[mag > 0]
-    ref = nice_down(float(np.percentile(mag, 90))) if mag.size else 0.01
+    ref = nice_down(float(np.percentile(mag, 95))) if mag.size else 0.01
     mm = ref * 1000.0
     text = f"{mm:.3g} mm" if mm >= 1 else f"{mm * 1000:.3g} \u00b5m"
-    label = f"scale: this arrow ({ARROW_LEGEND_MM:g} mm long) = {text} of horizontal motion"
+    label = f"scale: this arrow ({ARROW_LEGEND_MM:g} mm) = {text} horizontal"
     return {
         "arrow_mm_per_m": repr(ARROW_LEGEND_MM / ref),
         "arrow_label": escape(label, {'"': "&quot;"}),
@@ -249,10 +249,7 @@ def sigma_tokens(columns: Mapping[str, Any]) -> Dict[str, str]:
     if not s.size:
         return {"sigma_flag": "1e300", "sigma_label": "horizontal \u03c3 unknown"}
     flag = SIGMA_FLAG_FACTOR * float(np.median(s))
-    label = (
-        f"horizontal \u03c3 above {flag * 1000:.3g} mm ({SIGMA_FLAG_FACTOR:g} \u00d7 the "
-        "median): faded arrow, hatched cell"
-    )
+    label = f"horizontal \u03c3 > {flag * 1000:.3g} mm ({SIGMA_FLAG_FACTOR:g} \u00d7 median)"
     return {"sigma_flag": repr(flag), "sigma_label": escape(label, {'"': "&quot;"})}
 
 

@@ -68,7 +68,7 @@ LABEL = (
     + " || ' ± ' || format_number(\"sigma_right_lateral\" * 1000, 1) || ' mm' "
     "ELSE upper(left(\"side\", 1)) || ' ' || coalesce(\"status\", 'skipped') END"
 )
-GROUP = "right-lateral motion, mm (+ = right-lateral, red; - = left-lateral, blue)"
+GROUP = "right-lateral motion (mm)"
 
 
 def tiles_layer():
@@ -109,9 +109,9 @@ def strips_layer():
     rule(root, "skipped (the label gives the reason)", SKIPPED, marker("#b0b0b0", "'cross2'", 3.0))
     # legend entries for the two sides (never drawn: the classes above draw them)
     left = marker("#ffffff", "'circle'")
-    rule(root, "left side: circle, left of the trace point, label L", "FALSE", left)
+    rule(root, "left side (L): circle, left of the trace", "FALSE", left)
     right = marker("#ffffff", "'square'")
-    rule(root, "right side: square, right of the trace point, label R", "FALSE", right)
+    rule(root, "right side (R): square, right of the trace", "FALSE", right)
     rule_renderer(layer, root)
     labels(
         layer,

@@ -119,6 +119,7 @@ def labels(layer, expression, *, properties=None, placement=None, size=7.5, prio
     pal.setFormat(text_format(size))
     pal.priority = priority
     pal.displayAll = False  # labels never overlap: the lower priority one is left out
+    pal.autoWrapLength = 18  # "R skipped: no planes (...)" on a few short lines
     if properties:
         props = pal.dataDefinedProperties()
         for key, expr in properties.items():
@@ -252,7 +253,7 @@ _VECTOR_FIELDS = (
 def piv_vectors():
     layer = memory_layer("Point", _VECTOR_FIELDS, "vectors")
     root = root_rule()
-    group = rule(root, "arrow colour: dz (mm, + = up)", '"valid" = 1 AND "dz" IS NOT NULL')
+    group = rule(root, "arrow colour: dz (mm)", '"valid" = 1 AND "dz" IS NOT NULL')
     class_rules(group, "dz", PUOR, lambda c: arrow_marker(c))
     rule(root, "no dz", '"valid" = 1 AND "dz" IS NULL', arrow_marker("#404040"))
     rule(
@@ -273,9 +274,8 @@ def piv_vectors():
 
 def _icp_arrows(make):
     root = root_rule()
-    rule(
-        root, "horizontal motion", f'"magnitude" IS NOT NULL AND NOT ({UNCERTAIN})', make("#1a1a1a")
-    )
+    certain = f'"magnitude" IS NOT NULL AND NOT ({UNCERTAIN})'
+    rule(root, "horizontal motion (label: value ± σ)", certain, make("#1a1a1a"))
     rule(
         root,
         "uncertain: " + token("sigma_label"),
@@ -318,7 +318,7 @@ def icp_cells():
 
     layer = memory_layer("Polygon", _VECTOR_FIELDS, "cells")
     root = root_rule()
-    group = rule(root, "vertical motion dz (mm, + = up)", '"dz" IS NOT NULL')
+    group = rule(root, "cell colour: vertical motion dz (mm)", '"dz" IS NOT NULL')
     class_rules(group, "dz", PUOR, lambda c: fill(c, 150, outline="#8a8a8a", width=0.15))
     rule(root, "not fitted", '"dz" IS NULL', fill("#ffffff", 0, outline="#9a9a9a", line="dot"))
     rule(root, "uncertain: " + token("sigma_label"), UNCERTAIN, hatch("#6a6a6a"))
@@ -327,9 +327,11 @@ def icp_cells():
         layer,
         CELL_LABEL,
         properties={
-            # below the centre, where the arrow (pointing anywhere) rarely is
-            QgsPalLayerSettings.OffsetQuad: "7",
-            QgsPalLayerSettings.OffsetXY: "'0,1.2'",
+            # along the cell's bottom edge (offset in map units: at every scale), clear of
+            # the arrow drawn about the centre (at most the legend arrow's length each way)
+            QgsPalLayerSettings.OffsetQuad: "1",
+            QgsPalLayerSettings.OffsetXY: "'0,' || to_string(0.46 * bounds_height($geometry))",
+            QgsPalLayerSettings.OffsetUnits: "'MapUnit'",
             # only where a cell is at least 12 mm wide on the page (1 m cells at 1:80)
             QgsPalLayerSettings.Show: "bounds_width($geometry) * 1000 / @map_scale >= 12",
         },

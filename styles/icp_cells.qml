@@ -13,18 +13,18 @@
     </fixedRange>
   </temporal>
   <renderer-v2 type="RuleRenderer" referencescale="-1" enableorderby="0" forceraster="0" symbollevels="0">
-    <rules key="{aa9f69dd-8e75-4770-8daa-8fe4d221f53b}">
-      <rule filter="&quot;dz&quot; IS NOT NULL" label="vertical motion dz (mm, + = up)" key="{470ba741-b22a-4db4-acb0-5f1a5a88a431}">
-        <rule filter="&quot;dz&quot; >= {slipmap.lo0} AND &quot;dz&quot; &lt; {slipmap.hi0}" symbol="0" description="class 0" label="{slipmap.label0}" key="{1895c524-ec96-4fad-a909-36ddad4887d2}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo1} AND &quot;dz&quot; &lt; {slipmap.hi1}" symbol="1" description="class 1" label="{slipmap.label1}" key="{81ccaddc-76d0-4efb-a14a-225b68537d4b}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo2} AND &quot;dz&quot; &lt; {slipmap.hi2}" symbol="2" description="class 2" label="{slipmap.label2}" key="{91a71121-70e6-4a58-b3d3-bf4200d45f35}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo3} AND &quot;dz&quot; &lt; {slipmap.hi3}" symbol="3" description="class 3" label="{slipmap.label3}" key="{b2e2ca10-01b9-4802-afe2-7992e06c74f3}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo4} AND &quot;dz&quot; &lt; {slipmap.hi4}" symbol="4" description="class 4" label="{slipmap.label4}" key="{060ef234-d6c4-4a58-9779-f6726880be3b}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo5} AND &quot;dz&quot; &lt; {slipmap.hi5}" symbol="5" description="class 5" label="{slipmap.label5}" key="{7247b176-65ef-45bc-a076-1de38ac520a4}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo6} AND &quot;dz&quot; &lt;= {slipmap.hi6}" symbol="6" description="class 6" label="{slipmap.label6}" key="{6d7ef364-7b8e-4147-b39b-b3e15640a7c8}"/>
+    <rules key="{051e2d8e-2a8a-4ccd-8445-a503419352b6}">
+      <rule filter="&quot;dz&quot; IS NOT NULL" label="cell colour: vertical motion dz (mm)" key="{83494b6b-43e6-4067-b4de-47112d2a8976}">
+        <rule filter="&quot;dz&quot; >= {slipmap.lo0} AND &quot;dz&quot; &lt; {slipmap.hi0}" symbol="0" description="class 0" label="{slipmap.label0}" key="{6a160bb3-b4d5-4ac9-b0a6-5762445b1600}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo1} AND &quot;dz&quot; &lt; {slipmap.hi1}" symbol="1" description="class 1" label="{slipmap.label1}" key="{f3b98020-2123-47f6-be04-63477fb745d5}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo2} AND &quot;dz&quot; &lt; {slipmap.hi2}" symbol="2" description="class 2" label="{slipmap.label2}" key="{90ea63f5-f24b-43f9-8962-280d79be315e}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo3} AND &quot;dz&quot; &lt; {slipmap.hi3}" symbol="3" description="class 3" label="{slipmap.label3}" key="{7fbe0d25-eeb4-429b-a7cf-967837e6c2b5}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo4} AND &quot;dz&quot; &lt; {slipmap.hi4}" symbol="4" description="class 4" label="{slipmap.label4}" key="{741f74fb-29d8-4de9-ba1e-3e63dc68e8fa}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo5} AND &quot;dz&quot; &lt; {slipmap.hi5}" symbol="5" description="class 5" label="{slipmap.label5}" key="{aed021e4-ef31-44fc-b5c4-59f07f75fc68}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo6} AND &quot;dz&quot; &lt;= {slipmap.hi6}" symbol="6" description="class 6" label="{slipmap.label6}" key="{e0e74bf6-0654-4085-b4a7-8a5b3851d005}"/>
       </rule>
-      <rule filter="&quot;dz&quot; IS NULL" symbol="7" label="not fitted" key="{87401a0f-c65e-44ab-9407-3ad6ee848987}"/>
-      <rule filter="sqrt(coalesce(&quot;sigma_dx&quot;, 0)^2 + coalesce(&quot;sigma_dy&quot;, 0)^2) > {slipmap.sigma_flag}" symbol="8" label="uncertain: {slipmap.sigma_label}" key="{5e394861-2c32-4e64-a996-47dd94a8c66c}"/>
+      <rule filter="&quot;dz&quot; IS NULL" symbol="7" label="not fitted" key="{00bc4f0e-a946-4403-bac7-807b241d77d1}"/>
+      <rule filter="sqrt(coalesce(&quot;sigma_dx&quot;, 0)^2 + coalesce(&quot;sigma_dy&quot;, 0)^2) > {slipmap.sigma_flag}" symbol="8" label="uncertain: {slipmap.sigma_label}" key="{c0993640-221c-4be0-892a-753afb226a28}"/>
     </rules>
     <symbols>
       <symbol type="fill" force_rhr="0" clip_to_extent="1" alpha="1" name="0">
@@ -545,7 +545,7 @@
         </dd_properties>
         <substitutions/>
       </text-style>
-      <text-format placeDirectionSymbol="0" plussign="0" formatNumbers="0" rightDirectionSymbol=">" multilineAlign="3" reverseDirectionSymbol="0" useMaxLineLengthForAutoWrap="1" decimals="3" wrapChar="" autoWrapLength="0" leftDirectionSymbol="&lt;" addDirectionSymbol="0"/>
+      <text-format placeDirectionSymbol="0" plussign="0" formatNumbers="0" rightDirectionSymbol=">" multilineAlign="3" reverseDirectionSymbol="0" useMaxLineLengthForAutoWrap="1" decimals="3" wrapChar="" autoWrapLength="18" leftDirectionSymbol="&lt;" addDirectionSymbol="0"/>
       <placement placementFlags="10" rotationUnit="AngleDegrees" rotationAngle="0" yOffset="0" xOffset="0" overrunDistanceMapUnitScale="3x:0,0,0,0,0,0" overrunDistance="0" geometryGeneratorEnabled="0" layerType="UnknownGeometry" labelOffsetMapUnitScale="3x:0,0,0,0,0,0" lineAnchorClipping="0" placement="1" repeatDistanceMapUnitScale="3x:0,0,0,0,0,0" lineAnchorPercent="0.5" geometryGenerator="" maxCurvedCharAngleIn="25" geometryGeneratorType="PointGeometry" preserveRotation="1" distMapUnitScale="3x:0,0,0,0,0,0" quadOffset="4" centroidInside="0" maxCurvedCharAngleOut="-25" overrunDistanceUnit="MM" polygonPlacementFlags="2" distUnits="MM" predefinedPositionOrder="TR,TL,BR,BL,R,L,TSR,BSR" lineAnchorType="0" offsetType="0" repeatDistanceUnits="MM" repeatDistance="0" fitInPolygonOnly="0" centroidWhole="0" dist="0" offsetUnits="MM" priority="3"/>
       <rendering upsidedownLabels="0" unplacedVisibility="0" obstacleType="1" displayAll="0" scaleMin="0" zIndex="0" scaleVisibility="0" minFeatureSize="0" fontLimitPixelSize="0" drawLabels="1" limitNumLabels="0" labelPerPart="0" maxNumLabels="2000" obstacle="1" fontMaxPixelSize="10000" scaleMax="0" obstacleFactor="1" fontMinPixelSize="0" mergeLines="0"/>
       <dd_properties>
@@ -554,12 +554,17 @@
           <Option type="Map" name="properties">
             <Option type="Map" name="OffsetQuad">
               <Option type="bool" name="active" value="true"/>
-              <Option type="QString" name="expression" value="7"/>
+              <Option type="QString" name="expression" value="1"/>
+              <Option type="int" name="type" value="3"/>
+            </Option>
+            <Option type="Map" name="OffsetUnits">
+              <Option type="bool" name="active" value="true"/>
+              <Option type="QString" name="expression" value="'MapUnit'"/>
               <Option type="int" name="type" value="3"/>
             </Option>
             <Option type="Map" name="OffsetXY">
               <Option type="bool" name="active" value="true"/>
-              <Option type="QString" name="expression" value="'0,1.2'"/>
+              <Option type="QString" name="expression" value="'0,' || to_string(0.46 * bounds_height($geometry))"/>
               <Option type="int" name="type" value="3"/>
             </Option>
             <Option type="Map" name="Show">

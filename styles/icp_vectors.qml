@@ -13,10 +13,10 @@
     </fixedRange>
   </temporal>
   <renderer-v2 type="RuleRenderer" referencescale="-1" enableorderby="0" forceraster="0" symbollevels="0">
-    <rules key="{4b5bf19a-b271-46c6-a77c-52677eadb2e5}">
-      <rule filter="&quot;magnitude&quot; IS NOT NULL AND NOT (sqrt(coalesce(&quot;sigma_dx&quot;, 0)^2 + coalesce(&quot;sigma_dy&quot;, 0)^2) > {slipmap.sigma_flag})" symbol="0" label="horizontal motion" key="{9f0bcc51-0816-4e42-b02d-d95c4b561c74}"/>
-      <rule filter="&quot;magnitude&quot; IS NOT NULL AND sqrt(coalesce(&quot;sigma_dx&quot;, 0)^2 + coalesce(&quot;sigma_dy&quot;, 0)^2) > {slipmap.sigma_flag}" symbol="1" label="uncertain: {slipmap.sigma_label}" key="{225bcc2e-0763-421d-8fb3-c8c281bd369e}"/>
-      <rule filter="FALSE" symbol="2" label="{slipmap.arrow_label}" key="{577e36bf-8c1d-4610-b446-40c9c22fcaae}"/>
+    <rules key="{c7a4054e-5e5f-460e-a82f-054a372f66ed}">
+      <rule filter="&quot;magnitude&quot; IS NOT NULL AND NOT (sqrt(coalesce(&quot;sigma_dx&quot;, 0)^2 + coalesce(&quot;sigma_dy&quot;, 0)^2) > {slipmap.sigma_flag})" symbol="0" label="horizontal motion (label: value ± σ)" key="{39d5471e-6818-4c92-aa53-4f0fe7d55d7d}"/>
+      <rule filter="&quot;magnitude&quot; IS NOT NULL AND sqrt(coalesce(&quot;sigma_dx&quot;, 0)^2 + coalesce(&quot;sigma_dy&quot;, 0)^2) > {slipmap.sigma_flag}" symbol="1" label="uncertain: {slipmap.sigma_label}" key="{71666741-e0af-4d56-b02e-43c6cf6e095d}"/>
+      <rule filter="FALSE" symbol="2" label="{slipmap.arrow_label}" key="{9dbcdbc1-89f0-4727-a2e0-f475a56547ef}"/>
     </rules>
     <symbols>
       <symbol type="marker" force_rhr="0" clip_to_extent="1" alpha="1" name="0">

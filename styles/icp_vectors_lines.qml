@@ -13,10 +13,10 @@
     </fixedRange>
   </temporal>
   <renderer-v2 type="RuleRenderer" referencescale="-1" enableorderby="0" forceraster="0" symbollevels="0">
-    <rules key="{539bfd75-e976-4b21-b1b5-3a12a71e2822}">
-      <rule filter="&quot;magnitude&quot; IS NOT NULL AND NOT (sqrt(coalesce(&quot;sigma_dx&quot;, 0)^2 + coalesce(&quot;sigma_dy&quot;, 0)^2) > {slipmap.sigma_flag})" symbol="0" label="horizontal motion" key="{b13a02ce-9863-41ec-b71d-609b98940ba2}"/>
-      <rule filter="&quot;magnitude&quot; IS NOT NULL AND sqrt(coalesce(&quot;sigma_dx&quot;, 0)^2 + coalesce(&quot;sigma_dy&quot;, 0)^2) > {slipmap.sigma_flag}" symbol="1" label="uncertain: {slipmap.sigma_label}" key="{c9e96920-7f7d-40b5-969a-e45e14be58bb}"/>
-      <rule filter="FALSE" symbol="2" label="{slipmap.arrow_label}" key="{2fda92a9-1c54-477d-a827-4daf4aaf0c57}"/>
+    <rules key="{af7fa3a5-71f8-4db0-aa7b-da6b3a4764fc}">
+      <rule filter="&quot;magnitude&quot; IS NOT NULL AND NOT (sqrt(coalesce(&quot;sigma_dx&quot;, 0)^2 + coalesce(&quot;sigma_dy&quot;, 0)^2) > {slipmap.sigma_flag})" symbol="0" label="horizontal motion (label: value ± σ)" key="{07ef53d9-b228-45f9-a50e-32c766aaa395}"/>
+      <rule filter="&quot;magnitude&quot; IS NOT NULL AND sqrt(coalesce(&quot;sigma_dx&quot;, 0)^2 + coalesce(&quot;sigma_dy&quot;, 0)^2) > {slipmap.sigma_flag}" symbol="1" label="uncertain: {slipmap.sigma_label}" key="{f5cb7030-cbf7-4a78-ad57-c190d2fde82f}"/>
+      <rule filter="FALSE" symbol="2" label="{slipmap.arrow_label}" key="{7443bc95-0df1-4d06-89de-f55f6cf43718}"/>
     </rules>
     <symbols>
       <symbol type="line" force_rhr="0" clip_to_extent="1" alpha="1" name="0">

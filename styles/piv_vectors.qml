@@ -13,19 +13,19 @@
     </fixedRange>
   </temporal>
   <renderer-v2 type="RuleRenderer" referencescale="-1" enableorderby="0" forceraster="0" symbollevels="0">
-    <rules key="{e964330a-94ec-4e55-8212-938fc6b3c886}">
-      <rule filter="&quot;valid&quot; = 1 AND &quot;dz&quot; IS NOT NULL" label="arrow colour: dz (mm, + = up)" key="{2a9d85f4-b541-4274-89ee-0462f82cf0e6}">
-        <rule filter="&quot;dz&quot; >= {slipmap.lo0} AND &quot;dz&quot; &lt; {slipmap.hi0}" symbol="0" description="class 0" label="{slipmap.label0}" key="{1e620c04-241c-4d0d-a509-5d8ecb01c866}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo1} AND &quot;dz&quot; &lt; {slipmap.hi1}" symbol="1" description="class 1" label="{slipmap.label1}" key="{020b4d7a-e35d-4d6c-af8e-a4874a90362b}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo2} AND &quot;dz&quot; &lt; {slipmap.hi2}" symbol="2" description="class 2" label="{slipmap.label2}" key="{98005605-af87-4d59-81b0-42c6efd0f15e}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo3} AND &quot;dz&quot; &lt; {slipmap.hi3}" symbol="3" description="class 3" label="{slipmap.label3}" key="{a7160a5b-f9d1-4063-a0fe-46c08477f5fa}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo4} AND &quot;dz&quot; &lt; {slipmap.hi4}" symbol="4" description="class 4" label="{slipmap.label4}" key="{e966ebdd-1888-49f1-9103-9328cc51ca11}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo5} AND &quot;dz&quot; &lt; {slipmap.hi5}" symbol="5" description="class 5" label="{slipmap.label5}" key="{0625a289-fd79-445a-8abc-5b7d51f5e161}"/>
-        <rule filter="&quot;dz&quot; >= {slipmap.lo6} AND &quot;dz&quot; &lt;= {slipmap.hi6}" symbol="6" description="class 6" label="{slipmap.label6}" key="{526ae521-4217-4fff-82a2-cb5be4a59d94}"/>
+    <rules key="{97565a10-e444-4a1e-b760-676c71933b28}">
+      <rule filter="&quot;valid&quot; = 1 AND &quot;dz&quot; IS NOT NULL" label="arrow colour: dz (mm)" key="{9a52be7a-4ef3-4957-9b2c-3a71345288be}">
+        <rule filter="&quot;dz&quot; >= {slipmap.lo0} AND &quot;dz&quot; &lt; {slipmap.hi0}" symbol="0" description="class 0" label="{slipmap.label0}" key="{99f81762-94e2-4287-a8dc-51d10221522e}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo1} AND &quot;dz&quot; &lt; {slipmap.hi1}" symbol="1" description="class 1" label="{slipmap.label1}" key="{60589371-b0f2-451d-ab89-ef7049ded127}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo2} AND &quot;dz&quot; &lt; {slipmap.hi2}" symbol="2" description="class 2" label="{slipmap.label2}" key="{f6a23706-9618-4813-8a53-25cfbc635b0f}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo3} AND &quot;dz&quot; &lt; {slipmap.hi3}" symbol="3" description="class 3" label="{slipmap.label3}" key="{1adb8c0b-0963-414b-abcf-4d81b10c763d}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo4} AND &quot;dz&quot; &lt; {slipmap.hi4}" symbol="4" description="class 4" label="{slipmap.label4}" key="{7d1820d2-f66d-44ef-910d-0bc0109847c0}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo5} AND &quot;dz&quot; &lt; {slipmap.hi5}" symbol="5" description="class 5" label="{slipmap.label5}" key="{bd5b3e8b-c3f0-4776-9f48-058068568ab6}"/>
+        <rule filter="&quot;dz&quot; >= {slipmap.lo6} AND &quot;dz&quot; &lt;= {slipmap.hi6}" symbol="6" description="class 6" label="{slipmap.label6}" key="{224ff51f-d249-49fc-be2f-1a89e73f0c10}"/>
       </rule>
-      <rule filter="&quot;valid&quot; = 1 AND &quot;dz&quot; IS NULL" symbol="7" label="no dz" key="{5950875f-700e-42bd-b29d-a4aa9dcbe3d2}"/>
-      <rule filter="&quot;valid&quot; = 0" symbol="8" label="missing or replaced (valid = 0)" key="{1c752142-402d-4259-83cf-ad7dc6a065c9}"/>
-      <rule filter="FALSE" symbol="9" label="{slipmap.arrow_label}" key="{33b6cc3e-389d-4b6f-9652-d7ead2bc58cb}"/>
+      <rule filter="&quot;valid&quot; = 1 AND &quot;dz&quot; IS NULL" symbol="7" label="no dz" key="{e50a7348-7aab-48da-93ca-7e5fd2494291}"/>
+      <rule filter="&quot;valid&quot; = 0" symbol="8" label="missing or replaced (valid = 0)" key="{bff800ec-277c-4691-bdbf-7dbe4062fe57}"/>
+      <rule filter="FALSE" symbol="9" label="{slipmap.arrow_label}" key="{9b9ad96f-8040-4fc7-a19c-295030b45d14}"/>
     </rules>
     <symbols>
       <symbol type="marker" force_rhr="0" clip_to_extent="1" alpha="1" name="0">

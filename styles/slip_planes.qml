@@ -13,11 +13,11 @@
     </fixedRange>
   </temporal>
   <renderer-v2 type="RuleRenderer" referencescale="-1" enableorderby="0" forceraster="0" symbollevels="0">
-    <rules key="{90756664-a398-4123-88c6-9279ecd32bed}">
-      <rule filter="&quot;weight&quot; IS NULL" symbol="0" label="unused (white-noise model)" key="{f433bb31-dfb4-4e84-b9bc-c7d774472421}"/>
-      <rule filter="&quot;weight&quot; >= 1" symbol="1" label="full weight" key="{d95579da-f624-4d79-b810-1a57e20c10f1}"/>
-      <rule filter="&quot;weight&quot; > 0 AND &quot;weight&quot; &lt; 1" symbol="2" label="down-weighted (weight below 1)" key="{19a4c469-9b78-4698-91c8-96d934aa39b9}"/>
-      <rule filter="&quot;weight&quot; = 0" symbol="3" label="rejected (weight 0)" key="{5c21ed3c-af7e-45f9-af86-d47c23b68073}"/>
+    <rules key="{d976a865-ba94-4156-ae2a-6dfcf0939377}">
+      <rule filter="&quot;weight&quot; IS NULL" symbol="0" label="unused (white-noise model)" key="{3cd17778-f5f3-4519-bfb4-290dfb2585e9}"/>
+      <rule filter="&quot;weight&quot; >= 1" symbol="1" label="full weight" key="{686e8326-b7ce-43eb-beae-e9faed19bf9d}"/>
+      <rule filter="&quot;weight&quot; > 0 AND &quot;weight&quot; &lt; 1" symbol="2" label="down-weighted (weight below 1)" key="{70772ea5-fc9b-4b0b-af78-77eef8b879a7}"/>
+      <rule filter="&quot;weight&quot; = 0" symbol="3" label="rejected (weight 0)" key="{19656121-f435-4b88-838c-c642c85ebfa7}"/>
     </rules>
     <symbols>
       <symbol type="marker" force_rhr="0" clip_to_extent="1" alpha="1" name="0">

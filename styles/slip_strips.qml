@@ -13,19 +13,19 @@
     </fixedRange>
   </temporal>
   <renderer-v2 type="RuleRenderer" referencescale="-1" enableorderby="0" forceraster="0" symbollevels="0">
-    <rules key="{d154568d-18a2-4a60-a1b4-690636a9c3bf}">
-      <rule filter="&quot;status&quot; = 'ok'" label="right-lateral motion, mm (+ = right-lateral, red; - = left-lateral, blue)" key="{1f9f5385-9570-4281-8b7b-be3bc8e1d75c}">
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo0} AND &quot;right_lateral&quot; &lt; {slipmap.hi0}" symbol="0" description="class 0" label="{slipmap.label0}" key="{7b4a187a-cd64-4827-878f-17693ee61aa6}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo1} AND &quot;right_lateral&quot; &lt; {slipmap.hi1}" symbol="1" description="class 1" label="{slipmap.label1}" key="{de330d1f-b96f-4d94-9049-274867cc8271}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo2} AND &quot;right_lateral&quot; &lt; {slipmap.hi2}" symbol="2" description="class 2" label="{slipmap.label2}" key="{cea0c3df-2d20-45d9-9741-0b84fccafa88}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo3} AND &quot;right_lateral&quot; &lt; {slipmap.hi3}" symbol="3" description="class 3" label="{slipmap.label3}" key="{26238cc6-88be-4363-b28b-c79d2755df5d}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo4} AND &quot;right_lateral&quot; &lt; {slipmap.hi4}" symbol="4" description="class 4" label="{slipmap.label4}" key="{479a22fa-0c5b-49b7-8580-ec5dd77d722a}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo5} AND &quot;right_lateral&quot; &lt; {slipmap.hi5}" symbol="5" description="class 5" label="{slipmap.label5}" key="{85fb70f2-c6a7-4522-8881-dfd5239dc576}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo6} AND &quot;right_lateral&quot; &lt;= {slipmap.hi6}" symbol="6" description="class 6" label="{slipmap.label6}" key="{4c98dcba-1853-4ea7-87ee-09d23fe8f5b5}"/>
+    <rules key="{1f346d82-4766-4d80-b6be-ac864e679fe6}">
+      <rule filter="&quot;status&quot; = 'ok'" label="right-lateral motion (mm)" key="{44d4d0c0-e98c-4e81-9a63-5e150bf1d7f8}">
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo0} AND &quot;right_lateral&quot; &lt; {slipmap.hi0}" symbol="0" description="class 0" label="{slipmap.label0}" key="{ed83c2b0-e505-4f5e-9675-2c01944780d5}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo1} AND &quot;right_lateral&quot; &lt; {slipmap.hi1}" symbol="1" description="class 1" label="{slipmap.label1}" key="{59011271-af58-490d-a992-70bb1832b2f3}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo2} AND &quot;right_lateral&quot; &lt; {slipmap.hi2}" symbol="2" description="class 2" label="{slipmap.label2}" key="{7ebd5cff-4c8a-48e8-9529-0cc986484c14}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo3} AND &quot;right_lateral&quot; &lt; {slipmap.hi3}" symbol="3" description="class 3" label="{slipmap.label3}" key="{4a2f9762-55ae-441d-a66e-2a5d53ed6292}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo4} AND &quot;right_lateral&quot; &lt; {slipmap.hi4}" symbol="4" description="class 4" label="{slipmap.label4}" key="{f2004715-c1ab-4f72-9ee7-9ceb09ae4b7a}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo5} AND &quot;right_lateral&quot; &lt; {slipmap.hi5}" symbol="5" description="class 5" label="{slipmap.label5}" key="{2067b371-2a7e-4453-876a-3ffdcf8a82e9}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo6} AND &quot;right_lateral&quot; &lt;= {slipmap.hi6}" symbol="6" description="class 6" label="{slipmap.label6}" key="{32595e74-1861-4a4a-b481-90c7aeb72e4d}"/>
       </rule>
-      <rule filter="&quot;status&quot; IS NULL OR &quot;status&quot; &lt;> 'ok'" symbol="7" label="skipped (the label gives the reason)" key="{cc3ccb93-0e16-4741-a3ae-37539311a03f}"/>
-      <rule filter="FALSE" symbol="8" label="left side: circle, left of the trace point, label L" key="{f4238751-388c-49ae-a4c8-14a5fc3de828}"/>
-      <rule filter="FALSE" symbol="9" label="right side: square, right of the trace point, label R" key="{7c7913cd-fda9-4da3-8845-826380a7a394}"/>
+      <rule filter="&quot;status&quot; IS NULL OR &quot;status&quot; &lt;> 'ok'" symbol="7" label="skipped (the label gives the reason)" key="{45e46965-c056-4eee-a360-9acd6cb58ec2}"/>
+      <rule filter="FALSE" symbol="8" label="left side (L): circle, left of the trace" key="{99f92ce4-330f-40d2-a70c-54d77a4fbfa9}"/>
+      <rule filter="FALSE" symbol="9" label="right side (R): square, right of the trace" key="{bb3236ba-55ed-44ac-917a-2f9a7891128d}"/>
     </rules>
     <symbols>
       <symbol type="marker" force_rhr="0" clip_to_extent="1" alpha="1" name="0">
@@ -780,7 +780,7 @@
         </dd_properties>
         <substitutions/>
       </text-style>
-      <text-format placeDirectionSymbol="0" plussign="0" formatNumbers="0" rightDirectionSymbol=">" multilineAlign="3" reverseDirectionSymbol="0" useMaxLineLengthForAutoWrap="1" decimals="3" wrapChar="" autoWrapLength="0" leftDirectionSymbol="&lt;" addDirectionSymbol="0"/>
+      <text-format placeDirectionSymbol="0" plussign="0" formatNumbers="0" rightDirectionSymbol=">" multilineAlign="3" reverseDirectionSymbol="0" useMaxLineLengthForAutoWrap="1" decimals="3" wrapChar="" autoWrapLength="18" leftDirectionSymbol="&lt;" addDirectionSymbol="0"/>
       <placement placementFlags="10" rotationUnit="AngleDegrees" rotationAngle="0" yOffset="0" xOffset="0" overrunDistanceMapUnitScale="3x:0,0,0,0,0,0" overrunDistance="0" geometryGeneratorEnabled="0" layerType="UnknownGeometry" labelOffsetMapUnitScale="3x:0,0,0,0,0,0" lineAnchorClipping="0" placement="1" repeatDistanceMapUnitScale="3x:0,0,0,0,0,0" lineAnchorPercent="0.5" geometryGenerator="" maxCurvedCharAngleIn="25" geometryGeneratorType="PointGeometry" preserveRotation="1" distMapUnitScale="3x:0,0,0,0,0,0" quadOffset="4" centroidInside="0" maxCurvedCharAngleOut="-25" overrunDistanceUnit="MM" polygonPlacementFlags="2" distUnits="MM" predefinedPositionOrder="TR,TL,BR,BL,R,L,TSR,BSR" lineAnchorType="0" offsetType="0" repeatDistanceUnits="MM" repeatDistance="0" fitInPolygonOnly="0" centroidWhole="0" dist="0" offsetUnits="MM" priority="5"/>
       <rendering upsidedownLabels="0" unplacedVisibility="0" obstacleType="1" displayAll="0" scaleMin="0" zIndex="0" scaleVisibility="0" minFeatureSize="0" fontLimitPixelSize="0" drawLabels="1" limitNumLabels="0" labelPerPart="0" maxNumLabels="2000" obstacle="1" fontMaxPixelSize="10000" scaleMax="0" obstacleFactor="1" fontMinPixelSize="0" mergeLines="0"/>
       <dd_properties>

@@ -13,17 +13,17 @@
     </fixedRange>
   </temporal>
   <renderer-v2 type="RuleRenderer" referencescale="-1" enableorderby="0" forceraster="0" symbollevels="0">
-    <rules key="{bc2640fc-21ae-4351-8585-601854baaf3a}">
-      <rule filter="&quot;status&quot; = 'ok'" label="right-lateral motion, mm (+ = right-lateral, red; - = left-lateral, blue)" key="{58194a4e-64c4-45df-abcb-2aca41445803}">
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo0} AND &quot;right_lateral&quot; &lt; {slipmap.hi0}" symbol="0" description="class 0" label="{slipmap.label0}" key="{7c33aef7-2a29-4712-a632-583b55d97758}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo1} AND &quot;right_lateral&quot; &lt; {slipmap.hi1}" symbol="1" description="class 1" label="{slipmap.label1}" key="{5a4dd126-7964-4685-b5c8-dc192ad8e2ae}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo2} AND &quot;right_lateral&quot; &lt; {slipmap.hi2}" symbol="2" description="class 2" label="{slipmap.label2}" key="{43165f8c-2dee-4b2d-ad6b-c192018869ff}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo3} AND &quot;right_lateral&quot; &lt; {slipmap.hi3}" symbol="3" description="class 3" label="{slipmap.label3}" key="{21b38afc-dd92-460d-a805-16df18921e94}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo4} AND &quot;right_lateral&quot; &lt; {slipmap.hi4}" symbol="4" description="class 4" label="{slipmap.label4}" key="{89cc47fe-234f-4c84-a634-cd2f19401f51}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo5} AND &quot;right_lateral&quot; &lt; {slipmap.hi5}" symbol="5" description="class 5" label="{slipmap.label5}" key="{47770051-72b5-4820-bc4b-5055894ac7c6}"/>
-        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo6} AND &quot;right_lateral&quot; &lt;= {slipmap.hi6}" symbol="6" description="class 6" label="{slipmap.label6}" key="{97bc9383-f41e-40ea-920d-33755191ac0d}"/>
+    <rules key="{3a3a8eed-69d0-4721-a978-7a1452c6a1b2}">
+      <rule filter="&quot;status&quot; = 'ok'" label="right-lateral motion (mm)" key="{ee6fa695-3f19-4e77-83d1-beb2f9f13922}">
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo0} AND &quot;right_lateral&quot; &lt; {slipmap.hi0}" symbol="0" description="class 0" label="{slipmap.label0}" key="{783a47a0-c470-4f22-8cc5-387a71cfc1f8}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo1} AND &quot;right_lateral&quot; &lt; {slipmap.hi1}" symbol="1" description="class 1" label="{slipmap.label1}" key="{ac3f4be0-a34c-43d3-b733-ebd0569a8882}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo2} AND &quot;right_lateral&quot; &lt; {slipmap.hi2}" symbol="2" description="class 2" label="{slipmap.label2}" key="{a3b80582-246c-4761-9177-0816fdcd0b64}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo3} AND &quot;right_lateral&quot; &lt; {slipmap.hi3}" symbol="3" description="class 3" label="{slipmap.label3}" key="{9aad6848-ae34-4584-a98e-add236a14060}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo4} AND &quot;right_lateral&quot; &lt; {slipmap.hi4}" symbol="4" description="class 4" label="{slipmap.label4}" key="{4c28e0ae-644f-4e0b-bb5a-c93884ecb383}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo5} AND &quot;right_lateral&quot; &lt; {slipmap.hi5}" symbol="5" description="class 5" label="{slipmap.label5}" key="{b556787f-2243-4518-9867-fcc5c760631e}"/>
+        <rule filter="&quot;right_lateral&quot; >= {slipmap.lo6} AND &quot;right_lateral&quot; &lt;= {slipmap.hi6}" symbol="6" description="class 6" label="{slipmap.label6}" key="{545d3bf1-43d9-4961-ad91-11858090d60c}"/>
       </rule>
-      <rule filter="&quot;status&quot; IS NULL OR &quot;status&quot; &lt;> 'ok'" symbol="7" label="skipped (the label gives the reason)" key="{6b66e15e-5046-438a-acf9-9105824524c3}"/>
+      <rule filter="&quot;status&quot; IS NULL OR &quot;status&quot; &lt;> 'ok'" symbol="7" label="skipped (the label gives the reason)" key="{a2a5aff0-7ec6-4f12-878e-94264209a461}"/>
     </rules>
     <symbols>
       <symbol type="fill" force_rhr="0" clip_to_extent="1" alpha="1" name="0">
@@ -535,7 +535,7 @@
         </dd_properties>
         <substitutions/>
       </text-style>
-      <text-format placeDirectionSymbol="0" plussign="0" formatNumbers="0" rightDirectionSymbol=">" multilineAlign="3" reverseDirectionSymbol="0" useMaxLineLengthForAutoWrap="1" decimals="3" wrapChar="" autoWrapLength="0" leftDirectionSymbol="&lt;" addDirectionSymbol="0"/>
+      <text-format placeDirectionSymbol="0" plussign="0" formatNumbers="0" rightDirectionSymbol=">" multilineAlign="3" reverseDirectionSymbol="0" useMaxLineLengthForAutoWrap="1" decimals="3" wrapChar="" autoWrapLength="18" leftDirectionSymbol="&lt;" addDirectionSymbol="0"/>
       <placement placementFlags="10" rotationUnit="AngleDegrees" rotationAngle="0" yOffset="0" xOffset="0" overrunDistanceMapUnitScale="3x:0,0,0,0,0,0" overrunDistance="0" geometryGeneratorEnabled="0" layerType="UnknownGeometry" labelOffsetMapUnitScale="3x:0,0,0,0,0,0" lineAnchorClipping="0" placement="1" repeatDistanceMapUnitScale="3x:0,0,0,0,0,0" lineAnchorPercent="0.5" geometryGenerator="" maxCurvedCharAngleIn="25" geometryGeneratorType="PointGeometry" preserveRotation="1" distMapUnitScale="3x:0,0,0,0,0,0" quadOffset="4" centroidInside="0" maxCurvedCharAngleOut="-25" overrunDistanceUnit="MM" polygonPlacementFlags="2" distUnits="MM" predefinedPositionOrder="TR,TL,BR,BL,R,L,TSR,BSR" lineAnchorType="0" offsetType="0" repeatDistanceUnits="MM" repeatDistance="0" fitInPolygonOnly="0" centroidWhole="0" dist="0" offsetUnits="MM" priority="5"/>
       <rendering upsidedownLabels="0" unplacedVisibility="0" obstacleType="1" displayAll="0" scaleMin="0" zIndex="0" scaleVisibility="0" minFeatureSize="0" fontLimitPixelSize="0" drawLabels="1" limitNumLabels="0" labelPerPart="0" maxNumLabels="2000" obstacle="1" fontMaxPixelSize="10000" scaleMax="0" obstacleFactor="1" fontMinPixelSize="0" mergeLines="0"/>
       <dd_properties>

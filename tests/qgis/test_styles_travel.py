@@ -190,8 +190,8 @@ def test_cli_icp_layers_open_styled(cli_runs):
     assert 0 < sigma < 20
     vectors = _open_vector(gpkg, "vectors")
     labels = [r.label() for r in vectors.renderer().rootRule().children()]
-    assert any(t.startswith("scale: this arrow (8 mm long) = ") for t in labels), labels
-    assert any(t.startswith("uncertain: horizontal \u03c3 above") for t in labels), labels
+    assert any(t.startswith("scale: this arrow (6 mm) = ") for t in labels), labels
+    assert any(t.startswith("uncertain: horizontal \u03c3 > ") for t in labels), labels
 
 
 def test_cli_rasters_open_styled(cli_runs):
