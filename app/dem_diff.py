@@ -29,6 +29,7 @@ from .fields import (
 from .job import JobResult, Progress
 from .options import JobSpec, Option
 from .outputs import OutputPlan
+from .styles import write_raster_style
 from .summaries import finite_stats, json_text
 from .tiled_fields import check_fields_tiled
 
@@ -137,6 +138,7 @@ def run(
                 names=BANDS,
                 metadata={"method": "DEM difference, dz = z_after - z_before"},
             )
+            write_raster_style(plan, "dem_diff", "raster", res.dz)
         report = figures() if plan.wants("plot") else None
         if report is not None:
             report.plot_raster_panels(
@@ -179,6 +181,7 @@ def _run_tiled(opts: Mapping[str, Any], plan: OutputPlan, progress) -> JobResult
             progress=progress,
         )
         g = res.grid
+        write_raster_style(plan, "dem_diff", "raster")  # its range read from the COG
         if plan.wants("plot"):
             log.info("no figure for tiled inputs: open the GeoTIFF (a COG with overviews)")
         summary = _summary(opts, g, res.stats(), plan, crs)

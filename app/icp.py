@@ -40,6 +40,7 @@ from .fields import (
 from .job import JobResult, Progress
 from .options import JobSpec, Option, OptionError
 from .outputs import OutputPlan
+from .styles import gpkg_styles, write_raster_style
 from .summaries import icp_summary, json_text
 from .tiled_fields import check_fields_tiled, tiled_refusal
 
@@ -504,14 +505,11 @@ def _write(plan: OutputPlan, res, columns, rings, crs, before) -> None:
             np.array([[x, y], [x + dx, y + dy]])
             for x, y, dx, dy in zip(res.x, res.y, res.dx, res.dy)
         ]
-        write_gpkg_layers(
-            plan.file("layers"),
-            [
-                VectorLayer("cells", "Polygon", [r[:-1] for r in rings], columns),
-                VectorLayer("vectors", "LineString", vectors, columns),
-            ],
-            crs=crs,
-        )
+        layers = [
+            VectorLayer("cells", "Polygon", [r[:-1] for r in rings], columns),
+            VectorLayer("vectors", "LineString", vectors, columns),
+        ]
+        write_gpkg_layers(plan.file("layers"), layers, crs=crs, styles=gpkg_styles("icp", layers))
     if plan.wants("raster"):
         write_tif(
             plan.file("raster"),
@@ -522,6 +520,7 @@ def _write(plan: OutputPlan, res, columns, rings, crs, before) -> None:
             names=BANDS,
             metadata={"method": "windowed point-to-plane ICP", "cell_m": f"{res.cell_m:g}"},
         )
+        write_raster_style(plan, "icp", "raster", res.to_grid("dz"))
     report = figures() if plan.wants("plot") else None
     if report is not None:
         from ..core.dem import common_grid, grid_elevation

@@ -222,6 +222,15 @@ class OutputPlan:
             final = self.out_dir / name_or_key
         else:
             raise KeyError(f"no output {name_or_key!r} in this plan")  # programming error
+        return self._stage(final)
+
+    def beside(self, key: str, suffix: str) -> Path:
+        """The temporary path of a file that belongs to output ``key`` (e.g. the ``.qml``
+        style QGIS reads beside a GeoTIFF): ``final(key)`` with ``suffix``, staged and moved
+        in with the outputs (and checked against the inputs as they are)."""
+        return self._stage(self.final(key).with_suffix(suffix))
+
+    def _stage(self, final: Path) -> Path:
         staged = self._staged.get(final)
         if staged is None:
             folder = final.parent

@@ -36,6 +36,7 @@ from .fields import (
 from .job import JobResult, Progress, scaled
 from .options import JobSpec, Option
 from .outputs import OutputPlan
+from .styles import write_raster_style
 from .summaries import finite_stats, json_text
 from .tiled_fields import check_fields_tiled
 
@@ -364,6 +365,7 @@ def _write(plan: OutputPlan, res, cols, zb, za, grid, crs) -> None:
                 names=[comp],
                 metadata=meta,
             )
+            write_raster_style(plan, "piv", comp, getattr(res, comp))
     if plan.wants("dems"):
         write_tif(
             plan.file("dems"),

@@ -1166,6 +1166,7 @@ def report_tables(payload: Mapping[str, Any], crs=None) -> Tuple[str, Dict[str, 
 
 def _write_layers(path: Path, result, data: Dict[str, Any], crs) -> None:
     from ..core.io.vector import VectorLayer, write_gpkg_layers
+    from .styles import gpkg_styles
 
     layers = []
     for side in (result.left, result.right):
@@ -1191,13 +1192,14 @@ def _write_layers(path: Path, result, data: Dict[str, Any], crs) -> None:
             fields={"part": np.arange(len(trace.parts), dtype=np.int64)},
         )
     )
-    write_gpkg_layers(path, layers, crs=crs)
+    write_gpkg_layers(path, layers, crs=crs, styles=gpkg_styles("slip", layers))
 
 
 def _write_windows(plan: OutputPlan, w, bands: np.ndarray, crs) -> None:
     """``windows`` (7 bands) and ``windows_dx`` / ``windows_dy`` (value and σ): north-up, one
     pixel per window centre."""
     from ..core.io.raster import write_geotiff
+    from .styles import write_raster_style
 
     half = 0.5 * w.step_m
     common = dict(
@@ -1216,6 +1218,8 @@ def _write_windows(plan: OutputPlan, w, bands: np.ndarray, crs) -> None:
                 band_names=[f"{name}_m (relative to the left side)", f"sigma_{name}_m"],
                 **common,
             )
+    for key, values in (("windows", bands[0]), ("windows_dx", w.dx), ("windows_dy", w.dy)):
+        write_raster_style(plan, "slip", key, values)  # the .qml QGIS opens the raster with
 
 
 def _figures(plan: OutputPlan, slip: SlipRun) -> List[str]:

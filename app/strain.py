@@ -32,6 +32,7 @@ from .inputs import as_crs, out_dir_option
 from .job import JobResult, Progress
 from .options import JobSpec, Option, OptionError
 from .outputs import OutputPlan
+from .styles import write_raster_style
 from .summaries import finite_stats, json_text
 
 log = logging.getLogger("slipmap.app")
@@ -324,6 +325,7 @@ def run(
                 names=list(bands),
                 metadata={"strain": "infinitesimal, extension positive; max_shear = (e1-e2)/2"},
             )
+            write_raster_style(plan, "strain", "raster", next(iter(bands.values())))
         report = figures() if plan.wants("plot") else None
         if report is not None:
             x0, y0 = field.origin_xy

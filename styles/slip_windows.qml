@@ -39,13 +39,13 @@
       </minMaxOrigin>
       <rastershader>
         <colorrampshader clip="0" minimumValue="-1" maximumValue="1" colorRampType="INTERPOLATED" classificationMode="1" labelPrecision="6">
-          <item alpha="255" value="-1" color="#b2182b" label="-1.00"/>
-          <item alpha="255" value="-0.666666666666667" color="#ef8a62" label="-0.67"/>
-          <item alpha="255" value="-0.333333333333333" color="#fddbc7" label="-0.33"/>
+          <item alpha="255" value="-1" color="#2166ac" label="-1.00"/>
+          <item alpha="255" value="-0.666666666666667" color="#67a9cf" label="-0.67"/>
+          <item alpha="255" value="-0.333333333333333" color="#d1e5f0" label="-0.33"/>
           <item alpha="255" value="0" color="#f7f7f7" label="+0.00"/>
-          <item alpha="255" value="0.333333333333333" color="#d1e5f0" label="+0.33"/>
-          <item alpha="255" value="0.666666666666667" color="#67a9cf" label="+0.67"/>
-          <item alpha="255" value="1" color="#2166ac" label="+1.00"/>
+          <item alpha="255" value="0.333333333333333" color="#fddbc7" label="+0.33"/>
+          <item alpha="255" value="0.666666666666667" color="#ef8a62" label="+0.67"/>
+          <item alpha="255" value="1" color="#b2182b" label="+1.00"/>
           <rampLegendSettings suffix="" prefix="" useContinuousLegend="1" minimumLabel="" orientation="2" maximumLabel="" direction="0">
             <numericFormat id="basic">
               <Option type="Map">

@@ -13,9 +13,18 @@ from typing import Mapping, Sequence, Tuple, Union
 import numpy as np
 
 from ..errors import DependencyError, InvalidParameterError, SlipMapFileError
-from .atomic import PathLike, atomic_path
+from .atomic import PathLike, atomic_path, write_text_atomic
 
-__all__ = ["RasterBlockWriter", "band_names", "raster_metadata", "read_geotiff", "write_geotiff"]
+__all__ = [
+    "RasterBlockWriter",
+    "band_names",
+    "band_range",
+    "raster_metadata",
+    "read_geotiff",
+    "style_sidecar",
+    "write_geotiff",
+    "write_raster_style",
+]
 
 _GDAL_TYPES = {
     np.dtype(np.uint8): "Byte",
@@ -179,6 +188,50 @@ def raster_metadata(path: PathLike) -> dict:
         return dict(ds.GetMetadata() or {})
     finally:
         ds = None  # noqa: F841
+
+
+def style_sidecar(path: PathLike) -> Path:
+    """The style file QGIS reads as a raster's default style: ``<name>.qml`` beside it
+    (``windows.tif`` -> ``windows.qml``)."""
+    return Path(path).with_suffix(".qml")
+
+
+def write_raster_style(path: PathLike, qml: str) -> Path:
+    """Write ``qml`` (QGIS's style format) as the default style of the raster ``path``.
+
+    QGIS opens a raster with the ``.qml`` beside it (:func:`style_sidecar`) as its style, by
+    drag and drop, from the browser or as ``QgsRasterLayer(path)``. The file is written
+    atomically; the raster itself is not touched (it need not exist yet).
+
+    Returns
+    -------
+    pathlib.Path
+        The sidecar's path.
+    """
+    return write_text_atomic(style_sidecar(path), str(qml))
+
+
+def band_range(path: PathLike, band: int = 1) -> Tuple[float, float]:
+    """``(min, max)`` of the finite values of ``band`` (1-based) of a raster, read block by
+    block (NaN, NaN when it has none)."""
+    gdal = _gdal()
+    ds = gdal.Open(str(path))
+    try:
+        b = ds.GetRasterBand(int(band))
+        nodata = b.GetNoDataValue()
+        bx, by = b.GetBlockSize()
+        lo, hi = math.inf, -math.inf
+        for r0 in range(0, ds.RasterYSize, max(by, 256)):
+            rows = min(max(by, 256), ds.RasterYSize - r0)
+            a = np.asarray(b.ReadAsArray(0, r0, ds.RasterXSize, rows), dtype=np.float64)
+            ok = np.isfinite(a)
+            if nodata is not None and math.isfinite(nodata):
+                ok &= a != nodata
+            if ok.any():
+                lo, hi = min(lo, float(a[ok].min())), max(hi, float(a[ok].max()))
+    finally:
+        ds = None  # noqa: F841
+    return (lo, hi) if lo <= hi else (math.nan, math.nan)
 
 
 class RasterBlockWriter:

@@ -14,7 +14,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -32,10 +32,12 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "VectorLayer",
+    "gpkg_layer_names",
     "read_fault_trace",
     "read_gpkg_layer",
     "read_polygons",
     "write_gpkg_layers",
+    "write_gpkg_styles",
 ]
 
 _INSTALL_HINT = (
@@ -442,7 +444,13 @@ def _make_geometry(kind: str, coords: np.ndarray, dim: int, ogr):
     return g
 
 
-def write_gpkg_layers(path: PathLike, layers: Sequence[VectorLayer], *, crs: Any = None) -> Path:
+def write_gpkg_layers(
+    path: PathLike,
+    layers: Sequence[VectorLayer],
+    *,
+    crs: Any = None,
+    styles: Optional[Mapping[str, str]] = None,
+) -> Path:
     """Write several layers into one GeoPackage, atomically.
 
     Parameters
@@ -453,6 +461,10 @@ def write_gpkg_layers(path: PathLike, layers: Sequence[VectorLayer], *, crs: Any
         Layers with distinct names.
     crs : pyproj.CRS, str or int, optional
         CRS of all layers (WKT, "EPSG:xxxx" or an EPSG integer); None writes none.
+    styles : mapping of str to str, optional
+        ``{layer name: QML text}``: each layer's default style, stored in the GeoPackage's
+        ``layer_styles`` table (:func:`write_gpkg_styles`) before the file is moved in, so
+        QGIS opens the layer styled wherever it is opened.
 
     Returns
     -------
@@ -530,7 +542,162 @@ def write_gpkg_layers(path: PathLike, layers: Sequence[VectorLayer], *, crs: Any
             raise SlipMapFileError(f"cannot write GeoPackage {str(path)!r}: {exc}") from exc
         finally:
             ds = None  # noqa: F841 - closes (and flushes) the dataset
+        if styles:
+            _store_styles(tmp, styles, str(path))
     return Path(path)
+
+
+#: QGIS's ``layer_styles`` table (as its OGR provider creates it in a GeoPackage)
+_STYLE_FIELDS = (
+    ("f_table_catalog", "str", 256),
+    ("f_table_schema", "str", 256),
+    ("f_table_name", "str", 256),
+    ("f_geometry_column", "str", 256),
+    ("styleName", "str", 30),
+    ("styleQML", "str", 0),
+    ("styleSLD", "str", 0),
+    ("useAsDefault", "bool", 0),
+    ("description", "str", 0),
+    ("owner", "str", 30),
+    ("ui", "str", 30),
+    ("update_time", "datetime", 0),
+)
+
+
+def gpkg_layer_names(path: PathLike) -> List[str]:
+    """The data layers of a GeoPackage (its ``layer_styles`` table left out)."""
+    ogr, _ = _ogr()
+    try:
+        ds = ogr.Open(str(path), 0)
+    except RuntimeError as exc:
+        raise SlipMapFileError(f"cannot read GeoPackage {str(path)!r}: {exc}") from exc
+    try:
+        names = [ds.GetLayer(i).GetName() for i in range(ds.GetLayerCount())]
+    finally:
+        ds = None  # noqa: F841
+    return [n for n in names if n != "layer_styles"]
+
+
+def write_gpkg_styles(
+    path: PathLike,
+    styles: Mapping[str, str],
+    *,
+    style_name: str = "SlipMap",
+    description: str = "SlipMap's style",
+) -> Path:
+    """Store each layer's default style in an existing GeoPackage (one transaction).
+
+    QGIS reads a GeoPackage layer's default style from the file's ``layer_styles`` table (its
+    schema: ``f_table_catalog``, ``f_table_schema``, ``f_table_name``, ``f_geometry_column``,
+    ``styleName``, ``styleQML``, ``styleSLD``, ``useAsDefault``, ``description``, ``owner``,
+    ``ui``, ``update_time``), so a layer opened by drag and drop, from the browser or by
+    ``QgsVectorLayer(path)`` is drawn with it. The table is created when missing; a row of the
+    same layer and ``style_name`` is replaced, and the other rows of that layer stop being
+    the default.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A GeoPackage holding the layers (e.g. one QGIS has just written).
+    styles : mapping of str to str
+        ``{layer name: QML text}`` (QGIS's own style format, e.g. ``QgsMapLayer.saveNamedStyle``).
+    style_name, description : str
+        The row's ``styleName`` (30 characters at most) and ``description``.
+
+    Returns
+    -------
+    pathlib.Path
+
+    Raises
+    ------
+    InvalidParameterError
+        If a layer named in ``styles`` is not in the file.
+    SlipMapFileError
+        If the file cannot be read or written.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise SlipMapFileError(f"GeoPackage {str(p)!r} does not exist")
+    # in place (the rows go in as one SQLite transaction): a copy moved over the file would
+    # leave a program that holds it open (QGIS) reading the old one
+    _store_styles(p, styles, str(p), style_name=style_name, description=description)
+    return p
+
+
+def _store_styles(
+    path: Path,
+    styles: Mapping[str, str],
+    shown: str,
+    *,
+    style_name: str = "SlipMap",
+    description: str = "SlipMap's style",
+) -> None:
+    """Insert (replace) the default-style rows of ``styles`` into the GeoPackage ``path``
+    (``shown``: the name in error messages)."""
+    import datetime
+
+    ogr, _ = _ogr()
+    try:
+        ds = ogr.Open(str(path), 1)
+    except RuntimeError as exc:
+        raise SlipMapFileError(f"cannot write styles into {shown!r}: {exc}") from exc
+    try:
+        columns = {}
+        for name in styles:
+            lyr = ds.GetLayerByName(str(name))
+            if lyr is None:
+                raise InvalidParameterError(f"GeoPackage {shown!r} has no layer {name!r}")
+            columns[str(name)] = lyr.GetGeometryColumn() or ""
+        table = ds.GetLayerByName("layer_styles")
+        if table is None:
+            table = ds.CreateLayer("layer_styles", None, ogr.wkbNone, ["FID=id"])
+            for fname, kind, width in _STYLE_FIELDS:
+                ftype = {"str": ogr.OFTString, "bool": ogr.OFTInteger}.get(kind, ogr.OFTDateTime)
+                defn = ogr.FieldDefn(fname, ftype)
+                if width:
+                    defn.SetWidth(width)
+                if kind == "bool":
+                    defn.SetSubType(ogr.OFSTBoolean)
+                if kind == "datetime":
+                    defn.SetDefault("CURRENT_TIMESTAMP")
+                table.CreateField(defn)
+        now = datetime.datetime.now(datetime.timezone.utc)
+        stamp = (now.year, now.month, now.day, now.hour, now.minute, float(now.second), 100)
+        table.StartTransaction()
+        for name, qml in styles.items():
+            quoted = str(name).replace("'", "''")
+            table.SetAttributeFilter(f"f_table_name = '{quoted}'")
+            old = [(f.GetFID(), f.GetField("styleName")) for f in table]
+            table.SetAttributeFilter(None)
+            for fid, old_name in old:
+                feat = table.GetFeature(fid)
+                if old_name == style_name:
+                    table.DeleteFeature(fid)
+                elif feat is not None:
+                    feat.SetField("useAsDefault", 0)
+                    table.SetFeature(feat)
+            feat = ogr.Feature(table.GetLayerDefn())
+            for fname, value in (
+                ("f_table_catalog", ""),
+                ("f_table_schema", ""),
+                ("f_table_name", str(name)),
+                ("f_geometry_column", columns[str(name)]),
+                ("styleName", style_name[:30]),
+                ("styleQML", str(qml)),
+                ("styleSLD", ""),
+                ("useAsDefault", 1),
+                ("description", description),
+                ("owner", ""),
+                ("ui", ""),
+            ):
+                feat.SetField(fname, value)
+            feat.SetField("update_time", *stamp)
+            table.CreateFeature(feat)
+        table.CommitTransaction()
+    except RuntimeError as exc:
+        raise SlipMapFileError(f"cannot write styles into {shown!r}: {exc}") from exc
+    finally:
+        ds = None  # noqa: F841 - closes (and flushes) the dataset
 
 
 def _geometry_coords(geom, ogr) -> np.ndarray:

@@ -609,6 +609,7 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
     def postProcessAlgorithm(self, context, feedback):  # noqa: N802 (QGIS API name)
         _unmark_cancelled(context)
         _HANDLER.flush_repeats()
+        store_sink_styles(self, feedback)
         unique_layer_names(self, context)
         return {}
 
@@ -755,23 +756,51 @@ def style_path(name):
 
 
 def apply_style_on_load(
-    context, output, style_name, symmetric_band=None, *, scale=1.0, unit="", ends=None
+    context,
+    output,
+    style_name,
+    symmetric_band=None,
+    *,
+    scale=1.0,
+    unit="",
+    ends=None,
+    columns=None,
+    alg=None,
 ):
-    """Style ``output`` (an output layer path or id) with a bundled QML when QGIS loads it.
+    """Style ``output`` (an output layer path or id) with SlipMap's style ``style_name``.
 
-    With ``symmetric_band`` (a raster band number) the pseudocolor ramp is then rescaled to
-    ``±max|value|`` of that band (:func:`symmetric_limits`; legend labels in the band's values
-    times ``scale``, with ``unit``, and ``ends`` = (name of the low end, of the high end)), so
-    a diverging ramp keeps white at zero whatever the data's range. A graduated vector style
-    gets the same symmetric classes (:func:`symmetric_classes`). A raster is drawn at 80 %
-    opacity below the vectors of its group (:func:`raster_below_vectors`). Does nothing when
-    the output is not loaded on completion (e.g. ``processing.run`` from a script) or the
-    style is missing; never fails the algorithm.
+    * With ``columns`` (the sink's ``{name: (K,) array}``) the style is the template fitted to
+      them (:func:`slipmap.app.styles.vector_qml`: symmetric classes, arrow scale, sigma
+      flag); with ``alg`` (the running algorithm) that QML is also stored, after the run, as
+      the default style in the ``layer_styles`` table of the GeoPackage QGIS wrote the sink
+      to (:meth:`SlipMapAlgorithm.postProcessAlgorithm`), so the file opens styled wherever
+      it is opened later (``qgis_process`` outputs too).
+    * A raster with the ``.qml`` SlipMap wrote beside it is loaded with that file.
+    * Otherwise the bundled QML is loaded; with ``symmetric_band`` (a raster band number) the
+      pseudocolor ramp is then rescaled to ``±max|value|`` of that band
+      (:func:`symmetric_limits`, legend labels in the band's values times ``scale`` with
+      ``unit`` and ``ends`` = (name of the low end, of the high end)).
+
+    A raster is drawn below the vectors of its group (:func:`raster_below_vectors`). The
+    on-load part does nothing when the output is not loaded on completion (e.g.
+    ``processing.run`` from a script) or the style is missing; never fails the algorithm.
     """
+    from pathlib import Path
+
     from qgis.core import QgsProcessingLayerPostProcessorInterface
 
+    qml_text = None
+    if columns is not None:
+        from ...app.styles import VECTOR_STYLES, vector_qml
+
+        if style_name in VECTOR_STYLES:
+            qml_text = vector_qml(VECTOR_STYLES[style_name], columns)
+            if alg is not None and output:
+                alg.__dict__.setdefault("_sink_styles", []).append((str(output), qml_text))
     qml = style_path(style_name)
-    if qml is None or not context.willLoadLayerOnCompletion(output):
+    if not output or (qml is None and qml_text is None):
+        return
+    if not context.willLoadLayerOnCompletion(output):
         return
 
     class _Style(QgsProcessingLayerPostProcessorInterface):
@@ -779,19 +808,74 @@ def apply_style_on_load(
             if layer is None or not layer.isValid():
                 return
             try:
-                layer.loadNamedStyle(qml)
-                if symmetric_band is not None:
-                    symmetric_limits(layer, symmetric_band, scale=scale, unit=unit, ends=ends)
-                symmetric_classes(layer)
+                sidecar = Path(layer.source().split("|")[0]).with_suffix(".qml")
+                if qml_text is not None:
+                    import_qml(layer, qml_text)
+                elif layer.type() == QgsMapLayerType.RasterLayer and sidecar.is_file():
+                    layer.loadNamedStyle(str(sidecar))  # SlipMap's style, fitted to the data
+                else:
+                    layer.loadNamedStyle(qml)
+                    if symmetric_band is not None:
+                        symmetric_limits(layer, symmetric_band, scale=scale, unit=unit, ends=ends)
+                    symmetric_classes(layer)
                 raster_below_vectors(layer, context)
                 layer.triggerRepaint()
             except Exception as exc:  # noqa: BLE001 - styling must never fail the run
                 if feedback is not None:
                     feedback.pushInfo(f"style {style_name} not applied: {exc}")
 
+    from qgis.core import QgsMapLayerType
+
     post = _Style()
     _POST_PROCESSORS.append(post)
     context.layerToLoadOnCompletionDetails(output).setPostProcessor(post)
+
+
+def import_qml(layer, qml_text):
+    """Apply QML text (QGIS's style format) to ``layer``; raises ValueError when QGIS
+    refuses it."""
+    from qgis.PyQt.QtXml import QDomDocument
+
+    doc = QDomDocument()
+    doc.setContent(qml_text)
+    ok, message = layer.importNamedStyle(doc)
+    if not ok:
+        raise ValueError(message)
+    layer.emitStyleChanged()
+
+
+def gpkg_destination(output):
+    """``(GeoPackage path, layer name)`` of a sink's output id when QGIS wrote it to a
+    GeoPackage file (None otherwise: memory layers, other formats, databases)."""
+    from pathlib import Path
+
+    parts = str(output or "").split("|")
+    path = Path(parts[0])
+    if path.suffix.lower() != ".gpkg" or not path.is_file():
+        return None
+    for part in parts[1:]:
+        if part.lower().startswith("layername="):
+            return str(path), part.split("=", 1)[1]
+    from ...core.io.vector import gpkg_layer_names
+
+    names = gpkg_layer_names(path)
+    return (str(path), names[0]) if len(names) == 1 else None
+
+
+def store_sink_styles(alg, feedback=None):
+    """Store the styles :func:`apply_style_on_load` collected for ``alg``'s sinks into the
+    GeoPackages QGIS wrote (their ``layer_styles`` table; the sinks are closed by now)."""
+    from ...core.errors import SlipMapError
+    from ...core.io.vector import write_gpkg_styles
+
+    for output, qml_text in alg.__dict__.pop("_sink_styles", []):
+        try:
+            target = gpkg_destination(output)
+            if target is not None:
+                write_gpkg_styles(target[0], {target[1]: qml_text})
+        except (SlipMapError, OSError) as exc:
+            if feedback is not None:
+                feedback.pushInfo(f"style not stored in {output}: {exc}")
 
 
 def apply_diverging_style_on_load(context, output, style_name="diverging", band=1, **legend):

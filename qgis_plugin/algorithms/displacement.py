@@ -241,7 +241,7 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             [QgsGeometry(QgsPoint(*map(float, c[:3]))) for c in centroids],
             columns,
         )
-        apply_style_on_load(context, results["PLANES"], "slip_planes")
+        apply_style_on_load(context, results["PLANES"], "slip_planes", columns=columns, alg=self)
         if data["tiles"] is not None and is_set(parameters, "TILES", context):
             rings = [
                 QgsGeometry.fromPolygonXY([[QgsPointXY(*map(float, p)) for p in r]])
@@ -250,13 +250,17 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             results["TILES"] = write_sink(
                 self, parameters, "TILES", context, crs, QgsWkbTypes.Polygon, rings, data["tiles"]
             )
-            apply_style_on_load(context, results["TILES"], "slip_tiles")
+            apply_style_on_load(
+                context, results["TILES"], "slip_tiles", columns=data["tiles"], alg=self
+            )
         if data["strips"] is not None and is_set(parameters, "STRIPS", context):
             points = [QgsGeometry(QgsPoint(float(x), float(y))) for x, y in data["strip_points"]]
             results["STRIPS"] = write_sink(
                 self, parameters, "STRIPS", context, crs, QgsWkbTypes.Point, points, data["strips"]
             )
-            apply_style_on_load(context, results["STRIPS"], "slip_strips")
+            apply_style_on_load(
+                context, results["STRIPS"], "slip_strips", columns=data["strips"], alg=self
+            )
         if outputs["windows"] and "windows" in result.files:
             results["WINDOWS"] = outputs["windows"]
             apply_diverging_style_on_load(  # red: the right-lateral sense, as tiles and strips

@@ -78,7 +78,7 @@ class PIVAlgorithm(SlipMapAlgorithm):
             cols,
         )
         if sink_id is not None:
-            apply_style_on_load(context, sink_id, "piv_vectors")
+            apply_style_on_load(context, sink_id, "piv_vectors", columns=cols, alg=self)
         for key in ("dx", "dy", "dz"):
             apply_diverging_style_on_load(context, outputs[key])
         return {

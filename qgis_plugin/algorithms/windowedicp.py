@@ -92,9 +92,9 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
         )
         vectors_id = write_point_sink(self, parameters, "VECTORS", context, crs, res.x, res.y, cols)
         if cells_id is not None:
-            apply_style_on_load(context, cells_id, "icp_cells")
+            apply_style_on_load(context, cells_id, "icp_cells", columns=cols, alg=self)
         if vectors_id is not None:
-            apply_style_on_load(context, vectors_id, "icp_vectors")
+            apply_style_on_load(context, vectors_id, "icp_vectors", columns=cols, alg=self)
         return {
             "CELLS": cells_id,
             "VECTORS": vectors_id,

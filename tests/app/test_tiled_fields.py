@@ -231,7 +231,12 @@ def test_dem_diff_of_tiles_is_the_one_file_raster_as_a_cog(epochs, tmp_path, cap
     for k in ("mean", "median", "min", "max"):
         assert s2[k] == pytest.approx(s1[k], rel=REL, abs=1e-15), k
     assert s2["std"] == pytest.approx(s1["std"], rel=1e-7)
-    assert sorted(p.name for p in tiles.iterdir()) == ["dem_diff.json", "dem_diff.tif"]
+    # the COG with its style (range read from the written file) and the summary
+    assert sorted(p.name for p in tiles.iterdir()) == [
+        "dem_diff.json",
+        "dem_diff.qml",
+        "dem_diff.tif",
+    ]
 
 
 def test_piv_and_icp_of_tiles_on_two_dask_workers_equal_one_file(epochs, tmp_path, capsys):

@@ -91,3 +91,18 @@ def test_missing_file_is_a_file_error(tmp_path):
 
     with pytest.raises(SlipMapFileError, match="does not exist"):
         read_geotiff(tmp_path / "none.tif")
+
+
+def test_style_sidecar_is_the_qml_qgis_reads_beside_the_raster(tmp_path):
+    from slipmap.core.io.raster import band_range, style_sidecar, write_raster_style
+
+    tif = tmp_path / "piv_dz.tif"
+    a = np.array([[np.nan, -0.02], [0.05, 0.01]])
+    write_geotiff(tif, a, origin_xy=(0.0, 2.0), pixel_size_m=1.0)
+    assert style_sidecar(tif) == tmp_path / "piv_dz.qml"
+    assert style_sidecar(tmp_path / "a.b.tif") == tmp_path / "a.b.qml"  # QGIS: completeBaseName
+    written = write_raster_style(tif, "<qgis/>")
+    assert written == tmp_path / "piv_dz.qml" and written.read_text() == "<qgis/>"
+    assert band_range(tif) == (-0.02, 0.05)
+    write_geotiff(tmp_path / "empty.tif", np.full((2, 2), np.nan), origin_xy=(0, 2), pixel_size_m=1)
+    assert all(np.isnan(band_range(tmp_path / "empty.tif")))

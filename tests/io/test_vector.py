@@ -224,3 +224,79 @@ def test_read_polygons_reprojects_rings_and_refuses_lines(tmp_path):
         read_polygons(tmp_path / "l.geojson", target_crs=utm)
     with pytest.raises(SlipMapFileError, match="polygon file"):
         read_polygons(tmp_path / "none.gpkg")
+
+
+# --------------------------------------------------------------------------- default styles
+
+#: the columns of QGIS's ``layer_styles`` table (its OGR provider's schema)
+QGIS_STYLE_COLUMNS = [
+    "id",
+    "f_table_catalog",
+    "f_table_schema",
+    "f_table_name",
+    "f_geometry_column",
+    "styleName",
+    "styleQML",
+    "styleSLD",
+    "useAsDefault",
+    "description",
+    "owner",
+    "ui",
+    "update_time",
+]
+
+
+def _style_rows(path):
+    import sqlite3
+
+    with sqlite3.connect(path) as db:
+        columns = [r[1] for r in db.execute("PRAGMA table_info(layer_styles)")]
+        rows = db.execute(
+            "SELECT f_table_catalog, f_table_schema, f_table_name, f_geometry_column, styleName,"
+            " styleQML, useAsDefault FROM layer_styles ORDER BY f_table_name, id"
+        ).fetchall()
+        registered = db.execute(
+            "SELECT data_type FROM gpkg_contents WHERE table_name = 'layer_styles'"
+        ).fetchall()
+    return columns, rows, registered
+
+
+def test_layers_carry_their_default_style(tmp_path):
+    path = tmp_path / "out.gpkg"
+    layers = [
+        VectorLayer("tiles", "Polygon", [np.array([[0, 0], [1, 0], [1, 1]])], {"v": np.ones(1)}),
+        VectorLayer("strips", "Point", [np.array([0.5, 0.5])], {"v": np.ones(1)}),
+    ]
+    write_gpkg_layers(path, layers, crs=32612, styles={"tiles": "<qgis>T</qgis>"})
+    columns, rows, registered = _style_rows(path)
+    assert columns == QGIS_STYLE_COLUMNS
+    assert registered == [("attributes",)]  # a table GDAL and QGIS list as such
+    # empty catalog/schema (not NULL: QGIS's lookup compares with ''), GDAL's geometry column
+    assert rows == [("", "", "tiles", "geom", "SlipMap", "<qgis>T</qgis>", 1)]
+    assert [p.name for p in tmp_path.iterdir()] == ["out.gpkg"]  # nothing left beside it
+
+
+def test_write_gpkg_styles_replaces_its_row_and_keeps_one_default(tmp_path):
+    import sqlite3
+
+    from slipmap.core.errors import InvalidParameterError
+    from slipmap.core.io.vector import gpkg_layer_names, write_gpkg_styles
+
+    path = tmp_path / "out.gpkg"
+    layers = [VectorLayer("cells", "Point", [np.array([0.0, 0.0])], {"v": np.ones(1)})]
+    write_gpkg_layers(path, layers, crs=32612)
+    with sqlite3.connect(path) as db:  # no styles asked for: no table
+        assert not db.execute(
+            "SELECT name FROM sqlite_master WHERE name = 'layer_styles'"
+        ).fetchall()
+    write_gpkg_styles(path, {"cells": "<qgis>1</qgis>"}, style_name="user")
+    write_gpkg_styles(path, {"cells": "<qgis>2</qgis>"})
+    write_gpkg_styles(path, {"cells": "<qgis>3</qgis>"})
+    rows = _style_rows(path)[1]
+    assert [(r[4], r[5], r[6]) for r in rows] == [
+        ("user", "<qgis>1</qgis>", 0),  # another style stays, no longer the default
+        ("SlipMap", "<qgis>3</qgis>", 1),  # SlipMap's row replaced, not added again
+    ]
+    assert gpkg_layer_names(path) == ["cells"]
+    with pytest.raises(InvalidParameterError, match="no layer 'tiles'"):
+        write_gpkg_styles(path, {"tiles": "<qgis/>"})

@@ -634,27 +634,42 @@ def test_strain_without_dx_fails(provider, tmp_path):
 @pytest.mark.parametrize(
     "style, uri",
     [
-        ("piv_vectors", "Point?crs=EPSG:32612&field=magnitude:double&field=azimuth_deg:double"),
-        ("icp_vectors", "Point?crs=EPSG:32612&field=magnitude:double&field=azimuth_deg:double"),
-        ("icp_cells", "Polygon?crs=EPSG:32612&field=sigma_dx:double&field=sigma_dy:double"),
+        ("piv_vectors", "Point?crs=EPSG:32612"),
+        ("icp_vectors", "Point?crs=EPSG:32612"),
+        ("icp_vectors_lines", "LineString?crs=EPSG:32612"),
+        ("icp_cells", "Polygon?crs=EPSG:32612"),
     ],
 )
 def test_vector_styles_load(qgis_app, style, uri):
-    from qgis.core import QgsProperty, QgsSymbolLayer, QgsVectorLayer
+    """The fitted styles (app/styles.py) load: arrows rotated by azimuth_deg and sized by
+    magnitude at the legend's scale, cells labelled value ± sigma."""
+    from qgis.core import QgsProperty, QgsRuleBasedRenderer, QgsSymbolLayer, QgsVectorLayer
+    from qgis.PyQt.QtXml import QDomDocument
 
+    from slipmap.app.styles import VECTOR_STYLES, vector_qml
     from slipmap.qgis_plugin.algorithms._base import style_path
 
     path = style_path(style)
     assert path is not None and Path(path).parent == STYLES
-    layer = QgsVectorLayer(uri, style, "memory")
-    message, ok = layer.loadNamedStyle(path)
+    fields = "&".join(f"field={n}:double" for n in ICP_FIELDS)
+    layer = QgsVectorLayer(f"{uri}&{fields}&field=valid:integer", style, "memory")
+    cols = {n: np.array([0.01, 0.02]) for n in ICP_FIELDS}
+    doc = QDomDocument()
+    doc.setContent(vector_qml(VECTOR_STYLES[style], cols))
+    ok, message = layer.importNamedStyle(doc)
     assert ok, message
-    if style.endswith("vectors"):
-        sl = layer.renderer().symbol().symbolLayer(0)
+    renderer = layer.renderer()
+    assert isinstance(renderer, QgsRuleBasedRenderer)
+    if "vectors" in style:
+        drawn = [r for r in renderer.rootRule().descendants() if r.symbol() is not None]
+        sl = drawn[0].symbol().symbolLayer(0)
+        if style.endswith("lines"):  # a marker at the line's first vertex
+            sl = sl.subSymbol().symbolLayer(0)
         angle = sl.dataDefinedProperties().property(QgsSymbolLayer.PropertyAngle)
         assert isinstance(angle, QgsProperty) and "azimuth_deg" in angle.expressionString()
         size = sl.dataDefinedProperties().property(QgsSymbolLayer.PropertySize)
-        assert "magnitude" in size.expressionString()
+        # 6 mm per 10 mm (the 95th percentile, 19.5 mm, rounded down to 1-2-5)
+        assert "magnitude" in size.expressionString() and "* 600.0," in size.expressionString()
     else:
         assert layer.labelsEnabled()
         assert "sigma_dx" in layer.labeling().settings().fieldName

@@ -319,11 +319,11 @@ def test_styles_applied_on_load(provider, epochs, tmp_path):
     import processing
     from osgeo import gdal
     from qgis.core import (
-        QgsGraduatedSymbolRenderer,
         QgsProcessingContext,
         QgsProcessingFeedback,
         QgsProject,
         QgsRasterLayer,
+        QgsRuleBasedRenderer,
         QgsSingleBandPseudoColorRenderer,
         QgsVectorLayer,
     )
@@ -358,7 +358,7 @@ def test_styles_applied_on_load(provider, epochs, tmp_path):
     context.layerToLoadOnCompletionDetails(tiles).postProcessor().postProcessLayer(
         layer, context, feedback
     )
-    assert isinstance(layer.renderer(), QgsGraduatedSymbolRenderer)  # right-lateral sense
+    assert isinstance(layer.renderer(), QgsRuleBasedRenderer)  # right-lateral classes, skipped
     assert layer.labelsEnabled()
     assert "1000" in layer.labeling().settings().fieldName
     raster = QgsRasterLayer(windows, "windows")
@@ -395,14 +395,15 @@ def test_vector_styles_load(qgis_app, style, uri):
         QgsVectorLayer,
     )
 
-    from slipmap.qgis_plugin.algorithms._base import style_path
+    from slipmap.app.styles import VECTOR_STYLES, vector_qml
+    from slipmap.qgis_plugin.algorithms._base import import_qml
 
     fields = "&".join(
         f"field={n}:{t}"
         for n, t in (
             ("side", "string"),
-            ("fault_parallel", "double"),
-            ("sigma_fp", "double"),
+            ("right_lateral", "double"),
+            ("sigma_right_lateral", "double"),
             ("status", "string"),
         )
     )
@@ -414,15 +415,15 @@ def test_vector_styles_load(qgis_app, style, uri):
         else QgsGeometry.fromPointXY(QgsPointXY(5, 5))
     )
     f.setGeometry(geom)
-    f.setAttributes(["right", -0.0181, 0.0004, "ok"])
+    f.setAttributes(["right", 0.0181, 0.0004, "ok"])
     layer.dataProvider().addFeatures([f])
-    message, ok = layer.loadNamedStyle(style_path(style))
-    assert ok, message
+    columns = {"right_lateral": np.array([0.0181]), "status": np.array(["ok"], dtype=object)}
+    import_qml(layer, vector_qml(VECTOR_STYLES[style], columns))
     assert layer.labelsEnabled()
     ctx = QgsExpressionContext(QgsExpressionContextUtils.globalProjectLayerScopes(layer))
     ctx.setFeature(next(layer.getFeatures()))
     label = QgsExpression(layer.labeling().settings().fieldName).evaluate(ctx)
-    assert label == "18.1 ± 0.4 mm"  # a right-side tile moving -18.1 mm along strike: dextral
+    assert label == "R +18.1 ± 0.4 mm"  # a right-side tile moving 18.1 mm dextrally
     assert len(layer.renderer().symbols(QgsRenderContext())) >= 2
 
 
