@@ -369,6 +369,8 @@ class _Sink:
                     if figures or kind not in _FIGURES:
                         plan.expect(name.format(label=label))
             plan.expect("summary.json", *(["semivariograms.png"] if figures else []))
+            for label in labels:  # each GeoTIFF's style, beside it (app/styles.py)
+                plan.expect(NAMES["geotiff"].format(label=label)[: -len(".tif")] + ".qml")
 
     def path(self, kind: str, label: str = "") -> Optional[Path]:
         if self.files is None:
@@ -378,10 +380,29 @@ class _Sink:
             return self.plan.path(name)
         return self.plan.path(kind) if self.files.get(kind) else None
 
+    def style_path(self, label: str = "") -> Optional[Path]:
+        """Where the GeoTIFF's style (the ``.qml`` QGIS reads beside it) is staged."""
+        if self.files is None:
+            return self.plan.path(NAMES["geotiff"].format(label=label)[: -len(".tif")] + ".qml")
+        return self.plan.beside("geotiff", ".qml") if self.files.get("geotiff") else None
+
     def name(self, kind: str, label: str = "") -> Optional[str]:
         if self.files is None:
             return NAMES[kind].format(label=label)
         return Path(str(self.files[kind])).name if self.files.get(kind) else None
+
+
+def _write_style(sink: _Sink, label: str, geotiff: Path, theta_odr: np.ndarray) -> None:
+    """The roughness GeoTIFF's style beside it (band 1, theta_ODR: viridis from 0 to the
+    roughest cell), so it opens as a map, not a 7-band RGB picture, wherever it is opened."""
+    from ..core.io.raster import write_raster_style
+    from .styles import ROUGHNESS, raster_qml
+
+    target = sink.style_path(label)
+    if target is None:
+        return
+    written = write_raster_style(geotiff, raster_qml(ROUGHNESS, theta_odr))
+    assert written == target, (written, target)  # staged beside the staged GeoTIFF
 
 
 def _local_frame_wkt(plane) -> str:
@@ -463,6 +484,7 @@ def _one_size(grid, plane, crs, opts, sink: _Sink, figures: bool) -> Tuple[dict,
                 metadata=meta,
             )
             files["geotiff"] = sink.name("geotiff", label)
+            _write_style(sink, label, path, bands[0])
         except DependencyError as exc:
             log.warning("no GeoTIFF written: %s", exc)
             files["geotiff"] = None

@@ -85,14 +85,16 @@ class VectorStyle:
 @dataclass(frozen=True)
 class RasterStyle:
     """A single-band pseudocolor template ``styles/<name>.qml`` on ``band`` (1-based), its
-    ramp spread over ``[-max|v|, max|v|]``, legend in ``value * scale`` ``unit`` with the
-    meaning of the low and high end (``ends``)."""
+    ramp spread over ``[-max|v|, max|v|]`` (``sequential``: over ``[0, max|v|]``, for a
+    quantity that is never negative, e.g. roughness), legend in ``value * scale`` ``unit``
+    with the meaning of the low and high end (``ends``)."""
 
     name: str
     band: int = 1
     scale: float = 1000.0
     unit: str = "mm"
     ends: Tuple[str, str] = ("", "")
+    sequential: bool = False
 
 
 RIGHT_LATERAL = Classes(
@@ -122,6 +124,8 @@ DX = RasterStyle("diverging", ends=("west", "east"))
 DY = RasterStyle("diverging", ends=("south", "north"))
 DZ = RasterStyle("vertical", ends=("down", "up"))
 STRAIN = RasterStyle("strain", scale=1.0, unit="", ends=("shortening", "extension"))
+#: roughness (band 1, theta_ODR, m): viridis from 0 to the largest cell
+ROUGHNESS = RasterStyle("roughness", ends=("smooth", "rough"), sequential=True)
 
 #: the style of each output: ``{job: {output key: RasterStyle or {layer: VectorStyle}}}``
 #: (the job's output keys of :class:`~slipmap.app.outputs.OutputPlan`)
@@ -145,6 +149,7 @@ OUTPUT_STYLES: Dict[str, Dict[str, Any]] = {
     "piv": {"dx": DX, "dy": DY, "dz": DZ},
     "dem_diff": {"raster": DZ},
     "strain": {"raster": STRAIN},
+    "roughness": {"geotiff": ROUGHNESS},
 }
 
 
@@ -287,21 +292,30 @@ def raster_qml(style: RasterStyle, values=None, *, limit: Optional[float] = None
     root = ET.fromstring(template(style.name).split("\n", 1)[1])
     renderer = root.find(".//rasterrenderer")
     renderer.set("band", str(style.band))
-    renderer.set("classificationMin", repr(-big))
+    low = 0.0 if style.sequential else -big
+    renderer.set("classificationMin", repr(low))
     renderer.set("classificationMax", repr(big))
     shader = renderer.find(".//colorrampshader")
     old = max(abs(float(shader.get("minimumValue"))), abs(float(shader.get("maximumValue"))))
-    shader.set("minimumValue", repr(-big))
+    shader.set("minimumValue", repr(low))
     shader.set("maximumValue", repr(big))
     items = shader.findall("item")
     for item in items:
-        value = float(item.get("value")) / old * big
+        t = float(item.get("value")) / old  # the template's ramp lies on [-1, 1]
+        value = (t + 1.0) / 2.0 * big if style.sequential else t * big
         item.set("value", repr(value))
-        item.set("label", value_label(value * style.scale, style.unit))
-    if style.ends[0]:
-        items[0].set("label", items[0].get("label") + f" (\u2212 = {style.ends[0]})")
-    if style.ends[1]:
-        items[-1].set("label", items[-1].get("label") + f" (+ = {style.ends[1]})")
+        if style.sequential:
+            item.set("label", f"{value * style.scale:.3g} {style.unit}".strip())
+        else:
+            item.set("label", value_label(value * style.scale, style.unit))
+    if style.sequential:
+        items[0].set("label", items[0].get("label") + f" ({style.ends[0]})" * bool(style.ends[0]))
+        items[-1].set("label", items[-1].get("label") + f" ({style.ends[1]})" * bool(style.ends[1]))
+    else:
+        if style.ends[0]:
+            items[0].set("label", items[0].get("label") + f" (\u2212 = {style.ends[0]})")
+        if style.ends[1]:
+            items[-1].set("label", items[-1].get("label") + f" (+ = {style.ends[1]})")
     legend = shader.find("rampLegendSettings")
     if legend is not None:
         legend.set("minimumLabel", items[0].get("label"))

@@ -204,6 +204,8 @@ class Scenario:
     # ---- helpers
     def event(self, text):
         self.rec["events"].append([round(time.time() - self.t0, 2), text])
+        RECORD["current"] = self.rec  # what was done, should the desktop die before the end
+        save()
 
     def log_text(self):
         box = self.dlg.findChild(QTextEdit, "txtLog") if self.dlg is not None else None
@@ -234,12 +236,14 @@ class Scenario:
                 self.event(f"layer {name} valid={layer.isValid()}")
             from qgis import processing
 
+            self.event("opening the dialog")
             self.dlg = processing.createAlgorithmDialog(self.plan["alg"])
             if self.dlg is None:
                 self.rec["error"] = "createAlgorithmDialog returned None"
                 return self.finish()
             self.dlg.resize(1100, 820)
             self.dlg.show()
+            self.event("dialog shown")
             later(800, self.fill)
         except Exception:  # noqa: BLE001 - recorded for the test
             self.rec["error"] = traceback.format_exc()
@@ -261,6 +265,7 @@ class Scenario:
                 self.wrapper(name).setParameterValue(value, ctx)
             for name in self.plan.get("clear", []):
                 self.type_and_clear(name)
+            self.event("fields filled")
             self.rec["parameters"] = {
                 k: repr(v) for k, v in self.dlg.createProcessingParameters().items()
             }
@@ -373,6 +378,7 @@ class Scenario:
 
     def finish(self):
         RECORD["scenarios"].append(self.rec)
+        RECORD.pop("current", None)
         save()
         try:
             if self.dlg is not None:
