@@ -1107,7 +1107,7 @@ def report_tables(payload: Mapping[str, Any], crs=None) -> Tuple[str, Dict[str, 
     for side in ("left", "right"):
         n = payload.get(side, {}).get("n_points")
         if n is not None:
-            inputs[f"points used, {side} side (both epochs)"] = n
+            inputs[f"points used, {signs.side_label(side, names)} (both epochs)"] = n
     settings: Dict[str, Any] = {
         "buffer around the trace (m)": params.get("buffer_m"),
         "combine": params.get("combine"),
