@@ -354,9 +354,11 @@ def test_window_legend_equals_the_data_and_red_is_right_lateral(loaded_slip):
     assert (ramp.minimumValue(), ramp.maximumValue()) == pytest.approx((-m, m), rel=1e-6)
     items = ramp.colorRampItemList()
     assert items[0].value == pytest.approx(-m, rel=1e-6)
-    assert items[0].label == f"{-1000 * m:+.3g} mm (right-lateral)"
-    assert items[-1].label == f"{1000 * m:+.3g} mm (left-lateral)"
-    assert items[0].color.red() > items[0].color.blue()  # fault_parallel < 0 on the right: red
+    # the sign convention: band right_lateral_m, + = right-lateral (red), - = left-lateral
+    assert items[0].label == f"{-1000 * m:+.3g} mm (left-lateral)"
+    assert items[-1].label == f"{1000 * m:+.3g} mm (right-lateral)"
+    assert items[-1].color.red() > items[-1].color.blue()  # + = right-lateral: red
+    assert items[0].color.blue() > items[0].color.red()  # - = left-lateral: blue
     assert renderer.opacity() < 1.0
 
 

@@ -86,7 +86,7 @@ def test_glob_of_tiles_equals_one_file(provider, epochs, tmp_path):
             }
         )
         got[name] = res
-    for key in ("RIGHT_LATERAL_SLIP", "SIGMA_FAULT_PARALLEL"):
+    for key in ("RIGHT_LATERAL_SLIP", "SIGMA_RIGHT_LATERAL"):
         assert got["glob"][key] == pytest.approx(got["file"][key], rel=1e-9, abs=0)
     assert got["file"]["RIGHT_LATERAL_SLIP"] == pytest.approx(0.0181, abs=0.003)
     summary = json.loads((tmp_path / "glob.json").read_text())
