@@ -102,6 +102,15 @@ def motion(displacement, covariance, strike_rad: float, side: Optional[str]) -> 
     }
 
 
+def strip_motion(strip) -> Optional[Dict[str, float]]:
+    """A :class:`~slipmap.core.displacement.StripResult`'s own motion (its ``displacement``
+    and ``covariance``) in the convention (:func:`motion`); None when it was skipped."""
+    c = np.asarray(strip.covariance, dtype=np.float64)
+    if strip.status != "ok" or not np.all(np.isfinite(c)):
+        return None
+    return motion(strip.displacement, c, strip.strike_rad, strip.side)
+
+
 def right_lateral_grid(dx, dy, strike_rad: float, side_grid) -> np.ndarray:
     """(ny, nx) right-lateral motion of one-side cells (moving windows), metres: ``dx``,
     ``dy`` are each cell's own motion, ``side_grid`` -1 left, +1 right, 0 on the trace (NaN)."""

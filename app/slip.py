@@ -524,20 +524,12 @@ def tile_rings(result) -> List[np.ndarray]:
     return out
 
 
-def strip_motion(st) -> Optional[Dict[str, float]]:
-    """A strip's own motion in the sign convention (:func:`.signs.motion`), None when the
-    strip was skipped."""
-    from . import signs
-
-    if st.status != "ok" or not np.all(np.isfinite(st.covariance)):
-        return None
-    return signs.motion(st.displacement, st.covariance, st.strike_rad, st.side)
-
-
 def strip_columns(strips) -> Dict[str, np.ndarray]:
     """Attributes of the strips: chainage range, planes, and the strip's own motion in the
     sign convention (as :func:`tile_columns`; a left and a right strip at one chainage add up
     to the local relative slip), metres."""
+    from . import signs
+
     return {
         "side": np.array([st.side for st in strips], dtype=object),
         "along_start_m": np.array([st.along_start_m for st in strips], dtype=np.float64),
@@ -545,7 +537,7 @@ def strip_columns(strips) -> Dict[str, np.ndarray]:
         "along_centre_m": np.array([st.along_centre_m for st in strips], dtype=np.float64),
         "n_planes": np.array([st.n_planes for st in strips], dtype=np.int64),
         **_signed_columns(
-            [strip_motion(st) for st in strips],
+            [signs.strip_motion(st) for st in strips],
             [st.displacement for st in strips],
             [st.covariance for st in strips],
         ),
@@ -568,19 +560,12 @@ def window_motion(windows) -> Dict[str, np.ndarray]:
     w = windows
     ref = np.zeros(3) if w.reference_m is None else np.asarray(w.reference_m, dtype=np.float64)
     out = {"dx": w.dx + ref[0], "dy": w.dy + ref[1], "dz": w.dz + ref[2]}
-    if w.covariance is not None:
-        c = np.asarray(w.covariance, dtype=np.float64)
-        with np.errstate(invalid="ignore"):
-            for k, name in enumerate(("sigma_dx", "sigma_dy", "sigma_dz")):
-                out[name] = np.sqrt(np.abs(c[..., k, k]))
-        out["sigma_right_lateral"] = signs.sigma_along_grid(c, w.strike_rad)
-    else:  # a field made without its own covariances: the σ relative to the left side
-        out.update(sigma_dx=w.sigma_dx, sigma_dy=w.sigma_dy, sigma_dz=np.full(w.dx.shape, np.nan))
-        out["sigma_right_lateral"] = (
-            w.sigma_fault_parallel
-            if w.sigma_fault_parallel is not None
-            else np.full(w.dx.shape, np.nan)
-        )
+    c = np.full(w.dx.shape + (3, 3), np.nan) if w.covariance is None else w.covariance
+    c = np.asarray(c, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        for k, name in enumerate(("sigma_dx", "sigma_dy", "sigma_dz")):
+            out[name] = np.sqrt(np.abs(c[..., k, k]))
+    out["sigma_right_lateral"] = signs.sigma_along_grid(c, w.strike_rad)
     out["right_lateral"] = signs.right_lateral_grid(out["dx"], out["dy"], w.strike_rad, w.side)
     return out
 
@@ -1248,7 +1233,7 @@ def _figures(plan: OutputPlan, slip: SlipRun) -> List[str]:
             from . import signs
 
             st = slip.strips
-            motions = [strip_motion(s) or {} for s in st]
+            motions = [signs.strip_motion(s) or {} for s in st]
             report.plot_strip_profile(
                 plan.file("figure_strips"),
                 [s.along_centre_m for s in st],

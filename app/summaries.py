@@ -77,8 +77,7 @@ def strip_rows(strips: Iterable) -> List[Dict[str, Any]]:
 
     rows = []
     for st in strips:
-        ok = st.status == "ok" and bool(np.all(np.isfinite(st.covariance)))
-        m = signs.motion(st.displacement, st.covariance, st.strike_rad, st.side) if ok else {}
+        m = signs.strip_motion(st) or {}
         rows.append(
             {
                 "side": st.side,

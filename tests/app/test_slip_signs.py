@@ -358,3 +358,55 @@ def test_reversed_report_names_the_side_that_is_up(runs):
     west_up = _number(tb[kb]["dz (mm, + = west side up)"])
     assert east_up > 0 and west_up == pytest.approx(-east_up, abs=0.01)
     assert any("(+ = west side up)" in line for line in runs["south"]["lines"])
+
+
+# --------------------------------------------------------------------------- the rule itself
+
+
+def test_convention_known_answers():
+    from slipmap.app import signs
+
+    cov = np.diag([1e-6, 4e-6, 9e-6])
+    # a north-striking trace: the east side (right) moving south is right-lateral
+    m = signs.motion([0.003, -0.010, 0.004], cov, 0.0, "right")
+    assert m["right_lateral"] == pytest.approx(0.010) and m["opening"] == pytest.approx(0.003)
+    assert m["sigma_right_lateral"] == pytest.approx(0.002)
+    assert m["sigma_opening"] == pytest.approx(0.001) and m["sigma_dz"] == pytest.approx(0.003)
+    m = signs.motion([-0.002, 0.008, 0.0], cov, 0.0, "left")  # the west side moving north
+    assert m["right_lateral"] == pytest.approx(0.008) and m["opening"] == pytest.approx(0.002)
+    m = signs.motion([0.005, -0.018, 0.004], cov, 0.0, None)  # east minus west
+    assert m["right_lateral"] == pytest.approx(0.018) and m["opening"] == pytest.approx(0.005)
+    assert signs.side_names(0.0) == {"left": "west", "right": "east"}
+    assert signs.side_names(180.0) == {"left": "east", "right": "west"}
+    assert signs.side_names(45.0) == {"left": "north-west", "right": "south-east"}
+    assert signs.side_names(None) == {}
+    assert signs.dz_meaning({"right": "east"}) == "+ = east side up"
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_convention_is_blind_to_the_digitised_direction(seed):
+    """Random strike and motions: the two sides' own values add up to the relative ones, and
+    digitising the other way (strike + 180°, the sides swapped) changes no right_lateral or
+    opening, while the relative dz changes sign and the right side's name."""
+    from slipmap.app import signs
+
+    rng = np.random.default_rng(seed)
+    strike = rng.uniform(0, 2 * math.pi)
+    d = {"a": rng.normal(0, 0.01, 3), "b": rng.normal(0, 0.01, 3)}  # a: left, b: right
+    cov = np.eye(3) * 1e-6
+    left = signs.motion(d["a"], cov, strike, "left")
+    right = signs.motion(d["b"], cov, strike, "right")
+    rel = signs.motion(d["b"] - d["a"], 2 * cov, strike, None)
+    for key in SIGNED:
+        assert left[key] + right[key] == pytest.approx(rel[key], abs=1e-15)
+    back = strike + math.pi
+    left2 = signs.motion(d["b"], cov, back, "left")
+    right2 = signs.motion(d["a"], cov, back, "right")
+    rel2 = signs.motion(d["a"] - d["b"], 2 * cov, back, None)
+    for key in SIGNED:
+        assert left2[key] == pytest.approx(right[key], abs=1e-15)
+        assert right2[key] == pytest.approx(left[key], abs=1e-15)
+        assert rel2[key] == pytest.approx(rel[key], abs=1e-15)
+    assert rel2["dz"] == pytest.approx(-rel["dz"], abs=1e-15)
+    names, names2 = (signs.side_names(math.degrees(s)) for s in (strike, back))
+    assert names2 == {"left": names["right"], "right": names["left"]}

@@ -141,9 +141,7 @@ def test_tiles_equal_core(tiled_run, core_tiled):
         sign = 1.0 if t.side == "left" else -1.0
         jn = np.array([math.cos(result.strike_rad), -math.sin(result.strike_rad), 0.0])
         assert f["right_lateral"] == pytest.approx(sign * (j @ t.displacement), abs=1e-9)
-        assert f["sigma_right_lateral"] == pytest.approx(
-            math.sqrt(j @ t.covariance @ j), rel=1e-9
-        )
+        assert f["sigma_right_lateral"] == pytest.approx(math.sqrt(j @ t.covariance @ j), rel=1e-9)
         assert f["opening"] == pytest.approx(-sign * (jn @ t.displacement), abs=1e-9)
         assert f["sigma_opening"] == pytest.approx(math.sqrt(jn @ t.covariance @ jn), rel=1e-9)
     assert n_ok >= 4
