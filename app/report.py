@@ -7,6 +7,7 @@ imported inside the functions; without it they raise
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Mapping, Sequence, Tuple
 
@@ -47,9 +48,10 @@ def _figure(width_in: float, height_in: float):
     return fig
 
 
-def _save(fig, path: PathLike, dpi: int) -> Path:
+def _save(fig, path: PathLike, dpi: int, metadata: Mapping[str, str] | None = None) -> Path:
+    """Write the PNG atomically; ``metadata``: PNG text chunks (e.g. ``Description``)."""
     with atomic_path(path) as tmp:
-        fig.savefig(str(tmp), format="png", dpi=dpi)
+        fig.savefig(str(tmp), format="png", dpi=dpi, metadata=dict(metadata or {}) or None)
     return Path(path)
 
 
@@ -366,31 +368,63 @@ def plot_strip_profile(
     sigma_m: np.ndarray,
     side: Sequence[str],
     *,
-    title: str = "Fault-parallel displacement along strike (left side's global offset removed)",
+    side_names: Mapping[str, str] | None = None,
+    title: str = "Right-lateral motion along strike: each side's strips and their sum",
     dpi: int = 150,
 ) -> Path:
-    """Strip profile (the study's Fig. 5): value ± 1σ against along-strike distance, per side."""
+    """Strip profile (the study's Fig. 5) in the sign convention (docs/methods.md, "Sign
+    convention"): each side's right-lateral motion ± 1σ (+ = dextral on either side) against
+    along-strike distance, and where both sides have a strip at one chainage their sum, the
+    local right-lateral slip (σ of the two added in quadrature).
+
+    Parameters
+    ----------
+    along_m, value_m, sigma_m : (K,) float64
+        Strip centre chainage (m), right-lateral motion and its 1σ (m).
+    side : (K,) str
+        "left" or "right".
+    side_names : mapping, optional
+        Compass name of each side (``{"left": "west", "right": "east"}``) for the legend.
+
+    The PNG's ``Description`` text chunk holds the axis label and the plotted series (JSON,
+    mm) so that the figure can be checked without reading pixels.
+    """
+    import json
+
+    names = dict(side_names or {})
     fig = _figure(7.0, 3.6)
     ax = fig.subplots()
     along, value, sigma = (np.asarray(a, dtype=np.float64) for a in (along_m, value_m, sigma_m))
     sides = np.asarray(side)
+    series = {}
     for name, marker in (("left", "o"), ("right", "s")):
         k = (sides == name) & np.isfinite(value)
+        label = f"{name} ({names[name]}) side" if names.get(name) else f"{name} side"
         if k.any():
             ax.errorbar(
-                along[k],
-                1000 * value[k],
-                yerr=1000 * sigma[k],
-                fmt=marker,
-                capsize=3,
-                label=f"{name} side",
+                along[k], 1000 * value[k], yerr=1000 * sigma[k], fmt=marker, capsize=3, label=label
             )
+            series[label] = [[float(a), float(1000 * v)] for a, v in zip(along[k], value[k])]
+    pairs = []
+    for a in np.unique(along):
+        lv = (sides == "left") & (along == a) & np.isfinite(value)
+        rv = (sides == "right") & (along == a) & np.isfinite(value)
+        if lv.any() and rv.any():
+            i, j = np.flatnonzero(lv)[0], np.flatnonzero(rv)[0]
+            pairs.append((a, value[i] + value[j], math.hypot(sigma[i], sigma[j])))
+    if pairs:
+        a, v, s = (np.array(x) for x in zip(*pairs))
+        label = "sum: local right-lateral slip"
+        ax.errorbar(a, 1000 * v, yerr=1000 * s, fmt="D", color="k", capsize=3, label=label)
+        series[label] = [[float(x), float(1000 * y)] for x, y in zip(a, v)]
+    ylabel = "right-lateral motion (mm, + = dextral)"
     ax.axhline(0, color="0.6", lw=0.8)
     ax.set_xlabel("along-strike distance (m)")
-    ax.set_ylabel("fault-parallel displacement (mm)")
+    ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=9)
-    ax.legend()
-    return _save(fig, path, dpi)
+    ax.legend(fontsize=8)
+    description = json.dumps({"ylabel": ylabel, "series_mm": series})
+    return _save(fig, path, dpi, metadata={"Title": title, "Description": description})
 
 
 def plot_plane_residual_polar(

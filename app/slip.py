@@ -8,8 +8,9 @@ the points, computes and writes ``displacement.json``, the GeoPackage, the windo
 the figures and ``report.html`` through an :class:`~.outputs.OutputPlan`.
 
 The layers' columns (:func:`plane_columns`, :func:`tile_columns`, :func:`strip_columns`,
-:func:`window_bands`) carry the fault-frame components and their σ that
-:mod:`slipmap.core.displacement` gives, so every face writes the same attributes.
+:func:`window_bands`) and the summary (:func:`summary_payload`) carry the motions in the one
+sign convention of :mod:`.signs` (``right_lateral`` + = dextral, ``opening`` + = apart,
+``dz`` + = up), so every face writes the same attributes with the same signs.
 """
 
 from __future__ import annotations
@@ -52,14 +53,16 @@ CITATION = (
 _TSW = "tiles, strips and windows"
 _MATCH = "plane matching"
 #: bands of the windows GeoTIFF (``windows.tif``; QGIS's WINDOWS output)
+#: (each window's own motion; ``right_lateral_m`` + = dextral on both sides, see :mod:`.signs`)
 WINDOW_BANDS = (
-    "fault_parallel_m",
+    "right_lateral_m",
     "dx_m",
     "dy_m",
     "dz_m",
     "sigma_dx_m",
     "sigma_dy_m",
     "n_planes",
+    "sigma_right_lateral_m",
 )
 
 
@@ -173,8 +176,8 @@ SPEC = JobSpec(
         "Relative displacement across a fault between two LiDAR epochs: planes are extracted "
         "on each side of the trace, matched between epochs and a rigid least-squares "
         "adjustment (point-to-plane, Gauss-Helmert) gives each side's displacement; the "
-        "right-lateral slip is minus the fault-parallel component of right minus left, with "
-        "its σ under the stochastic model."
+        "right-lateral slip of the right side against the left (+ = dextral, whatever "
+        "direction the trace was digitised in) comes with its σ under the stochastic model."
     ),
     options=(
         cloud_option("before", "first epoch, LAS/LAZ in a projected CRS (metres)", "Before epoch"),
@@ -228,7 +231,7 @@ SPEC = JobSpec(
         ),
         _length(
             "strip_width_m",
-            "profile of the fault-parallel displacement in strips of this width along the "
+            "profile of each side's right-lateral motion in strips of this width along the "
             "trace, metres (the study: 50-100 m)",
             "Strip width (m)",
             pdal=None,
@@ -294,7 +297,7 @@ SPEC = JobSpec(
         _output("summary", "summary (displacement.json)", "Summary"),
         _output("report", "HTML report (report.html)", "Report"),
         _output("layers", "matched planes, tiles, strips, trace (displacement.gpkg)", "Layers"),
-        _output("windows", "moving windows, 7 bands (windows.tif)", "Moving windows"),
+        _output("windows", "moving windows, 8 bands (windows.tif)", "Moving windows"),
         _output("windows_dx", "moving windows dx and its σ (windows_dx.tif)", "Windows dx"),
         _output("windows_dy", "moving windows dy and its σ (windows_dy.tif)", "Windows dy"),
         _output("tiles", "tiles layer", "Tiles"),
@@ -540,34 +543,52 @@ def plane_columns(side) -> Dict[str, np.ndarray]:
     }
 
 
-def tile_columns(result) -> Dict[str, np.ndarray]:
-    """Attributes of the tiles: the tile's own motion (dx, dy, dz and σ, m) and its
-    fault-parallel / fault-normal components and σ (``sigma_fp``, ``sigma_fn``); NaN for a
-    tile that was not adjusted."""
-    tiles = result.tiles
-    frames = [t.fault_frame(result.strike_rad) for t in tiles]
-    ok = np.array([t.adjusted for t in tiles], dtype=bool)
-    d = np.array([t.displacement for t in tiles], dtype=np.float64).reshape(-1, 3)
-    s = np.array([np.sqrt(np.abs(np.diag(t.covariance))) for t in tiles], dtype=np.float64).reshape(
-        -1, 3
-    )
+def _signed_columns(motions, displacements, covariances) -> Dict[str, np.ndarray]:
+    """The signed columns of one-side motions (tiles, strips): ``right_lateral``,
+    ``opening``, ``dz``, ``dx``, ``dy`` (metres) and their σ; NaN where ``motions[k]`` is
+    None (not adjusted)."""
+    n = len(motions)
+    d = np.asarray(displacements, dtype=np.float64).reshape(n, 3)
+    c = np.asarray(covariances, dtype=np.float64).reshape(n, 3, 3)
+    with np.errstate(invalid="ignore"):
+        s = np.sqrt(np.abs(np.diagonal(c, axis1=1, axis2=2)))
+    ok = np.array([m is not None for m in motions], dtype=bool)
     d[~ok] = np.nan
     s[~ok] = np.nan
+    out = {
+        k: np.array([m[k] if m is not None else np.nan for m in motions], dtype=np.float64)
+        for k in ("right_lateral", "sigma_right_lateral", "opening", "sigma_opening")
+    }
+    out.update(
+        dz=d[:, 2], sigma_dz=s[:, 2], dx=d[:, 0], sigma_dx=s[:, 0], dy=d[:, 1], sigma_dy=s[:, 1]
+    )
+    return out
+
+
+def tile_columns(result) -> Dict[str, np.ndarray]:
+    """Attributes of the tiles: each tile's own motion in the sign convention of
+    :mod:`.signs` (``right_lateral`` + = dextral on either side, ``opening`` + = away from
+    the trace, ``dz`` + = up, ``dx``, ``dy`` + = east, north) and σ, metres; NaN for a tile
+    that was not adjusted (its ``status`` says why)."""
+    from . import signs
+
+    tiles = result.tiles
+    motions = [
+        signs.motion(t.displacement, t.covariance, result.strike_rad, t.side)
+        if t.adjusted
+        else None
+        for t in tiles
+    ]
     return {
         "side": np.array([t.side for t in tiles], dtype=object),
         "ix": np.array([t.ix for t in tiles], dtype=np.int64),
         "iy": np.array([t.iy for t in tiles], dtype=np.int64),
         "n_planes": np.array([t.n_planes for t in tiles], dtype=np.int64),
-        "dx": d[:, 0],
-        "dy": d[:, 1],
-        "dz": d[:, 2],
-        "sigma_dx": s[:, 0],
-        "sigma_dy": s[:, 1],
-        "sigma_dz": s[:, 2],
-        "fault_parallel": np.array([f["fault_parallel"] for f in frames]),
-        "sigma_fp": np.array([f["sigma_fault_parallel"] for f in frames]),
-        "fault_normal": np.array([f["fault_normal"] for f in frames]),
-        "sigma_fn": np.array([f["sigma_fault_normal"] for f in frames]),
+        **_signed_columns(
+            motions,
+            [t.displacement for t in tiles],
+            [t.covariance for t in tiles],
+        ),
         "status": np.array([t.status for t in tiles], dtype=object),
     }
 
@@ -582,12 +603,10 @@ def tile_rings(result) -> List[np.ndarray]:
 
 
 def strip_columns(strips) -> Dict[str, np.ndarray]:
-    """Attributes of the strips: chainage range, planes, and the strip's motion relative to
-    the left side's global motion in the fault frame with σ (m)."""
-    frames = [st.fault_frame() for st in strips]
-
-    def col(name):
-        return np.array([f[name] for f in frames], dtype=np.float64)
+    """Attributes of the strips: chainage range, planes, and the strip's own motion in the
+    sign convention (as :func:`tile_columns`; a left and a right strip at one chainage add up
+    to the local relative slip), metres."""
+    from . import signs
 
     return {
         "side": np.array([st.side for st in strips], dtype=object),
@@ -595,12 +614,11 @@ def strip_columns(strips) -> Dict[str, np.ndarray]:
         "along_end_m": np.array([st.along_end_m for st in strips], dtype=np.float64),
         "along_centre_m": np.array([st.along_centre_m for st in strips], dtype=np.float64),
         "n_planes": np.array([st.n_planes for st in strips], dtype=np.int64),
-        "fault_parallel": col("fault_parallel"),
-        "sigma_fp": col("sigma_fault_parallel"),
-        "fault_normal": col("fault_normal"),
-        "sigma_fn": col("sigma_fault_normal"),
-        "dz": col("dz"),
-        "sigma_dz": col("sigma_dz"),
+        **_signed_columns(
+            [signs.strip_motion(st) for st in strips],
+            [st.displacement for st in strips],
+            [st.covariance for st in strips],
+        ),
         "status": np.array([st.status for st in strips], dtype=object),
     }
 
@@ -612,11 +630,82 @@ def strip_points(strips, trace) -> np.ndarray:
     return np.array([point_at_chainage(trace, st.along_centre_m) for st in strips]).reshape(-1, 2)
 
 
-def window_bands(windows) -> np.ndarray:
-    """(7, ny, nx) bands :data:`WINDOW_BANDS` of the windows (relative to the left side)."""
+def window_motion(windows) -> Dict[str, np.ndarray]:
+    """Each window's own motion, (ny, nx) grids in metres: ``dx``, ``dy``, ``dz``, their σ,
+    ``right_lateral`` (+ = dextral on either side) and its σ (:mod:`.signs`)."""
+    from . import signs
+
     w = windows
-    bands = [w.fault_parallel, w.dx, w.dy, w.dz, w.sigma_dx, w.sigma_dy, w.n_planes]
+    ref = np.zeros(3) if w.reference_m is None else np.asarray(w.reference_m, dtype=np.float64)
+    out = {"dx": w.dx + ref[0], "dy": w.dy + ref[1], "dz": w.dz + ref[2]}
+    c = np.full(w.dx.shape + (3, 3), np.nan) if w.covariance is None else w.covariance
+    c = np.asarray(c, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        for k, name in enumerate(("sigma_dx", "sigma_dy", "sigma_dz")):
+            out[name] = np.sqrt(np.abs(c[..., k, k]))
+    out["sigma_right_lateral"] = signs.sigma_along_grid(c, w.strike_rad)
+    out["right_lateral"] = signs.right_lateral_grid(out["dx"], out["dy"], w.strike_rad, w.side)
+    return out
+
+
+def window_bands(windows) -> np.ndarray:
+    """(8, ny, nx) bands :data:`WINDOW_BANDS` of the windows (each window's own motion)."""
+    m = window_motion(windows)
+    bands = [
+        m["right_lateral"],
+        m["dx"],
+        m["dy"],
+        m["dz"],
+        m["sigma_dx"],
+        m["sigma_dy"],
+        windows.n_planes,
+        m["sigma_right_lateral"],
+    ]
     return np.stack([np.asarray(b, dtype=np.float64) for b in bands])
+
+
+def summary_payload(result) -> Dict[str, Any]:
+    """``SlipResult.to_dict()`` in the sign convention of :mod:`.signs` (the summary every
+    face writes: ``displacement.json``, QGIS's outputs, PDAL's metadata).
+
+    ``relative``: ``right_lateral_slip`` = ``right_lateral`` (+ = dextral), ``opening``,
+    ``dz`` (+ = the right side up), dx, dy, horizontal and their σ; each side gains its own
+    ``right_lateral`` and ``opening`` (a left and a right value add up to the relative one);
+    ``fault`` names each side by compass direction and states the convention; tiles carry
+    the signed names. No ``fault_parallel`` / ``fault_normal``."""
+    from ..core.displacement import SIDES
+    from . import signs
+
+    p = result.to_dict()
+    strike = result.strike_rad
+    p["relative"] = signs.relative(p["relative"])
+    for name in SIDES:
+        side = getattr(result, name)
+        m = signs.motion(side.displacement, side.displacement_covariance, strike, name)
+        p[name] = {
+            **{
+                k: m[k]
+                for k in ("right_lateral", "sigma_right_lateral", "opening", "sigma_opening")
+            },
+            **p[name],
+        }
+    names = signs.side_names(p["fault"]["strike_deg"])
+    p["fault"].update({f"{s}_side": names.get(s) for s in SIDES}, sign_convention=signs.CONVENTION)
+    if "tiles" in p:
+        rows = []
+        for t, row in zip(result.tiles, p["tiles"]):
+            row = {k: v for k, v in row.items() if "fault_" not in k}
+            m = signs.motion(t.displacement, t.covariance, strike, t.side) if t.adjusted else None
+            for k in ("right_lateral", "sigma_right_lateral", "opening", "sigma_opening"):
+                row[k] = None if m is None else m[k]
+            rows.append(row)
+        p["tiles"] = rows
+    p["note"] = (
+        "displacements in metres, rotations in radians; each side's displacement is the motion "
+        "of the material at that side's centroid (first to second epoch); signs: "
+        + signs.CONVENTION
+    )
+    return p
 
 
 # --------------------------------------------------------------------------- the job
@@ -813,7 +902,9 @@ def run(
                 opts, trace, want_windows, scaled(progress, 0.0, 0.95)
             )
         result = slip.result
-        payload = result.to_dict()
+        from . import signs as _signs
+
+        payload = summary_payload(result)
         source = trace_source or (str(opts["fault"]) if opts.get("fault") else None)
         payload["parameters"].update(
             {
@@ -830,7 +921,7 @@ def run(
             payload["tile_planes_estimate"] = {
                 "note": "the joint adjustment of the planes extracted tile by tile (what "
                 "tiled inputs give); not the headline",
-                **slip.tile_planes.components(),
+                **_signs.relative(slip.tile_planes.components()),
                 "n_planes": {
                     side: int(getattr(slip.tile_planes, side).rigid.n_planes) for side in SIDES
                 },
@@ -852,6 +943,7 @@ def run(
             "strips": strip_columns(slip.strips) if slip.strips is not None else None,
             "strip_points": strip_points(slip.strips, fault) if slip.strips else None,
             "windows": window_bands(slip.windows) if slip.windows is not None else None,
+            "window_motion": window_motion(slip.windows) if slip.windows is not None else None,
         }
         _write(plan, payload, data)
         if progress is not None:
@@ -1030,7 +1122,7 @@ def _write(plan: OutputPlan, payload: Dict[str, Any], data: Dict[str, Any]) -> N
             log.warning("no GeoPackage written: %s", exc)
     if slip.windows is not None:
         try:
-            _write_windows(plan, slip.windows, data["windows"], crs)
+            _write_windows(plan, slip.windows, data, crs)
         except DependencyError as exc:
             log.warning("no window GeoTIFF written: %s", exc)
     images = _figures(plan, slip) if plan.wants("report") else []
@@ -1041,39 +1133,40 @@ def _write(plan: OutputPlan, payload: Dict[str, Any], data: Dict[str, Any]) -> N
         write_html_report(plan.file("report"), "SlipMap fault slip", tables, images, lead=lead)
 
 
-#: report rows of a motion (relative or one side): JSON key -> (label, scale to the unit)
-_MOTION_ROWS = (
-    ("right_lateral_slip", "right-lateral slip (mm)", 1e3),
-    ("fault_parallel", "fault-parallel (mm, + = left-lateral)", 1e3),
-    ("sigma_fault_parallel", "σ fault-parallel (mm)", 1e3),
-    ("sigma_fault_parallel_white", "σ fault-parallel, white noise only (mm)", 1e3),
-    ("fault_normal", "fault-normal (mm)", 1e3),
-    ("sigma_fault_normal", "σ fault-normal (mm)", 1e3),
-    ("horizontal", "horizontal (mm)", 1e3),
-    ("sigma_horizontal", "σ horizontal (mm)", 1e3),
-    ("dx", "dx east (mm)", 1e3),
-    ("sigma_dx", "σ dx (mm)", 1e3),
-    ("dy", "dy north (mm)", 1e3),
-    ("sigma_dy", "σ dy (mm)", 1e3),
-    ("dz", "dz up (mm)", 1e3),
-    ("sigma_dz", "σ dz (mm)", 1e3),
-    ("sigma_dz_white", "σ dz, white noise only (mm)", 1e3),
-    ("rx", "rx (mrad)", 1e3),
-    ("ry", "ry (mrad)", 1e3),
-    ("rz", "rz (mrad)", 1e3),
-    ("sigma_white_dx", "σ dx, white noise only (mm)", 1e3),
-    ("sigma_white_dy", "σ dy, white noise only (mm)", 1e3),
-    ("sigma_white_dz", "σ dz, white noise only (mm)", 1e3),
-    ("n_planes", "matched planes", 1),
-    ("n_points", "points", 1),
-    ("variance_factor", "variance factor", 1),
-    ("iterations", "iterations", 1),
-)
+def _motion_rows_spec(dz_sign: str):
+    """Report rows of a motion (relative or one side): JSON key -> (label, scale to the
+    unit); the signed rows say what + means (:mod:`.signs`)."""
+    return (
+        ("right_lateral", "right-lateral (mm, + = dextral)", 1e3),
+        ("sigma_right_lateral", "σ right-lateral (mm)", 1e3),
+        ("sigma_right_lateral_white", "σ right-lateral, white noise only (mm)", 1e3),
+        ("opening", "opening (mm, + = apart)", 1e3),
+        ("sigma_opening", "σ opening (mm)", 1e3),
+        ("dz", f"dz (mm, {dz_sign})", 1e3),
+        ("sigma_dz", "σ dz (mm)", 1e3),
+        ("sigma_dz_white", "σ dz, white noise only (mm)", 1e3),
+        ("horizontal", "horizontal (mm)", 1e3),
+        ("sigma_horizontal", "σ horizontal (mm)", 1e3),
+        ("dx", "dx (mm, + = east)", 1e3),
+        ("sigma_dx", "σ dx (mm)", 1e3),
+        ("dy", "dy (mm, + = north)", 1e3),
+        ("sigma_dy", "σ dy (mm)", 1e3),
+        ("rx", "rx (mrad)", 1e3),
+        ("ry", "ry (mrad)", 1e3),
+        ("rz", "rz (mrad)", 1e3),
+        ("sigma_white_dx", "σ dx, white noise only (mm)", 1e3),
+        ("sigma_white_dy", "σ dy, white noise only (mm)", 1e3),
+        ("sigma_white_dz", "σ dz, white noise only (mm)", 1e3),
+        ("n_planes", "matched planes", 1),
+        ("n_points", "points", 1),
+        ("variance_factor", "variance factor", 1),
+        ("iterations", "iterations", 1),
+    )
 
 
-def _motion_rows(values: Mapping[str, Any]) -> Dict[str, Any]:
+def _motion_rows(values: Mapping[str, Any], dz_sign: str = "+ = up") -> Dict[str, Any]:
     out = {}
-    for key, label, scale in _MOTION_ROWS:
+    for key, label, scale in _motion_rows_spec(dz_sign):
         v = values.get(key)
         if v is None or isinstance(v, (list, dict, str)):
             continue
@@ -1095,6 +1188,8 @@ def report_tables(payload: Mapping[str, Any], crs=None) -> Tuple[str, Dict[str, 
     """The HTML report's lead sentence and tables, in the units a geodesist reads: the
     result in mm with its σ and model first, then the inputs, the settings used, each side's
     motion (mm, mrad), the stochastic model and, when given, the reference comparison.
+    Every signed value follows :mod:`.signs` and its row says what + means; the sides are
+    named by compass direction.
 
     Parameters
     ----------
@@ -1108,18 +1203,30 @@ def report_tables(payload: Mapping[str, Any], crs=None) -> Tuple[str, Dict[str, 
     (str, dict)
         The lead sentence and ``{title: table}`` for :func:`.report.write_html_report`.
     """
+    from . import signs
+
     rel = payload.get("relative", {})
     params = payload.get("parameters", {})
+    fault = payload.get("fault", {})
+    names = {s: fault.get(f"{s}_side") for s in ("left", "right") if fault.get(f"{s}_side")}
+    if not names:
+        names = signs.side_names(fault.get("strike_deg"))
     model = params.get("stochastic_model", "white")
-    slip, sig = rel.get("right_lateral_slip"), rel.get("sigma_fault_parallel")
+    slip, sig = rel.get("right_lateral_slip"), rel.get("sigma_right_lateral")
     if slip is None or sig is None:
         lead = "No slip estimate."
     else:
-        lead = f"Right-lateral slip {1e3 * slip:.2f} ± {1e3 * sig:.2f} mm (1σ, {model} model)"
-        white = rel.get("sigma_fault_parallel_white")
+        lead = f"Right-lateral slip {1e3 * slip:+.2f} ± {1e3 * sig:.2f} mm (1σ, {model} model)"
+        white = rel.get("sigma_right_lateral_white")
         if white is not None and model != "white":
             lead += f"; white noise alone would claim ± {1e3 * white:.2f} mm"
         lead += "."
+    lead += (
+        f" Signs: + right-lateral = dextral; + opening = the sides move apart; relative dz "
+        f"{signs.dz_meaning(names)} (the {signs.side_label('right', names)} of the trace as "
+        "digitised); each side's right-lateral and opening are its own motion in the same "
+        "sense (left + right = relative)."
+    )
     inputs = {
         "before epoch": Path(str(params.get("before", ""))).name or None,
         "after epoch": Path(str(params.get("after", ""))).name or None,
@@ -1129,7 +1236,7 @@ def report_tables(payload: Mapping[str, Any], crs=None) -> Tuple[str, Dict[str, 
     for side in ("left", "right"):
         n = payload.get(side, {}).get("n_points")
         if n is not None:
-            inputs[f"points used, {side} side (both epochs)"] = n
+            inputs[f"points used, {signs.side_label(side, names)} (both epochs)"] = n
     settings: Dict[str, Any] = {
         "headline estimate": payload.get("headline"),
         "buffer around the trace (m)": params.get("buffer_m"),
@@ -1149,13 +1256,17 @@ def report_tables(payload: Mapping[str, Any], crs=None) -> Tuple[str, Dict[str, 
             settings[key.replace("_", " ")] = ", ".join(
                 f"{k} {v}" for k, v in dict(params[key]).items()
             )
+    right, left = signs.side_label("right", names), signs.side_label("left", names)
     tables: Dict[str, Any] = {
-        "Result: relative motion of the right side against the left": _motion_rows(rel),
+        f"Result: relative motion of the {right} against the {left}": _motion_rows(
+            rel, signs.dz_meaning(names)
+        ),
         "Inputs": inputs,
         "Settings": {k: v for k, v in settings.items() if v is not None},
     }
     for side in ("left", "right"):
-        tables[f"{side.capitalize()} side: after against before"] = _motion_rows(
+        title = signs.side_label(side, names)
+        tables[f"{title[0].upper()}{title[1:]}: after against before"] = _motion_rows(
             payload.get(side, {})
         )
     tables.update(stochastic_tables(dict(payload)))
@@ -1195,10 +1306,12 @@ def _write_layers(path: Path, result, data: Dict[str, Any], crs) -> None:
     write_gpkg_layers(path, layers, crs=crs, styles=gpkg_styles("slip", layers))
 
 
-def _write_windows(plan: OutputPlan, w, bands: np.ndarray, crs) -> None:
-    """``windows`` (7 bands) and ``windows_dx`` / ``windows_dy`` (value and σ): north-up, one
-    pixel per window centre."""
+def _write_windows(plan: OutputPlan, w, data: Dict[str, Any], crs) -> None:
+    """``windows`` (:data:`WINDOW_BANDS`) and ``windows_dx`` / ``windows_dy`` (value and σ):
+    north-up, one pixel per window centre, each window's own motion; the metadata states the
+    sign convention."""
     from ..core.io.raster import write_geotiff
+    from . import signs
     from .styles import write_raster_style
 
     half = 0.5 * w.step_m
@@ -1206,19 +1319,30 @@ def _write_windows(plan: OutputPlan, w, bands: np.ndarray, crs) -> None:
         origin_xy=(w.x0 - half, w.y0 + half),
         pixel_size_m=w.step_m,
         crs_wkt=crs.to_wkt() if crs is not None else None,
-        metadata={"SLIPMAP_WINDOW_SIZE_M": f"{w.window_size_m:g}"},
+        metadata={
+            "SLIPMAP_WINDOW_SIZE_M": f"{w.window_size_m:g}",
+            "SLIPMAP_SIGN_CONVENTION": signs.CONVENTION,
+            "SLIPMAP_MOTION": "each window's own motion (first to second epoch), metres",
+        },
     )
     if plan.wants("windows"):
-        write_geotiff(plan.file("windows"), bands, band_names=list(WINDOW_BANDS), **common)
-    for name, band, sig in (("dx", w.dx, w.sigma_dx), ("dy", w.dy, w.sigma_dy)):
+        write_geotiff(
+            plan.file("windows"), data["windows"], band_names=list(WINDOW_BANDS), **common
+        )
+    m = data["window_motion"]
+    for name in ("dx", "dy"):
         if plan.wants(f"windows_{name}"):
             write_geotiff(
                 plan.file(f"windows_{name}"),
-                np.stack([band, sig]).astype(np.float64),
-                band_names=[f"{name}_m (relative to the left side)", f"sigma_{name}_m"],
+                np.stack([m[name], m[f"sigma_{name}"]]).astype(np.float64),
+                band_names=[f"{name}_m", f"sigma_{name}_m"],
                 **common,
             )
-    for key, values in (("windows", bands[0]), ("windows_dx", w.dx), ("windows_dy", w.dy)):
+    for key, values in (
+        ("windows", data["windows"][0]),
+        ("windows_dx", m["dx"]),
+        ("windows_dy", m["dy"]),
+    ):
         write_raster_style(plan, "slip", key, values)  # the .qml QGIS opens the raster with
 
 
@@ -1260,13 +1384,17 @@ def _figures(plan: OutputPlan, slip: SlipRun) -> List[str]:
             )
             written.append("figure_plane_residuals")
         if slip.strips and plan.wants("figure_strips"):
+            from . import signs
+
             st = slip.strips
+            motions = [signs.strip_motion(s) or {} for s in st]
             report.plot_strip_profile(
                 plan.file("figure_strips"),
                 [s.along_centre_m for s in st],
-                [s.fault_parallel for s in st],
-                [s.sigma_fault_parallel for s in st],
+                [m.get("right_lateral", np.nan) for m in motions],
+                [m.get("sigma_right_lateral", np.nan) for m in motions],
                 [s.side for s in st],
+                side_names=signs.side_names(np.degrees(result.strike_rad) % 360.0),
             )
             written.append("figure_strips")
     except DependencyError as exc:

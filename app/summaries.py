@@ -70,19 +70,25 @@ def horizontal(dx, dy) -> Tuple[np.ndarray, np.ndarray]:
 
 
 def strip_rows(strips: Iterable) -> List[Dict[str, Any]]:
-    """One JSON row per :class:`~slipmap.core.displacement.StripResult`."""
-    return [
-        {
-            "side": st.side,
-            "along_start_m": st.along_start_m,
-            "along_end_m": st.along_end_m,
-            "n_planes": int(st.n_planes),
-            "fault_parallel": finite(st.fault_parallel),
-            "sigma_fault_parallel": finite(st.sigma_fault_parallel),
-            "status": st.status,
-        }
-        for st in strips
-    ]
+    """One JSON row per :class:`~slipmap.core.displacement.StripResult`: the strip's own
+    motion in the sign convention of :mod:`.signs` (``right_lateral`` + = dextral on either
+    side, ``opening`` + = away from the trace, ``dz`` + = up; metres; null when skipped)."""
+    from . import signs
+
+    rows = []
+    for st in strips:
+        m = signs.strip_motion(st) or {}
+        rows.append(
+            {
+                "side": st.side,
+                "along_start_m": st.along_start_m,
+                "along_end_m": st.along_end_m,
+                "n_planes": int(st.n_planes),
+                **{k: finite(m[k]) if m else None for k in signs.KEYS},
+                "status": st.status,
+            }
+        )
+    return rows
 
 
 def icp_summary(res) -> Dict[str, Any]:
@@ -185,31 +191,56 @@ def side_component_line(side: str, side_dict: Dict[str, Any]) -> Optional[str]:
     return head + "; " + "; ".join(comps)
 
 
+def _fmt_signed_mm(value, digits: int = 2) -> str:
+    v = _mm(value)
+    return "n/a" if v is None else f"{v:+.{digits}f}"
+
+
 def slip_summary_lines(payload: Dict[str, Any]) -> List[str]:
-    """Console summary of a slip payload: each relative component ± its σ (the model's) with
-    the white-noise σ beside it, the right-lateral slip, then one line per side with the
-    variance components and n_eff (stochastic models)."""
+    """Console summary of a slip payload (:func:`slipmap.app.slip.summary_payload`), in the
+    sign convention of :mod:`.signs`: the relative motion of the right side (named by compass
+    direction) against the left, each component ± its σ (the model's) with the white-noise σ
+    beside it, what + means, the right-lateral slip, then one line per side with its own
+    right-lateral motion, and with the variance components and n_eff (stochastic models)."""
+    from . import signs
+
     rel = payload["relative"]
     model = slip_model(payload)
+    fault = payload.get("fault") or {}
+    names = {s: fault[f"{s}_side"] for s in ("left", "right") if fault.get(f"{s}_side")}
 
     def pm(value, sigma, white=None) -> str:
-        text = f"{_fmt_mm(value):>8} ± {_fmt_mm(sigma)} mm"
+        text = f"{_fmt_signed_mm(value):>8} ± {_fmt_mm(sigma)} mm"
         if model != "white" and white is not None:
             text += f"   (white noise only ± {_fmt_mm(white)} mm)"
         return text
 
+    right, left = signs.side_label("right", names), signs.side_label("left", names)
     lines = [
-        f"relative displacement (right − left), stochastic model {model}:",
-        "  fault-parallel "
+        f"relative motion of the {right} against the {left}, stochastic model {model}:",
+        "  right-lateral  "
         + pm(
-            rel["fault_parallel"],
-            rel["sigma_fault_parallel"],
-            rel.get("sigma_fault_parallel_white"),
-        ),
-        "  fault-normal   " + pm(rel["fault_normal"], rel["sigma_fault_normal"]),
-        "  vertical       " + pm(rel["dz"], rel["sigma_dz"], rel.get("sigma_dz_white")),
-        f"  right-lateral slip {_fmt_mm(rel['right_lateral_slip'])} mm",
+            rel["right_lateral"],
+            rel["sigma_right_lateral"],
+            rel.get("sigma_right_lateral_white"),
+        )
+        + "   (+ = dextral)",
+        "  opening        " + pm(rel["opening"], rel["sigma_opening"]) + "   (+ = apart)",
+        "  dz             "
+        + pm(rel["dz"], rel["sigma_dz"], rel.get("sigma_dz_white"))
+        + f"   ({signs.dz_meaning(names)})",
+        f"  right-lateral slip {_fmt_signed_mm(rel['right_lateral_slip'])} ± "
+        f"{_fmt_mm(rel['sigma_right_lateral'])} mm",
     ]
+    for side in ("left", "right"):
+        sd = payload.get(side) or {}
+        if sd.get("right_lateral") is not None:
+            lines.append(
+                f"  {signs.side_label(side, names)} moved: right-lateral "
+                f"{_fmt_signed_mm(sd['right_lateral'])} ± {_fmt_mm(sd.get('sigma_right_lateral'))}"
+                f" mm, opening {_fmt_signed_mm(sd.get('opening'))} mm, dz "
+                f"{_fmt_signed_mm(sd.get('dz'))} mm"
+            )
     for side in ("left", "right"):
         line = side_component_line(side, payload.get(side) or {})
         if line is not None:
@@ -220,7 +251,7 @@ def slip_summary_lines(payload: Dict[str, Any]) -> List[str]:
 def stochastic_tables(payload: Dict[str, Any]) -> Dict[str, Any]:
     """The report's tables of the stochastic model (``write_html_report`` ``tables``):
 
-    * "Stochastic model": the model, the fault-parallel and vertical σ of the model and of the
+    * "Stochastic model": the model, the right-lateral and vertical σ of the model and of the
       white model, and per side n_planes, n_eff, the spatial range and the notes;
     * "Stochastic model: components per side" (rows): side, component, σ (mm), sd (mm),
       source, notes;
@@ -229,9 +260,9 @@ def stochastic_tables(payload: Dict[str, Any]) -> Dict[str, Any]:
     rel = payload["relative"]
     model = slip_model(payload)
     head: Dict[str, Any] = {"model": model}
-    head["σ fault-parallel (mm)"] = _mm(rel.get("sigma_fault_parallel"))
+    head["σ right-lateral (mm)"] = _mm(rel.get("sigma_right_lateral"))
     if model != "white":
-        head["σ fault-parallel, white noise only (mm)"] = _mm(rel.get("sigma_fault_parallel_white"))
+        head["σ right-lateral, white noise only (mm)"] = _mm(rel.get("sigma_right_lateral_white"))
     head["σ vertical (mm)"] = _mm(rel.get("sigma_dz"))
     if model != "white":
         head["σ vertical, white noise only (mm)"] = _mm(rel.get("sigma_dz_white"))
@@ -325,13 +356,13 @@ def plane_fields(side) -> Dict[str, np.ndarray]:
 
 def stochastic_outputs(payload: Dict[str, Any]) -> Dict[str, Any]:
     """Compact per-side components ``{side: {"n_eff", "spatial_range_m", name: sigma_m, …}}``
-    and the model's and white σ of the fault-parallel slip, for outputs that hold one value
+    and the model's and white σ of the right-lateral slip, for outputs that hold one value
     (QGIS outputs, PDAL metadata)."""
     rel = payload["relative"]
     out: Dict[str, Any] = {
         "model": slip_model(payload),
-        "sigma_fault_parallel": rel.get("sigma_fault_parallel"),
-        "sigma_fault_parallel_white": rel.get("sigma_fault_parallel_white"),
+        "sigma_right_lateral": rel.get("sigma_right_lateral"),
+        "sigma_right_lateral_white": rel.get("sigma_right_lateral_white"),
     }
     for side in ("left", "right"):
         vc = (payload.get(side) or {}).get("variance_components")

@@ -1322,6 +1322,12 @@ class WindowField:
         The trace's mean strike, radians (the direction of :attr:`fault_parallel`).
     sigma_fault_parallel : (ny, nx) float64 or None
         1σ of :attr:`fault_parallel` from the window's relative covariance, metres.
+    covariance : (ny, nx, 3, 3) float64 or None
+        Covariance of each window's OWN displacement (before the left side's global
+        displacement is subtracted), m²; NaN where the window was not adjusted.
+    reference_m : (3,) float64 or None
+        The left side's global displacement subtracted from ``dx``, ``dy``, ``dz``, metres:
+        a window's own motion is ``(dx, dy, dz) + reference_m``.
     """
 
     x0: float
@@ -1337,6 +1343,8 @@ class WindowField:
     side: np.ndarray
     strike_rad: float = math.nan
     sigma_fault_parallel: Optional[np.ndarray] = None
+    covariance: Optional[np.ndarray] = None
+    reference_m: Optional[np.ndarray] = None
 
     @property
     def fault_parallel(self) -> np.ndarray:
@@ -1494,6 +1502,7 @@ def window_field(
         for k in ("dx", "dy", "dz", "sigma_dx", "sigma_dy", "sigma_fault_parallel")
     }
     jp = _strike_vector(slip)
+    own_cov = np.full(shape + (3, 3), np.nan)
     nplanes = np.zeros(shape, dtype=np.int64)
     ref_d, ref_c = slip.left.displacement, slip.left.displacement_covariance
     half = size / 2
@@ -1545,6 +1554,7 @@ def window_field(
                 continue
             rel_c = _difference_covariance(cov, ref_c, SIDES[(s + 1) // 2], stochastic)
             out["dx"][r, c], out["dy"][r, c], out["dz"][r, c] = disp
+            own_cov[r, c] = cov
             out["sigma_dx"][r, c] = math.sqrt(max(rel_c[0, 0], 0.0))
             out["sigma_dy"][r, c] = math.sqrt(max(rel_c[1, 1], 0.0))
             out["sigma_fault_parallel"][r, c] = math.sqrt(max(float(jp @ rel_c @ jp), 0.0))
@@ -1564,5 +1574,7 @@ def window_field(
         n_planes=nplanes,
         side=cside.astype(np.int8),
         strike_rad=float(slip.strike_rad),
+        covariance=own_cov,
+        reference_m=np.array(ref_d, dtype=np.float64),
         **out,
     )

@@ -3,7 +3,9 @@
 The two epochs arrive as one point view, tagged by an epoch dimension (``Epoch``: 1 = before,
 2 = after, e.g. from ``filters.assign`` on each reader followed by ``filters.merge``).
 :func:`slipmap.app.slip.compute` registers each side of the fault trace between the epochs;
-the summary (``SlipResult.to_dict()``) goes to ``out_metadata`` and every point gets, from the
+the summary (:func:`slipmap.app.slip.summary_payload`: ``right_lateral`` + = dextral,
+``opening`` + = apart, ``dz`` + = the right side up; docs/methods.md "Sign convention") goes to
+``out_metadata`` and every point gets, from the
 result (:meth:`slipmap.core.displacement.SlipResult.point_planes`):
 
 * ``PlaneId`` (int32): its plane in its own epoch's segmentation of its own side (ids are per
@@ -29,6 +31,7 @@ import os
 import numpy as np
 
 from slipmap.app import slip as job
+from slipmap.app.signs import CONVENTION
 from slipmap.pdal_filters import _stage
 from slipmap.pdal_filters._stage import Option, OptionTable
 
@@ -36,6 +39,14 @@ STAGE = "slipmap displacement"
 SPEC = job.SPEC
 OUTPUTS = {"PlaneId": "int32", "Residual": "float64"}
 EPOCHS = ("before", "after")
+#: the sign convention (slipmap.app.signs), stated in the stage's metadata
+SIGNS = "signs: " + CONVENTION
+_MEANING = {
+    "right_lateral_slip": "metres, + = right-lateral (dextral)",
+    "right_lateral": "metres, + = right-lateral (dextral)",
+    "opening": "metres, + = the sides move apart",
+    "dz": "metres, + = the right side of the trace (as digitised) up",
+}
 log = logging.getLogger(__name__)
 
 
@@ -172,31 +183,31 @@ def run(ins, outs, *, opts, inputs):
         labels[ix], residual[ix] = lab, r
     _stage.set_output(outs, "PlaneId", labels, np.int32, n, STAGE)
     _stage.set_output(outs, "Residual", residual, np.float64, n, STAGE)
-    summary = res.to_dict()
+    summary = job.summary_payload(res)
     summary["parameters"]["acquisition_unit_sources"] = record
     rel = summary["relative"]
-    slip_m, sig = rel.get("right_lateral_slip"), rel.get("sigma_fault_parallel")
+    slip_m, sig = rel.get("right_lateral_slip"), rel.get("sigma_right_lateral")
     headline = (
-        f"right-lateral slip {1e3 * slip_m:.2f} ± {1e3 * sig:.2f} mm"
+        f"right-lateral slip {1e3 * slip_m:+.2f} ± {1e3 * sig:.2f} mm (+ = dextral)"
         if slip_m is not None and sig is not None and np.isfinite(slip_m) and np.isfinite(sig)
         else "no slip estimate"
     )
     return _stage.stage_node(
         "displacement",
-        "SlipMap relative displacement across the fault (right minus left), metres",
+        "SlipMap relative displacement across the fault (right minus left), metres; " + SIGNS,
         [
-            _stage.metadata_node("headline", headline, "fault-parallel slip ± 1 sigma"),
-            *(_stage.metadata_node(k, v) for k, v in rel.items()),
+            _stage.metadata_node("headline", headline, "right-lateral slip ± 1 sigma"),
+            *(_stage.metadata_node(k, v, _MEANING.get(k, "")) for k, v in rel.items()),
             _stage.metadata_node("stochastic_model", o["stochastic_model"], "white, plane or full"),
             _stage.metadata_node(
                 "variance_components",
                 stochastic_outputs(summary),
                 "per side: n_eff, the spatial range and each component's sigma (m) and "
-                "source; the fault-parallel sigma of the model and of the white model",
+                "source; the right-lateral sigma of the model and of the white model",
             ),
             _stage.metadata_node(
                 "acquisition_units", record, "per epoch: where the units came from and how many"
             ),
-            _stage.metadata_node("summary", summary, "SlipResult.to_dict()"),
+            _stage.metadata_node("summary", summary, "displacement.json's summary"),
         ],
     )

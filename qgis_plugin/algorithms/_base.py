@@ -898,7 +898,7 @@ def symmetric_limits(layer, band=1, *, scale=1.0, unit="", ends=None):
     colour stop by ``m / old_max`` keeps white at 0 for the layer's own range. Every colour
     stop and the continuous legend's end labels then read the values they stand for
     (:func:`value_label`; ``ends`` appended to the low and high end's label, e.g.
-    ``("right-lateral", "left-lateral")``). Returns m (None when the renderer is not
+    ``("left-lateral", "right-lateral")``). Returns m (None when the renderer is not
     pseudocolor or the band has no finite value).
     """
     import math

@@ -77,13 +77,23 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             "a JSON summary and an HTML report beside it (tables, plots); Matched planes "
             "(before-epoch centroids: side, plane ids, normal, weight 1 full / below 1 "
             "down-weighted / 0 rejected, w_test, offset_mm, misclosure_mm); Tiles (polygons) "
-            "and Strips (points on the trace), each with its motion dx, dy, dz, fault_parallel, "
-            "fault_normal and their sigmas in m, status; Moving windows (GeoTIFF, one pixel per "
-            "window, bands " + ", ".join(job.WINDOW_BANDS) + ", relative to the left side); "
+            "and Strips (points on the trace), each with its own motion right_lateral, opening, "
+            "dz, dx, dy and their sigmas in m, status; Moving windows (GeoTIFF, one pixel per "
+            "window, bands " + ", ".join(job.WINDOW_BANDS) + ", each window's own motion); "
             "the right-lateral slip and its sigma (m, the model's and the white-noise one), "
             "n_eff per side and the variance components.",
             sections=[
                 ("Point accuracy models (one per epoch)", PA_HELP),
+                (
+                    "Sign convention",
+                    "right_lateral + = right-lateral (dextral) shear, whatever direction the "
+                    "trace was digitised in: the slip of the right side against the left, and "
+                    "on each side's tiles, strips and windows that side's own motion in the "
+                    "same sense (a left and a right value add up to the slip); opening + = the "
+                    "sides move apart; dz + = up (the slip: the right side of the trace as "
+                    "digitised up; the report names it by compass direction). See "
+                    "docs/methods.md, 'Sign convention'.",
+                ),
                 (
                     "Stochastic model",
                     "white = independent point errors (the study's; too small a sigma for "
@@ -92,8 +102,9 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
                 ),
                 (
                     "Colours",
-                    "red = right-lateral, blue = left-lateral, white = 0 on Tiles, Strips and "
-                    "Moving windows; ramps span plus and minus the largest value.",
+                    "red = right-lateral (+), blue = left-lateral (-), white = 0 on Tiles, "
+                    "Strips and Moving windows (right_lateral, band right_lateral_m); ramps "
+                    "span plus and minus the largest value.",
                 ),
             ],
             citation=job.SPEC.citation + "; point accuracy: section II.E, Glennie (2007), "
@@ -137,12 +148,12 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
         self.addOutput(QgsProcessingOutputHtml("REPORT", "Report"))
         self.addOutput(QgsProcessingOutputNumber("RIGHT_LATERAL_SLIP", "Right-lateral slip (m)"))
         self.addOutput(
-            QgsProcessingOutputNumber("SIGMA_FAULT_PARALLEL", "Sigma of fault-parallel slip (m)")
+            QgsProcessingOutputNumber("SIGMA_RIGHT_LATERAL", "Sigma of the right-lateral slip (m)")
         )
         self.addOutput(
             QgsProcessingOutputNumber(
-                "SIGMA_FAULT_PARALLEL_WHITE",
-                "Sigma of fault-parallel slip under the white-noise model (m)",
+                "SIGMA_RIGHT_LATERAL_WHITE",
+                "Sigma of the right-lateral slip under the white-noise model (m)",
             )
         )
         self.addOutput(QgsProcessingOutputString("STOCHASTIC_MODEL", "Stochastic model"))
@@ -263,21 +274,21 @@ class DisplacementAlgorithm(SlipMapAlgorithm):
             )
         if outputs["windows"] and "windows" in result.files:
             results["WINDOWS"] = outputs["windows"]
-            apply_diverging_style_on_load(  # red: the right-lateral sense, as tiles and strips
+            apply_diverging_style_on_load(  # + = right-lateral (red), as tiles and strips
                 context,
                 results["WINDOWS"],
                 "slip_windows",
                 scale=1000.0,
                 unit="mm",
-                ends=("right-lateral", "left-lateral"),
+                ends=("left-lateral", "right-lateral"),
             )
         rel = payload["relative"]
         stoch = stochastic_outputs(payload)
         results["RIGHT_LATERAL_SLIP"] = rel["right_lateral_slip"]
-        results["SIGMA_FAULT_PARALLEL"] = rel["sigma_fault_parallel"]
-        white = rel.get("sigma_fault_parallel_white")  # the white model's σ is its own σ
-        results["SIGMA_FAULT_PARALLEL_WHITE"] = (
-            rel["sigma_fault_parallel"] if white is None else white
+        results["SIGMA_RIGHT_LATERAL"] = rel["sigma_right_lateral"]
+        white = rel.get("sigma_right_lateral_white")  # the white model's σ is its own σ
+        results["SIGMA_RIGHT_LATERAL_WHITE"] = (
+            rel["sigma_right_lateral"] if white is None else white
         )
         results["STOCHASTIC_MODEL"] = stoch["model"]
         for side in ("left", "right"):

@@ -8,22 +8,23 @@ from slipmap.app.slip import report_tables
 
 
 def _payload(model="full"):
-    rel = {
+    rel = {  # the sign convention (app/signs.py): right_lateral + = dextral
         "right_lateral_slip": 0.0181,
-        "fault_parallel": -0.0181,
-        "sigma_fault_parallel": 0.0004,
+        "right_lateral": 0.0181,
+        "sigma_right_lateral": 0.0004,
         "dx": 0.001,
         "sigma_dx": 0.0005,
         "dz": -0.002,
         "sigma_dz": 0.0006,
     }
     if model != "white":
-        rel["sigma_fault_parallel_white"] = 0.0001
+        rel["sigma_right_lateral_white"] = 0.0001
     side = {"dx": 0.002, "rx": 1.5e-5, "n_planes": 22, "n_points": 1000, "variance_factor": 0.97}
     return {
         "relative": rel,
         "left": side,
         "right": dict(side, n_points=900),
+        "fault": {"strike_deg": 0.0, "left_side": "west", "right_side": "east"},
         "parameters": {
             "before": "/data/epochs/before.laz",
             "after": "/data/epochs/after.laz",
@@ -39,27 +40,29 @@ def _payload(model="full"):
 
 def test_lead_is_the_slip_in_mm_with_sigma_and_model():
     lead, _ = report_tables(_payload())
-    assert lead == (
-        "Right-lateral slip 18.10 ± 0.40 mm (1σ, full model); white noise alone would claim "
-        "± 0.10 mm."
+    assert lead.startswith(
+        "Right-lateral slip +18.10 ± 0.40 mm (1σ, full model); white noise alone would claim "
+        "± 0.10 mm. Signs: + right-lateral = dextral; + opening = the sides move apart; "
+        "relative dz + = east side up (the right (east) side of the trace as digitised)"
     )
     lead, _ = report_tables(_payload("white"))
-    assert lead == "Right-lateral slip 18.10 ± 0.40 mm (1σ, white model)."
+    assert lead.startswith("Right-lateral slip +18.10 ± 0.40 mm (1σ, white model). Signs: ")
 
 
 def test_tables_carry_units_inputs_and_settings():
     _, tables = report_tables(_payload(), pyproj.CRS.from_epsg(32610))
-    res = tables["Result: relative motion of the right side against the left"]
-    assert res["right-lateral slip (mm)"] == pytest.approx(18.1)
-    assert res["σ fault-parallel (mm)"] == pytest.approx(0.4)
-    assert res["dz up (mm)"] == pytest.approx(-2.0)
+    res = tables["Result: relative motion of the right (east) side against the left (west) side"]
+    assert res["right-lateral (mm, + = dextral)"] == pytest.approx(18.1)
+    assert res["σ right-lateral (mm)"] == pytest.approx(0.4)
+    assert res["dz (mm, + = east side up)"] == pytest.approx(-2.0)
     assert all("(" in k for k in res)  # every motion row names its unit
-    left = tables["Left side: after against before"]
+    assert not [k for k in res if "fault" in k]
+    left = tables["Left (west) side: after against before"]
     assert left["rx (mrad)"] == pytest.approx(0.015) and left["points"] == 1000
     inputs = tables["Inputs"]
     assert inputs["before epoch"] == "before.laz" and inputs["fault trace"] == "fault.gpkg"
     assert inputs["CRS"] == "WGS 84 / UTM zone 10N"
-    assert inputs["points used, right side (both epochs)"] == 900
+    assert inputs["points used, right (east) side (both epochs)"] == 900
     settings = tables["Settings"]
     assert settings["buffer around the trace (m)"] == 10.0
     assert settings["point accuracy, before"] == "model constant, sigma 0.02"
@@ -72,5 +75,5 @@ def test_html_report_shows_the_lead_first(tmp_path):
     lead, tables = report_tables(_payload())
     path = write_html_report(tmp_path / "r.html", "SlipMap fault slip", tables, [], lead=lead)
     text = path.read_text(encoding="utf-8")
-    assert text.index("Right-lateral slip 18.10 ± 0.40 mm") < text.index("<table>")
+    assert text.index("Right-lateral slip +18.10 ± 0.40 mm") < text.index("<table>")
     assert "e-0" not in text  # numbers for reading, no exponent

@@ -95,7 +95,7 @@ def _same(got, ref):
     """Tiled inputs' headline equals the one-file run's estimate on planes extracted tile by
     tile (recorded beside its headline, which is the whole side's: tiles there are a map)."""
     tiles = ref["tile_planes_estimate"]
-    for key in ("right_lateral_slip", "sigma_fault_parallel"):
+    for key in ("right_lateral_slip", "right_lateral", "sigma_right_lateral"):
         g, r = got["relative"][key], tiles[key]
         assert abs(g - r) <= REL * abs(r), (key, g, r)
     for side in ("left", "right"):
@@ -119,6 +119,14 @@ def test_folder_and_glob_equal_one_file(epochs, whole, tmp_path, capsys):
         names = {p.name for p in out.iterdir()}
         assert {"displacement.json", "displacement.gpkg", "report.html"} <= names
         assert "residuals.png" not in names  # no per-point residuals from tiles
+        # the tiles in the sign convention: each tile's own motion, + = dextral; the right
+        # (east) side moved 18.1 mm south, the left side not at all
+        tiles = [t for t in got["tiles"] if t["status"] == "ok"]
+        assert not [k for t in tiles for k in t if "fault" in k]
+        for t in tiles:
+            truth = 0.0181 if t["side"] == "right" else 0.0
+            assert abs(t["right_lateral"] - truth) < 4 * t["sigma_right_lateral"] + 0.002, t
+        assert got["fault"]["right_side"] == "east"
 
 
 def test_two_dask_workers_equal_one_file(epochs, whole, tmp_path, capsys):

@@ -83,13 +83,14 @@ def test_displacement_outputs_match_core(files, tmp_path):
     for key in (
         "horizontal",
         "sigma_horizontal",
-        "fault_parallel",
-        "sigma_fault_parallel",
-        "fault_normal",
-        "sigma_fault_normal",
+        "right_lateral",
+        "sigma_right_lateral",
+        "opening",
+        "sigma_opening",
         "right_lateral_slip",
     ):
         assert key in js["relative"]
+    assert not [k for k in js["relative"] if k.startswith(("fault_", "sigma_fault_"))]
     assert js["fault"]["buffer_m"] == 10.0
     # the same numbers as the core on the same points: the stored (1 mm quantised)
     # coordinates, ground excluded as the CLI does
@@ -111,12 +112,12 @@ def test_displacement_outputs_match_core(files, tmp_path):
     assert js["relative"]["right_lateral_slip"] == pytest.approx(
         core["right_lateral_slip"], abs=1e-9
     )
-    assert js["relative"]["sigma_fault_parallel"] == pytest.approx(
+    assert js["relative"]["sigma_right_lateral"] == pytest.approx(
         core["sigma_fault_parallel"], rel=1e-3
     )
     # the default full model: components per side, the white σ beside the model's
     assert js["parameters"]["stochastic_model"] == "full"
-    assert 0 < js["relative"]["sigma_fault_parallel_white"] < js["relative"]["sigma_fault_parallel"]
+    assert 0 < js["relative"]["sigma_right_lateral_white"] < js["relative"]["sigma_right_lateral"]
     for side in ("left", "right"):
         vc = js[side]["variance_components"]
         assert vc["model"] == "full" and 1.0 <= vc["n_eff"] <= vc["n_planes"]
@@ -173,9 +174,9 @@ def test_default_demo_recovers_the_slip(tmp_path, capsys):
     js = json.loads((out / "displacement.json").read_text())
     rel = js["relative"]
     err = rel["right_lateral_slip"] - 0.0181
-    assert abs(err) < 3 * rel["sigma_fault_parallel"]
+    assert abs(err) < 3 * rel["sigma_right_lateral"]
     assert abs(err) < 0.006  # a few mm of drift, not a blunder
-    assert rel["sigma_fault_parallel_white"] < 0.25 * rel["sigma_fault_parallel"]
+    assert rel["sigma_right_lateral_white"] < 0.25 * rel["sigma_right_lateral"]
     acq = js["parameters"]["acquisition_unit_sources"]
     for epoch in ("before", "after"):
         assert acq[epoch]["source"] == "PointSourceId" and acq[epoch]["n_units"] > 1
@@ -202,7 +203,8 @@ def test_tiles_strips_and_windows_outputs(files, tmp_path):
     js = json.loads((out / "displacement.json").read_text())
     assert abs(js["relative"]["right_lateral_slip"] - 0.0181) < 0.001
     right = [s for s in js["strips"] if s["side"] == "right" and s["status"] == "ok"]
-    assert right and all(abs(s["fault_parallel"] + 0.0181) < 0.002 for s in right)
+    # each strip's own motion, + = dextral: the right (east) side moved 18.1 mm south
+    assert right and all(abs(s["right_lateral"] - 0.0181) < 0.002 for s in right)
     geoms, fields = read_gpkg_layer(out / "displacement.gpkg", "tiles")
     assert len(geoms) >= 4 and {"dx", "sigma_dx", "side", "n_planes"} <= set(fields)
     assert len(read_gpkg_layer(out / "displacement.gpkg", "strips")[0]) == len(js["strips"])
@@ -377,8 +379,8 @@ def test_units_auto_reads_point_source_id(drift_files, tmp_path, capsys):
     comp = core.components()
     rel = js["relative"]
     assert rel["right_lateral_slip"] == pytest.approx(comp["right_lateral_slip"], abs=1e-9)
-    assert rel["sigma_fault_parallel"] == pytest.approx(comp["sigma_fault_parallel"], rel=1e-6)
-    assert rel["sigma_fault_parallel_white"] == pytest.approx(
+    assert rel["sigma_right_lateral"] == pytest.approx(comp["sigma_fault_parallel"], rel=1e-6)
+    assert rel["sigma_right_lateral_white"] == pytest.approx(
         comp["sigma_fault_parallel_white"], rel=1e-6
     )
     acq = js["parameters"]["acquisition_unit_sources"]
@@ -451,11 +453,11 @@ def test_units_none_and_white_model(drift_files, tmp_path, capsys):
     js = json.loads((out / "displacement.json").read_text())
     assert js["parameters"]["stochastic_model"] == "white"
     assert "variance_components" not in js["left"]
-    assert "sigma_fault_parallel_white" not in js["relative"]
+    assert "sigma_right_lateral_white" not in js["relative"]
     assert "units option (GpsTime) is not used by the white model" in logs
     assert "white noise only" not in logs
     core, _, _ = _core_on_files(fault, paths, stochastic_model="white")
-    assert js["relative"]["sigma_fault_parallel"] == pytest.approx(
+    assert js["relative"]["sigma_right_lateral"] == pytest.approx(
         core.components()["sigma_fault_parallel"], rel=1e-6
     )
 

@@ -130,21 +130,22 @@ def _payload(model="full"):
             "spatial_range_m": 31.6,
             "notes": [],
         }
-    rel = {
-        "fault_parallel": -0.01586,
-        "sigma_fault_parallel": 0.00285,
-        "fault_normal": 0.00006,
-        "sigma_fault_normal": 0.0029,
+    rel = {  # the sign convention (app/signs.py)
+        "right_lateral": 0.01586,
+        "sigma_right_lateral": 0.00285,
+        "opening": 0.00006,
+        "sigma_opening": 0.0029,
         "dz": 0.00368,
         "sigma_dz": 0.00306,
         "right_lateral_slip": 0.01586,
     }
     if model != "white":
-        rel.update(sigma_fault_parallel_white=0.000142, sigma_dz_white=0.000338)
+        rel.update(sigma_right_lateral_white=0.000142, sigma_dz_white=0.000338)
     return {
         "relative": rel,
         "left": side,
         "right": dict(side),
+        "fault": {"strike_deg": 0.0, "left_side": "west", "right_side": "east"},
         "parameters": {
             "stochastic_model": model,
             "acquisition_unit_sources": {
@@ -160,10 +161,18 @@ def test_slip_summary_lines_known_answer():
     from slipmap.app.summaries import slip_summary_lines
 
     lines = slip_summary_lines(_payload())
-    assert lines[0] == "relative displacement (right − left), stochastic model full:"
-    assert lines[1] == "  fault-parallel   -15.86 ± 2.85 mm   (white noise only ± 0.14 mm)"
-    assert lines[2] == "  fault-normal       0.06 ± 2.90 mm"
-    assert lines[4] == "  right-lateral slip 15.86 mm"
+    assert lines[0] == (
+        "relative motion of the right (east) side against the left (west) side, "
+        "stochastic model full:"
+    )
+    assert lines[1] == (
+        "  right-lateral    +15.86 ± 2.85 mm   (white noise only ± 0.14 mm)   (+ = dextral)"
+    )
+    assert lines[2] == "  opening           +0.06 ± 2.90 mm   (+ = apart)"
+    assert lines[3] == (
+        "  dz                +3.68 ± 3.06 mm   (white noise only ± 0.34 mm)   (+ = east side up)"
+    )
+    assert lines[4] == "  right-lateral slip +15.86 ± 2.85 mm"
     assert lines[5] == (
         "  left side: 20 planes, n_eff 12.3; white 19.90 mm (estimated, σ0² 0.99); "
         "plane 1.20 mm (sd 0.30, estimated); spatial 2.50 mm (sd 0.60, estimated, range 32 m); "
@@ -180,8 +189,8 @@ def test_stochastic_tables_and_html(tmp_path):
     tables = stochastic_tables(_payload())
     head = tables["Stochastic model"]
     assert head["model"] == "full"
-    assert head["σ fault-parallel (mm)"] == pytest.approx(2.85)
-    assert head["σ fault-parallel, white noise only (mm)"] == pytest.approx(0.142)
+    assert head["σ right-lateral (mm)"] == pytest.approx(2.85)
+    assert head["σ right-lateral, white noise only (mm)"] == pytest.approx(0.142)
     assert head["left: n_eff"] == pytest.approx(12.345)
     assert head["acquisition units, before"] == "5 from PointSourceId"
     assert head["acquisition units, after"] == "auto: single value"
@@ -201,4 +210,4 @@ def test_stochastic_tables_and_html(tmp_path):
     assert "<td>4</td><td></td>" in html  # None is an empty cell
     white = stochastic_tables(_payload("white"))
     assert "Stochastic model: components per side" not in white
-    assert "σ fault-parallel, white noise only (mm)" not in white["Stochastic model"]
+    assert "σ right-lateral, white noise only (mm)" not in white["Stochastic model"]

@@ -348,9 +348,9 @@ def _slip_args(demo_pair) -> dict:
 
 def _assert_cli_slip(relative: dict, demo_pair):
     cli = json.loads((demo_pair / "displacement.json").read_text())["relative"]
-    for key in ("right_lateral_slip", "sigma_fault_parallel", "dz", "sigma_dz"):
+    for key in ("right_lateral_slip", "sigma_right_lateral", "dz", "sigma_dz"):
         assert relative[key] == pytest.approx(cli[key], abs=1e-5), key  # 0.01 mm
-    assert abs(relative["right_lateral_slip"] - 0.0181) < 4 * relative["sigma_fault_parallel"]
+    assert abs(relative["right_lateral_slip"] - 0.0181) < 4 * relative["sigma_right_lateral"]
 
 
 def test_displacement_pipeline_command_equals_cli(same_python, demo_pair, tmp_path):

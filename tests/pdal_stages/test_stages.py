@@ -115,6 +115,7 @@ def slip_run(pair):
 
 
 def test_displacement_summary_equals_core(slip_run):
+    from slipmap.app.slip import summary_payload
     from slipmap.app.summaries import json_safe
 
     mod, outs, core = slip_run
@@ -122,12 +123,19 @@ def test_displacement_summary_equals_core(slip_run):
     summary = md["summary"]
     params = summary.pop("parameters")
     units = params["acquisition_unit_sources"]
-    expect = json_safe(core.to_dict())
+    expect = json_safe(summary_payload(core))  # the core's result in the sign convention
     core_params = expect.pop("parameters")
     assert summary == expect  # the job spells out default options in its record
     for key in ("buffer_m", "combine", "stochastic_model"):
         assert params[key] == core_params[key]
     assert md["right_lateral_slip"] == pytest.approx(0.0181, abs=0.002)
+    # the sign convention: + = dextral, no fault-frame names, the meaning stated
+    comp = core.components()
+    assert md["right_lateral"] == md["right_lateral_slip"] == -comp["fault_parallel"]
+    assert md["opening"] == pytest.approx(comp["fault_normal"], abs=1e-12)
+    assert not [k for k in md if "fault_" in k] and "right-lateral" in md["headline"]
+    assert md["headline"].startswith("right-lateral slip +")
+    assert summary["fault"]["right_side"] == "east"
     # the default model is full; the view has no PointSourceId: no units
     assert md["stochastic_model"] == "full" == params["stochastic_model"]
     assert units["units_option"] == "auto"
@@ -138,8 +146,8 @@ def test_displacement_summary_equals_core(slip_run):
     }
     vc = md["variance_components"]
     assert vc["model"] == "full"
-    assert vc["sigma_fault_parallel"] == pytest.approx(core.components()["sigma_fault_parallel"])
-    assert vc["sigma_fault_parallel_white"] < vc["sigma_fault_parallel"]
+    assert vc["sigma_right_lateral"] == pytest.approx(core.components()["sigma_fault_parallel"])
+    assert vc["sigma_right_lateral_white"] < vc["sigma_right_lateral"]
     for side in ("left", "right"):
         ref = core.left if side == "left" else core.right
         vcs = ref.rigid.variance_components
@@ -349,7 +357,7 @@ def test_displacement_fixed_components_and_white(drift_pair):
     summary = md["summary"]
     assert md["stochastic_model"] == "white"
     assert "variance_components" not in summary["left"]
-    assert "sigma_fault_parallel_white" not in summary["relative"]
+    assert "sigma_right_lateral_white" not in summary["relative"]
     assert md["acquisition_units"]["before"]["source"] == "none"
 
 

@@ -126,7 +126,7 @@ def test_displacement_reprojects_fault_and_matches_core(provider, epochs, tmp_pa
     )
     slip = res["RIGHT_LATERAL_SLIP"]
     assert abs(slip - 0.0181) < 1e-3
-    assert res["SIGMA_FAULT_PARALLEL"] > 0
+    assert res["SIGMA_RIGHT_LATERAL"] > 0
     b, a = read_las(before), read_las(after)
     kb, ka = b.attributes["Classification"] != 2, a.attributes["Classification"] != 2
     # the trace the algorithm used: to WGS 84 for the layer and back (sub-micrometre changes,

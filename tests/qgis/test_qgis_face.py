@@ -385,6 +385,7 @@ def test_window_legend_equals_the_data_and_red_is_right_lateral(loaded_slip):
     assert items[0].label.endswith(" mm (\u2212 = left-lateral)"), items[0].label
     assert items[-1].label == f"{1000 * m:+.3g} mm (+ = right-lateral)"
     assert items[-1].color.red() > items[-1].color.blue()  # right_lateral_m > 0: red
+    assert items[0].color.blue() > items[0].color.red()  # - = left-lateral: blue
     assert renderer.opacity() < 1.0
 
 

@@ -136,9 +136,18 @@ def test_tiles_equal_core(tiled_run, core_tiled):
             np.sqrt(np.diag(t.covariance)),
             rtol=1e-9,
         )
-        assert f["fault_parallel"] == pytest.approx(j @ t.displacement, abs=1e-9)
-        assert f["sigma_fp"] == pytest.approx(math.sqrt(j @ t.covariance @ j), rel=1e-9)
+        # the sign convention: + = right-lateral (a left tile's along-strike motion, a right
+        # tile's against it), opening + = away from the trace
+        sign = 1.0 if t.side == "left" else -1.0
+        jn = np.array([math.cos(result.strike_rad), -math.sin(result.strike_rad), 0.0])
+        assert f["right_lateral"] == pytest.approx(sign * (j @ t.displacement), abs=1e-9)
+        assert f["sigma_right_lateral"] == pytest.approx(math.sqrt(j @ t.covariance @ j), rel=1e-9)
+        assert f["opening"] == pytest.approx(-sign * (jn @ t.displacement), abs=1e-9)
+        assert f["sigma_opening"] == pytest.approx(math.sqrt(jn @ t.covariance @ jn), rel=1e-9)
     assert n_ok >= 4
+    assert "fault_parallel" not in layer.fields().names()
+    right = [_value(f["right_lateral"]) for f in feats if f["side"] == "right"]
+    assert np.nanmedian(right) == pytest.approx(OFFSET, abs=2e-3)  # the east side moved
 
 
 def test_strips_equal_core(tiled_run, core_tiled, epochs):
@@ -151,7 +160,7 @@ def test_strips_equal_core(tiled_run, core_tiled, epochs):
     assert len(feats) == len(strips)
     got = {(f["side"], round(f["along_start_m"], 6)): f for f in feats}
     c, s = math.cos(result.strike_rad), math.sin(result.strike_rad)
-    ref_d = result.left.displacement
+    j, jn = np.array([s, c, 0.0]), np.array([c, -s, 0.0])
     trace = fault_trace([fp.trace_xy])
     for st in strips:
         f = got[(st.side, round(st.along_start_m, 6))]
@@ -161,25 +170,21 @@ def test_strips_equal_core(tiled_run, core_tiled, epochs):
             [pt.x(), pt.y()], point_at_chainage(trace, st.along_centre_m), atol=1e-6
         )
         if st.status != "ok":
-            assert math.isnan(_value(f["fault_parallel"]))
+            assert math.isnan(_value(f["right_lateral"]))
             continue
-        assert f["fault_parallel"] == pytest.approx(st.fault_parallel, abs=1e-9)
-        assert f["sigma_fp"] == pytest.approx(st.sigma_fault_parallel, rel=1e-9)
-        rel = st.displacement - ref_d
-        jn = np.array([c, -s, 0.0])
-        # the fault-normal and vertical σ come from the core's relative covariance (full
-        # model: a left strip's covariance minus the left side's, floored; a right strip's
-        # plus it), whose fault-parallel σ is the core's
-        rc = st.relative_covariance
-        assert np.sqrt(np.array([s, c, 0.0]) @ rc @ np.array([s, c, 0.0])) == pytest.approx(
-            st.sigma_fault_parallel, rel=1e-9
-        )
-        assert f["fault_normal"] == pytest.approx(jn @ rel, abs=1e-9)
-        assert f["sigma_fn"] == pytest.approx(np.sqrt(jn @ rc @ jn), rel=1e-9)
-        assert f["dz"] == pytest.approx(rel[2], abs=1e-9)
-        assert f["sigma_dz"] == pytest.approx(np.sqrt(rc[2, 2]), rel=1e-9)
-    right = [_value(f["fault_parallel"]) for f in feats if f["side"] == "right"]
-    assert np.nanmedian(right) == pytest.approx(-OFFSET, abs=2e-3)
+        # each strip's own motion in the sign convention (as tiles)
+        sign = 1.0 if st.side == "left" else -1.0
+        d, cov = st.displacement, st.covariance
+        assert f["right_lateral"] == pytest.approx(sign * (j @ d), abs=1e-9)
+        assert f["sigma_right_lateral"] == pytest.approx(np.sqrt(j @ cov @ j), rel=1e-9)
+        assert f["opening"] == pytest.approx(-sign * (jn @ d), abs=1e-9)
+        assert f["sigma_opening"] == pytest.approx(np.sqrt(jn @ cov @ jn), rel=1e-9)
+        assert f["dz"] == pytest.approx(d[2], abs=1e-9)
+        assert f["sigma_dz"] == pytest.approx(np.sqrt(cov[2, 2]), rel=1e-9)
+    right = [_value(f["right_lateral"]) for f in feats if f["side"] == "right"]
+    left = [_value(f["right_lateral"]) for f in feats if f["side"] == "left"]
+    assert np.nanmedian(right) == pytest.approx(OFFSET, abs=2e-3)  # + = dextral
+    assert np.nanmedian(left) == pytest.approx(0.0, abs=2e-3)  # the west side did not move
     summary = json.loads((tiled_run[1] / "slip.json").read_text())
     assert len(summary["strips"]) == len(strips)
     assert len(summary["tiles"]) == len(result.tiles)
@@ -194,7 +199,7 @@ def test_windows_raster_grid_and_values(tiled_run, core_tiled):
     layer = QgsRasterLayer(res["WINDOWS"], "windows")
     assert layer.isValid()
     assert layer.crs().authid() == "EPSG:32610"
-    assert layer.bandCount() == 7
+    assert layer.bandCount() == 8
     ny, nx = w.shape
     assert (layer.width(), layer.height()) == (nx, ny)
     ext = layer.extent()
@@ -206,19 +211,27 @@ def test_windows_raster_grid_and_values(tiled_run, core_tiled):
     )
     ds = gdal.Open(res["WINDOWS"])
     result = core_tiled[0]
-    fp = math.sin(result.strike_rad) * w.dx + math.cos(result.strike_rad) * w.dy
-    for band, ref in enumerate((fp, w.dx, w.dy, w.dz, w.sigma_dx, w.sigma_dy, w.n_planes)):
+    # each window's own motion (the left side's global motion added back)
+    own = [w.dx + w.reference_m[0], w.dy + w.reference_m[1], w.dz + w.reference_m[2]]
+    fp = math.sin(result.strike_rad) * own[0] + math.cos(result.strike_rad) * own[1]
+    rl = np.where(w.side < 0, fp, np.where(w.side > 0, -fp, np.nan))  # + = dextral
+    sig = [np.sqrt(w.covariance[..., k, k]) for k in range(2)]
+    for band, ref in enumerate((rl, *own, *sig, w.n_planes)):
         np.testing.assert_allclose(ds.GetRasterBand(band + 1).ReadAsArray(), ref, equal_nan=True)
-    assert ds.GetRasterBand(1).GetDescription() == "fault_parallel_m"
-    # right-side windows carry the offset: fault-parallel = -(right-lateral slip)
-    right = fp[(w.side == 1) & np.isfinite(fp)]
-    assert right.size > 0 and np.median(right) == pytest.approx(-OFFSET, abs=2e-3)
+    names = [ds.GetRasterBand(k + 1).GetDescription() for k in range(ds.RasterCount)]
+    assert names[0] == "right_lateral_m" and names[-1] == "sigma_right_lateral_m"
+    # right-side (east) windows carry the offset, + = right-lateral; the west side is still
+    right = rl[(w.side == 1) & np.isfinite(rl)]
+    left = rl[(w.side == -1) & np.isfinite(rl)]
+    assert right.size > 0 and np.median(right) == pytest.approx(OFFSET, abs=2e-3)
+    assert left.size > 0 and np.median(left) == pytest.approx(0.0, abs=2e-3)
 
 
 def test_report_has_plots(tiled_run):
     res, d = tiled_run
     html = open(res["REPORT"], encoding="utf-8").read()
-    assert "Right-lateral slip" in html and "right-lateral slip (mm)" in html
+    assert "Right-lateral slip +" in html and "right-lateral (mm, + = dextral)" in html
+    assert "fault-parallel" not in html
     pytest.importorskip("matplotlib")
     for name in ("slip_residuals.png", "slip_normals.png", "slip_strips.png"):
         assert name in html
@@ -260,7 +273,7 @@ def test_pa_config_per_epoch_equals_core(provider, epochs, tmp_path):
         sigma_after=np.array([0.01, 0.02, 0.04]),
     ).components()
     assert res["RIGHT_LATERAL_SLIP"] == pytest.approx(ref["right_lateral_slip"], abs=1e-7)
-    assert res["SIGMA_FAULT_PARALLEL"] == pytest.approx(ref["sigma_fault_parallel"], rel=1e-6)
+    assert res["SIGMA_RIGHT_LATERAL"] == pytest.approx(ref["sigma_fault_parallel"], rel=1e-6)
     pa = json.loads((tmp_path / "s.json").read_text())["parameters"]["point_accuracy"]
     assert pa["after"]["model"] == "axis"
 
@@ -609,7 +622,7 @@ def test_stochastic_parameters(provider):
     assert alg.parameterDefinition("GPS_GAP").defaultValue() == 1.0
     outputs = {o.name() for o in alg.outputDefinitions()}
     assert {
-        "SIGMA_FAULT_PARALLEL_WHITE",
+        "SIGMA_RIGHT_LATERAL_WHITE",
         "STOCHASTIC_MODEL",
         "N_EFF_LEFT",
         "N_EFF_RIGHT",
@@ -683,11 +696,11 @@ def test_units_auto_and_components_equal_core(provider, drift_epochs, tmp_path):
     )
     comp = ref.components()
     assert res["RIGHT_LATERAL_SLIP"] == pytest.approx(comp["right_lateral_slip"], abs=1e-7)
-    assert res["SIGMA_FAULT_PARALLEL"] == pytest.approx(comp["sigma_fault_parallel"], rel=1e-6)
-    assert res["SIGMA_FAULT_PARALLEL_WHITE"] == pytest.approx(
+    assert res["SIGMA_RIGHT_LATERAL"] == pytest.approx(comp["sigma_fault_parallel"], rel=1e-6)
+    assert res["SIGMA_RIGHT_LATERAL_WHITE"] == pytest.approx(
         comp["sigma_fault_parallel_white"], rel=1e-6
     )
-    assert res["SIGMA_FAULT_PARALLEL_WHITE"] < res["SIGMA_FAULT_PARALLEL"]
+    assert res["SIGMA_RIGHT_LATERAL_WHITE"] < res["SIGMA_RIGHT_LATERAL"]
     assert res["STOCHASTIC_MODEL"] == "full"
     assert res["N_EFF_LEFT"] == pytest.approx(ref.left.rigid.variance_components.n_eff)
     assert 1.0 <= res["N_EFF_RIGHT"] <= ref.right.rigid.n_planes
@@ -730,7 +743,7 @@ def test_white_model_and_fixed_components(provider, drift_epochs, tmp_path):
         {**base, "STOCHASTIC_MODEL": 0, "UNITS": 1, "SUMMARY": str(tmp_path / "w.json")},
     )
     assert white["STOCHASTIC_MODEL"] == "white"
-    assert white["SIGMA_FAULT_PARALLEL_WHITE"] == white["SIGMA_FAULT_PARALLEL"]
+    assert white["SIGMA_RIGHT_LATERAL_WHITE"] == white["SIGMA_RIGHT_LATERAL"]
     assert white["N_EFF_LEFT"] is None
     js = json.loads((tmp_path / "w.json").read_text())
     assert "variance_components" not in js["left"]

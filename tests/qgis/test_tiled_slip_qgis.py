@@ -90,7 +90,7 @@ def test_glob_of_tiles_equals_one_file(provider, epochs, tmp_path):
     # the planes extracted tile by tile, recorded beside it, is what tiled inputs give
     tiles = json.loads((tmp_path / "file.json").read_text())["tile_planes_estimate"]
     for key, name in (("RIGHT_LATERAL_SLIP", "right_lateral_slip"),
-                      ("SIGMA_FAULT_PARALLEL", "sigma_fault_parallel")):  # fmt: skip
+                      ("SIGMA_RIGHT_LATERAL", "sigma_right_lateral")):  # fmt: skip
         assert got["glob"][key] == pytest.approx(tiles[name], rel=1e-9, abs=0)
     assert got["file"]["RIGHT_LATERAL_SLIP"] == pytest.approx(0.0181, abs=0.003)
     summary = json.loads((tmp_path / "glob.json").read_text())
