@@ -221,3 +221,34 @@ def band_statistics(provider, band: int, stats=("Min", "Max")):
     for name in stats:
         flags |= int(getattr(QgsRasterBandStats, name))
     return provider.bandStatistics(int(band), flags)
+
+
+# --------------------------------------------------------------------------- pyproj in QThreads
+#: PROJ contexts of pyproj kept alive for the QGIS worker threads they belong to
+_PROJ_CONTEXTS = []
+
+
+def keep_proj_context():
+    """Keep the calling thread's pyproj context alive for the thread's next use.
+
+    pyproj 3.7.0 to 3.7.2 (Debian 13's is 3.7.1) keeps one PROJ context per thread: a pointer
+    in the thread's C-level storage, destroyed with the Python ``threading.local`` that holds
+    its manager. A Processing run from the dialog runs in a thread of QGIS's pool, which Python
+    did not create: when the run ends, its temporary Python thread state (and the local) goes,
+    the context is destroyed, the pointer stays, and the next run on that pooled thread uses
+    the freed context: QGIS 3.40 crashes (signal 11 in ``proj_create``) on the second run of
+    any algorithm that reads a CRS (pyproj issue #1509, fixed upstream by PR #1539). Holding
+    a reference to the manager keeps the context valid: one context per pool thread, kept
+    for the session. Older pyproj (no per-thread contexts) and fixed ones need nothing and
+    this does nothing harmful there. Call it at the end of the work in the thread.
+    """
+    try:
+        from pyproj._context import get_context_manager
+    except ImportError:  # pyproj < 3.7: one global handling, nothing to keep
+        return
+    try:
+        manager = get_context_manager()
+    except Exception:  # noqa: BLE001 - a missing manager is not worth failing a run for
+        return
+    if manager is not None and all(m is not manager for m in _PROJ_CONTEXTS):
+        _PROJ_CONTEXTS.append(manager)

@@ -11,7 +11,13 @@ from qgis.core import (
     QgsProcessingParameterDefinition,
 )
 
-from ..compat import band_statistics, can_execute, renderer_band, set_renderer_band
+from ..compat import (
+    band_statistics,
+    can_execute,
+    keep_proj_context,
+    renderer_band,
+    set_renderer_band,
+)
 
 LAS_FILTER = "LAS/LAZ (*.las *.laz)"
 LAS_OUTPUT_FILTER = "LAS (*.las);;LAZ (*.laz)"
@@ -132,6 +138,18 @@ def attach_feedback(feedback):
         _ORIGINAL_SHOWWARNING[0] = warnings.showwarning
         warnings.showwarning = _warning_to_feedback
     return _HANDLER
+
+
+def detach_feedback():
+    """Stop sending the ``slipmap`` logger to the last run's feedback. QGIS deletes a run's
+    feedback when the run ends (3.40 at once): a later log line (the check before the next
+    run, which has no feedback) must not reach the deleted object, which crashes QGIS."""
+    import warnings
+
+    _HANDLER.feedback = None
+    _HANDLER.reset()
+    if warnings.showwarning is _warning_to_feedback and _ORIGINAL_SHOWWARNING[0] is not None:
+        warnings.showwarning = _ORIGINAL_SHOWWARNING[0]
 
 
 _ORIGINAL_SHOWWARNING = [None]
@@ -562,7 +580,13 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
 
             @functools.wraps(own)
             def processAlgorithm(self, parameters, context, feedback):  # noqa: N802
-                return own(self, self.run_parameters(parameters), context, feedback)
+                try:
+                    return own(self, self.run_parameters(parameters), context, feedback)
+                except BaseException:
+                    detach_feedback()  # a failed run has no postProcessAlgorithm
+                    raise
+                finally:
+                    keep_proj_context()  # the run's thread is QGIS's: see compat.py
 
             processAlgorithm._reads_run_parameters = True
             cls.processAlgorithm = processAlgorithm
@@ -611,6 +635,7 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
         _HANDLER.flush_repeats()
         store_sink_styles(self, feedback)
         unique_layer_names(self, context)
+        detach_feedback()
         return {}
 
     # ------------------------------------------------------------------ the job
@@ -633,6 +658,7 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
             self.job_options(parameters, context)
 
     def checkParameterValues(self, parameters, context):  # noqa: N802 (QGIS API name)
+        detach_feedback()  # a check has no feedback: the last run's may be deleted already
         ok, message = self.canExecute()
         if not ok:  # qgis_process: refused at once, with the command that installs them
             return False, message

@@ -196,6 +196,7 @@ def _launch(profile, plan, tmp, *, block=(), timeout=600):
         PYQGIS_STARTUP=str(HERE / "desktop_startup.py"),
         PYTHONPATH=str(profile / "user-site"),
         PYTHONDONTWRITEBYTECODE="1",
+        PYTHONFAULTHANDLER="1",  # a crash of the desktop prints every thread's Python stack
     )
     for var in ("VIRTUAL_ENV", "PYTHONHOME"):
         env.pop(var, None)
@@ -203,7 +204,7 @@ def _launch(profile, plan, tmp, *, block=(), timeout=600):
     cmd += ["--nologo", "--noversioncheck", "--code", str(HERE / "desktop_driver.py")]
     try:
         run = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
-        tail = (run.returncode, run.stdout[-3000:], run.stderr[-3000:])
+        tail = (run.returncode, run.stdout[-3000:], run.stderr[-6000:])
     except subprocess.TimeoutExpired as exc:
         tail = ("timeout", str(exc.stdout)[-3000:], str(exc.stderr)[-3000:])
     assert out.is_file(), f"the desktop wrote no record: {tail}"
