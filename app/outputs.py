@@ -133,7 +133,10 @@ class OutputPlan:
         return self.path(self._names[key])
 
     def final(self, key: str) -> Path:
-        """Where output ``key`` ends up."""
+        """Where output ``key`` ends up (``key``: an output of :meth:`for_outputs`, or the
+        key of a single-file output the plan was made with, as :meth:`path` takes it)."""
+        if key not in self._names and key in self._files:
+            return self._files[key]
         name = self._names[key]
         return self._files[name] if name in self._files else self.out_dir / name
 

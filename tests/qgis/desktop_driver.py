@@ -138,6 +138,10 @@ def legend_and_data(layer):
     r = layer.renderer()
     out["features"] = layer.featureCount()
     out["fields"] = [f.name() for f in layer.fields()]
+    for name in ("right_lateral", "dz"):  # the signed values a reader reads off the map
+        if name in out["fields"]:
+            values = _expression_values(layer, f'"{name}"')
+            out[f"{name}_range"] = [min(values), max(values)] if values else None
     if isinstance(r, QgsGraduatedSymbolRenderer):
         out["attribute"] = r.classAttribute()
         out["ranges"] = [[rg.lowerValue(), rg.upperValue(), rg.label()] for rg in r.ranges()]
@@ -258,6 +262,9 @@ class Scenario:
             ctx = panel.processing_context
             project = QgsProject.instance()
             for name, value in self.plan.get("values", {}).items():
+                if name not in self.dlg.mainWidget().wrappers:
+                    self.event(f"the dialog has no field {name}")
+                    continue
                 if isinstance(value, dict) and "layer" in value:
                     value = project.mapLayersByName(value["layer"])[0]
                 self.wrapper(name).setParameterValue(value, ctx)

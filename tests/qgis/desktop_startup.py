@@ -26,21 +26,27 @@ def _blocked_name(name):
     return str(name).split(".")[0] in _blocked
 
 
-if _blocked:
+# QGIS may run this file twice in one namespace: set up once
+_first = not getattr(sys, "_slipmap_desktop_startup", False)
+sys._slipmap_desktop_startup = True
+
+if _blocked and _first:
     sys.meta_path.insert(0, _Block())
-    _find_spec = importlib.util.find_spec
 
-    def find_spec(name, package=None):
-        """``importlib.util.find_spec`` answering None for a blocked module, as for one that
-        is not installed (a plugin may ask before it imports)."""
-        if _blocked_name(name):
-            return None
-        return _find_spec(name, package)
+    def _blocking(find_spec):
+        def blocked_find_spec(name, package=None):
+            """``importlib.util.find_spec`` answering None for a blocked module, as for one
+            that is not installed (a plugin may ask before it imports)."""
+            if _blocked_name(name):
+                return None
+            return find_spec(name, package)
 
-    importlib.util.find_spec = find_spec
+        return blocked_find_spec
+
+    importlib.util.find_spec = _blocking(importlib.util.find_spec)
 
 _out = os.environ.get("SLIPMAP_DESKTOP_MESSAGES")
-if _out:
+if _out and _first:
     from qgis.core import QgsApplication
 
     def _write(message, tag, level):

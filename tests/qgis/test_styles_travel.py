@@ -430,3 +430,40 @@ def test_on_load_post_processor_uses_the_fitted_style(qgis_app, tmp_path):
     rules = _class_rules(mem)
     assert _limits(rules[0])[0] == pytest.approx(-0.021)
     assert _limits(rules[-1])[1] == pytest.approx(0.021)
+
+
+def _assert_sequential(raster, values_path):
+    """A viridis ramp from 0 to the roughest cell on band 1 (theta_ODR, legend in mm)."""
+    from qgis.core import QgsSingleBandPseudoColorRenderer
+
+    from slipmap.core.io.raster import read_geotiff
+
+    renderer = raster.renderer()
+    assert isinstance(renderer, QgsSingleBandPseudoColorRenderer), type(renderer)
+    band = np.asarray(read_geotiff(values_path)[0], dtype=np.float64)[0]
+    m = float(np.nanmax(band[np.isfinite(band)]))
+    assert renderer.classificationMin() == 0.0
+    assert renderer.classificationMax() == pytest.approx(m, rel=1e-6)
+    items = renderer.shader().rasterShaderFunction().colorRampItemList()
+    assert items[0].label.endswith("(smooth)") and items[-1].label.endswith("(rough)")
+    assert items[-1].label.startswith(f"{1000 * m:.3g} mm"), items[-1].label
+
+
+def test_roughness_geotiff_opens_as_a_map(qgis_app, provider, field_epochs, tmp_path):
+    """The roughness GeoTIFF (7 bands) opens on band 1 with its ramp, from the CLI and from
+    the Processing algorithm, not as an RGB picture of bands 1-3."""
+    before, _ = field_epochs
+    _cli("roughness", before, "--out", tmp_path / "cli", "--cell", 0.5)
+    tif = next((tmp_path / "cli").glob("roughness_*.tif"))
+    assert tif.with_suffix(".qml").is_file()
+    _assert_sequential(_open_raster(tif), tif)
+
+    import processing
+
+    out = tmp_path / "qgis_roughness.tif"
+    processing.run(
+        "slipmap:roughness",
+        {"INPUT": before, "CELL": 0.5, "OUTPUT": str(out), "CSV": str(tmp_path / "r.csv")},
+    )
+    assert out.with_suffix(".qml").is_file()
+    _assert_sequential(_open_raster(out), out)
