@@ -419,9 +419,20 @@ def test_fault_slip_maps_open_styled_with_one_sign(desktop):
     summary = json.loads((desktop[2]["full"] / "slip.json").read_text())
     slip = summary["relative"]["right_lateral_slip"]
     assert abs(slip - DEXTRAL_M) < 0.005, slip
+    # the known dextral motion reads + on every map: the moving (east) side's tiles and strips
+    # near +18 mm, the still side near 0, the windows' band + at its red end
+    by_kind = {}
     for layer in layers:
-        labels = " ".join(r[2] for r in layer.get("ranges", [])) + " ".join(layer.get("labels", []))
-        assert "left-lateral" not in labels or "right-lateral" in labels, labels
+        by_kind.setdefault(layer["name"].split(" ")[0], layer)
+    for name in ("Tiles", "Strips"):
+        lo, hi = by_kind[name]["right_lateral_range"]
+        assert 0.012 < hi < 0.025 and lo > -0.006, (name, lo, hi)
+    windows = by_kind["Moving"]
+    assert windows["data_max"] > 0.012 and windows["data_min"] > -0.006, windows
+    assert windows["labels"][-1].endswith("(+ = right-lateral)"), windows["labels"]
+    assert windows["labels"][0].endswith("(\u2212 = left-lateral)"), windows["labels"]
+    legend = " ".join(" ".join(map(str, x.get("rules", []))) for x in layers)
+    assert "right-lateral" in legend, legend
 
 
 def test_cancel_leaves_nothing_behind(desktop):
