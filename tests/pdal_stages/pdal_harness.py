@@ -25,7 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
+# helpers test_real_pdal.py shares with the stand-in tests, imported here at load time, so a
+# moved module breaks every run of the suite, not only machines with PDAL (issue #31)
+from slipmap.app.demo import run_slip_demo
+
 ROOT = Path(__file__).resolve().parents[2]
+#: PDAL and the CLI compute roughness in another order of floating-point sums: equal to this
+ROUGHNESS_ATOL_M = 1e-12
 STAGE_DIR = ROOT / "pdal_filters"
 SCRIPT = STAGE_DIR / "slipmap_stages.py"
 PIPELINE_DIR = STAGE_DIR / "pipelines"
@@ -263,3 +269,10 @@ def _parsed(pdalargs):
         except ValueError:
             return pdalargs
     return pdalargs
+
+
+def make_demo_pair(out: Path) -> Path:
+    """The demo's epochs (UTM, PointSourceId, GpsTime), its WGS 84 fault and the CLI's slip,
+    written into ``out`` (``slipmap demo``'s slip job)."""
+    run_slip_demo(out)
+    return out
