@@ -1113,8 +1113,10 @@ def check_scale(opts) -> None:
             "workers", "cannot be given with {scheduler}; give one of them", also=("scheduler",)
         )
     addr = opts.get("scheduler")
-    if addr and "://" not in str(addr):
-        raise OptionError("scheduler", f"{addr!r} is not an address; give e.g. tcp://host:8786")
+    if addr:  # scheme, host and port, before anything connects (issue #31)
+        from .engine import check_scheduler_address
+
+        check_scheduler_address(addr)
 
 
 def split_inputs(value):
