@@ -63,8 +63,8 @@ log = logging.getLogger("slipmap.app")
 ALLOWED_FAILURES = 2
 #: seconds to wait for a scheduler given by address, connecting and its first answer together,
 #: unless Dask's own ``distributed.comm.timeouts.connect`` is set (see :func:`handshake_timeout_s`)
-HANDSHAKE_TIMEOUT_S = 20.0
-CONNECT_TIMEOUT_S = HANDSHAKE_TIMEOUT_S  # the older name
+CONNECT_TIMEOUT_S = 20.0
+HANDSHAKE_TIMEOUT_S = CONNECT_TIMEOUT_S  # the same setting, by what it bounds
 _DASK_DEFAULT_CONNECT = "30s"
 #: Dask's address schemes (``distributed.comm.registry.backends``)
 SCHEMES = ("tcp", "tls", "inproc", "ucx", "ws", "wss")
@@ -145,10 +145,11 @@ def check_scheduler_address(address: str) -> str:
     return text
 
 
-async def _identity(address: str, timeout: float) -> dict:
+async def _identity(address: str, timeout: float, box: dict) -> dict:
     from distributed.comm import connect
 
     comm = await connect(address, timeout=timeout)
+    box["connected"] = True
     try:
         await comm.write({"op": "identity"})
         return await comm.read()
@@ -179,7 +180,9 @@ def probe_scheduler(address: str, *, timeout_s: Optional[float] = None) -> dict:
 
     def run():
         try:
-            box["reply"] = asyncio.run(asyncio.wait_for(_identity(address, timeout_s), timeout_s))
+            box["reply"] = asyncio.run(
+                asyncio.wait_for(_identity(address, timeout_s, box), timeout_s)
+            )
         except BaseException as exc:  # noqa: BLE001 - carried to the caller's thread
             box["error"] = exc
 
@@ -189,6 +192,15 @@ def probe_scheduler(address: str, *, timeout_s: Optional[float] = None) -> dict:
     exc = box.get("error")
     reply = box.get("reply")
     what = f"the Dask scheduler at {address}"
+    if (
+        not box.get("connected")
+        and (t.is_alive() or isinstance(exc, OSError))
+        and not _listens(address, timeout_s)
+    ):
+        raise ClusterError(
+            f"cannot reach {what}: nothing accepted a connection within {timeout_s:g} s "
+            f"({exc or 'no answer'}); check the address and that the scheduler is running"
+        )
     if t.is_alive() or isinstance(exc, (asyncio.TimeoutError, TimeoutError)):
         raise ClusterError(
             f"{what} did not answer within {timeout_s:g} s: something listens there but does "
@@ -208,7 +220,7 @@ def probe_scheduler(address: str, *, timeout_s: Optional[float] = None) -> dict:
 
 
 def handshake_timeout_s() -> float:
-    """Seconds allowed for the whole handshake with a scheduler: :data:`HANDSHAKE_TIMEOUT_S`,
+    """Seconds allowed for the whole handshake with a scheduler: :data:`CONNECT_TIMEOUT_S`,
     or Dask's ``distributed.comm.timeouts.connect`` when the user set it to something else
     than Dask's default (``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT=5s`` in the environment,
     or Dask's configuration file)."""
@@ -221,7 +233,24 @@ def handshake_timeout_s() -> float:
             return float(parse_timedelta(value, default="seconds"))
     except (ImportError, ValueError, TypeError):
         pass
-    return HANDSHAKE_TIMEOUT_S
+    return float(CONNECT_TIMEOUT_S)
+
+
+def _listens(address: str, timeout_s: float) -> bool:
+    """Whether something accepts a TCP connection at ``address`` (``tcp``, ``tls``, ``ws``,
+    ``wss``): tells "nothing there" from "something there that does not speak Dask" (Dask's
+    ``connect`` includes its own handshake, so it cannot tell them apart)."""
+    import socket
+
+    scheme, _, rest = address.partition("://")
+    if scheme.lower() not in ("tcp", "tls", "ws", "wss"):
+        return False
+    try:
+        parts = urlsplit(f"//{rest}")
+        with socket.create_connection((parts.hostname, parts.port), timeout=min(timeout_s, 5)):
+            return True
+    except (OSError, ValueError):
+        return False
 
 
 def local_worker_bound(*, memory_bytes: Optional[int] = None, cores: Optional[int] = None) -> int:

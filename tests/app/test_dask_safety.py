@@ -221,3 +221,22 @@ def test_ctrl_c_on_a_local_cluster_one_line_no_traceback(tiles, tmp_path):
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     assert err.strip().splitlines()[-1] == "slipmap: interrupted", err
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_a_port_where_nothing_listens_is_refused(tiles, tmp_path):
+    pytest.importorskip("distributed", reason="dask.distributed is not installed")
+    folder, _ = tiles
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens there now
+    out = tmp_path / "out"
+    rc, err = _finish(
+        _slipmap(
+            ["planes", str(folder), "--out", str(out), "--scheduler", f"tcp://127.0.0.1:{port}"]
+        )
+    )
+    assert rc == 2 and "Traceback" not in err, err
+    line = err.strip().splitlines()[-1]
+    assert "--scheduler" in line and "cannot reach" in line and "scheduler is running" in line
+    assert not out.exists()
