@@ -9,7 +9,14 @@
    (:meth:`OutputPlan.path`), never into the target itself.
 3. At the end, :meth:`OutputPlan.commit` checks the staged names against the inputs once
    more and moves every file into place; a failed or cancelled run removes the temporary
-   folder and leaves the output folder as it was.
+   folder and leaves the output folder as it was. A commit that fails half-way (a full disk,
+   a file that cannot be replaced) puts back what it had replaced, removes what it had moved
+   in and removes its temporary folder: no ``.slipmap-partial-*`` folder and no partial
+   output remain, whatever raised.
+
+An output is never written into a folder of tiles given as an input, nor anywhere inside it
+(issue #31): the next run would read the outputs back as tiles. A folder given as an input,
+and the folder of the files of an input given as several files, count as such folders.
 
 Use it as a context manager::
 
@@ -45,6 +52,15 @@ def _existing_ancestor(p: Path) -> Path:
     return p
 
 
+def _inside(path: Path, folder: Path) -> bool:
+    """Whether ``path`` is ``folder`` or lies somewhere under it (links resolved)."""
+    try:
+        p, f = path.resolve(), folder.resolve()
+    except OSError:  # pragma: no cover - a loop of links
+        return False
+    return p == f or f in p.parents
+
+
 def _same_file(a: Path, b: Path) -> bool:
     try:
         if a.exists() and b.exists():
@@ -78,10 +94,21 @@ class OutputPlan:
         files: Mapping[str, Optional[PathLike]] = (),
     ):
         self._inputs: List[Tuple[str, Path]] = []
+        self._input_folders: List[Tuple[str, Path]] = []  # folders of tiles, see check()
         for key, value in dict(inputs).items():
-            for v in value if isinstance(value, (list, tuple)) else [value]:
-                if isinstance(v, (str, os.PathLike)) and str(v):
-                    self._inputs.append((key, Path(v)))
+            paths = [
+                Path(v)
+                for v in (value if isinstance(value, (list, tuple)) else [value])
+                if isinstance(v, (str, os.PathLike)) and str(v)
+            ]
+            self._inputs.extend((key, p) for p in paths)
+            plain = [p for p in paths if not p.is_dir()]
+            folders = [p for p in paths if p.is_dir()]
+            if len(plain) > 1:  # several files: a tile set, their folders hold tiles
+                folders += [p.parent for p in plain]
+            for f in folders:
+                if not any(_same_file(f, g) for _, g in self._input_folders):
+                    self._input_folders.append((key, f))
         self.out_key: Optional[str] = None
         self.out_dir: Optional[Path] = None
         if out_dir is not None:
@@ -173,6 +200,7 @@ class OutputPlan:
                 raise OptionError(
                     self.out_key, f"{str(d)!r} exists and is not a folder; give a folder"
                 )
+            self._refuse_tile_folder(self.out_key, d)
             for key, inp in self._inputs:
                 if _same_file(inp, d):
                     raise OptionError(
@@ -185,8 +213,22 @@ class OutputPlan:
             if path.exists() and path.is_dir():
                 raise OptionError(key, f"{str(path)!r} is a folder; give a file name")
             self._check_writable(key, path.parent)
+        for key, path in self._files.items():
+            self._refuse_tile_folder(key, path.parent)
         for out_key, target in self.targets():
             self._refuse_input(out_key, target)
+
+    def _refuse_tile_folder(self, out_key: str, folder: Path) -> None:
+        for key, tiles in self._input_folders:
+            if _inside(folder, tiles):
+                where = "is" if _same_file(folder, tiles) else "is inside"
+                raise OptionError(
+                    out_key,
+                    f"{str(folder)!r} {where} the folder of the tiles given as {{{key}}} "
+                    f"({str(tiles)!r}); outputs there would be read as tiles by the next run: "
+                    "choose a folder outside it",
+                    also=(key,),
+                )
 
     def _refuse_input(self, out_key: str, target: Path) -> None:
         for key, inp in self._inputs:
@@ -254,22 +296,60 @@ class OutputPlan:
         return staged
 
     def commit(self) -> List[Path]:
-        """Move every staged file into place; returns the final paths written."""
-        finals = [f for f, s in self._staged.items() if s.exists()]
-        for final in finals:  # the last check, on what was really written
-            key = next((k for k, p in self._files.items() if p == final), self.out_key or "out")
-            self._refuse_input(key, final)
-        for final in finals:
-            final.parent.mkdir(parents=True, exist_ok=True)
-            staged = self._staged[final]
-            if final.is_dir() and not staged.is_dir():
-                raise SlipMapFileError(f"{str(final)!r} is a folder; cannot replace it by a file")
-            if staged.is_file():
-                _usual_permissions(staged)
-            os.replace(staged, final)
-            self.written.append(final)
-        self._cleanup()
+        """Move every staged file into place; returns the final paths written.
+
+        All or nothing: when a move fails (or the last check refuses), the files already
+        moved in are removed, the files they replaced are put back, and the temporary
+        folders are removed before the error propagates.
+        """
+        moved: List[Tuple[Path, Optional[Path]]] = []  # (final, backup of what it replaced)
+        try:
+            finals = [f for f, s in self._staged.items() if s.exists()]
+            for final in finals:  # the last check, on what was really written
+                key = next((k for k, p in self._files.items() if p == final), self.out_key or "out")
+                self._refuse_input(key, final)
+            for n, final in enumerate(finals):
+                final.parent.mkdir(parents=True, exist_ok=True)
+                staged = self._staged[final]
+                if final.is_dir() and not staged.is_dir():
+                    raise SlipMapFileError(
+                        f"{str(final)!r} is a folder; cannot replace it by a file"
+                    )
+                if staged.is_file():
+                    _usual_permissions(staged)
+                backup = None
+                if final.is_file() or final.is_symlink():  # kept until every move succeeded
+                    backup = self._staging_for(final).joinpath(f".slipmap-replaced-{n}")
+                    os.replace(final, backup)
+                moved.append((final, backup))
+                os.replace(staged, final)
+            self.written.extend(final for final, _ in moved)
+        except BaseException:
+            self._roll_back(moved)
+            raise
+        finally:
+            self._cleanup()
         return list(self.written)
+
+    def _staging_for(self, final: Path) -> Path:
+        tmp = self._staging.get(final.parent)
+        if tmp is None:  # a file staged in a subfolder: its top staging folder
+            tmp = next(t for f, t in self._staging.items() if _inside(final, f))
+        return tmp
+
+    @staticmethod
+    def _roll_back(moved: List[Tuple[Path, Optional[Path]]]) -> None:
+        """Undo a commit's moves, last first (best effort: each step on its own)."""
+        for final, backup in reversed(moved):
+            try:
+                if final.is_dir() and not final.is_symlink():
+                    shutil.rmtree(final)
+                elif final.exists() or final.is_symlink():
+                    final.unlink()
+                if backup is not None:
+                    os.replace(backup, final)
+            except OSError as exc:  # pragma: no cover - a second failure while undoing
+                log.error("could not restore %s after a failed write: %s", final, exc)
 
     def abort(self) -> None:
         """Remove everything staged; the targets stay as they were."""

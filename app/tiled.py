@@ -1113,8 +1113,10 @@ def check_scale(opts) -> None:
             "workers", "cannot be given with {scheduler}; give one of them", also=("scheduler",)
         )
     addr = opts.get("scheduler")
-    if addr and "://" not in str(addr):
-        raise OptionError("scheduler", f"{addr!r} is not an address; give e.g. tcp://host:8786")
+    if addr:  # scheme, host and port, before anything connects (issue #31)
+        from .engine import check_scheduler_address
+
+        check_scheduler_address(addr)
 
 
 def split_inputs(value):
@@ -1193,7 +1195,9 @@ def run_planes_job(
     folder = outputs.get("out") is not None
     coll = open_input(opts, "input", what="input", crs=opts.get("crs"))
     plan = OutputPlan.for_outputs(
-        inputs={"input": [str(p) for p in coll.paths()]},
+        inputs={
+            "input": spec_folders(split_inputs(opts["input"])) + [str(p) for p in coll.paths()]
+        },
         outputs=outputs,
         default_names={"summary": "planes.json"},
     )
@@ -1344,6 +1348,30 @@ def input_files(opts, key: str):
     if value is None:
         return None
     try:
-        return [str(p) for p in expand_paths(split_inputs(value))]
+        files = [str(p) for p in expand_paths(split_inputs(value))]
     except SlipMapError as exc:
         raise OptionError(key, str(exc)) from exc
+    return spec_folders(split_inputs(value)) + files
+
+
+def spec_folders(spec) -> list:
+    """The folders a collection spec reads tiles from: a folder given, a glob's folder (the
+    part before its first wildcard); for OutputPlan, which writes nothing inside them."""
+    import glob as _glob
+    from pathlib import Path
+
+    out = []
+    for item in spec if isinstance(spec, (list, tuple)) else [spec]:
+        p = Path(str(item))
+        if p.is_dir():
+            out.append(str(p))
+        elif _glob.has_magic(str(p)):
+            fixed = []
+            for part in p.parts:
+                if _glob.has_magic(part):
+                    break
+                fixed.append(part)
+            base = Path(*fixed) if fixed else Path(".")
+            if base.is_dir():
+                out.append(str(base))
+    return out

@@ -95,16 +95,25 @@ def test_bad_scale_options_exit_2_and_write_nothing(tiles, tmp_path, capsys, sna
     assert snap.unchanged()
 
 
-def test_output_inside_the_tiles_folder_over_a_tile_refused(tiles, tmp_path, capsys):
+def test_output_inside_the_tiles_folder_refused(tiles, tmp_path, capsys, snapshot):
+    """Issue #31, bad case 5: ``planes TILES --out TILES`` wrote its outputs among the tiles
+    (read back as tiles by the next run); an output folder that is, or is inside, the folder
+    of the tiles is refused before any work, naming --out and INPUT, nothing written."""
     _, folder = tiles
     copy = tmp_path / "copy"
     copy.mkdir()
     for p in folder.iterdir():
         (copy / p.name).write_bytes(p.read_bytes())
-    (copy / "planes.json").write_text("{}")  # not an input: may be replaced
-    rc, err = _cli(["planes", str(copy / "*.laz"), "--out", str(copy)], capsys)
-    assert rc == 0, err
-    assert "planes" in _planes(copy)
+    snap = snapshot(copy)
+    for spec in (str(copy), str(copy / "*.laz"), ",".join(str(p) for p in copy.iterdir())):
+        for out in (copy, copy / "out", copy / "a" / "b"):
+            rc, err = _cli(["planes", spec, "--out", str(out)], capsys)
+            assert rc == 2, err
+            assert "--out" in err[-1] and "INPUT" in err[-1] and "folder of the tiles" in err[-1]
+            assert snap.unchanged()  # no output, no staging folder, tiles byte-identical
+            assert sorted(p.name for p in copy.iterdir()) == sorted(
+                p.name for p in folder.iterdir()
+            )
 
 
 def _csv(path):
