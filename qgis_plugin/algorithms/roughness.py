@@ -11,7 +11,7 @@ from qgis.core import (
 )
 
 from ...app import roughness as job
-from ._base import SlipMapAlgorithm, add_parameters, raster_output
+from ._base import SlipMapAlgorithm, add_parameters, apply_style_on_load, raster_output
 
 _CELL = job.SPEC["cell_sizes_m"]
 _POINTS = job.SPEC["points_out"]
@@ -96,6 +96,8 @@ class RoughnessAlgorithm(SlipMapAlgorithm):
         opts = self.job_options(parameters, context)
         outputs = self._outputs(parameters, context)
         self.run_job(job, opts, outputs, feedback)
+        if outputs["geotiff"]:  # the .qml the job wrote beside it: band 1 on its ramp
+            apply_style_on_load(context, outputs["geotiff"], "roughness")
         return {
             "OUTPUT": outputs["geotiff"],
             "CSV": outputs["csv"],
