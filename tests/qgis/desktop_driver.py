@@ -358,6 +358,9 @@ class Scenario:
             ]
             self.rec["seconds"] = round(time.time() - self.t_run, 1)
             if self.plan.get("shot") and self.rec["layers"]:
+                outputs = [x for x in project.mapLayers().values() if x.crs().isValid()]
+                if outputs:  # north up in the data's own CRS, as an analyst's project is
+                    project.setCrs(outputs[0].crs())
                 canvas = iface.mapCanvas()
                 extent = QgsRectangle()
                 extent.setMinimal()
