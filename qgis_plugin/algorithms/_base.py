@@ -18,6 +18,7 @@ from ..compat import (
     renderer_band,
     set_renderer_band,
 )
+from ._named import NamedAlgorithm
 
 LAS_FILTER = "LAS/LAZ (*.las *.laz)"
 LAS_OUTPUT_FILTER = "LAS (*.las);;LAZ (*.laz)"
@@ -509,7 +510,7 @@ def _in_qgis_process():
     return QgsApplication.platform() == "qgis_process"
 
 
-class SlipMapAlgorithm(QgsProcessingAlgorithm):
+class SlipMapAlgorithm(NamedAlgorithm, QgsProcessingAlgorithm):
     """Base of the SlipMap algorithms: no state is kept on ``self`` between runs.
 
     Gives every algorithm its group's icon, search tags, a one-line description (the job's),
@@ -517,27 +518,8 @@ class SlipMapAlgorithm(QgsProcessingAlgorithm):
     to the Processing log while it runs.
     """
 
-    _id = ""
-    _name = ""
-    _group = ""
-    _group_id = ""
     _tags = ()
     spec = None  # the job's JobSpec, where the algorithm runs one
-
-    def name(self):
-        return self._id
-
-    def displayName(self):  # noqa: N802 (QGIS API name)
-        return self._name
-
-    def group(self):
-        return self._group
-
-    def groupId(self):  # noqa: N802 (QGIS API name)
-        return self._group_id
-
-    def createInstance(self):  # noqa: N802 (QGIS API name)
-        return type(self)()
 
     def addParameter(self, definition, createOutput=True):  # noqa: N802, N803 (QGIS API)
         """``QgsProcessingAlgorithm.addParameter``, with every destination optional.

@@ -5,6 +5,7 @@ from __future__ import annotations
 from qgis.core import QgsProcessingAlgorithm, QgsProcessingException
 
 from .. import compat
+from ._named import NamedAlgorithm
 
 
 def _reason(exc) -> str:
@@ -22,7 +23,7 @@ def _reason(exc) -> str:
     )
 
 
-class StandInAlgorithm(QgsProcessingAlgorithm):
+class StandInAlgorithm(NamedAlgorithm, QgsProcessingAlgorithm):
     """Listed like the algorithm it stands for; ``canExecute()`` is False with the reason, and
     a run (``qgis_process``, ``processing.run``) refuses with it."""
 
@@ -43,26 +44,11 @@ class StandInAlgorithm(QgsProcessingAlgorithm):
         )
         return sub()
 
-    def name(self):
-        return self._id
-
-    def displayName(self):  # noqa: N802 (QGIS API name)
-        return self._name
-
-    def group(self):
-        return self._group
-
-    def groupId(self):  # noqa: N802 (QGIS API name)
-        return self._group_id
-
     def shortDescription(self):  # noqa: N802 (QGIS API name)
         return f"Cannot run yet. {self._reason_text}"
 
     def shortHelpString(self):  # noqa: N802 (QGIS API name)
         return self.shortDescription()
-
-    def createInstance(self):  # noqa: N802 (QGIS API name)
-        return type(self)()
 
     def canExecute(self):  # noqa: N802 (QGIS API name)
         return False, self._reason_text

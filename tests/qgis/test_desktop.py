@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import pyproj
 import pytest
+from qgis_scenes import rough_surface
 
 pytestmark = pytest.mark.qgis
 
@@ -72,17 +73,6 @@ def _require_desktop():
 
 
 # --------------------------------------------------------------------------- data
-
-
-def _surface(xy, seed=11):
-    rng = np.random.default_rng(seed)
-    z = np.full(len(xy), 100.0)
-    for _ in range(12):
-        wl = rng.uniform(1.5, 6.0)
-        th = rng.uniform(0, np.pi)
-        k = 2 * np.pi / wl * np.array([np.cos(th), np.sin(th)])
-        z += rng.uniform(0.05, 0.15) * np.sin((xy - [X0, Y0]) @ k + rng.uniform(0, 2 * np.pi))
-    return z
 
 
 def _write_lines(path, lines, crs):
@@ -145,7 +135,7 @@ def data(tmp_path_factory):
     n = int(64 * SIDE * SIDE)
     for name, (sx, sy, sz) in (("before", (0.0, 0.0, 0.0)), ("after", SHIFT)):
         xy = rng.uniform(0, SIDE, size=(n, 2)) + [X0, Y0]
-        z = _surface(xy - [sx, sy]) + sz
+        z = rough_surface(xy - [sx, sy], (X0, Y0)) + sz
         write_las(d / f"field_{name}.las", PointCloud(xyz=np.column_stack([xy, z]), crs=UTM12))
     _write_field(d / "strain_field.gpkg", UTM12)
     return d

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pyproj
 import pytest
+from qgis_scenes import rough_surface
 
 import slipmap
 
@@ -34,18 +35,6 @@ ICP_FIELDS = (
 )
 
 
-def _surface(xy, rng_seed=11):
-    """A smooth rough surface (sum of random plane waves, 1.5-6 m wavelengths), metres."""
-    rng = np.random.default_rng(rng_seed)
-    z = np.full(len(xy), 100.0)
-    for _ in range(12):
-        wl = rng.uniform(1.5, 6.0)
-        th = rng.uniform(0, np.pi)
-        k = 2 * np.pi / wl * np.array([np.cos(th), np.sin(th)])
-        z += rng.uniform(0.05, 0.15) * np.sin((xy - [X0, Y0]) @ k + rng.uniform(0, 2 * np.pi))
-    return z
-
-
 @pytest.fixture(scope="module")
 def epochs(tmp_path_factory):
     """Two independent samplings (64 pts/m2) of one surface, the second moved by SHIFT."""
@@ -57,7 +46,7 @@ def epochs(tmp_path_factory):
     paths = {}
     for name, (sx, sy, sz) in (("before", (0.0, 0.0, 0.0)), ("after", SHIFT)):
         xy = rng.uniform(0, SIDE, size=(n, 2)) + [X0, Y0]
-        z = _surface(xy - [sx, sy]) + sz
+        z = rough_surface(xy - [sx, sy], (X0, Y0)) + sz
         p = d / f"{name}.las"
         write_las(p, PointCloud(xyz=np.column_stack([xy, z]), crs=UTM12))
         paths[name] = p

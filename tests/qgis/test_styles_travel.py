@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pyproj
 import pytest
+from qgis_scenes import rough_surface
 
 pytestmark = pytest.mark.qgis
 
@@ -19,17 +20,6 @@ UTM10 = pyproj.CRS.from_epsg(32610)
 X0, Y0, SIDE = 512000.0, 4300000.0, 24.0
 SHIFT = (0.040, -0.030, 0.020)  # true motion before -> after (m): east, north, up
 OFFSET = 0.0181  # dextral slip of the fault pair (m)
-
-
-def _surface(xy, seed=11):
-    rng = np.random.default_rng(seed)
-    z = np.full(len(xy), 100.0)
-    for _ in range(12):
-        wl = rng.uniform(1.5, 6.0)
-        th = rng.uniform(0, np.pi)
-        k = 2 * np.pi / wl * np.array([np.cos(th), np.sin(th)])
-        z += rng.uniform(0.05, 0.15) * np.sin((xy - [X0, Y0]) @ k + rng.uniform(0, 2 * np.pi))
-    return z
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +33,7 @@ def field_epochs(tmp_path_factory):
     paths = []
     for name, (sx, sy, sz) in (("before", (0.0, 0.0, 0.0)), ("after", SHIFT)):
         xy = rng.uniform(0, SIDE, size=(n, 2)) + [X0, Y0]
-        z = _surface(xy - [sx, sy]) + sz
+        z = rough_surface(xy - [sx, sy], (X0, Y0)) + sz
         p = d / f"{name}.las"
         write_las(p, PointCloud(xyz=np.column_stack([xy, z]), crs=UTM12))
         paths.append(str(p))
