@@ -118,6 +118,105 @@ def _bounds_of(*colls: TileCollection) -> Tuple[np.ndarray, np.ndarray]:
     )
 
 
+# --------------------------------------------------------------------------- guards
+
+
+def _fmt_box(lo, hi) -> str:
+    return f"x {lo[0]:.1f}..{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f}"
+
+
+def outlying_tiles(coll: TileCollection) -> np.ndarray:
+    """Indices (into ``coll.files``) of the non-empty tiles whose header box lies far from
+    all the others or spans far more than they do (:func:`~.resources.outlying_boxes`)."""
+    from .resources import outlying_boxes
+
+    lo, hi, full = coll._boxes()
+    idx = np.flatnonzero(full)
+    return idx[outlying_boxes(lo[idx], hi[idx])]
+
+
+def refuse_outlying_tiles(
+    inputs: Sequence[Tuple[str, TileCollection]], why: str, *, also: Sequence[str] = ()
+) -> None:
+    """Refuse, naming the input option, a collection holding a tile whose header box lies far
+    from all the others or spans far more than they do (a stray point); ``why``: what it
+    would cost. Nothing happens when no tile stands out.
+
+    Raises
+    ------
+    OptionError
+        The input's key; the outlying tile's file, its header box and the others' extent.
+    """
+    from .options import OptionError
+
+    for key, coll in inputs:
+        odd = outlying_tiles(coll)
+        if not odd.size:
+            continue
+        lo, hi, full = coll._boxes()
+        rest = np.setdiff1d(np.flatnonzero(full), odd)
+        i = odd[0]
+        others = _fmt_box(lo[rest].min(axis=0), hi[rest].max(axis=0))
+        more = f" (and {odd.size - 1} more)" if odd.size > 1 else ""
+        raise OptionError(
+            key,
+            f"{coll.label + ': ' if coll.label and coll.label != key else ''}tile "
+            f"{coll.files[i].path.name}{more} has its header box at "
+            f"{_fmt_box(lo[i], hi[i])}, far from or far larger than the other tiles "
+            f"({others}): a stray point? {why}; remove it from the file (e.g. PDAL "
+            "filters.crop or filters.outlier) or leave the file out",
+            also=also,
+        )
+
+
+def check_tiles(
+    inputs: Sequence[Tuple[str, TileCollection]],
+    tile_size_m: float,
+    *,
+    key: str = "tile_size_m",
+    min_tile_m: Optional[float] = None,
+    min_why: str = "",
+    grow_low_m: float = 0.0,
+) -> float:
+    """The guards of a tiled run, from the tiles' headers before any point is read: the
+    processing tile is at least ``min_tile_m`` (``min_why`` names what needs it) and cuts the
+    inputs into at most :data:`~.resources.MAX_TILES` tiles; when a stray tile (see
+    :func:`refuse_outlying_tiles`) makes the count, that tile is named instead.
+
+    ``inputs``: (option key, collection) pairs; ``grow_low_m``: the tiles' boxes grown
+    towards low x, y by this (roughness: a cell's lower corner may lie before its points).
+    Returns the tile size. Raises OptionError naming ``key`` (or the input's key).
+    """
+    from .options import OptionError
+    from .resources import MAX_TILES, _nice_up, box_counts, check_tile_budget
+
+    t = _check_tile(tile_size_m)
+    if min_tile_m is not None and t < min_tile_m:
+        raise OptionError(
+            key,
+            f"= {t:g} m is smaller than {min_why} ({min_tile_m:g} m); choose "
+            f"{_nice_up(min_tile_m):g} m or more",
+        )
+    boxes, kept = [], []
+    for _, coll in inputs:
+        lo, hi, full = coll._boxes()
+        boxes.append((lo[full] - grow_low_m, hi[full]))
+        rest = np.setdiff1d(np.flatnonzero(full), outlying_tiles(coll))
+        kept.append((lo[rest] - grow_low_m, hi[rest]))
+
+    def count(s: float, boxes=boxes) -> float:  # the tiles the boxes meet (busiest input's)
+        return max((float(box_counts(lo, hi, s).sum()) for lo, hi in boxes), default=0.0)
+
+    n = count(t)
+    if n > MAX_TILES:
+        if count(t, kept) <= MAX_TILES:  # one stray tile makes it: name that tile
+            refuse_outlying_tiles(
+                inputs, f"{{{key}}} = {t:g} m would cut the data into {n:.3g} tiles", also=(key,)
+            )
+        check_tile_budget(key, count, t, what="tiles")
+    return t
+
+
 # --------------------------------------------------------------------------- roughness
 
 
@@ -225,7 +324,7 @@ def principal_frame_tiled(
     from ..core import roughness as rough
 
     eng = _engine(engine)
-    t = _check_tile(tile_size_m)
+    t = check_tiles([("input", coll)], tile_size_m)
     lo, hi = coll.bounds
     regions = region_grid((lo, hi), t, collections=[coll])
     ref = tuple(0.5 * (lo + hi))
@@ -244,6 +343,18 @@ def principal_frame_tiled(
         axes=rough._orient_largest(evecs[:, ::-1].T.copy()),
         eigenvalues_m2=evals[::-1].copy(),
     )
+
+
+def check_roughness_tiles(
+    coll: TileCollection, tile_size_m: float, cell_sizes_m: Sequence[float], key: str = "input"
+) -> float:
+    """:func:`check_tiles` for roughness: a tile at least the largest cell, the files' boxes
+    grown one cell lower (a cell belongs to the tile of its lower corner)."""
+    grow = max(float(c) for c in cell_sizes_m)
+    return check_tiles(
+        [(key, coll)], tile_size_m, min_tile_m=grow, min_why="the largest cell",
+        grow_low_m=grow,
+    )  # fmt: skip
 
 
 def roughness_tiled(
@@ -282,16 +393,21 @@ def roughness_tiled(
     from ..core import roughness as rough
 
     eng = _engine(engine)
-    t = _check_tile(tile_size_m)
     sizes = tuple(rough._check_cell_size(c) for c in cell_sizes_m)
     if not sizes:
         raise InvalidParameterError("cell_sizes_m: give at least one cell size")
     mp = rough._check_min_points(min_points)
     if coll.n_points == 0:
         raise InputDataError(f"{coll.label or 'input'}: the tiles hold no point")
+    # a cell belongs to the tile of its lower corner: that tile may hold none of its points
+    # (before the data's lower edge or in a gap between files), so the files' boxes reach
+    # one cell lower when the tiles are chosen; a tile smaller than a cell would read each
+    # cell's points from many tiles' halos
+    grow = max(sizes)
+    t = check_roughness_tiles(coll, tile_size_m, sizes)
     lo, hi = coll.bounds
     geos = [rough._grid_geometry(lo, hi, c, None) for c in sizes]
-    regions = region_grid((lo, hi), t, collections=[coll])
+    regions = region_grid((lo, hi), t, collections=[coll], grow_low_m=grow)
     names = [r.name for r in regions]
     sub = progress
     if isinstance(ols_axis, str) and ols_axis.lower() == "auto":
@@ -536,11 +652,11 @@ def slip_tiled(
             )
     model = check_stochastic_model(stochastic_model)
     components = check_components(components)
-    t = _check_tile(tile_size_m)
     eng = _engine(engine)
     for coll in (before, after):
         if coll.n_points == 0:
             raise InputDataError(f"{coll.label or 'input'}: the tiles hold no point")
+    t = check_tiles([("before", before), ("after", after)], tile_size_m)
     if before.crs is not None and after.crs is not None:
         from ..core.io.crs import same_crs
 
@@ -872,9 +988,9 @@ def planes_tiled(
         reachable from them.
     """
     eng = _engine(engine)
-    t = _check_tile(tile_size_m)
     if coll.n_points == 0:
         raise InputDataError(f"{coll.label or 'input'}: the tiles hold no point")
+    t = check_tiles([("input", coll)], tile_size_m)
     opts = dict(options or {})
     lo, hi = coll.bounds
     regions = region_grid((lo, hi), t, collections=[coll])
@@ -1203,6 +1319,7 @@ def run_planes_job(
     )
     plan.check()
     sel = Selection(opts.get("classes"), opts.get("exclude_classes"), ground_default=True)
+    check_tiles([("input", coll)], opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M)
     with plan:
         with engine_from(opts) as eng, Timer() as t:
             planes = planes_tiled(
@@ -1283,6 +1400,7 @@ def roughness_for_job(
 
     coll = open_input(opts, input_key, what="input", crs=opts.get("crs"))
     t = opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M
+    check_roughness_tiles(coll, t, cell_sizes_m, input_key)  # before any worker starts
     with engine_from(opts) as eng:
         frame = principal_frame_tiled(
             coll, selection=selection, tile_size_m=t, engine=eng, progress=scaled(progress, 0, 0.2)
@@ -1323,6 +1441,7 @@ def slip_for_job(
     after = open_input(opts, keys[1], what="after epoch", crs=opts.get("crs"))
     fault = trace(before.crs) if callable(trace) else trace
     t = opts.get("tile_size_m") or DEFAULT_TILE_SIZE_M
+    check_tiles([(keys[0], before), (keys[1], after)], t)  # before any tile is read
     try:
         _check_trace(before, after, fault, t)
     except InputDataError as exc:

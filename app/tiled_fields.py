@@ -60,6 +60,11 @@ SPLINE_HALO_PX = 24
 #: to all others, its influence falling 3.7x per cell (0.268 ** 12 ~ 1e-7; 6 cells left 0.6 mm
 #: on the 5 m cells of tests/app/test_tiled_fields.py, 12 cells 4e-11 m)
 DEFORM_HALO_CELLS = 12
+#: bytes per final vector the PIV driver holds (dx, dy, dz, snr float64, valid, the lattice)
+_PIV_DRIVER_BYTES = 48.0
+#: bytes per cell of the ICP's lattice (the per-cell counts, the median test's and the
+#: deformation field's rasters: about a dozen float64 arrays over the lattice)
+ICP_LATTICE_BYTES = 96.0
 #: every point (no class selection)
 _ALL = Selection()
 
@@ -113,6 +118,70 @@ def pair_grid(before: TileCollection, after: TileCollection, cell_m: float):
 
     (lo_b, hi_b), (lo_a, hi_a) = before.bounds, after.bounds
     return grid_for_bounds(np.maximum(lo_b, lo_a), np.minimum(hi_b, hi_a), cell_m=cell_m)
+
+
+def _kept_bounds(coll: TileCollection) -> Tuple[np.ndarray, np.ndarray]:
+    """The union of the tiles' header boxes without the outlying ones (a stray point's)."""
+    from .tiled import outlying_tiles
+
+    lo, hi, full = coll._boxes()
+    rest = np.setdiff1d(np.flatnonzero(full), outlying_tiles(coll))
+    if not rest.size:
+        return coll.bounds
+    return lo[rest].min(axis=0), hi[rest].max(axis=0)
+
+
+def _cells_over(lo, hi, cell: float) -> float:
+    span = np.maximum(np.asarray(hi, float)[:2] - np.asarray(lo, float)[:2], 0.0)
+    return float(np.prod(np.floor(span / cell) + 1))
+
+
+def check_grid_guards(
+    inputs: Sequence[Tuple[str, TileCollection]],
+    *,
+    cell: float,
+    cell_key: str,
+    n_cells: float,
+    blocks: Any,
+    tile_size_m: float,
+    what: str,
+    bytes_per_cell: float = 0.0,
+    overlap: bool = True,
+) -> None:
+    """The guards of a field job's global grid, from the tiles' headers before any point is
+    read: a grid whose extent one stray tile makes (the data fill under 1 % of it) is refused
+    naming the tile; then at most :data:`~.resources.MAX_TILES` blocks (``blocks(size)``:
+    the blocks a ``tile_size_m`` of ``size`` gives) and, with ``bytes_per_cell``, the memory
+    of the arrays the driver holds over the grid's ``n_cells`` cells.
+
+    ``overlap``: the grid covers the inputs' overlap (DEM difference, PIV), else the union
+    of the last input's tiles (the ICP's after epoch).
+    """
+    from .resources import (
+        SPARSE_MIN_CELLS,
+        SPARSE_SHARE,
+        check_grid_memory,
+        check_tile_budget,
+    )
+    from .tiled import refuse_outlying_tiles
+
+    kept = [_kept_bounds(c) for _, c in inputs]
+    if overlap:
+        lo = np.max([k[0] for k in kept], axis=0)
+        hi = np.min([k[1] for k in kept], axis=0)
+    else:
+        lo, hi = kept[-1]
+    robust = _cells_over(lo, hi, cell)
+    if n_cells >= SPARSE_MIN_CELLS and robust <= SPARSE_SHARE * n_cells:
+        refuse_outlying_tiles(
+            inputs,
+            f"the {what} of {{{cell_key}}} = {cell:g} m would span {n_cells:.3g} cells, the data "
+            f"fill {robust:.3g} of them",
+            also=(cell_key,),
+        )
+    check_tile_budget("tile_size_m", blocks, float(tile_size_m), what=f"blocks of the {what}")
+    if bytes_per_cell:
+        check_grid_memory(cell_key, n_cells, bytes_per_cell=bytes_per_cell, what=what)
 
 
 @contextlib.contextmanager
@@ -270,6 +339,16 @@ def dem_difference_tiled(
     TiledDem
     """
     grid = pair_grid(before, after, cell_m)
+
+    def n_blocks(size: float) -> float:
+        bs = max(8, int(round(float(size) / grid.cell_m)))
+        return math.ceil(grid.n_rows / bs) * math.ceil(grid.n_cols / bs)
+
+    check_grid_guards(
+        [("before", before), ("after", after)], cell=grid.cell_m, cell_key="grid_m",
+        n_cells=float(grid.n_rows) * grid.n_cols, blocks=n_blocks, tile_size_m=tile_size_m,
+        what="DEM grid",
+    )  # fmt: skip
     b = max(8, int(round(float(tile_size_m) / grid.cell_m)))
     if check_block is not None:
         check_block(min(b, grid.n_rows) * min(b, grid.n_cols))
@@ -436,6 +515,16 @@ def piv_tiled(
     step = max(1, int(round(w_last * (1.0 - float(overlap)))))
     lay = _layout(grid.n_rows, grid.n_cols, w_last, step)
     ny, nx = lay.r0.size, lay.c0.size
+
+    def n_blocks(size: float) -> float:
+        k = max(1, int(round(float(size) / (step * cell))))
+        return math.ceil(ny / k) * math.ceil(nx / k)
+
+    check_grid_guards(
+        [("before", before), ("after", after)], cell=cell, cell_key="grid_m",
+        n_cells=float(grid.n_rows) * grid.n_cols, blocks=n_blocks, tile_size_m=tile_size_m,
+        what="DEM grid", bytes_per_cell=_PIV_DRIVER_BYTES / max(1, step * step),
+    )  # fmt: skip
     if search_px is not None:
         margin1 = int(search_px)
     elif expected_max_displacement_m is not None:
@@ -653,6 +742,16 @@ def icp_tiled(
     y0 = oy + math.ceil((hi[1] - oy) / cell) * cell
     n_cols = int(math.floor((hi[0] - x0) / cell)) + 1
     n_rows = int(math.floor((y0 - lo[1]) / cell)) + 1
+
+    def n_blocks(size: float) -> float:
+        k = max(1, int(round(float(size) / cell)))
+        return math.ceil(n_rows / k) * math.ceil(n_cols / k)
+
+    check_grid_guards(
+        [("before", before), ("after", after)], cell=cell, cell_key="cell_m",
+        n_cells=float(n_rows) * n_cols, blocks=n_blocks, tile_size_m=tile_size_m,
+        what="cell lattice", bytes_per_cell=ICP_LATTICE_BYTES, overlap=False,
+    )  # fmt: skip
     nb = max(1, int(round(float(tile_size_m) / cell)))
     kw = dict(icp_kw, cell_m=cell, buffer_m=buffer_m, coarse_to_fine=levels)
     tasks = []

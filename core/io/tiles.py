@@ -496,17 +496,21 @@ def region_grid(
     *,
     origin_m: Optional[Sequence[float]] = None,
     collections: Iterable[TileCollection] = (),
+    grow_low_m: float = 0.0,
 ) -> List[Region]:
     """Regions of a regular grid of ``tile_size_m`` squares covering ``bounds``.
 
     The grid is aligned to multiples of ``tile_size_m`` (or to ``origin_m``); regions that
-    no file of ``collections`` overlaps are left out (when collections are given). Regions
-    come in a fixed order (ix, then iy).
+    no file of ``collections`` overlaps are left out (when collections are given), the files'
+    boxes grown towards low x and y by ``grow_low_m`` (a roughness cell belongs to the tile
+    of its lower corner, which may lie before its points). Regions come in a fixed order
+    (ix, then iy).
     """
     t = float(tile_size_m)
     if not (math.isfinite(t) and t > 0):
         raise InvalidParameterError(f"tile_size_m must be a positive number, got {tile_size_m!r}")
     lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
+    lo = lo - float(grow_low_m)
     o = np.zeros(2) if origin_m is None else np.asarray(origin_m, dtype=np.float64)[:2]
     i0 = np.floor((lo[:2] - o) / t).astype(np.int64)
     i1 = np.floor((hi[:2] - o) / t).astype(np.int64)
@@ -522,7 +526,7 @@ def region_grid(
         for c in colls:
             lo_f, hi_f, full = c._boxes()
             for a, b in zip(lo_f[full], hi_f[full]):
-                j0 = np.floor((a[:2] - o) / t).astype(np.int64)
+                j0 = np.floor((a[:2] - float(grow_low_m) - o) / t).astype(np.int64)
                 j1 = np.floor((b[:2] - o) / t).astype(np.int64)
                 for ix in range(int(j0[0]), int(j1[0]) + 1):
                     for iy in range(int(j0[1]), int(j1[1]) + 1):
