@@ -13,6 +13,7 @@ themselves (:func:`layer_columns`).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from typing import Any, Callable, Dict, List, Mapping, Optional
 
@@ -369,6 +370,57 @@ def cell_rings(res) -> List[np.ndarray]:
     return out
 
 
+def check_lattice(after: np.ndarray, cell_m: float) -> None:
+    """The cell lattice of a one-file run, before it is allocated: refused naming ``cell_m``
+    when a few stray points make its extent (the others fill under 1 % of it) or when it
+    would not fit in memory (issue #31)."""
+    from .resources import check_grid_memory, check_sparse_grid, stray_points
+    from .tiled_fields import ICP_LATTICE_BYTES
+
+    xy = np.asarray(after)[:, :2]
+    if not len(xy):
+        return
+    c = float(cell_m)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+
+    def cells(a, b):
+        return float(np.prod(np.floor((np.asarray(b) - np.asarray(a)) / c) + 2))
+
+    n = cells(lo, hi)
+    r_lo, r_hi, n_out = stray_points(xy)
+    if n_out:
+        inside = np.all((xy >= r_lo) & (xy <= r_hi), axis=1)
+        k_lo, k_hi = xy[inside].min(axis=0), xy[inside].max(axis=0)
+        far = xy[~inside][0]
+        check_sparse_grid(
+            "cell_m",
+            n,
+            cells(k_lo, k_hi),
+            what="cell lattice",
+            where=(
+                f"{n_out} point(s) of the after epoch lie far from the others (e.g. at x "
+                f"{far[0]:.1f}, y {far[1]:.1f}; the others span x {k_lo[0]:.1f}..{k_hi[0]:.1f}, "
+                f"y {k_lo[1]:.1f}..{k_hi[1]:.1f})"
+            ),
+        )
+    check_grid_memory("cell_m", n, bytes_per_cell=ICP_LATTICE_BYTES, what="cell lattice")
+
+
+@contextlib.contextmanager
+def spline_errors():
+    """The spline field's size refusals from the core, as the options that make them."""
+    from ..core.icp_spline import SplineCellsError, SplineSizeError
+
+    try:
+        yield
+    except SplineSizeError as exc:
+        raise OptionError("spline_spacing_m", str(exc)) from exc
+    except SplineCellsError as exc:
+        raise OptionError(
+            "cell_m", f"{exc}: too few cells for a spline field; use a smaller cell"
+        ) from exc
+
+
 def run(
     opts: Mapping[str, Any],
     outputs: Mapping[str, Any],
@@ -412,7 +464,8 @@ def run(
         if tiled:  # blocks of cells (app/tiled_fields.py)
             from .tiled_fields import icp_for_job
 
-            res, crs = icp_for_job(opts, core_kwargs(opts), progress=progress)
+            with spline_errors():
+                res, crs = icp_for_job(opts, core_kwargs(opts), progress=progress)
             before = None
         else:
             before, after, crs = read_pair(opts)
@@ -422,14 +475,16 @@ def run(
                 stable_mask = _mask_reader(opts["stable_mask"])
             if stable_mask is not None:
                 exclude = stable_mask(crs)
-            res = windowed_icp(
-                before,
-                after,
-                prealign=bool(exclude) or bool(opts.get("prealign")),
-                exclude_polygons=exclude,
-                progress=progress,
-                **core_kwargs(opts),
-            )
+            check_lattice(after, opts["cell_m"])
+            with spline_errors():
+                res = windowed_icp(
+                    before,
+                    after,
+                    prealign=bool(exclude) or bool(opts.get("prealign")),
+                    exclude_polygons=exclude,
+                    progress=progress,
+                    **core_kwargs(opts),
+                )
         comparison = None
         if control is not None:
             field = field_of_columns(

@@ -194,3 +194,21 @@ def check_sparse_grid(
         f"{where}; remove the stray points (e.g. PDAL filters.outlier or filters.crop) or "
         "crop the input to the study area",
     )
+
+
+def point_tile_count(xys, size: float) -> int:
+    """Distinct ``size`` squares (aligned to multiples of ``size``) that hold at least one of
+    the points (``xys``: arrays (N, >=2), metres)."""
+    keys = np.concatenate([np.floor(np.asarray(p, float)[:, :2] / size) for p in xys])
+    if not len(keys):
+        return 0
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    if float(span[0]) * float(span[1]) < 2.0**62:
+        return int(np.unique(keys[:, 0].astype(np.int64) * int(span[1]) + keys[:, 1]).size)
+    return int(np.unique(keys, axis=0).shape[0])
+
+
+def check_point_tiles(key: str, xys, size: float, *, budget: int = MAX_TILES) -> None:
+    """:func:`check_tile_budget` for points in memory: the tiles holding points."""
+    check_tile_budget(key, lambda s: point_tile_count(xys, s), float(size), budget=budget)

@@ -443,6 +443,10 @@ def compute(
     # side's adjustment (tiles cut planes at their borders: another set of planes, another
     # estimate, e.g. 16.37 ± 2.97 mm against 16.32 ± 4.03 mm on the demo with 50 m tiles)
     map_tiles = tile is not None and combine == "joint"
+    if tile is not None:  # a budget on the tiles before any is segmented (issue #31)
+        from .resources import check_point_tiles
+
+        check_point_tiles("tile_size_m", (before, after), tile)
     parts = iter(_phase_progress(progress, before, opts, map_tiles, want_strips, want_windows))
     result = estimate_slip(
         before,

@@ -715,7 +715,14 @@ def _register_side_tiled(
     t = tile_size_m
     kb = np.floor(before[:, :2] / t).astype(np.int64)
     ka = np.floor(after[:, :2] / t).astype(np.int64)
-    keys = np.unique(np.concatenate([kb, ka]), axis=0)
+    keys, inv = np.unique(np.concatenate([kb, ka]), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    # each tile's points by one sort (a mask over all points per tile was O(tiles x points))
+    nt = keys.shape[0]
+    inv_b, inv_a = inv[: kb.shape[0]], inv[kb.shape[0] :]
+    ob, oa = np.argsort(inv_b, kind="stable"), np.argsort(inv_a, kind="stable")
+    sb = np.searchsorted(inv_b[ob], np.arange(nt + 1))
+    sa = np.searchsorted(inv_a[oa], np.arange(nt + 1))
     lb = np.full(before.shape[0], -1, dtype=np.int64)  # global match index per point
     la = np.full(after.shape[0], -1, dtype=np.int64)
     parts_b, parts_a = [], []
@@ -724,8 +731,8 @@ def _register_side_tiled(
     n_matched = 0
     tile_info = []  # (ix, iy, first match id, n matches, status)
     for n, (ix, iy) in enumerate(keys):
-        ib = np.flatnonzero((kb[:, 0] == ix) & (kb[:, 1] == iy))
-        ia = np.flatnonzero((ka[:, 0] == ix) & (ka[:, 1] == iy))
+        ib = ob[sb[n] : sb[n + 1]]  # ascending, as np.flatnonzero of the tile's mask
+        ia = oa[sa[n] : sa[n + 1]]
         status = "ok"
         k = 0
         try:

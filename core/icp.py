@@ -1778,10 +1778,24 @@ def windowed_icp(
         a = pre.apply(a)
 
     x0, y0, n_rows, n_cols = _grid_origin(a, cell, origin_xy)
+    if field_model == "spline":  # before any cell is fitted (issue #31)
+        from .icp_spline import check_spline_size
+
+        check_spline_size(a[:, :2].max(axis=0) - a[:, :2].min(axis=0) + cell, spline_h)
     ra, ca = _cell_index(a, x0, y0, cell)
     keys_a = ra * n_cols + ca
     order = np.argsort(keys_a, kind="stable")
     uk, starts, counts = np.unique(keys_a[order], return_index=True, return_counts=True)
+    if field_model == "spline":
+        from .icp_spline import MIN_SPLINE_CELLS, SplineCellsError
+
+        full = int(np.sum(counts >= min_points))
+        if full < MIN_SPLINE_CELLS:
+            raise SplineCellsError(
+                f"{full} cell(s) of {cell:g} m hold {minp} points or more; a spline "
+                f"field needs {MIN_SPLINE_CELLS} at least",
+                cells=full,
+            )
     rb, cb = _cell_index(b, x0, y0, cell)
     inb = (rb >= 0) & (rb < n_rows) & (cb >= 0) & (cb < n_cols)
     nb_cell = np.bincount(rb[inb] * n_cols + cb[inb], minlength=n_rows * n_cols)

@@ -51,6 +51,61 @@ AUTO_SETTLED = 0.02
 #: bounds of the estimated weights, relative to the median diagonal of the normal matrix
 AUTO_RANGE = (1e-6, 1e4)
 TRACE_PROBES = 32
+#: most knots of one spline field: the sparse normal matrix has 3 x knots unknowns and its
+#: LU factor grows faster than that (250 000 knots: 750 000 unknowns, gigabytes)
+MAX_KNOTS = 250_000
+#: fewest cells with points a spline field is fitted to (its start is interpolated from them)
+MIN_SPLINE_CELLS = 4
+
+
+class SplineSizeError(InvalidParameterError):
+    """The knot spacing gives more knots than one fit can hold (``knots``; ``smallest_m``:
+    the smallest spacing that fits, metres)."""
+
+    def __init__(self, text: str, *, knots: int, smallest_m: float):
+        super().__init__(text)
+        self.knots = knots
+        self.smallest_m = smallest_m
+
+
+class SplineCellsError(InputDataError):
+    """Too few cells with points for a spline field (``cells``: how many there are)."""
+
+    def __init__(self, text: str, *, cells: int):
+        super().__init__(text)
+        self.cells = cells
+
+
+def n_knots(span_xy, spacing_m: float) -> int:
+    """Knots of a bicubic spline field of ``spacing_m`` over a ``span_xy`` (w, h) metres."""
+    n = np.maximum(np.ceil(np.asarray(span_xy, dtype=np.float64) / spacing_m), 1) + 3
+    return int(float(n[0]) * float(n[1]))
+
+
+def check_spline_size(span_xy, spacing_m: float) -> None:
+    """Refuse a knot spacing that gives more than :data:`MAX_KNOTS` knots over ``span_xy``
+    (w, h) metres, before anything is allocated.
+
+    Raises
+    ------
+    SplineSizeError
+        With the knot count and the smallest spacing that fits (two significant digits).
+    """
+    k = n_knots(span_xy, spacing_m)
+    if k <= MAX_KNOTS:
+        return
+    h = float(spacing_m)
+    while n_knots(span_xy, h) > MAX_KNOTS:
+        h = float(f"{h * 1.05:.2g}") if float(f"{h * 1.05:.2g}") > h else h * 1.05
+    w, d = (float(v) for v in span_xy)
+    raise SplineSizeError(
+        f"a knot spacing of {spacing_m:g} m gives {k:.3g} knots over the data's "
+        f"{w:.1f} x {d:.1f} m, more than the {MAX_KNOTS} one spline field can hold; use "
+        f"{h:.2g} m or more",
+        knots=k,
+        smallest_m=h,
+    )
+
 
 __all__ = ["SplineField", "SplineFit", "fit_spline_field", "bspline_weights"]
 
@@ -351,8 +406,14 @@ def fit_spline_field(
     lam_abs = None  # absolute penalty weight per component, set at the first iteration
     a = np.asarray(after, dtype=np.float64)
     rxy = np.asarray(report_xy, dtype=np.float64).reshape(-1, 2)
+    if len(rxy) < MIN_SPLINE_CELLS:
+        raise SplineCellsError(
+            f"{len(rxy)} cell(s) with points, a spline field needs {MIN_SPLINE_CELLS} at least",
+            cells=len(rxy),
+        )
     lo = np.minimum(a[:, :2].min(axis=0), rxy.min(axis=0)) - 1e-6 * h
     hi = np.maximum(a[:, :2].max(axis=0), rxy.max(axis=0))
+    check_spline_size(hi - lo, h)
     n_x, n_y = (int(v) for v in np.maximum(np.ceil((hi - lo) / h), 1))
     kx, ky = n_x + 3, n_y + 3
     n_k = kx * ky
