@@ -459,7 +459,8 @@ def _check_trace(before: TileCollection, after: TileCollection, trace, t: float)
         return regions  # slip_tiled says the epochs do not overlap
     centres = np.array([[0.5 * (r.xmin + r.xmax), 0.5 * (r.ymin + r.ymax)] for r in regions])
     corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]])
-    trace_in_data_check(trace, np.concatenate([centres, corners]), buffer_m=0.0)
+    # tile centres and corners, not points: the "N points on each side" line would mislead
+    trace_in_data_check(trace, np.concatenate([centres, corners]), buffer_m=0.0, quiet=True)
     return regions
 
 
@@ -897,7 +898,15 @@ def planes_tiled(
         if params is not None:
             break
     if params is None:
-        raise InputDataError("no tile near the data's centre has points to estimate parameters")
+        tried = ", ".join(r.name for r in by_dist[:8])
+        raise InputDataError(
+            f"the segmentation parameters are estimated on a pilot tile near the data's "
+            f"centre ({centre[0]:.1f}, {centre[1]:.1f}), but none of the {len(by_dist[:8])} "
+            f"nearest processing tiles ({tried}) holds enough selected points: the tiles' "
+            "header boxes span much more than the points (a stray point far away?) or the "
+            "class selection leaves too few points; check the tiles' extents and the classes, "
+            "or give a larger tile size"
+        )
     fixed = {
         k: getattr(params, k)
         for k in (
