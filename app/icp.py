@@ -295,6 +295,13 @@ def _check(opts) -> None:
     from .tiled import is_tiled
 
     check_fields_tiled(opts, refused=CHECK_TILED)
+    if opts.get("spline_spacing_m") is not None and opts.get("field_model") != "spline":
+        from .options import warn_option
+
+        warn_option(
+            "{spline_spacing_m} is set but {field_model} is not spline: the knot spacing is "
+            "not used; set {field_model} to spline for the spline field"
+        )
     if opts.get("field_model") == "spline" and is_tiled(opts, "before", "after"):
         raise tiled_refusal(
             "field_model",

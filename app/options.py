@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import math
+from contextvars import ContextVar
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Dict, Iterable, Mapping, Optional, Sequence, Tuple
 
@@ -422,6 +423,8 @@ class JobSpec:
                     raise OptionError(o.key, "is required")
                 value = o.convert(o.default) if o.default is not None else None
             out[o.key] = value
+        if face:  # warnings of the run name options as this face does (in_face_words)
+            _FACE_WORDS.set((self, face))
         if run_check and self.check is not None:
             self.check(out)
         return out
@@ -474,3 +477,58 @@ class JobSpec:
                 f"{self.help_in(o, face)} |"
             )
         return "\n".join(rows)
+
+
+#: Tile sets as delivered (issue #31): every job that reads tiles declares this one option
+#: (through :func:`slipmap.app.tiled.scale_options`), so every face gets it. PDAL hands its
+#: stages a view, not tiles: no PDAL key.
+KEEP_DUPLICATE_POINTS = Option(
+    "keep_duplicate_points",
+    "bool",
+    "tiled inputs: read every file and every point as given. By default a file that is a "
+    "copy of another (the same header and point records) is read once, with a warning, and "
+    "where tiles overlap a point found in several files (the same GpsTime and coordinates) "
+    "counts once; set this for data that really is distinct",
+    label="Keep duplicate points of overlapping tiles",
+    default=False,
+    advanced=True,
+    group="scale: tiled inputs and Dask",
+    pdal=None,
+)
+
+
+# --------------------------------------------------------------------------- face words
+
+#: the job's spec and the face of the run in this thread (set by :meth:`JobSpec.parse`
+#: with a face: every face parses its options before it runs a job)
+_FACE_WORDS: ContextVar[Optional[Tuple[JobSpec, str]]] = ContextVar(
+    "slipmap_face_words", default=None
+)
+
+
+def in_face_words(text: str) -> str:
+    """``text`` with the options it names as ``{key}`` as the running face calls them
+    (``--units``, "Acquisition units", ``units``); the bare key outside a face's run or for
+    an option that face does not have."""
+    import re
+
+    current = _FACE_WORDS.get()
+
+    def name(match: re.Match) -> str:
+        key = match.group(1)
+        if current is not None:
+            spec, face = current
+            o = spec._by_key.get(key)
+            if o is not None and o.name_in(face) is not None:
+                return o.display_in(face)
+        return key
+
+    return re.sub(r"\{(\w+)\}", name, text)
+
+
+def warn_option(text: str, *args: Any) -> None:
+    """Log a warning whose ``{key}`` placeholders name options as the running face does;
+    ``args`` fill the text's ``%s`` (file names: their braces are not placeholders)."""
+    import logging
+
+    logging.getLogger("slipmap.app").warning(in_face_words(text), *args)

@@ -251,7 +251,9 @@ def epoch_units(
     note = ""
     if n <= 1:
         note = "a single unit: its rigid error cannot be told from the motion (not estimable)"
-        log.warning("%s: %s %s gives %s", epoch, option, name(how), note)
+        from .options import in_face_words
+
+        log.warning("%s: %s %s gives %s", epoch, in_face_words(option), name(how), note)
     elif n > MANY_UNITS:
         log.warning(
             "%s: %d acquisition units from %s; is the GPS gap (%g s) below the gaps within "
@@ -341,13 +343,28 @@ def check_stochastic(opts: Mapping[str, Any]) -> Dict[str, float]:
     OptionError
         Bad fixed components, or fixed components with the white model.
     """
-    from .options import OptionError
+    from .options import OptionError, warn_option
 
     value = opts.get("fixed_components")
     try:
         fixed = fixed_components_or_error(value) if value else {}
     except ValueError as exc:
         raise OptionError("fixed_components", str(exc)) from None
+    units_fixed = [k for k in ("unit_before", "unit_after") if k in fixed]
+    if units_fixed and opts.get("units") == "none":
+        raise OptionError(
+            "fixed_components",
+            f"{' and '.join(units_fixed)} fixed, but {{units}} is none: there is no "
+            "acquisition unit for it to act on; set {units} to auto, PointSourceId or GpsTime, "
+            f"or leave {' and '.join(units_fixed)} out",
+            also=("units",),
+        )
+    gap = opts.get("gps_gap_s")
+    if gap is not None and gap != DEFAULT_GPS_GAP_S and opts.get("units") != "GpsTime":
+        warn_option(
+            "{gps_gap_s} is set but {units} is not GpsTime: the GPS gap is not used; set "
+            "{units} to GpsTime to split the epochs at GPS time gaps"
+        )
     if fixed and opts.get("stochastic_model") == "white":
         raise OptionError(
             "fixed_components",

@@ -575,7 +575,8 @@ def _check_trace(before: TileCollection, after: TileCollection, trace, t: float)
         return regions  # slip_tiled says the epochs do not overlap
     centres = np.array([[0.5 * (r.xmin + r.xmax), 0.5 * (r.ymin + r.ymax)] for r in regions])
     corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [lo[0], hi[1]], [hi[0], hi[1]]])
-    trace_in_data_check(trace, np.concatenate([centres, corners]), buffer_m=0.0)
+    # tile centres and corners, not points: the "N points on each side" line would mislead
+    trace_in_data_check(trace, np.concatenate([centres, corners]), buffer_m=0.0, quiet=True)
     return regions
 
 
@@ -1013,7 +1014,15 @@ def planes_tiled(
         if params is not None:
             break
     if params is None:
-        raise InputDataError("no tile near the data's centre has points to estimate parameters")
+        tried = ", ".join(r.name for r in by_dist[:8])
+        raise InputDataError(
+            f"the segmentation parameters are estimated on a pilot tile near the data's "
+            f"centre ({centre[0]:.1f}, {centre[1]:.1f}), but none of the {len(by_dist[:8])} "
+            f"nearest processing tiles ({tried}) holds enough selected points: the tiles' "
+            "header boxes span much more than the points (a stray point far away?) or the "
+            "class selection leaves too few points; check the tiles' extents and the classes, "
+            "or give a larger tile size"
+        )
     fixed = {
         k: getattr(params, k)
         for k in (
@@ -1170,7 +1179,7 @@ def scale_options(*, tile_option: bool = True, group: str = _SCALE) -> tuple:
     QGIS runs in process or against a scheduler (an advanced parameter): it does not start
     local clusters (its Python is the QGIS process), so ``workers`` is CLI/API only.
     """
-    from .options import Option
+    from .options import KEEP_DUPLICATE_POINTS, Option
 
     opts = (
         Option(
@@ -1200,6 +1209,7 @@ def scale_options(*, tile_option: bool = True, group: str = _SCALE) -> tuple:
             unset_text="none",
         ),
     )
+    opts += (KEEP_DUPLICATE_POINTS,)  # tile sets as delivered (issue #31)
     if tile_option:
         opts += (
             Option(
@@ -1259,15 +1269,36 @@ def is_tiled(opts, *keys: str) -> bool:
 
 
 def open_input(opts, key: str, *, what: str = "", crs=None) -> TileCollection:
-    """The tiles an input option names; errors as OptionError naming the option."""
+    """The tiles an input option names; errors as OptionError naming the option.
+
+    Tile sets as delivered: unless ``keep_duplicate_points``, a file that is a copy of
+    another is left out with a warning naming both, and overlapping tiles are read so that
+    each point counts once (:func:`~slipmap.core.io.tiles.open_collection`)."""
     from ..core.errors import SlipMapError
     from ..core.io.tiles import open_collection
-    from .options import OptionError
+    from .options import OptionError, warn_option
 
+    keep = bool(opts.get("keep_duplicate_points"))
     try:
-        return open_collection(split_inputs(opts[key]), crs=crs, label=what or key)
+        coll = open_collection(
+            split_inputs(opts[key]), crs=crs, label=what or key, keep_duplicates=keep
+        )
     except SlipMapError as exc:
         raise OptionError(key, str(exc)) from exc
+    name = what or key
+    for copy, kept in coll.duplicates:
+        warn_option(
+            "%s: %s and %s are the same tile (the same header and point records): read "
+            "once; give {keep_duplicate_points} if both are distinct data",
+            name, kept, copy,
+        )  # fmt: skip
+    if coll.dedupe:
+        n = len({id(f) for pair in coll.overlap_pairs() for f in pair})
+        log.info(
+            "%s: %d tile(s) overlap (header boxes): a point found in several tiles counts "
+            "once (GpsTime and coordinates)", name, n,
+        )  # fmt: skip
+    return coll
 
 
 def engine_from(opts) -> Engine:

@@ -2,6 +2,8 @@
 OpenCL tests skip, with the reason, when the OpenCL runtime cannot start."""
 
 import logging
+import os
+import sys
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -38,3 +40,35 @@ def pytest_collection_modifyitems(config, items):
         skip = pytest.mark.skip(reason=f"the OpenCL runtime cannot start: {reason}")
         for item in opencl:
             item.add_marker(skip)
+
+
+# ---------------------------------------------------------------- headless QGIS (one per process)
+
+
+@pytest.fixture(scope="session")
+def qgis_app():
+    os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+    pytest.importorskip("qgis.core", reason="QGIS Python bindings (python3-qgis) missing")
+    from qgis.core import QgsApplication
+
+    app = QgsApplication([], False)
+    app.initQgis()
+    plugins = "/usr/share/qgis/python/plugins"
+    if plugins not in sys.path:
+        sys.path.append(plugins)
+    from processing.core.Processing import Processing
+
+    Processing.initialize()
+    yield app
+
+
+@pytest.fixture(scope="module")
+def provider(qgis_app):
+    """The SlipMap provider registered in Processing (the plugin as QGIS loads it), for one
+    test module."""
+    import slipmap
+
+    plugin = slipmap.classFactory(None)
+    plugin.initProcessing()
+    yield
+    plugin.unload()

@@ -17,6 +17,15 @@ partitions the points; z is not filtered. The points of a region come out in one
 order (lexicographic in x, then y, then z; ties in the files' order), so the result of a
 computation on a region does not depend on how the survey was cut into files.
 
+Tile sets as delivered (issue #31): a file delivered twice (the same header box, point count,
+scales and offsets, and the same point records by a content hash) is indexed once, the copies
+listed in :attr:`TileCollection.duplicates`; tiles whose header boxes overlap make the
+collection deduplicate what it reads (``dedupe``): a point found in several files (the same
+GpsTime, where every file read has one, and the same coordinates as stored integers) counts
+once, from the first file in the collection's order; points repeated within one file are kept
+as the file has them (a one-file run reads them so). ``keep_duplicates=True`` reads every
+file and every point as given, for data that really is distinct.
+
 Every error names the tile at fault: a file that is missing (also one deleted after the
 index was made), a header that cannot be read, a file whose points cannot be decompressed or
 that holds fewer points than its header announces, a tile whose CRS differs from the others.
@@ -25,10 +34,11 @@ that holds fewer points than its header announces, a tile whose CRS differs from
 from __future__ import annotations
 
 import glob as _glob
+import hashlib
 import logging
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
 
@@ -44,6 +54,7 @@ __all__ = [
     "TileCollection",
     "TileFile",
     "expand_paths",
+    "find_duplicates",
     "is_collection_spec",
     "open_collection",
     "region_grid",
@@ -103,6 +114,12 @@ class TileFile:
         The file's CRS as WKT (None without a usable CRS).
     copc : bool
         The file is a COPC (cloud-optimised point cloud): regions are read by spatial query.
+    scales, offsets : tuple of 3 float
+        The header's coordinate scales and offsets (coordinates are integer * scale + offset).
+    point_format : int
+        The LAS point format id.
+    gps_time : bool
+        The point format has GpsTime.
     """
 
     path: Path
@@ -111,6 +128,10 @@ class TileFile:
     maxs: Tuple[float, float, float]
     crs_wkt: Optional[str]
     copc: bool
+    scales: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    offsets: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    point_format: int = -1
+    gps_time: bool = False
 
     def overlaps(self, region: Region) -> bool:
         """The header box meets the half-open region (conservatively: a closed test)."""
@@ -189,6 +210,10 @@ def _index_file(p: Path, *, parse_crs: bool = True) -> Tuple[TileFile, Optional[
                 maxs=tuple(float(v) for v in header.maxs),
                 crs_wkt=crs.to_wkt() if crs is not None else None,
                 copc=_is_copc(header),
+                scales=tuple(float(v) for v in header.scales),
+                offsets=tuple(float(v) for v in header.offsets),
+                point_format=int(header.point_format.id),
+                gps_time="gps_time" in set(header.point_format.dimension_names),
             )
     except SlipMapFileError as exc:
         raise SlipMapFileError(f"tile {p}: {exc}") from exc
@@ -208,11 +233,19 @@ class TileCollection:
         The collection's CRS (every tile's, or the one given to :func:`open_collection`).
     label : str
         How messages name the collection (e.g. "before epoch").
+    dedupe : bool
+        Header boxes of some files overlap: a region read drops the points that an earlier
+        file of the region already gave (identity: GpsTime where every file read has it, and
+        the coordinates as stored integers).
+    duplicates : tuple of (Path, Path)
+        Files left out as copies: ``(copy, the file kept)``.
     """
 
     files: Tuple[TileFile, ...]
     crs_wkt: Optional[str] = None
     label: str = ""
+    dedupe: bool = False
+    duplicates: Tuple[Tuple[Path, Path], ...] = ()
     _crs_cache: Dict[str, object] = field(default_factory=dict, compare=False, repr=False)
 
     def __len__(self) -> int:
@@ -272,7 +305,28 @@ class TileCollection:
         """The same collection with only the files that a read of ``region`` (and halo)
         opens: what a task needs to carry (not the index of the whole survey)."""
         box = region.grown(halo_m) if halo_m else region
-        return TileCollection(files=self.overlapping(box), crs_wkt=self.crs_wkt, label=self.label)
+        return TileCollection(
+            files=self.overlapping(box), crs_wkt=self.crs_wkt, label=self.label,
+            dedupe=self.dedupe,
+        )  # fmt: skip
+
+    def overlap_pairs(self) -> List[Tuple[TileFile, TileFile]]:
+        """Pairs of non-empty files whose header boxes meet in x and y (closed test: a box
+        touching another may share the points on the edge)."""
+        lo, hi, full = self._boxes()
+        idx = np.flatnonzero(full)
+        if idx.size < 2:
+            return []
+        order = idx[np.argsort(lo[idx, 0], kind="stable")]
+        xmin = lo[order, 0]
+        pairs = []
+        for k, i in enumerate(order):  # sweep in x: the files starting before i's box ends
+            end = int(np.searchsorted(xmin, hi[i, 0], side="right"))
+            for j in order[k + 1 : end]:
+                if lo[j, 1] <= hi[i, 1] and lo[i, 1] <= hi[j, 1]:
+                    a, b = sorted((int(i), int(j)))
+                    pairs.append((self.files[a], self.files[b]))
+        return pairs
 
     def read_region(
         self,
@@ -309,17 +363,37 @@ class TileCollection:
             A tile missing, unreadable or truncated (the message names the tile).
         """
         box = region.grown(halo_m) if halo_m else region
+        files = self.overlapping(box)
+        dedupe = self.dedupe and len(files) > 1
+        use_gps = dedupe and all(f.gps_time for f in files)
+        wanted = tuple(attributes)
+        if use_gps and "GpsTime" not in wanted:
+            wanted += ("GpsTime",)
         xyz_parts: List[np.ndarray] = []
-        attr_parts: Dict[str, List[np.ndarray]] = {a: [] for a in attributes}
-        for tf in self.overlapping(box):
-            for xyz, attrs in _read_file_region(tf, box, tuple(attributes), chunk_points):
+        file_parts: List[np.ndarray] = []
+        attr_parts: Dict[str, List[np.ndarray]] = {a: [] for a in wanted}
+        for i, tf in enumerate(files):
+            for xyz, attrs in _read_file_region(tf, box, wanted, chunk_points):
                 xyz_parts.append(xyz)
-                for a in attributes:
+                file_parts.append(np.full(xyz.shape[0], i, dtype=np.int32))
+                for a in wanted:
                     attr_parts[a].append(attrs[a])
         if xyz_parts:
             xyz = np.concatenate(xyz_parts)
         else:
             xyz = np.zeros((0, 3))
+        if dedupe and xyz.shape[0] > 1:
+            quantum = np.min([f.scales for f in files], axis=0)
+            gps = np.concatenate(attr_parts["GpsTime"]) if use_gps else None
+            keep = _first_copies(xyz, np.concatenate(file_parts), gps, quantum)
+            if not keep.all():
+                log.debug(
+                    "%s%s: %d point(s) read from several overlapping tiles counted once",
+                    f"{self.label}: " if self.label else "", region.name, keep.size - keep.sum(),
+                )  # fmt: skip
+                xyz = xyz[keep]
+                for a in wanted:
+                    attr_parts[a] = [np.concatenate(attr_parts[a])[keep]]
         order = np.lexsort((xyz[:, 2], xyz[:, 1], xyz[:, 0])) if xyz.shape[0] > 1 else None
         attrs_out = {}
         for a in attributes:
@@ -328,6 +402,76 @@ class TileCollection:
         if order is not None:
             xyz = np.ascontiguousarray(xyz[order])
         return _las.PointCloud(xyz=xyz, attributes=attrs_out, crs=self.crs)
+
+
+def _first_copies(
+    xyz: np.ndarray, file_index: np.ndarray, gps: Optional[np.ndarray], quantum: np.ndarray
+) -> np.ndarray:
+    """Mask ``(N,)`` of the points to keep when overlapping files give the same point: of a
+    group of identical points (coordinates as integers of ``quantum`` ``(3,)``, the finest
+    scale of the files; GpsTime too when given), those of its first file (lowest
+    ``file_index``); copies within that file are kept."""
+    ijk = np.round(xyz / quantum).astype(np.int64)
+    keys = [file_index, ijk[:, 2], ijk[:, 1], ijk[:, 0]]
+    if gps is not None:
+        keys.insert(1, np.asarray(gps, dtype=np.float64))
+    order = np.lexsort(keys)
+    ident = [k[order] for k in keys[1:]]
+    start = np.ones(order.size, dtype=bool)
+    same = np.ones(order.size - 1, dtype=bool)
+    for k in ident:
+        same &= k[1:] == k[:-1]
+    start[1:] = ~same
+    group = np.cumsum(start) - 1
+    f_sorted = file_index[order]
+    first = f_sorted[np.flatnonzero(start)][group]
+    keep = np.empty(order.size, dtype=bool)
+    keep[order] = f_sorted == first
+    return keep
+
+
+def _records_digest(tf: TileFile) -> str:
+    """A content hash (BLAKE2b) of a file's point records, decompressed (the header's dates
+    and software fields do not enter)."""
+    h = hashlib.blake2b(digest_size=20)
+    try:
+        with _las._open_reader(tf.path) as reader:
+            for points in reader.chunk_iterator(_DEFAULT_CHUNK):
+                h.update(np.ascontiguousarray(points.array).tobytes())
+    except SlipMapFileError as exc:
+        raise SlipMapFileError(f"tile {tf.path}: {exc}") from exc
+    except Exception as exc:
+        raise SlipMapFileError(
+            f"tile {tf.path}: the points cannot be read ({type(exc).__name__}: {exc}); "
+            "the file is corrupt or truncated: replace it"
+        ) from exc
+    return h.hexdigest()
+
+
+def find_duplicates(files: Sequence[TileFile]) -> List[Tuple[int, int]]:
+    """Files that are copies of an earlier one: ``(copy index, original index)``.
+
+    Candidates share the header's point count, bounding box, scales, offsets and point
+    format (no point is read otherwise); among them, the same content hash of the point
+    records makes a copy.
+    """
+    groups: Dict[tuple, List[int]] = {}
+    for i, f in enumerate(files):
+        if f.n_points > 0:
+            key = (f.n_points, f.mins, f.maxs, f.scales, f.offsets, f.point_format)
+            groups.setdefault(key, []).append(i)
+    out = []
+    for members in groups.values():
+        if len(members) < 2:
+            continue
+        seen: Dict[str, int] = {}
+        for i in members:
+            digest = _records_digest(files[i])
+            if digest in seen:
+                out.append((i, seen[digest]))
+            else:
+                seen[digest] = i
+    return sorted(out)
 
 
 def _read_file_region(
@@ -437,6 +581,7 @@ def open_collection(
     *,
     crs=None,
     label: str = "",
+    keep_duplicates: bool = False,
 ) -> TileCollection:
     """Index one file, several files, a folder or a glob of LAS/LAZ/COPC tiles.
 
@@ -449,6 +594,10 @@ def open_collection(
         Replaces the tiles' CRS (nothing is reprojected), as the jobs' CRS option does.
     label : str
         How messages name the collection ("before epoch").
+    keep_duplicates : bool
+        Read every file and every point as given. By default a file that is a copy of an
+        earlier one is left out (listed in ``duplicates``) and, where header boxes overlap,
+        a point given by several files counts once (``dedupe``).
 
     Returns
     -------
@@ -483,6 +632,16 @@ def open_collection(
     else:
         wkt = first_crs.to_wkt() if first_crs is not None else None
     coll = TileCollection(files=tuple(files), crs_wkt=wkt, label=label)
+    if not keep_duplicates and len(files) > 1:
+        dups = find_duplicates(files)
+        drop = {i for i, _ in dups}
+        kept = tuple(f for i, f in enumerate(files) if i not in drop)
+        coll = TileCollection(
+            files=kept, crs_wkt=wkt, label=label,
+            duplicates=tuple((files[i].path, files[j].path) for i, j in dups),
+        )  # fmt: skip
+        if coll.overlap_pairs():
+            coll = replace(coll, dedupe=True)
     log.info(
         "%s%d tile(s), %d points (headers)", f"{label}: " if label else "", len(files),
         coll.n_points,
