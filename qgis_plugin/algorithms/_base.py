@@ -24,14 +24,19 @@ LAS_FILTER = "LAS/LAZ (*.las *.laz)"
 LAS_OUTPUT_FILTER = "LAS (*.las);;LAZ (*.laz)"
 
 
-def progress_callback(feedback, *, text_every_s=2.0):
+#: seconds between two progress texts (the dialog writes each as a log line)
+PROGRESS_TEXT_EVERY_S = 2.0
+
+
+def progress_callback(feedback, *, text_every_s=None):
     """A SlipMap ``callback(fraction, message)`` that drives ``feedback`` and cancels.
 
     Raises :class:`~slipmap.core.errors.CancelledError` as soon as ``feedback.isCanceled()``.
     The progress bar follows every call and never goes back (the jobs give each phase its
     share of the bar by its cost, e.g. the moving windows by their number); the progress
     *text* (the dialog also writes it as a line of the Processing log) is shown for the first
-    call, then at most every ``text_every_s`` seconds, and for the last (fraction 1), so a
+    call, then at most every ``text_every_s`` seconds (default
+    :data:`PROGRESS_TEXT_EVERY_S`), and for the last (fraction 1), so a
     loop over 90 windows or the sub-stages of 16 plane extractions write a few lines, not 90.
     """
     import time
@@ -50,7 +55,8 @@ def progress_callback(feedback, *, text_every_s=2.0):
         feedback.setProgress(100.0 * state["max"])
         if message:
             now = time.monotonic()
-            if now - state["t"] >= text_every_s or fraction >= 1:
+            every = PROGRESS_TEXT_EVERY_S if text_every_s is None else text_every_s
+            if now - state["t"] >= every or fraction >= 1:
                 feedback.setProgressText(str(message))
                 state["t"] = now
 

@@ -25,10 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-# helpers test_real_pdal.py shares with the stand-in tests, imported here at load time, so a
-# moved module breaks every run of the suite, not only machines with PDAL (issue #31)
-from slipmap.app.demo import run_slip_demo
-
 ROOT = Path(__file__).resolve().parents[2]
 #: PDAL and the CLI compute roughness in another order of floating-point sums: equal to this
 ROUGHNESS_ATOL_M = 1e-12
@@ -271,8 +267,19 @@ def _parsed(pdalargs):
     return pdalargs
 
 
+def demo_runner():
+    """The demo's slip job (``slipmap.app.demo.run_slip_demo``), which the real-PDAL tests
+    run. Resolved here, in the helpers they share with the stand-in tests, and checked by a
+    stand-in test (``test_stages.test_real_pdal_helpers_resolve``) on every run: a moved
+    module breaks every run of the suite, not only machines with PDAL (issue #31). Imported
+    when called: the harness itself must load without SlipMap installed (``slipmap_path``)."""
+    from slipmap.app.demo import run_slip_demo
+
+    return run_slip_demo
+
+
 def make_demo_pair(out: Path) -> Path:
     """The demo's epochs (UTM, PointSourceId, GpsTime), its WGS 84 fault and the CLI's slip,
     written into ``out`` (``slipmap demo``'s slip job)."""
-    run_slip_demo(out)
+    demo_runner()(out)
     return out

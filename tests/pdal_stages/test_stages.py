@@ -462,6 +462,14 @@ def test_options_parsed_once_per_raw_value(monkeypatch):
     assert len(calls) == 1
 
 
+def test_real_pdal_helpers_resolve():
+    """What test_real_pdal.py needs from SlipMap resolves here too, where PDAL is not needed:
+    a moved module fails this run, not only a run on a machine with PDAL."""
+    from pdal_harness import ROUGHNESS_ATOL_M, demo_runner
+
+    assert callable(demo_runner()) and 0 < ROUGHNESS_ATOL_M < 1e-9
+
+
 def test_slipmap_path_makes_a_checkout_importable(tmp_path):
     """Without slipmap installed, pdalargs slipmap_path (the package root) is enough."""
     import subprocess
