@@ -44,6 +44,10 @@ log = logging.getLogger("slipmap.app")
 
 PathLike = Union[str, "os.PathLike[str]"]
 
+#: free space an output folder must have before a run starts (the outputs of one job are
+#: rarely smaller; a full disk is then said before the work, not after it)
+MIN_FREE_BYTES = 16 * 2**20
+
 
 def _existing_ancestor(p: Path) -> Path:
     p = p.absolute()
@@ -251,6 +255,24 @@ class OutputPlan:
             )
         if not os.access(probe, os.W_OK | os.X_OK):
             raise OptionError(key, f"cannot write in {str(probe)!r}; choose a writable place")
+        # os.access does not see everything (a read-only mount or an ACL for root, a full
+        # disk): a file is made and removed there, and the free space compared with a stated
+        # minimum, before any work rather than at the first write after it
+        try:
+            with tempfile.TemporaryFile(prefix=".slipmap-probe-", dir=probe):
+                pass
+        except OSError as exc:
+            raise OptionError(
+                key, f"cannot write in {str(probe)!r} ({exc.strerror}); choose a writable place"
+            ) from exc
+        free = shutil.disk_usage(probe).free
+        if free < MIN_FREE_BYTES:
+            raise OptionError(
+                key,
+                f"only {free / 2**20:.1f} MiB free in {str(probe)!r} (at least "
+                f"{MIN_FREE_BYTES / 2**20:.0f} MiB needed); free some space or choose another "
+                "place",
+            )
 
     # ------------------------------------------------------------------ staging
 

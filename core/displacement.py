@@ -39,6 +39,15 @@ SIDES = ("left", "right")
 COMBINE_MODES = ("joint", "tiles")
 
 
+def _segment_epoch(points, side: str, epoch: str, **options) -> PlaneSet:
+    """:func:`.planes.segment_planes` of one side's points of one epoch; an input error says
+    which side and epoch it is about ("right side, after epoch: 0 point(s) given; …")."""
+    try:
+        return segment_planes(points, quiet=True, **options)
+    except InputDataError as exc:
+        raise InputDataError(f"{side} side, {epoch} epoch: {exc}") from exc
+
+
 def strike_axes(strike_rad: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unit vectors (3,) of the fault frame: along the strike ``(sin s, cos s, 0)``, normal to
     it towards the right side ``(cos s, -sin s, 0)``, and up ``(0, 0, 1)``."""
@@ -452,8 +461,8 @@ def register_side(
         the side's points) and ``components`` for :func:`.adjustment.adjust_rigid`.
     """
     opts = dict(plane_options or {})
-    pb = segment_planes(before, progress=scaled(progress, 0.0, 0.35), quiet=True, **opts)
-    pa = segment_planes(after, progress=scaled(progress, 0.35, 0.7), quiet=True, **opts)
+    pb = _segment_epoch(before, side, "before", progress=scaled(progress, 0.0, 0.35), **opts)
+    pa = _segment_epoch(after, side, "after", progress=scaled(progress, 0.35, 0.7), **opts)
     m = match_planes(pb, pa, quiet=True, **(match_options or {}))
     log.info("%s", side_summary(side, pb, pa, len(m)))
     if len(m) < 3:

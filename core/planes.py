@@ -393,8 +393,8 @@ def _validate_points(points: np.ndarray) -> Tuple[np.ndarray, Tuple[np.ndarray, 
         raise InvalidParameterError(f"points must have shape (N, 3), got {pts.shape}")
     if pts.shape[0] < 3:
         raise InputDataError(
-            f"points has {pts.shape[0]} point(s); a plane needs at least 3 — check the "
-            "input file and the class filters"
+            f"{pts.shape[0]} point(s) given; a plane needs at least 3 — check the "
+            "input file, its extent and the class filters"
         )
     pts = pts.astype(np.float64, copy=False)
     if not np.all(np.isfinite(pts)):

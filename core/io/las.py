@@ -715,6 +715,17 @@ _CRS_RECORDS = (
 )
 
 
+def _drop_crs(hdr: laspy.LasHeader) -> None:
+    """Remove the CRS records of ``hdr`` (in place): a cloud read with its file's CRS ignored
+    (geographic with metre coordinates, or unreadable) is written without it, as the job
+    said, rather than with the records it declared wrong."""
+    for records in (hdr.vlrs, hdr.evlrs):
+        if records is None:
+            continue
+        for name in _CRS_RECORDS:
+            records.extract(name)
+
+
 def _declare_crs(hdr: laspy.LasHeader, crs: pyproj.CRS) -> None:
     """Make ``crs`` the CRS records of ``hdr`` (in place) unless they already declare it.
 
@@ -953,6 +964,8 @@ def write_las(
             src_header = _new_header(cloud, cloud.xyz)
         new_dims, assigns = _plan(src_header.point_format, n, updates, "attribute")
         hdr = _out_header(src_header, new_dims, cloud.crs)
+        if cloud.crs is None and cloud._las is not None:
+            _drop_crs(hdr)  # the reader ignored the file's CRS (implausible): do not copy it
         coords = _check_xyz(
             cloud.xyz if xyz is None else xyz,
             n,

@@ -175,3 +175,86 @@ def test_tiled_slip_logs_no_point_count_of_tile_centres(pair, tmp_path):
     assert res.returncode == 0, res.stderr
     _no_mess(res, tmp_path)
     assert "fault trace:" not in res.stderr
+
+
+def test_an_empty_side_names_its_side_and_epoch():
+    """A side without points in one epoch: the error says which side and which epoch, not
+    "points has 0 point(s)" (issue #31, weak items)."""
+    from slipmap.core.displacement import estimate_slip
+    from slipmap.core.errors import InputDataError
+    from slipmap.core.fault import fault_trace
+    from slipmap.core.synthetic import make_fault_pair
+
+    fp = make_fault_pair("mls", seed=3, origin=(0.0, 0.0, 0.0))
+    x_trace = float(fp.trace_xy[0, 0])  # a north-striking trace: its right side is the east
+    after = fp.after.points[fp.after.points[:, 0] < x_trace - 15.0]  # nothing east of it
+    with pytest.raises(InputDataError, match=r"^right side, after epoch: \d+ point\(s\) given"):
+        estimate_slip(fp.before.points, after, fault_trace([fp.trace_xy]))
+
+
+@pytest.mark.usefixtures("drop_cli_log_handlers")
+def test_synth_lobe_writes_no_crs_it_said_it_ignored(tmp_path, capsys):
+    """A file declaring WGS 84 over metre coordinates: synth-lobe says the CRS is ignored and
+    its epochs then carry no CRS (they carried EPSG:4326, the CRS it had called wrong)."""
+    import numpy as np
+    import pyproj
+
+    from slipmap.cli import main
+    from slipmap.core.io.las import PointCloud, read_las_header, write_las
+
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 30, (5000, 2)) + [500000.0, 4200000.0]
+    src = tmp_path / "in.las"
+    write_las(src, PointCloud(xyz=np.column_stack([xy, 100 + rng.normal(0, 0.1, 5000)]),
+                              crs=pyproj.CRS.from_epsg(4326)))  # fmt: skip
+    before = src.read_bytes()
+    assert main(["synth-lobe", str(src), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert "the CRS is ignored" in err
+    for name in ("before.las", "after.las"):
+        assert read_las_header(tmp_path / "o" / name)[1] is None, name
+    assert src.read_bytes() == before
+
+
+@pytest.mark.usefixtures("drop_cli_log_handlers")
+@pytest.mark.parametrize("problem", ["full", "read-only"])
+def test_an_unwritable_output_place_is_found_before_the_work(tmp_path, capsys, monkeypatch,
+                                                            problem):  # fmt: skip
+    """A full disk or a folder that refuses files (a read-only mount, which os.access does not
+    see for root): refused before anything is read, naming --out, nothing left behind."""
+    import errno
+    import shutil
+    import tempfile
+
+    import numpy as np
+
+    from slipmap.app import outputs
+    from slipmap.cli import main
+    from slipmap.core.io.las import PointCloud, write_las
+
+    src = tmp_path / "in.las"
+    rng = np.random.default_rng(1)
+    write_las(src, PointCloud(xyz=rng.uniform(0, 10, (2000, 3))))
+    before = src.read_bytes()
+    out = tmp_path / "out"
+    if problem == "full":
+        usage = shutil.disk_usage(tmp_path)
+        monkeypatch.setattr(
+            outputs.shutil, "disk_usage", lambda p: usage._replace(free=outputs.MIN_FREE_BYTES // 2)
+        )
+    else:
+
+        def refuse(*args, **kwargs):
+            raise OSError(errno.EROFS, "Read-only file system")
+
+        monkeypatch.setattr(outputs.tempfile, "TemporaryFile", refuse)
+    read = []
+    monkeypatch.setattr("slipmap.app.roughness.read_cloud", lambda *a, **k: read.append(a))
+    assert main(["roughness", str(src), "--out", str(out), "--cell", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and "Traceback" not in err, err
+    assert ("MiB free" in err) if problem == "full" else ("Read-only file system" in err), err
+    assert not read  # nothing was read
+    assert src.read_bytes() == before
+    assert not list(tmp_path.glob(".slipmap-partial-*")) and not out.exists()
+    assert tempfile  # the module the probe uses
