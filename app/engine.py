@@ -589,12 +589,16 @@ class DaskEngine(Engine):
             "was written. Check that the scheduler and its workers are running, then run again"
         )
 
+    #: seconds the client and the local cluster get to close after a failure or a Ctrl-C
+    #: (workers still starting may not answer; the user is waiting for the prompt)
+    CLOSE_TIMEOUT_S = 10
+
     def _close_quietly(self) -> None:
         with _dask_quiet():
             for part in (self.client, self.cluster):
                 if part is not None:
                     with contextlib.suppress(Exception):
-                        part.close()
+                        part.close(timeout=self.CLOSE_TIMEOUT_S)
 
     def close(self) -> None:
         """Close the client and the local cluster; after a failure or a Ctrl-C, with Dask's
