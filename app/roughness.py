@@ -370,7 +370,7 @@ class _Sink:
                         plan.expect(name.format(label=label))
             plan.expect("summary.json", *(["semivariograms.png"] if figures else []))
             for label in labels:  # each GeoTIFF's style, beside it (app/styles.py)
-                plan.expect(NAMES["geotiff"].format(label=label)[: -len(".tif")] + ".qml")
+                plan.expect(_style_name(label))
 
     def path(self, kind: str, label: str = "") -> Optional[Path]:
         if self.files is None:
@@ -383,7 +383,7 @@ class _Sink:
     def style_path(self, label: str = "") -> Optional[Path]:
         """Where the GeoTIFF's style (the ``.qml`` QGIS reads beside it) is staged."""
         if self.files is None:
-            return self.plan.path(NAMES["geotiff"].format(label=label)[: -len(".tif")] + ".qml")
+            return self.plan.path(_style_name(label))
         return self.plan.beside("geotiff", ".qml") if self.files.get("geotiff") else None
 
     def name(self, kind: str, label: str = "") -> Optional[str]:
@@ -392,16 +392,25 @@ class _Sink:
         return Path(str(self.files[kind])).name if self.files.get(kind) else None
 
 
+def _style_name(label: str) -> str:
+    """The name of the style QGIS reads beside the GeoTIFF of cell size ``label``."""
+    from ..core.io.raster import style_sidecar
+
+    return style_sidecar(NAMES["geotiff"].format(label=label)).name
+
+
 def _write_style(sink: _Sink, label: str, geotiff: Path, theta_odr: np.ndarray) -> None:
-    """The roughness GeoTIFF's style beside it (band 1, theta_ODR: viridis from 0 to the
-    roughest cell), so it opens as a map, not a 7-band RGB picture, wherever it is opened."""
+    """The roughness GeoTIFF's style beside it (the one :data:`.styles.OUTPUT_STYLES`
+    declares: band 1, theta_ODR, viridis from 0 to the roughest cell), so it opens as a map,
+    not a 7-band RGB picture, wherever it is opened."""
     from ..core.io.raster import write_raster_style
-    from .styles import ROUGHNESS, raster_qml
+    from .styles import OUTPUT_STYLES, raster_qml
 
     target = sink.style_path(label)
     if target is None:
         return
-    written = write_raster_style(geotiff, raster_qml(ROUGHNESS, theta_odr))
+    style = OUTPUT_STYLES["roughness"]["geotiff"]
+    written = write_raster_style(geotiff, raster_qml(style, theta_odr))
     assert written == target, (written, target)  # staged beside the staged GeoTIFF
 
 
