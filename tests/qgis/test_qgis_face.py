@@ -242,6 +242,26 @@ def slip_pair(provider, tmp_path_factory):
     return d, fault
 
 
+def _slip_parameters(d, fault, out, layers=()):
+    """The Fault slip run of these tests (30 m tiles, strips, windows stepped 10 m) on the
+    pair in ``d``, its files in ``out``; ``layers``: the vector outputs written too."""
+    files = {"TILES": "tiles.gpkg", "STRIPS": "strips.gpkg"}
+    return {
+        "BEFORE": str(d / "before.las"),
+        "AFTER": str(d / "after.las"),
+        "FAULT": fault,
+        "TILE_SIZE": 30.0,
+        "COMBINE": 1,
+        "STRIP_WIDTH": 30.0,
+        "WINDOW_SIZE": 30.0,
+        "WINDOW_STEP": 10.0,
+        "SUMMARY": str(out / "slip.json"),
+        "PLANES": str(out / "planes.gpkg"),
+        **{name: str(out / files[name]) for name in layers},
+        "WINDOWS": str(out / "windows.tif"),
+    }
+
+
 @pytest.fixture(scope="module")
 def loaded_slip(slip_pair):
     """One Fault slip run with every output, loaded into the project as the dialog does."""
@@ -256,21 +276,7 @@ def loaded_slip(slip_pair):
     feedback = _Feedback.make()
     res = processing.runAndLoadResults(
         "slipmap:displacement",
-        {
-            "BEFORE": str(d / "before.las"),
-            "AFTER": str(d / "after.las"),
-            "FAULT": fault,
-            "TILE_SIZE": 30.0,
-            "COMBINE": 1,
-            "STRIP_WIDTH": 30.0,
-            "WINDOW_SIZE": 30.0,
-            "WINDOW_STEP": 10.0,
-            "SUMMARY": str(d / "slip.json"),
-            "PLANES": str(d / "planes.gpkg"),
-            "TILES": str(d / "tiles.gpkg"),
-            "STRIPS": str(d / "strips.gpkg"),
-            "WINDOWS": str(d / "windows.tif"),
-        },
+        _slip_parameters(d, fault, d, ("TILES", "STRIPS")),
         context=context,
         feedback=feedback,
     )
@@ -492,19 +498,7 @@ def unthrottled_slip(slip_pair):
     try:
         processing.run(
             "slipmap:displacement",
-            {
-                "BEFORE": str(d / "before.las"),
-                "AFTER": str(d / "after.las"),
-                "FAULT": fault,
-                "TILE_SIZE": 30.0,
-                "COMBINE": 1,
-                "STRIP_WIDTH": 30.0,
-                "WINDOW_SIZE": 30.0,
-                "WINDOW_STEP": 10.0,
-                "SUMMARY": str(out / "slip.json"),
-                "PLANES": str(out / "planes.gpkg"),
-                "WINDOWS": str(out / "windows.tif"),
-            },
+            _slip_parameters(d, fault, out),
             context=context,
             feedback=feedback,
         )
