@@ -108,6 +108,37 @@ def control_option() -> Option:
     )
 
 
+def breaklines_option(what: str) -> Option:
+    """``--breaklines FILE``: lines across which the field may jump (scarps, a fault, the
+    edge of a slab); ``what`` says what the job does with them."""
+    return Option(
+        "breaklines",
+        "path",
+        "line file (any OGR format and CRS, reprojected to the epochs' CRS) of scarps, faults "
+        "or slab edges across which the field may jump: " + what,
+        label="Breaklines (scarps, faults; optional line layer)",
+        role="input",
+        qgis=None,  # QGIS gives a line layer (the algorithm reads it)
+        pdal=None,  # PDAL stages take a file path option of their own
+        metavar="FILE",
+        unset_text="none",
+    )
+
+
+def read_breaklines(path, crs, *, key: str = "breaklines"):
+    """The :class:`~slipmap.core.breaklines.Breaklines` of a line file, reprojected to
+    ``crs``; None when ``path`` is not given. Errors name ``key``."""
+    if not path:
+        return None
+    from ..core.breaklines import breaklines
+    from ..core.io.vector import read_lines
+
+    try:
+        return breaklines(read_lines(path, target_crs=crs, what="breakline file"))
+    except SlipMapError as exc:
+        raise OptionError(key, f"{exc}; give a line layer (LineString) in any CRS") from exc
+
+
 def output_option(key: str, help: str, label: str, *, qgis: Optional[str] = None, **kw) -> Option:
     """An output file of a field job: named in the output folder on the CLI (``cli=None``),
     a destination parameter in QGIS when ``qgis`` is given."""

@@ -9,10 +9,13 @@ it; ``--debug`` for the traceback), 1 unexpected failure, 130 interrupted or can
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import importlib
 import logging
 import sys
+import threading
+import time
 from typing import List, Optional
 
 from .._version import __version__
@@ -58,10 +61,61 @@ def _configure_logging(debug: bool, quiet: bool) -> None:
     warnings_logger.handlers[:] = [handler]
 
 
+#: set while a command runs: a Ctrl-C swallowed by a callback is delivered again then
+_RUNNING = threading.Event()
+_previous_unraisablehook = None
+
+
+def _unraisable(args) -> None:
+    """``sys.unraisablehook`` that keeps a Ctrl-C from being lost or printed.
+
+    A SIGINT that arrives while Python runs a garbage-collector callback, a ``__del__`` or a
+    weakref callback (Dask's ``GCDiagnosis`` installs one) raises ``KeyboardInterrupt``
+    there, where Python cannot propagate it: it prints "Exception ignored in ..." with a
+    traceback and forgets the interrupt. Here it is delivered again to the main thread
+    while a command runs, so the run stops with one line and exit 130, and dropped silently
+    once the command has returned. Anything else goes to the hook that was installed before.
+
+    The delivery comes from a short-lived thread a moment later: ``_thread.interrupt_main``
+    called in the main thread would raise inside this hook, where it would be lost again.
+    """
+    if args.exc_type is not None and issubclass(args.exc_type, KeyboardInterrupt):
+        if _RUNNING.is_set():
+            threading.Thread(target=_deliver_interrupt, name="slipmap-ctrl-c", daemon=True).start()
+        return
+    (_previous_unraisablehook or sys.__unraisablehook__)(args)
+
+
+def _deliver_interrupt() -> None:
+    time.sleep(0.02)  # the hook and the callback that swallowed the interrupt return first
+    if _RUNNING.is_set():
+        _thread.interrupt_main()
+
+
+def _keep_interrupts() -> None:
+    global _previous_unraisablehook
+    if sys.unraisablehook is not _unraisable:
+        _previous_unraisablehook = sys.unraisablehook
+        sys.unraisablehook = _unraisable
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _configure_logging(args.debug, args.quiet)
+    _keep_interrupts()
+    try:
+        _RUNNING.set()
+        try:
+            return _run(args)
+        finally:
+            _RUNNING.clear()
+    except KeyboardInterrupt:  # a second Ctrl-C while the first one was being handled
+        log.error("slipmap: interrupted")
+        return 130
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args._run(args) or 0)
     except CancelledError:

@@ -278,6 +278,55 @@ def read_fault_trace(
     return trace
 
 
+def read_lines(
+    path: PathLike,
+    *,
+    target_crs: Any = None,
+    layer: Union[str, int, None] = None,
+    what: str = "line file",
+) -> List[np.ndarray]:
+    """Every line of a vector file (breaklines, scarps), reprojected to ``target_crs``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Any OGR vector file with LineString / MultiLineString features.
+    target_crs : pyproj.CRS, str or int, optional
+        CRS of the point clouds (metres); ``None`` keeps the file's coordinates.
+    layer : str or int, optional
+        Layer name or index; by default the only layer, or the first line layer.
+    what : str
+        How errors name the file ("breakline file").
+
+    Returns
+    -------
+    list of ndarray, each (M, 2)
+        One array per LineString part, file order, z dropped.
+
+    Raises
+    ------
+    SlipMapFileError, InputDataError, InvalidParameterError, DependencyError
+        As :func:`read_fault_trace`; also when the layer has no line.
+    """
+    ogr, _ = _ogr()
+    parts, n_features, lyr_name = _read_parts(
+        path,
+        target_crs,
+        layer,
+        what,
+        lambda g: _line_parts(g, ogr),
+        "lines must be LineString or MultiLineString",
+    )
+    if not parts:
+        raise InputDataError(
+            f"{what} {str(path)!r} (layer {lyr_name!r}) has no line geometries "
+            f"({n_features} features)"
+        )
+    out = [np.asarray(v, dtype=np.float64)[:, :2] for v in parts]
+    logger.info("%s %r: %d line(s), %d vertices", what, str(path), len(out), sum(map(len, out)))
+    return out
+
+
 def _polygon_rings(geom, ogr) -> Optional[List[np.ndarray]]:
     """Exterior rings of a (multi)polygon geometry (holes ignored), or None otherwise."""
     flat = ogr.GT_Flatten(geom.GetGeometryType())

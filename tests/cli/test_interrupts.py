@@ -1,0 +1,72 @@
+"""A Ctrl-C that lands in a callback Python cannot raise from is neither lost nor printed."""
+
+import gc
+import sys
+import time
+
+import pytest
+
+from slipmap import cli
+
+
+class _Interrupts:
+    """An object whose finaliser is interrupted by Ctrl-C, as Dask's GC callback was in CI."""
+
+    def __del__(self):
+        raise KeyboardInterrupt
+
+
+def _drop_an_interrupted_finaliser():
+    obj = _Interrupts()
+    obj.cycle = obj  # only the collector frees it: the finaliser runs inside gc.collect()
+    del obj
+    gc.collect()
+
+
+def _wait_for_interrupt():
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline:
+        time.sleep(0.01)
+    pytest.fail("the swallowed Ctrl-C was not delivered again")
+
+
+def test_swallowed_ctrl_c_during_a_run_reaches_the_main_thread(capsys):
+    cli._keep_interrupts()
+    assert sys.unraisablehook is cli._unraisable
+    cli._RUNNING.set()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            _drop_an_interrupted_finaliser()
+            _wait_for_interrupt()
+    finally:
+        cli._RUNNING.clear()
+    err = capsys.readouterr().err
+    assert "Exception ignored" not in err and "Traceback" not in err
+
+
+def test_swallowed_ctrl_c_after_the_run_is_dropped_quietly(capsys):
+    cli._keep_interrupts()
+    assert not cli._RUNNING.is_set()
+    _drop_an_interrupted_finaliser()
+    time.sleep(0.05)  # nothing pending: no KeyboardInterrupt here
+    err = capsys.readouterr().err
+    assert "Exception ignored" not in err and "Traceback" not in err
+
+
+def test_other_unraisable_errors_still_reach_the_previous_hook():
+    seen = []
+    saved = sys.unraisablehook, cli._previous_unraisablehook
+    try:
+        sys.unraisablehook = seen.append
+        cli._previous_unraisablehook = None
+        cli._keep_interrupts()
+
+        class Broken:
+            def __del__(self):
+                raise ValueError("boom")
+
+        Broken()
+        gc.collect()
+        assert [type(a.exc_value) for a in seen] == [ValueError]
+    finally:
+        sys.unraisablehook, cli._previous_unraisablehook = saved
