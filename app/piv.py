@@ -225,6 +225,7 @@ def run(
     outputs: Mapping[str, Any],
     *,
     progress: Optional[Progress] = None,
+    breaklines=None,
 ) -> JobResult:
     """Read both epochs, grid them, run PIV, compare with control points and write.
 
@@ -235,6 +236,9 @@ def run(
     outputs
         ``{"out": folder}`` (every output under :func:`default_names`) or ``{output key:
         path or None}`` (``table``, ``dx``, ``dy``, ``dz``, ``dems``, ``summary``, ``plot``).
+    breaklines : callable, optional
+        ``f(crs)`` -> the breaklines as polylines ((K, 2) vertex arrays in ``crs``, the
+        epochs' CRS): a face's line layer (QGIS), used instead of the ``breaklines`` file.
 
     Returns
     -------
@@ -259,11 +263,15 @@ def run(
             from .tiled_fields import piv_for_job
 
             res, grid, crs = piv_for_job(
-                opts, wins, bytes_per_cell=BYTES_PER_CELL, progress=scaled(progress, 0.0, 0.95)
+                opts,
+                wins,
+                bytes_per_cell=BYTES_PER_CELL,
+                progress=scaled(progress, 0.0, 0.95),
+                breaklines_of=lambda crs: _lines(opts, crs, breaklines),
             )
             zb = za = None
         else:
-            res, grid, crs, zb, za = _compute(opts, wins, progress)
+            res, grid, crs, zb, za = _compute(opts, wins, progress, breaklines)
         cols = res.to_columns()
         comparison = None
         if control is not None:
@@ -292,7 +300,11 @@ def run(
             "n_vectors": int(res.dx.size),
             "n_with_value": int(ok.sum()),
             "valid_fraction": float(res.valid.mean()) if res.valid.size else 0.0,
-            "breaklines": None if not opts.get("breaklines") else str(opts["breaklines"]),
+            "breaklines": (
+                "line layer"
+                if breaklines is not None
+                else opts.get("breaklines") and str(opts["breaklines"])
+            ),
             "n_near_break": int(res.near_break_or_false().sum()),
             "horizontal_m": finite_stats(np.hypot(res.dx, res.dy)),
             "dz_m": finite_stats(res.dz),
@@ -326,14 +338,24 @@ def run(
 _KEYS = ("table", "dx", "dy", "dz", "dems", "plot", "summary")
 
 
-def _compute(opts: Mapping[str, Any], wins, progress):
+def _lines(opts: Mapping[str, Any], crs, given):
+    """The run's :class:`~slipmap.core.breaklines.Breaklines` (or None): a face's line layer
+    ``given(crs)``, else the ``breaklines`` file reprojected to ``crs``."""
+    if given is not None:
+        from ..core.breaklines import from_sequence
+
+        return from_sequence(list(given(crs)))
+    return read_breaklines(opts.get("breaklines"), crs)
+
+
+def _compute(opts: Mapping[str, Any], wins, progress, given_lines=None):
     """One file per epoch: both read whole, gridded, PIV. Returns ``(PIVResult, grid, crs,
     z_before, z_after)``."""
     from ..core.dem import grid_elevation
     from ..core.piv import piv
 
     before, after, crs = read_pair(opts)
-    lines = read_breaklines(opts.get("breaklines"), crs)
+    lines = _lines(opts, crs, given_lines)
     grid = common_grid_of(
         before, after, opts["grid_m"], key="grid_m", bytes_per_cell=BYTES_PER_CELL
     )

@@ -895,16 +895,18 @@ def dem_for_job(opts, raster_path, *, bands, metadata, bytes_per_cell: float, pr
     return res, before.crs
 
 
-def piv_for_job(opts, windows_px, *, bytes_per_cell: float, progress=None):
-    """The piv job on tiled inputs. Returns ``(PIVResult, Grid, crs)``."""
-    from .fields import check_windows_fit
+def piv_for_job(opts, windows_px, *, bytes_per_cell: float, progress=None, breaklines_of=None):
+    """The piv job on tiled inputs. Returns ``(PIVResult, Grid, crs)``. ``breaklines_of(crs)``
+    gives the breaklines (default: the ``breaklines`` file reprojected to the epochs' CRS)."""
+    from .fields import check_windows_fit, read_breaklines
     from .tiled import engine_from
-
-    from .fields import read_breaklines
 
     before, after, selection = open_pair(opts)
     check_windows_fit(windows_px, pair_grid(before, after, opts["grid_m"]))
-    lines = read_breaklines(opts.get("breaklines"), before.crs)
+    if breaklines_of is None:
+        lines = read_breaklines(opts.get("breaklines"), before.crs)
+    else:
+        lines = breaklines_of(before.crs)
     with engine_from(opts) as eng:
         res, grid = piv_tiled(
             before, after, grid_m=opts["grid_m"], windows_px=windows_px,

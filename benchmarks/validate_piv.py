@@ -245,7 +245,8 @@ def main(argv=None) -> int:
             print(json.dumps(r), flush=True)
     print()
     print(
-        "| case | seed | method | at 5 m cells >= 3 m: RMSE (cm) | (cells) | moving ground >= 3 m from the scarp: RMSE (cm) | (cells) | "
+        "| case | seed | method | at 5 m cells >= 3 m: RMSE (cm) | (cells) | "
+        "moving ground >= 3 m from the scarp: RMSE (cm) | (cells) | "
         "all vectors >= 3 m: RMSE (cm) | within 3 m: RMSE (cm) | flagged near_break: RMSE (cm) "
         "| s |"
     )

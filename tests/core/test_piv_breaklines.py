@@ -132,7 +132,7 @@ def test_median_test_and_replacement_use_same_side_neighbours():
     u = np.where(np.arange(nx)[None, :] < 6, 0.0, 4.0) * np.ones((ny, 1))
     v = np.zeros((ny, nx))
     ok = np.ones((8, ny, nx), dtype=bool)
-    for k, (di, dj) in enumerate(piv._OFFSETS):
+    for k, (_, dj) in enumerate(piv._OFFSETS):
         jj = np.clip(np.arange(nx) + dj, 0, nx - 1)
         ok[k] = ((np.arange(nx) < 6)[None, :] == (jj < 6)[None, :]) & np.ones((ny, 1), bool)
     # a straight column jump is 'smooth' to the 3x3 median test (the median is on the
