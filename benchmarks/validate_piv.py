@@ -11,7 +11,7 @@ issue's new-user table:
   rotated lobe (semi-axes 5 m x 13 m, azimuth 25°, centre ``centre - (5, 0)`` m, peak 0.6 m
   south and 0.24 m down). The field jumps across the scarp.
 
-PIV (GR ``--grid``, default 0.15 m, the default passes ``64 32 16 16`` px, 50 % overlap) runs
+PIV (GR ``--grid``, default 0.15 m, the default passes ``64 32 16 16 16`` px, 50 % overlap) runs
 without breaklines and, on the scarp case, with the true scarp as ``breaklines``; OpenPIV's
 ``windef`` (``benchmarks/peers/openpiv_windef.py``, the peer venv) on the same DEMs, vectors at
 the same places. Truth at the vector positions (before image). Scored on the valid vectors with
@@ -20,7 +20,7 @@ on all vectors >= 3 m from it; and on the vectors within 3 m (near the scarp). R
 horizontal error in metres and in grid cells (target: <= 0.25 cell).
 
 Usage: ``python benchmarks/validate_piv.py [--seeds 0 1 2] [--grid 0.15] [--case lobe scarp]
-[--windows 64 32 16 16] [--no-peer]``. The last line is JSON.
+[--windows 64 32 16 16 16] [--no-peer]``. The last line is JSON.
 """
 
 from __future__ import annotations
@@ -232,7 +232,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--grid", type=float, default=0.15)
-    ap.add_argument("--windows", type=int, nargs="+", default=[64, 32, 16, 16])
+    ap.add_argument("--windows", type=int, nargs="+", default=[64, 32, 16, 16, 16])
     ap.add_argument("--case", nargs="+", default=["lobe", "scarp"], choices=["lobe", "scarp"])
     ap.add_argument("--no-peer", action="store_true")
     args = ap.parse_args(argv)
