@@ -20,6 +20,11 @@ Implements the PIV-TLS workflow of Aryal (section 3.2.1; Aryal et al. 2012, 2013
    interrogation window of the pixel-wise difference between ``I2`` warped by the final
    displacement field and ``I1``.
 
+With breaklines (scarps, faults, slab edges; :mod:`slipmap.core.breaklines`) the field may
+jump across them: the predictor is interpolated per side, windows crossed by a line are
+correlated on their centre's side only, the median test and replacement use same-side
+neighbours, and the vectors whose window a line crosses are flagged (``near_break``).
+
 Correlations of all windows of a pass are computed at once with batched real FFTs
 (:func:`masked_ncc`); :func:`masked_ncc_reference` is the obvious loop over shifts used as the
 test oracle. Positions inside the module are image pixels (row down = south, column right =
