@@ -19,6 +19,7 @@ from .fields import (
     JSON_FILTER,
     PNG_FILTER,
     TIF_FILTER,
+    breaklines_option,
     check_windows_fit,
     common_grid_of,
     compare_control,
@@ -29,6 +30,7 @@ from .fields import (
     output_option,
     pair_inputs,
     pair_options,
+    read_breaklines,
     read_control,
     read_pair,
     write_tif,
@@ -82,10 +84,10 @@ SPEC = JobSpec(
             "windows_px",
             "ints",
             "interrogation window side WC of each pass, pixels; every window must fit in the "
-            "DEM (default 64 32 16 16: repeating the last size once halves the error in "
+            "DEM (default 64 32 16 16 16: repeating the last size halves the error in "
             "deforming areas)",
             "Interrogation windows per pass (pixels)",
-            default=(64, 32, 16, 16),
+            default=(64, 32, 16, 16, 16),
             nargs="+",
             minimum=4,
             cli="--window",
@@ -148,11 +150,17 @@ SPEC = JobSpec(
         _num(
             "median_threshold",
             "float",
-            "normalised median test threshold (0: off)",
+            "normalised median test threshold (0: off; 2 in Westerweel & Scarano 2005, 1.5 "
+            "removes more of the clustered wrong vectors of sparse DEMs)",
             "Normalised median test threshold (0: off)",
-            default=2.0,
+            default=1.5,
             minimum=0,
             advanced=True,
+        ),
+        breaklines_option(
+            "the windows are deformed per side, a window crossed by a line is correlated on its "
+            "centre's side only, outliers are tested against and replaced by neighbours on "
+            "their side, and the vectors whose window a line crosses are flagged (near_break)"
         ),
         control_option(),
         Option(
@@ -217,6 +225,7 @@ def run(
     outputs: Mapping[str, Any],
     *,
     progress: Optional[Progress] = None,
+    breaklines=None,
 ) -> JobResult:
     """Read both epochs, grid them, run PIV, compare with control points and write.
 
@@ -227,6 +236,9 @@ def run(
     outputs
         ``{"out": folder}`` (every output under :func:`default_names`) or ``{output key:
         path or None}`` (``table``, ``dx``, ``dy``, ``dz``, ``dems``, ``summary``, ``plot``).
+    breaklines : callable, optional
+        ``f(crs)`` -> the breaklines as polylines ((K, 2) vertex arrays in ``crs``, the
+        epochs' CRS): a face's line layer (QGIS), used instead of the ``breaklines`` file.
 
     Returns
     -------
@@ -237,7 +249,7 @@ def run(
     from .tiled import is_tiled
 
     plan = OutputPlan.for_outputs(
-        inputs=pair_inputs(opts, "before", "after", "control"),
+        inputs=pair_inputs(opts, "before", "after", "control", "breaklines"),
         outputs=outputs,
         default_names=default_names(opts),
     )
@@ -251,11 +263,15 @@ def run(
             from .tiled_fields import piv_for_job
 
             res, grid, crs = piv_for_job(
-                opts, wins, bytes_per_cell=BYTES_PER_CELL, progress=scaled(progress, 0.0, 0.95)
+                opts,
+                wins,
+                bytes_per_cell=BYTES_PER_CELL,
+                progress=scaled(progress, 0.0, 0.95),
+                breaklines_of=lambda crs: _lines(opts, crs, breaklines),
             )
             zb = za = None
         else:
-            res, grid, crs, zb, za = _compute(opts, wins, progress)
+            res, grid, crs, zb, za = _compute(opts, wins, progress, breaklines)
         cols = res.to_columns()
         comparison = None
         if control is not None:
@@ -284,6 +300,12 @@ def run(
             "n_vectors": int(res.dx.size),
             "n_with_value": int(ok.sum()),
             "valid_fraction": float(res.valid.mean()) if res.valid.size else 0.0,
+            "breaklines": (
+                "line layer"
+                if breaklines is not None
+                else opts.get("breaklines") and str(opts["breaklines"])
+            ),
+            "n_near_break": int(res.near_break_or_false().sum()),
             "horizontal_m": finite_stats(np.hypot(res.dx, res.dy)),
             "dz_m": finite_stats(res.dz),
             "control": comparison,
@@ -316,13 +338,24 @@ def run(
 _KEYS = ("table", "dx", "dy", "dz", "dems", "plot", "summary")
 
 
-def _compute(opts: Mapping[str, Any], wins, progress):
+def _lines(opts: Mapping[str, Any], crs, given):
+    """The run's :class:`~slipmap.core.breaklines.Breaklines` (or None): a face's line layer
+    ``given(crs)``, else the ``breaklines`` file reprojected to ``crs``."""
+    if given is not None:
+        from ..core.breaklines import from_sequence
+
+        return from_sequence(list(given(crs)))
+    return read_breaklines(opts.get("breaklines"), crs)
+
+
+def _compute(opts: Mapping[str, Any], wins, progress, given_lines=None):
     """One file per epoch: both read whole, gridded, PIV. Returns ``(PIVResult, grid, crs,
     z_before, z_after)``."""
     from ..core.dem import grid_elevation
     from ..core.piv import piv
 
     before, after, crs = read_pair(opts)
+    lines = _lines(opts, crs, given_lines)
     grid = common_grid_of(
         before, after, opts["grid_m"], key="grid_m", bytes_per_cell=BYTES_PER_CELL
     )
@@ -343,6 +376,7 @@ def _compute(opts: Mapping[str, Any], wins, progress):
         expected_max_displacement_m=opts.get("max_displacement_m"),
         snr_min=opts["snr_min"],
         median_threshold=opts["median_threshold"],
+        breaklines=lines,
         progress=scaled(progress, 0.05, 0.95),
     )
     return res, grid, crs, zb, za

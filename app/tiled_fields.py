@@ -453,6 +453,7 @@ def _piv_block(task: _PivTask):
     cj = np.flatnonzero((j >= j0) & (j < j1))
     take = np.ix_(ri, cj)
     part = {k: getattr(res, k)[take] for k in ("dx", "dy", "dz", "snr", "valid")}
+    part["near_break"] = res.near_break_or_false()[take]
     return (int(i[ri[0]]) if ri.size else i0, int(j[cj[0]]) if cj.size else j0), (
         part,
         res.search_px,
@@ -479,7 +480,8 @@ def piv_tiled(
     search_px: Optional[int] = None,
     expected_max_displacement_m: Optional[float] = None,
     snr_min: float = 1.2,
-    median_threshold: float = 2.0,
+    median_threshold: float = 1.5,
+    breaklines=None,
     selection: Selection = _ALL,
     tile_size_m: float = DEFAULT_TILE_SIZE_M,
     engine: Optional[Engine] = None,
@@ -492,8 +494,9 @@ def piv_tiled(
     ----------
     before, after : TileCollection
     grid_m, windows_px, overlap, search_px, expected_max_displacement_m, snr_min,
-    median_threshold
-        As :func:`~slipmap.core.piv.piv` (``grid_m`` the DEM cell, m).
+    median_threshold, breaklines
+        As :func:`~slipmap.core.piv.piv` (``grid_m`` the DEM cell, m); every block gets the
+        breaklines (those that miss it change nothing there).
     tile_size_m : float
         Edge of the blocks of final vectors a task owns (m, rounded to whole vector steps);
         each task grids its block plus the halo of :func:`piv_halo_px`.
@@ -541,6 +544,7 @@ def piv_tiled(
         expected_max_displacement_m=expected_max_displacement_m,
         snr_min=snr_min,
         median_threshold=median_threshold,
+        breaklines=breaklines,
         workers=1,
     )
     tasks = []
@@ -577,6 +581,7 @@ def piv_tiled(
     )  # fmt: skip
     out = {k: np.full((ny, nx), np.nan) for k in ("dx", "dy", "dz", "snr")}
     out["valid"] = np.zeros((ny, nx), dtype=bool)
+    out["near_break"] = np.zeros((ny, nx), dtype=bool)
     found = {"search_px": margin1}
 
     def each(i, value):
@@ -619,6 +624,7 @@ def piv_tiled(
         windows_px=wins,
         search_px=int(found["search_px"]),
         cell_m=float(cell),
+        near_break=out["near_break"],
     )
     return res, grid
 
@@ -889,20 +895,26 @@ def dem_for_job(opts, raster_path, *, bands, metadata, bytes_per_cell: float, pr
     return res, before.crs
 
 
-def piv_for_job(opts, windows_px, *, bytes_per_cell: float, progress=None):
-    """The piv job on tiled inputs. Returns ``(PIVResult, Grid, crs)``."""
-    from .fields import check_windows_fit
+def piv_for_job(opts, windows_px, *, bytes_per_cell: float, progress=None, breaklines_of=None):
+    """The piv job on tiled inputs. Returns ``(PIVResult, Grid, crs)``. ``breaklines_of(crs)``
+    gives the breaklines (default: the ``breaklines`` file reprojected to the epochs' CRS)."""
+    from .fields import check_windows_fit, read_breaklines
     from .tiled import engine_from
 
     before, after, selection = open_pair(opts)
     check_windows_fit(windows_px, pair_grid(before, after, opts["grid_m"]))
+    if breaklines_of is None:
+        lines = read_breaklines(opts.get("breaklines"), before.crs)
+    else:
+        lines = breaklines_of(before.crs)
     with engine_from(opts) as eng:
         res, grid = piv_tiled(
             before, after, grid_m=opts["grid_m"], windows_px=windows_px,
             overlap=opts["overlap"], search_px=opts.get("search_px"),
             expected_max_displacement_m=opts.get("max_displacement_m"),
             snr_min=opts["snr_min"], median_threshold=opts["median_threshold"],
-            selection=selection, tile_size_m=_tile(opts), engine=eng, progress=progress,
+            breaklines=lines, selection=selection, tile_size_m=_tile(opts), engine=eng,
+            progress=progress,
             check_block=_memory_check(bytes_per_cell, "DEM block with its halo"),
         )  # fmt: skip
     return res, grid, before.crs

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 from qgis.core import (
     QgsProcessing,
+    QgsProcessingException,
     QgsProcessingParameterFeatureSink,
+    QgsProcessingParameterFeatureSource,
     QgsProcessingParameterFileDestination,
     QgsProcessingParameterRasterDestination,
 )
@@ -13,6 +15,8 @@ from ...app import piv as job
 from ._base import (
     SlipMapAlgorithm,
     add_parameters,
+    is_set,
+    source_parts,
 )
 from ._fields import (
     FIELDS_GROUP,
@@ -41,11 +45,22 @@ class PIVAlgorithm(SlipMapAlgorithm):
             "dy, dz (m, east/north/up), snr (NULL: no second peak), valid (0 = missing or "
             "replaced outlier), magnitude (horizontal, m) and azimuth_deg (clockwise from "
             "north)); dx, dy and dz GeoTIFFs (one pixel per vector); a JSON summary; "
-            "optionally a figure (PNG).",
+            "optionally a figure (PNG). Breaklines (an optional line layer of scarps, faults "
+            "or slab edges, in any CRS) keep the field from being smoothed across them; the "
+            "vectors whose window a line crosses have near_break = 1.",
         )
 
     def initAlgorithm(self, config=None):  # noqa: N802 (QGIS API name)
-        add_parameters(self, job.SPEC, roles=("input", "setting"))
+        add_parameters(self, job.SPEC, roles=("input",))
+        lines = QgsProcessingParameterFeatureSource(
+            "BREAKLINES",
+            job.SPEC["breaklines"].dialog_label,
+            [QgsProcessing.TypeVectorLine],
+            optional=True,
+        )
+        lines.setHelp(job.SPEC["breaklines"].help)
+        self.addParameter(lines)
+        add_parameters(self, job.SPEC, roles=("setting",))
         self.addParameter(
             QgsProcessingParameterFeatureSink(
                 "VECTORS", "PIV vectors", QgsProcessing.TypeVectorPoint
@@ -65,7 +80,9 @@ class PIVAlgorithm(SlipMapAlgorithm):
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
         opts = self.job_options(parameters, context)
         outputs = file_outputs(self, parameters, context, job.SPEC, _FILES)
-        result = self.run_job(job, opts, outputs, feedback)
+        result = self.run_job(
+            job, opts, outputs, feedback, breaklines=self._breaklines(parameters, context)
+        )
         cols = result.data["columns"]
         sink_id = write_point_sink(
             self,
@@ -89,3 +106,18 @@ class PIVAlgorithm(SlipMapAlgorithm):
             "SUMMARY": outputs["summary"],
             "PLOT": outputs["plot"],
         }
+
+    def _breaklines(self, parameters, context):
+        """``f(crs)`` -> the BREAKLINES layer's line parts in ``crs`` (the job's ``breaklines``
+        for a face's layer, read as Fault slip reads its trace); None when none is given."""
+        if not is_set(parameters, "BREAKLINES", context):
+            return None
+        source = self.parameterAsSource(parameters, "BREAKLINES", context)
+        label = f'"{job.SPEC["breaklines"].dialog_label}"'
+        if source is None:
+            raise QgsProcessingException(f"{label}: the layer cannot be read")
+
+        def parts(crs):
+            return source_parts(source, qgs_crs(crs), context, parameter=label, polygons=False)
+
+        return parts

@@ -131,6 +131,26 @@ def test_piv_blocks_smaller_than_the_dem_equal_the_whole_run(colls):
     assert whole.dy[centre] == pytest.approx(-0.3, abs=0.05)
 
 
+def test_piv_blocks_with_a_breakline_equal_the_whole_run(colls):
+    """A breakline across the lobe: each block gets it, and the blocks' vectors and
+    near_break flags are the whole run's."""
+    from slipmap.core.breaklines import breaklines
+
+    before, after = colls
+    b, a = _whole(before), _whole(after)
+    grid = common_grid(b, a, cell_m=0.5)
+    x0, y0 = ORIGIN[0] + 3.0, ORIGIN[1] + 3.0  # the data's corner: the terrain starts at 0, 0
+    lines = breaklines([np.array([[x0 + 40.0, y0 - 10.0], [x0 + 55.0, y0 + 90.0]])])
+    kw = dict(windows_px=(16, 8), expected_max_displacement_m=0.35, breaklines=lines)
+    whole = piv(grid_elevation(b, grid=grid), grid_elevation(a, grid=grid), grid=grid, **kw)
+    tiled, _ = tf.piv_tiled(before, after, grid_m=0.5, tile_size_m=10.0, **kw)
+    assert whole.near_break.sum() > 10
+    for key in ("x", "y", "dx", "dy", "dz", "snr"):
+        _close(getattr(tiled, key), getattr(whole, key), key)
+    assert np.array_equal(tiled.valid, whole.valid)
+    assert np.array_equal(tiled.near_break, whole.near_break)
+
+
 @pytest.mark.parametrize("passes, tile_m", [(0, 15.0), (1, 40.0)])
 def test_icp_blocks_equal_the_whole_run(colls, passes, tile_m):
     """Rigid cells (3 cells of halo) and a deformation pass (the field's spline reaches

@@ -291,6 +291,55 @@ def test_piv_cli_equals_core(shifted_pair, tmp_path):
     assert (out / "piv.png").stat().st_size > 1000
 
 
+def test_piv_cli_breaklines_equal_core(shifted_pair, tmp_path):
+    """``--breaklines FILE`` (a GeoJSON line in the clouds' CRS) reaches the core: the same
+    vectors and near_break flags as :func:`piv` given the line."""
+    _need_gdal()
+    from slipmap.core.breaklines import breaklines
+    from slipmap.core.dem import common_grid, grid_elevation
+    from slipmap.core.piv import piv
+
+    d, _ = shifted_pair
+    b, a = read_las(d / "b.las").xyz, read_las(d / "a.las").xyz
+    mid = 0.5 * (b[:, :2].min(axis=0) + b[:, :2].max(axis=0))
+    line = [[mid[0] - 1.0, mid[1] - 15.0], [mid[0] + 2.0, mid[1] + 15.0]]
+    path = tmp_path / "scarp.geojson"
+    path.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "crs": {"type": "name", "properties": {"name": "EPSG:32612"}},
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {},
+                        "geometry": {"type": "LineString", "coordinates": line},
+                    }
+                ],
+            }
+        )
+    )
+    out = tmp_path / "piv"
+    argv = ["-q", "piv", str(d / "b.las"), str(d / "a.las"), "--grid", "0.2", "--window", "32"]
+    argv += ["16", "--max-displacement", "0.5", "--breaklines", str(path), "--out", str(out)]
+    assert main(argv + ["--no-progress"]) == 0
+    grid = common_grid(b, a, cell_m=0.2)
+    core = piv(
+        grid_elevation(b, grid=grid),
+        grid_elevation(a, grid=grid),
+        grid=grid,
+        windows_px=(32, 16),
+        expected_max_displacement_m=0.5,
+        breaklines=breaklines([np.array(line)]),
+    )
+    cols = read_csv_columns(out / "piv.csv", required=("dx", "near_break"))
+    np.testing.assert_array_equal(cols["dx"], core.dx.ravel())
+    np.testing.assert_array_equal(cols["near_break"], core.near_break.ravel().astype(float))
+    assert 0 < core.near_break.sum() < core.near_break.size
+    summary = json.loads((out / "piv.json").read_text())
+    assert summary["n_near_break"] == int(core.near_break.sum())
+
+
 def test_field_commands_refuse_bad_input(shifted_pair, tmp_path, capsys):
     _need_gdal()
     d, _ = shifted_pair

@@ -259,7 +259,8 @@ def test_result_layout_and_columns(textured):
     assert grid.x_min < res.x.min() and res.x.max() < grid.x_max
     assert (np.diff(res.y[:, 0]) < 0).all()
     cols = res.to_columns()
-    assert set(cols) == {"x", "y", "dx", "dy", "dz", "snr", "valid"}
+    assert set(cols) == {"x", "y", "dx", "dy", "dz", "snr", "valid", "near_break"}
+    assert not cols["near_break"].any()  # no breaklines
     assert all(v.shape == (ny * nx,) for v in cols.values())
     assert cols["valid"].dtype == bool
     np.testing.assert_array_equal(cols["dx"], res.dx.ravel())

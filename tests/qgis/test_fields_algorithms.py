@@ -230,6 +230,75 @@ def test_piv_equals_core_and_finds_the_shift(piv_run, epochs):
     assert summary["dem_shape"] == list(grid.shape)
 
 
+def test_piv_breaklines_layer_equals_core(provider, epochs, tmp_path):
+    """BREAKLINES, a line layer, reaches the core: the vectors and near_break flags of
+    :func:`piv` given the line; the same line in WGS 84 is reprojected to the same flags."""
+    from slipmap.core.breaklines import breaklines
+    from slipmap.core.dem import common_grid, grid_elevation
+    from slipmap.core.piv import piv
+
+    paths, clouds = epochs
+    line = np.array([[X0 + 11.0, Y0 - 5.0], [X0 + 13.0, Y0 + SIDE + 5.0]])
+    to_wgs = pyproj.Transformer.from_crs(UTM12, "EPSG:4326", always_xy=True)
+    runs = {}
+    for name, (xs, ys), crs in (
+        ("utm", line.T, "EPSG:32612"),
+        ("wgs", to_wgs.transform(line[:, 0], line[:, 1]), "EPSG:4326"),
+    ):
+        feature = {
+            "type": "Feature",
+            "properties": {},
+            "geometry": {"type": "LineString", "coordinates": np.column_stack([xs, ys]).tolist()},
+        }
+        path = tmp_path / f"scarp_{name}.geojson"
+        path.write_text(
+            json.dumps(
+                {
+                    "type": "FeatureCollection",
+                    "crs": {"type": "name", "properties": {"name": crs}},
+                    "features": [feature],
+                }
+            )
+        )
+        d = tmp_path / name
+        d.mkdir()
+        runs[name] = _run(
+            "piv",
+            {
+                "BEFORE": str(paths["before"]),
+                "AFTER": str(paths["after"]),
+                "GRID": 0.25,
+                "WINDOWS": "32 16",
+                "MAX_DISPLACEMENT": 1.0,
+                "BREAKLINES": str(path),
+                "VECTORS": str(d / "vectors.gpkg"),
+                "DX": str(d / "dx.tif"),
+                "DY": str(d / "dy.tif"),
+                "DZ": str(d / "dz.tif"),
+                "SUMMARY": str(d / "piv.json"),
+            },
+        )
+    res = runs["utm"]
+    grid = common_grid(clouds["before"], clouds["after"], cell_m=0.25)
+    ref = piv(
+        grid_elevation(clouds["before"], grid=grid),
+        grid_elevation(clouds["after"], grid=grid),
+        grid=grid,
+        windows_px=(32, 16),
+        expected_max_displacement_m=1.0,
+        breaklines=breaklines([line]),
+    )
+    assert 0 < ref.near_break.sum() < ref.near_break.size
+    _, names, rows = _features(res["VECTORS"])
+    np.testing.assert_array_equal(_col(names, rows, "near_break"), ref.near_break.ravel())
+    expected = np.where(np.isfinite(ref.dx), ref.dx, np.nan).ravel()
+    np.testing.assert_allclose(_col(names, rows, "dx"), expected, rtol=1e-9, atol=1e-9)
+    summary = json.loads(Path(res["SUMMARY"]).read_text())
+    assert summary["n_near_break"] == int(ref.near_break.sum())
+    _, names, rows = _features(runs["wgs"]["VECTORS"])
+    np.testing.assert_array_equal(_col(names, rows, "near_break"), ref.near_break.ravel())
+
+
 def test_piv_control_comparison(piv_run):
     from slipmap.core.fields import compare_with_control
 
