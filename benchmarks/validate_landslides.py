@@ -59,6 +59,7 @@ Usage (one line; ``--quick``: one seed, no variants, about 4 minutes on 2 cores)
     python benchmarks/validate_landslides.py [--quick] [--seeds 3] [--cases ...]
         [--densities tls als] [--variants field_model=spline breaklines] [--no-variants]
         [--variant-seeds 1] [--max-points-per-cell 2000] [--no-peers] [--out FILE.json]
+    python benchmarks/validate_landslides.py --table benchmarks/results/landslides.json
 
 Prints the Markdown tables of docs/fields.md and writes the JSON (default
 ``benchmarks/results/landslides.json``, ``landslides_quick.json`` with ``--quick``).
@@ -438,7 +439,8 @@ def tables(results: list, cov: dict) -> str:
     icp_names = list(dict.fromkeys(k for r in results for k in r["icp"]))
     piv_names = list(dict.fromkeys(k for r in results for k in r["piv"]))
     head = ["case", "density"]
-    head += [f"ICP {n} far (cm)" for n in icp_names] + ["ICP default near (cm)"]
+    head += [f"ICP {n} far (cm)" for n in icp_names]
+    head += ["ICP default far median (cm)", "ICP default near (cm)"]
     head += [f"PIV {n} far (cells)" for n in piv_names] + ["PIV default near (cells)"]
     head += ["PIV default valid"]
     head += ["s: icp default / open3d / piv / openpiv"]
@@ -455,6 +457,7 @@ def tables(results: list, cov: dict) -> str:
 
         row = [case, dens]
         row += [_fmt(get("icp", n, "far", "rmse_m")) for n in icp_names]
+        row += [_fmt(get("icp", "default", "far", "median_m"))]
         row += [_fmt(get("icp", "default", "near", "rmse_m"))]
         row += [_fmt(get("piv", n, "far", "rmse_cells"), 1.0, 2) for n in piv_names]
         row += [_fmt(get("piv", "default", "near", "rmse_cells"), 1.0, 2)]
@@ -527,7 +530,12 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--no-peers", action="store_true")
     ap.add_argument("--out", type=Path, default=None, help="JSON (default in benchmarks/results)")
+    ap.add_argument("--table", type=Path, help="only print the tables of this JSON")
     args = ap.parse_args(argv)
+    if args.table is not None:
+        doc = json.loads(args.table.read_text(encoding="utf-8"))
+        print(tables(doc["scenes"], doc["coverage"]))
+        return 0
     if args.no_variants or (args.quick and args.variants is None):
         args.variants = []
     if args.out is None:
