@@ -50,8 +50,9 @@ Truth and scores:
 
 ICP variants run on the first seed only (``--variant-seeds``). ``--max-points-per-cell``
 (default 2000) is given to every ICP run and Open3D gets the same sample: the job's own
-default (all points) took 33 s against 11.5 s for the capped run on the TLS slab (seed 0,
-far-cell RMSE 4.19 against 4.35 cm, 2026-11-27, shared 2-core machine); the harness measures
+default (all points) took 33 s against 11.5 s for the capped run on a TLS slab scene with a
+small lobe beside it (seed 0, far-cell RMSE 4.19 against 4.35 cm, 2026-11-27, shared 2-core
+machine); the harness measures
 the default model, not the default point budget (``--max-points-per-cell 0``: all points).
 
 Usage (one line; ``--quick``: one seed, no variants, about 4 minutes on 2 cores)::
