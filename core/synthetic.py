@@ -66,6 +66,15 @@ __all__ = [
     "make_lobe_pair",
     "make_scene",
     "make_scene_n_points",
+    "AlsSampling",
+    "FaultField",
+    "LandslidePair",
+    "SlabField",
+    "SlumpField",
+    "SumField",
+    "field_breaklines",
+    "make_landslide_pair",
+    "material_motion",
     "plane_distances",
 ]
 
@@ -2175,6 +2184,514 @@ def make_lobe_pair(
         after=after,
         field=lobe,
         after_truth=after - original,
+        before_index=before_index,
+        after_index=after_index,
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Landslide geometries with discontinuities (issue #29): a translating slab behind a scarp,
+# a rotational slump, a field crossed by a fault; TLS halves or an ALS-like resampling.
+# --------------------------------------------------------------------------------------
+
+_KEY_LANDSLIDE_SPLIT = 12  # SeedSequence spawn key of the landslide pair's random split
+_KEY_ALS = 13  # ... of the ALS-like resampling (one child per epoch)
+
+
+def _xy_of(xy: Any) -> np.ndarray:
+    """(M, 2) float64 x, y of (M, 2+) points or one point (further columns ignored)."""
+    pts = np.asarray(xy, dtype=np.float64)
+    if pts.ndim == 1 and pts.size in (2, 3):
+        pts = pts[None, :]
+    if pts.ndim != 2 or pts.shape[1] < 2:
+        raise InvalidParameterError(
+            f"xy must be an (M, 2) array of x, y (metres), got shape {pts.shape}."
+        )
+    return pts[:, :2]
+
+
+def _trace(name: str, value: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Start point (2,), unit direction u (2,) and left normal v = z x u (2,) of a trace
+    given as two distinct finite points."""
+    t = np.asarray(value, dtype=np.float64)
+    if t.shape != (2, 2) or not np.all(np.isfinite(t)):
+        raise InvalidParameterError(f"{name} must be two points ((x0, y0), (x1, y1)) in metres.")
+    d = t[1] - t[0]
+    n = float(np.hypot(d[0], d[1]))
+    if not n > 0:
+        raise InvalidParameterError(f"{name} must be two distinct points, got {value!r}.")
+    u = d / n
+    return t[0], u, np.array([-u[1], u[0]])
+
+
+def _vec3(name: str, value: Any) -> tuple[float, float, float]:
+    d = tuple(float(v) for v in np.asarray(value, dtype=np.float64).ravel())
+    if len(d) != 3 or not all(math.isfinite(v) for v in d):
+        raise InvalidParameterError(
+            f"{name} must be three finite displacements (dx, dy, dz) in metres, got {value!r}."
+        )
+    return d
+
+
+@dataclass(frozen=True)
+class SlabField:
+    """A rigid slab translating behind a straight scarp: a step field.
+
+    With the scarp trace from ``p0`` to ``p1`` (unit direction ``u``, left normal
+    ``v = (-u_y, u_x)``), the displacement is
+
+        d(p) = d_m   if (p - p0) . v > 0   (the slab, left of the trace)
+        d(p) = 0     otherwise             (stable ground),
+
+    so the field jumps by ``d_m`` across the scarp and is constant on each side. A slab
+    moving away from the scarp (``d_m . v > 0``) opens a gap behind it where no material of
+    the after epoch lies (:func:`material_motion` gives NaN there).
+
+    Attributes
+    ----------
+    scarp_xy : tuple
+        ((x0, y0), (x1, y1)) two points of the scarp trace (metres, map coordinates); the
+        side test uses the infinite line through them, the breakline is the segment.
+    d_m : tuple of float
+        (3,) motion (dx, dy, dz) of the slab (metres).
+    """
+
+    scarp_xy: tuple
+    d_m: tuple[float, float, float] = (0.0, -0.5, -0.2)
+
+    def __post_init__(self) -> None:
+        _trace("scarp_xy", self.scarp_xy)
+        t = np.asarray(self.scarp_xy, dtype=np.float64)
+        object.__setattr__(self, "scarp_xy", tuple(tuple(float(v) for v in r) for r in t))
+        object.__setattr__(self, "d_m", _vec3("d_m", self.d_m))
+
+    def on_slab(self, xy: Any) -> np.ndarray:
+        """(M,) bool: points on the moving side of the scarp."""
+        p0, _, v = _trace("scarp_xy", self.scarp_xy)
+        return (_xy_of(xy) - p0) @ v > 0.0
+
+    def __call__(self, xy: Any) -> np.ndarray:
+        """(M, 3) displacement (metres) at (M, 2) points."""
+        return self.on_slab(xy)[:, None] * np.asarray(self.d_m)[None, :]
+
+    @property
+    def breaklines(self) -> tuple[np.ndarray, ...]:
+        """The scarp trace, one (2, 2) polyline (metres)."""
+        return (np.asarray(self.scarp_xy, dtype=np.float64),)
+
+
+@dataclass(frozen=True)
+class SlumpField:
+    """A rotational slump: a block rotating rigidly about a horizontal axis behind its head
+    scarp.
+
+    Local frame: ``n = (sin a, cos a)`` the downslope azimuth ``a`` (clockwise from north),
+    ``w = (cos a, -sin a)`` the axis (strike) direction, ``s = (p - c) . n`` and
+    ``t = (p - c) . w`` the offsets of a point from the axis point ``c = axis_xy``. The ground
+    is the reference slope ``h(s) = -H - s tan(beta)`` below the axis (``H = axis_height_m``,
+    ``beta = slope_deg``), so the field depends on map position alone (as the lobe's does; the
+    real relief would add about ``theta * dz``). Inside the block
+    (``-head_m <= s <= toe_m``, ``|t| <= width_m / 2``) a rotation by ``theta =
+    rotation_deg`` that moves the material below the axis downslope,
+
+        s' = s cos(theta) - h sin(theta),      h' = s sin(theta) + h cos(theta),
+        d = (s' - s) n + (h' - h) z,
+
+    so the head (``s < 0``) drops and moves out little, the toe (``s > 0``) rises and moves
+    out more: horizontal and vertical motion vary linearly with the distance from the axis.
+    Outside the block ``d = 0``. The field jumps on the block's outline: the head scarp
+    (``s = -head_m``), the flanks and the toe.
+
+    Attributes
+    ----------
+    axis_xy : tuple of float
+        (2,) map position of the axis (metres).
+    azimuth_deg : float
+        Downslope direction, degrees clockwise from north.
+    head_m, toe_m : float
+        Distance from the axis to the head scarp (upslope) and to the toe (downslope), m.
+    width_m : float
+        Width of the block along the axis (metres).
+    axis_height_m : float
+        Height ``H`` of the axis above the ground at ``s = 0`` (metres).
+    slope_deg : float
+        Ground slope ``beta`` (degrees; the ground descends downslope).
+    rotation_deg : float
+        Rotation ``theta`` (degrees; positive: head down, toe out and up).
+    """
+
+    axis_xy: tuple[float, float]
+    azimuth_deg: float = 180.0
+    head_m: float = 9.0
+    toe_m: float = 9.0
+    width_m: float = 18.0
+    axis_height_m: float = 8.0
+    slope_deg: float = 20.0
+    rotation_deg: float = 3.0
+
+    def __post_init__(self) -> None:
+        c = _xy_of(self.axis_xy)
+        if c.shape != (1, 2) or not np.all(np.isfinite(c)):
+            raise InvalidParameterError(f"axis_xy must be (x, y) in metres, got {self.axis_xy!r}.")
+        object.__setattr__(self, "axis_xy", (float(c[0, 0]), float(c[0, 1])))
+        for name in ("head_m", "toe_m", "width_m", "axis_height_m"):
+            v = float(getattr(self, name))
+            if not (math.isfinite(v) and v > 0):
+                raise InvalidParameterError(f"{name} must be a finite length > 0 (m), got {v!r}.")
+            object.__setattr__(self, name, v)
+        for name in ("azimuth_deg", "slope_deg", "rotation_deg"):
+            v = float(getattr(self, name))
+            if not math.isfinite(v):
+                raise InvalidParameterError(f"{name} must be finite, got {v!r}.")
+            object.__setattr__(self, name, v)
+
+    def _axes(self) -> tuple[np.ndarray, np.ndarray]:
+        a = math.radians(self.azimuth_deg)
+        return np.array([math.sin(a), math.cos(a)]), np.array([math.cos(a), -math.sin(a)])
+
+    def _local(self, xy: Any) -> tuple[np.ndarray, np.ndarray]:
+        off = _xy_of(xy) - np.asarray(self.axis_xy)
+        n, w = self._axes()
+        return off @ n, off @ w
+
+    def in_block(self, xy: Any) -> np.ndarray:
+        """(M,) bool: points in the rotating block."""
+        s, t = self._local(xy)
+        return (s >= -self.head_m) & (s <= self.toe_m) & (np.abs(t) <= 0.5 * self.width_m)
+
+    def __call__(self, xy: Any) -> np.ndarray:
+        """(M, 3) displacement (metres) at (M, 2) points."""
+        s, t = self._local(xy)
+        inside = (s >= -self.head_m) & (s <= self.toe_m) & (np.abs(t) <= 0.5 * self.width_m)
+        th = math.radians(self.rotation_deg)
+        h = -self.axis_height_m - s * math.tan(math.radians(self.slope_deg))
+        ds = s * (math.cos(th) - 1.0) - h * math.sin(th)
+        dh = s * math.sin(th) + h * (math.cos(th) - 1.0)
+        n, _ = self._axes()
+        out = np.column_stack([ds * n[0], ds * n[1], dh])
+        return np.where(inside[:, None], out, 0.0)
+
+    @property
+    def breaklines(self) -> tuple[np.ndarray, ...]:
+        """The block's outline (head scarp, flank, toe, flank), one closed (5, 2) polyline."""
+        n, w = self._axes()
+        c, hw = np.asarray(self.axis_xy), 0.5 * self.width_m
+        ring = [c - self.head_m * n - hw * w, c - self.head_m * n + hw * w]
+        ring += [c + self.toe_m * n + hw * w, c + self.toe_m * n - hw * w]
+        return (np.array(ring + [ring[0]]),)
+
+
+@dataclass(frozen=True)
+class FaultField:
+    """A smooth field crossed by a fault: a strike-slip offset (and a small throw) added to a
+    smooth ``base`` field.
+
+    With the trace from ``p0`` to ``p1`` (unit direction ``u``, left normal ``v``) and
+    ``side(p) = +1`` left of it (``(p - p0) . v > 0``), ``-1`` otherwise,
+
+        d(p) = base(p) + side(p) * (slip_m / 2 * u + throw_m / 2 * z),
+
+    so the left side moves ``slip_m`` along ``u`` (and ``throw_m`` up) relative to the right
+    side: a left-lateral offset of ``slip_m`` (right-lateral for ``slip_m < 0``). The motion is
+    parallel to the trace, so the sides neither open nor overlap.
+
+    Attributes
+    ----------
+    trace_xy : tuple
+        ((x0, y0), (x1, y1)) two points of the fault trace (metres).
+    slip_m : float
+        Offset along the trace, left side relative to right (metres).
+    throw_m : float
+        Vertical offset, left side relative to right (metres).
+    base : callable, optional
+        ``base(xy) -> (M, 3)`` smooth field (metres), e.g. a :class:`LobeField`; none: 0.
+    """
+
+    trace_xy: tuple
+    slip_m: float = 0.3
+    throw_m: float = 0.0
+    base: Any = None
+
+    def __post_init__(self) -> None:
+        _trace("trace_xy", self.trace_xy)
+        t = np.asarray(self.trace_xy, dtype=np.float64)
+        object.__setattr__(self, "trace_xy", tuple(tuple(float(v) for v in r) for r in t))
+        for name in ("slip_m", "throw_m"):
+            v = float(getattr(self, name))
+            if not math.isfinite(v):
+                raise InvalidParameterError(f"{name} must be finite (m), got {v!r}.")
+            object.__setattr__(self, name, v)
+        if self.base is not None and not callable(self.base):
+            raise InvalidParameterError("base must be a field: xy (M, 2) -> (M, 3) metres.")
+
+    def side(self, xy: Any) -> np.ndarray:
+        """(M,) +1 left of the trace, -1 on it or right of it."""
+        p0, _, v = _trace("trace_xy", self.trace_xy)
+        return np.where((_xy_of(xy) - p0) @ v > 0.0, 1.0, -1.0)
+
+    def __call__(self, xy: Any) -> np.ndarray:
+        """(M, 3) displacement (metres) at (M, 2) points."""
+        p = _xy_of(xy)
+        _, u, _ = _trace("trace_xy", self.trace_xy)
+        step = np.array([0.5 * self.slip_m * u[0], 0.5 * self.slip_m * u[1], 0.5 * self.throw_m])
+        out = self.side(p)[:, None] * step[None, :]
+        if self.base is not None:
+            out = out + np.asarray(self.base(p), dtype=np.float64)
+        return out
+
+    @property
+    def breaklines(self) -> tuple[np.ndarray, ...]:
+        """The fault trace, one (2, 2) polyline (metres)."""
+        return (np.asarray(self.trace_xy, dtype=np.float64),)
+
+
+@dataclass(frozen=True)
+class SumField:
+    """The sum of fields (e.g. a lobe beside a slab); breaklines of all parts.
+
+    Attributes
+    ----------
+    parts : tuple of callable
+        Fields ``f(xy) -> (M, 3)`` (metres).
+    """
+
+    parts: tuple
+
+    def __call__(self, xy: Any) -> np.ndarray:
+        """(M, 3) displacement (metres) at (M, 2) points."""
+        p = _xy_of(xy)
+        out = np.zeros((len(p), 3))
+        for f in self.parts:
+            out += np.asarray(f(p), dtype=np.float64)
+        return out
+
+    @property
+    def breaklines(self) -> tuple[np.ndarray, ...]:
+        return tuple(b for f in self.parts for b in field_breaklines(f))
+
+
+def field_breaklines(field: Any) -> tuple[np.ndarray, ...]:
+    """The discontinuity lines of a synthetic field (its ``breaklines``; none for a smooth
+    field such as :class:`LobeField`), each an (M, 2) polyline in metres."""
+    return tuple(np.asarray(b, dtype=np.float64) for b in getattr(field, "breaklines", ()))
+
+
+def material_motion(
+    field: Any, centres_xy: Any, *, iterations: int = 60, tol_m: float = 1e-6
+) -> np.ndarray:
+    """The motion of the material now (after epoch) at each centre: ``field(p0)`` with
+    ``p0 + field(p0)[:2] = c``.
+
+    A windowed-ICP cell reports the motion of the ground now at its centre, so the truth at
+    a centre ``c`` is the field at the material's original place ``p0``, found by the
+    fixed-point iteration ``p0 <- c - field(p0)[:2]`` from ``p0 = c`` (a contraction where
+    the field's horizontal gradient is below 1). Where it does not settle to ``tol_m`` -- a
+    gap a slab or slump opened, where no material of the after epoch lies -- the truth is
+    NaN.
+
+    Parameters
+    ----------
+    field : callable
+        ``field(xy) -> (M, 3)`` displacement (metres).
+    centres_xy : (M, 2+) array-like
+        Centres (metres, after epoch).
+    iterations : int
+        Most fixed-point steps.
+    tol_m : float
+        Largest ``|p0 + field(p0) - c|`` accepted (metres).
+
+    Returns
+    -------
+    numpy.ndarray
+        (M, 3) motion (metres), NaN rows where no material is found.
+    """
+    c = _xy_of(centres_xy).copy()
+    p0 = c.copy()
+    for _ in range(int(iterations)):
+        p0 = c - np.asarray(field(p0), dtype=np.float64)[:, :2]
+    d = np.asarray(field(p0), dtype=np.float64)
+    miss = np.hypot(*(p0 + d[:, :2] - c).T) > float(tol_m)
+    d[miss] = np.nan
+    return d
+
+
+@dataclass(frozen=True)
+class AlsSampling:
+    """An airborne-like resampling of a dense cloud: parallel flight strips of zig-zag scan
+    lines.
+
+    Each strip is flown along ``heading_deg`` (clockwise from north); its scan lines run
+    across the track every ``line_spacing_m`` along it, with a footprint every
+    ``point_spacing_m`` across. An oscillating mirror slants successive lines alternately by
+    half a line spacing from one strip edge to the other (a zig-zag: footprints bunch at the
+    edges of the swath). The strips cover the cloud side by side, neighbours overlapping by
+    ``overlap`` of a strip's width (the overlaps get twice the density). Each footprint is
+    jittered by ``jitter_m`` (Gaussian, per axis) and takes the cloud's nearest point within
+    half the smaller spacing (none: no return, e.g. a scan shadow). Nominal density of one
+    strip: ``1 / (line_spacing_m * point_spacing_m)`` (5 pts/m² with the defaults, 10 in
+    overlaps). Each epoch is flown with its own line phase and a heading off by a few degrees
+    (``heading_spread_deg``), as two surveys are.
+
+    Attributes
+    ----------
+    heading_deg, heading_spread_deg : float
+        Flight direction and the standard deviation of its change per epoch (degrees).
+    line_spacing_m, point_spacing_m : float
+        Spacing of scan lines along the track, of footprints along a line (metres).
+    strips : int
+        Number of strips across the cloud.
+    overlap : float
+        Overlap of neighbouring strips, fraction of a strip's width in [0, 0.9].
+    jitter_m : float
+        Footprint position jitter (metres).
+    noise_m : float
+        Gaussian vertical noise added to the kept points (metres), ALS ranging noise.
+    """
+
+    heading_deg: float = 20.0
+    heading_spread_deg: float = 3.0
+    line_spacing_m: float = 0.5
+    point_spacing_m: float = 0.4
+    strips: int = 2
+    overlap: float = 0.3
+    jitter_m: float = 0.05
+    noise_m: float = 0.02
+
+    def __post_init__(self) -> None:
+        for name in ("line_spacing_m", "point_spacing_m"):
+            if not float(getattr(self, name)) > 0:
+                raise InvalidParameterError(f"{name} must be > 0 (m).")
+        if int(self.strips) < 1 or not (0.0 <= float(self.overlap) <= 0.9):
+            raise InvalidParameterError("strips must be >= 1 and overlap in [0, 0.9].")
+
+    def sample(self, xy: Any, rng: np.random.Generator) -> np.ndarray:
+        """Sorted indices (K,) of the points of (N, 2+) ``xy`` the survey returns."""
+        from scipy.spatial import cKDTree
+
+        p = _xy_of(xy)
+        if not len(p):
+            return np.zeros(0, dtype=np.int64)
+        h = math.radians(self.heading_deg + self.heading_spread_deg * rng.standard_normal())
+        along = np.array([math.sin(h), math.cos(h)])
+        across = np.array([math.cos(h), -math.sin(h)])
+        centre = p.mean(axis=0)
+        a, c = (p - centre) @ along, (p - centre) @ across
+        ls, ps = float(self.line_spacing_m), float(self.point_spacing_m)
+        k = int(self.strips)
+        width = (c.max() - c.min()) / (k - (k - 1) * float(self.overlap))
+        foot = []
+        for strip in range(k):
+            c0 = c.min() + strip * width * (1.0 - float(self.overlap))
+            lines = np.arange(a.min() + ls * rng.random(), a.max() + ls, ls)
+            across_c = c0 + ps * (np.arange(int(np.ceil(width / ps))) + 0.5)
+            frac = (across_c - c0) / width - 0.5  # -0.5 .. 0.5 across the swath
+            sign = np.where(np.arange(len(lines)) % 2 == 0, 1.0, -1.0)
+            ua = lines[:, None] + 0.5 * ls * sign[:, None] * frac[None, :]
+            uc = np.broadcast_to(across_c[None, :], ua.shape)
+            foot.append(np.column_stack([ua.ravel(), uc.ravel()]))
+        f = np.concatenate(foot)
+        f = f + float(self.jitter_m) * rng.standard_normal(f.shape)
+        fxy = centre + f[:, :1] * along + f[:, 1:] * across
+        dist, idx = cKDTree(p).query(fxy, distance_upper_bound=0.5 * min(ls, ps))
+        return np.unique(idx[np.isfinite(dist)]).astype(np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class LandslidePair:
+    """Two epochs of a real cloud with a synthetic landslide field in the second.
+
+    Attributes
+    ----------
+    before, after : numpy.ndarray
+        (N1, 3), (N2, 3) float64 points; ``after = points[after_index] + after_truth``
+        (plus the ALS noise when resampled so).
+    field : callable
+        The field applied, ``field(xy) -> (M, 3)`` metres (:func:`material_motion` gives
+        the truth at cell centres).
+    after_truth : numpy.ndarray
+        (N2, 3) motion applied to each after point (metres).
+    breaklines : tuple of numpy.ndarray
+        The field's discontinuity lines, each (M, 2) (metres); empty for a smooth field.
+    before_index, after_index : numpy.ndarray
+        Indices into the input points (disjoint, increasing).
+    """
+
+    before: np.ndarray
+    after: np.ndarray
+    field: Any
+    after_truth: np.ndarray
+    breaklines: tuple
+    before_index: np.ndarray
+    after_index: np.ndarray
+
+
+def make_landslide_pair(
+    points: Any,
+    field: Any,
+    *,
+    seed: int = 0,
+    after_fraction: float = 0.5,
+    als: Optional[AlsSampling] = None,
+) -> LandslidePair:
+    """Two epochs of a real cloud, the second moved by a landslide ``field``.
+
+    As :func:`make_lobe_pair`: the cloud is split at random (seeded) into two disjoint sets,
+    the before epoch and the after epoch, each after point moved by ``field`` at its original
+    place. With ``als``, each epoch is then resampled as an airborne survey would see it
+    (:class:`AlsSampling`; the after epoch in its moved position) and ALS noise is added.
+
+    Parameters
+    ----------
+    points : (N, 3) array-like
+        The cloud (metres); not modified.
+    field : callable
+        ``field(xy) -> (M, 3)`` displacement (metres): :class:`LobeField`,
+        :class:`SlabField`, :class:`SlumpField`, :class:`FaultField`, :class:`SumField`...
+    seed : int
+        Seed of the split and the resampling.
+    after_fraction : float
+        Share of the points in the after epoch, in (0, 1).
+    als : AlsSampling, optional
+        Resample both epochs ALS-like (default: the halves at the cloud's density).
+
+    Returns
+    -------
+    LandslidePair
+    """
+    from .errors import InputDataError
+
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 2 or not np.all(np.isfinite(pts)):
+        raise InputDataError("points must be an (N, 3) array of finite x, y, z, N >= 2.")
+    frac = float(after_fraction)
+    if not (0.0 < frac < 1.0):
+        raise InvalidParameterError(f"after_fraction must be in (0, 1), got {after_fraction!r}.")
+    rng = np.random.default_rng(
+        np.random.SeedSequence(int(seed), spawn_key=(_KEY_LANDSLIDE_SPLIT,))
+    )
+    order = rng.permutation(len(pts))
+    n_after = min(len(pts) - 1, max(1, int(round(frac * len(pts)))))
+    after_index = np.sort(order[:n_after]).astype(np.int64)
+    before_index = np.sort(order[n_after:]).astype(np.int64)
+    disp = np.asarray(field(pts[after_index, :2]), dtype=np.float64)
+    after = pts[after_index] + disp
+    before = pts[before_index].copy()
+    if als is not None:
+        rb, ra = (
+            np.random.default_rng(s)
+            for s in np.random.SeedSequence(int(seed), spawn_key=(_KEY_ALS,)).spawn(2)
+        )
+        kb, ka = als.sample(before, rb), als.sample(after, ra)
+        before_index, before = before_index[kb], before[kb]
+        after_index, after, disp = after_index[ka], after[ka], disp[ka]
+        before[:, 2] += float(als.noise_m) * rb.standard_normal(len(before))
+        after[:, 2] += float(als.noise_m) * ra.standard_normal(len(after))
+    return LandslidePair(
+        before=before,
+        after=after,
+        field=field,
+        after_truth=disp,
+        breaklines=field_breaklines(field),
         before_index=before_index,
         after_index=after_index,
     )
