@@ -959,7 +959,7 @@ SPLINE_POINT_BYTES = 24.0
 #: a process keeps its blocks' points, KD-tree and pairs between iterations up to this many
 #: bytes (least recently used dropped first; a dropped block is read again: the same result)
 SPLINE_CACHE_BYTES = 2 << 30
-_CHUNKS: OrderedDict[Tuple[str, int], Tuple[Any, float]] = OrderedDict()
+_CHUNKS: OrderedDict[tuple, Tuple[Any, float]] = OrderedDict()
 
 
 @dataclass(frozen=True)
@@ -1013,7 +1013,8 @@ def _spline_survey(blk: _SplineBlock):
     """The cells a block owns (lattice keys, centres, counts) and the extent of their points."""
     from ..core.icp import _cell_index
 
-    cells, _, a, _ = _spline_cells_of(blk)
+    cells, _, a, b = _spline_cells_of(blk)
+    _keep(blk.key + ("cells",), (cells, a, b), 64.0 * len(a) + 24.0 * len(b))  # for the fit
     x0, y0, n_rows, n_cols, cell = blk.lattice
     ra, ca = _cell_index(a, x0, y0, cell)
     cx, cy = x0 + (ca + 0.5) * cell, y0 - (ra + 0.5) * cell
@@ -1044,7 +1045,11 @@ def _spline_chunk(call: _SplineCall):
     if hit is not None:
         _CHUNKS.move_to_end(blk.key)
         return hit[0]
-    cells, _, a, b = _spline_cells_of(blk)
+    read = _CHUNKS.pop(blk.key + ("cells",), None)
+    if read is not None:  # the survey's read of this block, in this process
+        cells, a, b = read[0]
+    else:
+        cells, _, a, b = _spline_cells_of(blk)
     off = b.mean(axis=0)
     tree = _OffsetTree(cKDTree(b - off), off)
     normals = _NormalCache(b, tree.tree, blk.neighbours_k, offset=off)
@@ -1057,15 +1062,19 @@ def _spline_chunk(call: _SplineCall):
         a[cells.points], frame=frame, before=b, tree=tree, normals=normals,
         gate_m=blk.gate_m, seg=np.asarray(call.cell_index)[cells.seg], grid=grid,
     )  # fmt: skip
-    size = 400.0 * len(chunk) + 150.0 * len(b)
-    stale = [k for k in _CHUNKS if k[0] != blk.key[0]]  # an earlier run's blocks
-    for k in stale:
+    _keep(blk.key, chunk, 400.0 * len(chunk) + 150.0 * len(b))
+    return chunk
+
+
+def _keep(key, value, size: float) -> None:
+    """Keep ``value`` in this process's cache of spline blocks (an earlier run's entries and
+    the least recently used dropped to stay within :data:`SPLINE_CACHE_BYTES`)."""
+    for k in [k for k in _CHUNKS if k[0] != key[0]]:  # an earlier run's blocks
         del _CHUNKS[k]
     while _CHUNKS and sum(v[1] for v in _CHUNKS.values()) + size > SPLINE_CACHE_BYTES:
         _CHUNKS.popitem(last=False)
     if size <= SPLINE_CACHE_BYTES:
-        _CHUNKS[blk.key] = (chunk, size)
-    return chunk
+        _CHUNKS[key] = (value, size)
 
 
 def _spline_block(call: _SplineCall):
@@ -1133,8 +1142,9 @@ def _icp_spline_tiled(
     gate = math.inf if opts.max_correspondence_m is None else opts.max_correspondence_m
     reach = gate if math.isfinite(gate) else buf
     # a point moves by less than the gate (else it pairs with nothing): its target lies within
-    # two gates of its cell, the target's normal neighbourhood within three cells more
-    halo = 2.0 * reach + 3.0 * cell
+    # two gates of its cell, the target's normal neighbourhood (k nearest points) within a
+    # cell more (a cell holds min_points or more)
+    halo = 2.0 * reach + cell
     token = uuid.uuid4().hex
     blocks = [
         _SplineBlock(
