@@ -24,8 +24,23 @@ owns. No point cloud travels to the driver.
   level. Cells are fitted with formal covariances and the field's variance factor is
   estimated once over all cells, as the one-file run does. Equal to the one-file run up to
   rounding (``max_points_per_cell`` samples by the points' coordinates, so a cell draws the
-  same points from tiles); the stable-ground pre-alignment and the spline field are refused
-  on tiled inputs (they need a global fit; see the issue notes).
+  same points from tiles); the stable-ground pre-alignment is refused on tiled inputs (it
+  needs one fit over both whole epochs).
+* The ICP's spline field (``field_model="spline"``, :func:`_icp_spline_tiled`): one field
+  over all blocks, not one per block. The tiled cell pass starts it; then each Gauss-Newton
+  iteration is two rounds over the blocks: every block returns the ``|v|`` of its points
+  (the robust weights' scale is a median over all of them), then its share of the normal
+  equations (the sparse normal-matrix entries of the knots its points touch, the right-hand
+  side, the sums the variance-component smoothing and the stop test need); the driver adds
+  the shares, solves once and hands the new coefficients back
+  (:func:`~slipmap.core.icp_spline.fit_spline_chunks`, the one-file run's code with one
+  chunk). A block owns the cells whose centres it holds (each after-point in one block) and
+  reads the before-points two gates and a cell around (its points' targets and their normals
+  are the one-file run's). It keeps its points, KD-tree and pairs in its process between
+  iterations (:data:`SPLINE_CACHE_BYTES`; a block read again gives the same result). Equal to
+  the one-file run up to rounding (tests: 1e-16 m); the driver holds the sparse normal
+  equations and 8 bytes per after-point per iteration, checked from the headers
+  (:func:`check_spline_memory`).
 """
 
 from __future__ import annotations
