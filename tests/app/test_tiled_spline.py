@@ -136,3 +136,14 @@ def test_cli_spline_on_tiles_in_process_and_on_two_dask_workers_equals_one_file(
             assert np.max(np.abs(got[key] - want[key])) <= TOL, (where, key)
     if "dask" not in runs:
         pytest.skip("dask.distributed is not installed: the in-process run only")
+
+
+def test_a_spline_too_fine_for_tiles_is_refused_from_the_headers(scene, tmp_path, capsys):
+    """The knots are counted from the tiles' header boxes before any point is read."""
+    out = tmp_path / "out"
+    rc, err = _cli(["icp", str(scene / "before_tiles"), str(scene / "after_tiles"), "--cell", "5",
+                    "--field-model", "spline", "--spline-spacing", "0.01", "--out", str(out)],
+                   capsys)  # fmt: skip
+    assert rc == 2
+    assert len(err) == 1 and "--spline-spacing" in err[0] and "knots" in err[0], err
+    assert not out.exists()
