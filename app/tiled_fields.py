@@ -964,10 +964,12 @@ def icp_for_job(opts, core_kwargs: Dict[str, Any], *, progress=None):
 
 # --------------------------------------------------------------------------- the spline field
 
-#: bytes of the driver per knot of a tiled spline field: the penalised normal matrix (3
-#: components x 147 neighbours x 12 bytes), the blocks' shares of it in flight and its sparse
-#: LU factor (about 10x the matrix on lone-star's lattices)
-SPLINE_KNOT_BYTES = 60_000.0
+#: entries per knot of the penalised normal matrix (3 components x 7 x 7 neighbouring knots x
+#: 3 components) and of its sparse LU factor per square root of the knots: SciPy's SuperLU
+#: (COLAMD) on the lattice's pattern held 4 044 entries per knot at 3 969 knots and 7 893 at
+#: 15 129 (measured 2026-11-27: 64 sqrt(K)); 12 bytes each (value and index)
+SPLINE_MATRIX_ENTRIES = 430.0
+SPLINE_LU_ENTRIES_PER_SQRT_KNOT = 64.0
 #: bytes of the driver per after-point: the |v| of every paired point, gathered each
 #: iteration for the robust weights' median (and its copies while sorting)
 SPLINE_POINT_BYTES = 24.0
@@ -1108,13 +1110,16 @@ def _drop_chunks(token: str) -> None:
 
 def check_spline_memory(n_knots: float, n_points: float) -> None:
     """A tiled spline field's driver memory from the headers (knots, after-points), before
-    anything is read: refused naming ``spline_spacing_m``."""
+    anything is read: the normal matrix twice (the blocks' shares in flight and their sum),
+    its LU factor and the residuals of every point; refused naming ``spline_spacing_m``."""
     from .resources import check_grid_memory
 
-    per_knot = SPLINE_KNOT_BYTES + SPLINE_POINT_BYTES * float(n_points) / max(float(n_knots), 1.0)
+    k = max(float(n_knots), 1.0)
+    entries = 2.0 * SPLINE_MATRIX_ENTRIES + SPLINE_LU_ENTRIES_PER_SQRT_KNOT * math.sqrt(k)
+    per_knot = 12.0 * entries + SPLINE_POINT_BYTES * float(n_points) / k
     check_grid_memory(
-        "spline_spacing_m", n_knots, bytes_per_cell=per_knot,
-        what="spline field (its normal equations and the residuals of every point)",
+        "spline_spacing_m", k, bytes_per_cell=per_knot,
+        what="spline field (its normal equations, their factor and every point's residual)",
     )  # fmt: skip
 
 
