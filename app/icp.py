@@ -161,7 +161,8 @@ SPEC = JobSpec(
             "what each cell reports: cells (its own transform, the study's) or spline (after "
             "the cells, one smooth B-spline field fitted to all points at once; each cell "
             "gives the field at its centre, with its covariance and strain; follows a "
-            "landslide lobe only 3-4 cells wide; one-file runs only)",
+            "landslide lobe only 3-4 cells wide; on tiles the blocks' shares of each iteration's "
+            "normal equations are summed: the one-file run's field)",
             "Field model",
             default="cells",
             choices=("cells", "spline"),
@@ -291,9 +292,7 @@ SPEC = JobSpec(
 
 
 def _check(opts) -> None:
-    """The tiled-input refusals, and the spline field's: one fit over all points."""
-    from .tiled import is_tiled
-
+    """The tiled-input refusals, and the spline options' consistency."""
     check_fields_tiled(opts, refused=CHECK_TILED)
     if opts.get("spline_spacing_m") is not None and opts.get("field_model") != "spline":
         from .options import warn_option
@@ -301,12 +300,6 @@ def _check(opts) -> None:
         warn_option(
             "{spline_spacing_m} is set but {field_model} is not spline: the knot spacing is "
             "not used; set {field_model} to spline for the spline field"
-        )
-    if opts.get("field_model") == "spline" and is_tiled(opts, "before", "after"):
-        raise tiled_refusal(
-            "field_model",
-            "the spline field is one fit over all points; use field_model cells (with "
-            "deform_passes) or run on one file per epoch",
         )
 
 

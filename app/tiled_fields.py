@@ -24,8 +24,23 @@ owns. No point cloud travels to the driver.
   level. Cells are fitted with formal covariances and the field's variance factor is
   estimated once over all cells, as the one-file run does. Equal to the one-file run up to
   rounding (``max_points_per_cell`` samples by the points' coordinates, so a cell draws the
-  same points from tiles); the stable-ground pre-alignment and the spline field are refused
-  on tiled inputs (they need a global fit; see the issue notes).
+  same points from tiles); the stable-ground pre-alignment is refused on tiled inputs (it
+  needs one fit over both whole epochs).
+* The ICP's spline field (``field_model="spline"``, :func:`_icp_spline_tiled`): one field
+  over all blocks, not one per block. The tiled cell pass starts it; then each Gauss-Newton
+  iteration is two rounds over the blocks: every block returns the ``|v|`` of its points
+  (the robust weights' scale is a median over all of them), then its share of the normal
+  equations (the sparse normal-matrix entries of the knots its points touch, the right-hand
+  side, the sums the variance-component smoothing and the stop test need); the driver adds
+  the shares, solves once and hands the new coefficients back
+  (:func:`~slipmap.core.icp_spline.fit_spline_chunks`, the one-file run's code with one
+  chunk). A block owns the cells whose centres it holds (each after-point in one block) and
+  reads the before-points two gates and a cell around (its points' targets and their normals
+  are the one-file run's). It keeps its points, KD-tree and pairs in its process between
+  iterations (:data:`SPLINE_CACHE_BYTES`; a block read again gives the same result). Equal to
+  the one-file run up to rounding (tests: 1e-16 m); the driver holds the sparse normal
+  equations and 8 bytes per after-point per iteration, checked from the headers
+  (:func:`check_spline_memory`).
 """
 
 from __future__ import annotations
@@ -33,6 +48,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, fields, replace
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
@@ -40,7 +56,7 @@ import numpy as np
 
 from ..core.errors import InputDataError, InvalidParameterError
 from ..core.io.tiles import Region, TileCollection
-from ..core.progress import ProgressCallback, report
+from ..core.progress import ProgressCallback, report, scaled
 from .engine import Engine, InProcess
 from .tiled import DEFAULT_TILE_SIZE_M, Selection
 
@@ -735,6 +751,12 @@ def icp_tiled(
     if icp_kw.get("prealign"):
         raise InvalidParameterError("prealign is not available on tiled inputs")
     icp_kw.pop("prealign", None)
+    spline = icp_kw.get("field_model", "cells") == "spline"
+    icp_kw["field_model"] = "cells"  # the blocks fit the cells; the spline is fitted over them
+    spline_kw = {
+        "spacing_m": icp_kw.pop("spline_spacing_m", None),
+        "smoothing": icp_kw.pop("spline_smoothing", None),
+    }
     cell = float(cell_m)
     if not (math.isfinite(cell) and cell > 0):
         raise InvalidParameterError(f"cell_m must be a positive number, got {cell_m!r}")
@@ -758,6 +780,17 @@ def icp_tiled(
         n_cells=float(n_rows) * n_cols, blocks=n_blocks, tile_size_m=tile_size_m,
         what="cell lattice", bytes_per_cell=ICP_LATTICE_BYTES, overlap=False,
     )  # fmt: skip
+    if spline:  # the knots and the driver's memory, from the headers (issue #31)
+        from ..core.icp_spline import check_spline_size, n_knots
+
+        if spline_kw["spacing_m"] is None:
+            spline_kw["spacing_m"] = 0.5 * cell
+        h = float(spline_kw["spacing_m"])
+        if not (math.isfinite(h) and h > 0):
+            raise InvalidParameterError(f"spline_spacing_m must be > 0, got {h!r}")
+        span = np.asarray(hi[:2], float) - np.asarray(lo[:2], float) + cell
+        check_spline_size(span, h)
+        check_spline_memory(n_knots(span, h), after.n_points)
     nb = max(1, int(round(float(tile_size_m) / cell)))
     kw = dict(icp_kw, cell_m=cell, buffer_m=buffer_m, coarse_to_fine=levels)
     tasks = []
@@ -778,7 +811,7 @@ def icp_tiled(
         _icp_block,
         tasks,
         names=[f"ICP block at x {t.block.xmin:.1f}, y {t.block.ymin:.1f}" for t in tasks],
-        progress=progress,
+        progress=scaled(progress, 0.0, 0.5) if spline else progress,
         what="block",
     )
     skipped = {"few_after_points": 0, "few_before_points": 0, "icp_failed": 0}
@@ -813,12 +846,19 @@ def icp_tiled(
         cell_model=icp_kw.get("cell_model", "rigid"),
         deform_passes=int(icp_kw.get("deform_passes", 0)),
     )
-    res = _apply_sigma_scaling(
-        res,
-        sigma_scaling,
-        icp_kw.get("sigma_regions", 3),
-        icp_kw.get("sigma_region_by", "roughness"),
+    sigma_kw = dict(
+        sigma_scaling=sigma_scaling,
+        sigma_regions=icp_kw.get("sigma_regions", 3),
+        sigma_region_by=icp_kw.get("sigma_region_by", "roughness"),
     )
+    if spline:
+        res = _icp_spline_tiled(
+            res, tasks, engine=engine, progress=progress, lattice=(x0, y0, n_rows, n_cols, cell),
+            buffer_m=buffer_m, spline_kw=spline_kw, sigma_kw=sigma_kw,
+            icp_kw={k: v for k, v in icp_kw.items() if k not in sigma_kw},
+        )  # fmt: skip
+        return replace(res, seconds=0.0)
+    res = _apply_sigma_scaling(res, **sigma_kw)
     return replace(res, seconds=0.0)
 
 
@@ -932,3 +972,328 @@ def icp_for_job(opts, core_kwargs: Dict[str, Any], *, progress=None):
             progress=progress, **core_kwargs,
         )  # fmt: skip
     return res, before.crs
+
+
+# --------------------------------------------------------------------------- the spline field
+
+#: entries per knot of the penalised normal matrix (3 components x 7 x 7 neighbouring knots x
+#: 3 components) and of its sparse LU factor per square root of the knots: SciPy's SuperLU
+#: (COLAMD) on the lattice's pattern held 4 044 entries per knot at 3 969 knots and 7 893 at
+#: 15 129 (measured 2026-11-27: 64 sqrt(K)); 12 bytes each (value and index)
+SPLINE_MATRIX_ENTRIES = 430.0
+SPLINE_LU_ENTRIES_PER_SQRT_KNOT = 64.0
+#: bytes of the driver per after-point: the |v| of every paired point, gathered each
+#: iteration for the robust weights' median (and its copies while sorting)
+SPLINE_POINT_BYTES = 24.0
+#: a process keeps its blocks' points, KD-tree and pairs between iterations up to this many
+#: bytes (least recently used dropped first; a dropped block is read again: the same result)
+SPLINE_CACHE_BYTES = 2 << 30
+_CHUNKS: OrderedDict[tuple, Tuple[Any, float]] = OrderedDict()
+
+
+@dataclass(frozen=True)
+class _SplineBlock:
+    """One block of a tiled spline fit: it owns the cells whose centres it holds and reads
+    their points with the before-points ``halo_m`` around (the gate, the field's largest
+    motion and the target normals' neighbourhoods)."""
+
+    before: TileCollection
+    after: TileCollection
+    block: Region
+    halo_m: float
+    lattice: Tuple[float, float, int, int, float]  # x0, y0, n_rows, n_cols, cell_m
+    buffer_m: float
+    min_points: int
+    max_points_per_cell: Optional[int]
+    seed: int
+    neighbours_k: int
+    gate_m: float
+    backend: str
+    selection: Selection
+    key: Tuple[str, int]  # (run token, block index): the process cache's key
+
+
+@dataclass(frozen=True)
+class _SplineCall:
+    block: _SplineBlock
+    stage: str  # "cells" or a SplineChunk method
+    args: tuple = ()
+    frame: Optional[Tuple[Tuple[float, float], float, int, int]] = None
+    cell_index: Optional[np.ndarray] = None  # the run's index of each of the block's cells
+
+
+def _spline_cells_of(blk: _SplineBlock):
+    """The block's points and the cells it owns (as the one-file run selects them)."""
+    from ..core.icp import select_cells
+
+    box = blk.block.grown(blk.halo_m)
+    b = _read(blk.before, box, blk.selection)
+    a = _read(blk.after, box, blk.selection)
+    x0, y0, n_rows, n_cols, cell = blk.lattice
+    cells, skipped, uk, _ = select_cells(
+        a, b, x0=x0, y0=y0, n_rows=n_rows, n_cols=n_cols, cell_m=cell, buffer_m=blk.buffer_m,
+        min_points=blk.min_points, max_points_per_cell=blk.max_points_per_cell, seed=blk.seed,
+        owned=blk.block.contains,
+    )  # fmt: skip
+    return cells, skipped, a, b
+
+
+def _spline_survey(blk: _SplineBlock):
+    """The cells a block owns (lattice keys, centres, counts) and the extent of their points."""
+    from ..core.icp import _cell_index
+
+    cells, _, a, b = _spline_cells_of(blk)
+    _keep(blk.key + ("cells",), (cells, a, b), 64.0 * len(a) + 24.0 * len(b))  # for the fit
+    x0, y0, n_rows, n_cols, cell = blk.lattice
+    ra, ca = _cell_index(a, x0, y0, cell)
+    cx, cy = x0 + (ca + 0.5) * cell, y0 - (ra + 0.5) * cell
+    own = blk.block.contains(np.column_stack([cx, cy]))
+    _, full = np.unique(ra[own] * n_cols + ca[own], return_counts=True)
+    pts = a[cells.points, :2]
+    return {
+        "keys": cells.row * n_cols + cells.col,
+        "centres": cells.centres,
+        "n_after": cells.n_after,
+        "n_before": cells.n_before,
+        "lo": pts.min(axis=0) if len(pts) else np.full(2, np.inf),
+        "hi": pts.max(axis=0) if len(pts) else np.full(2, -np.inf),
+        "full": int(np.sum(full >= blk.min_points)),
+    }
+
+
+def _spline_chunk(call: _SplineCall):
+    """The block's :class:`~slipmap.core.icp_spline.SplineChunk`, from this process's cache
+    or built (read, cells, KD-tree, normals: the one-file run's objects over the block)."""
+    from scipy.spatial import cKDTree
+
+    from ..core.icp import _NormalCache, _OffsetTree, _target_grid
+    from ..core.icp_spline import SplineChunk, SplineField
+
+    blk = call.block
+    hit = _CHUNKS.get(blk.key)
+    if hit is not None:
+        _CHUNKS.move_to_end(blk.key)
+        return hit[0]
+    read = _CHUNKS.pop(blk.key + ("cells",), None)
+    if read is not None:  # the survey's read of this block, in this process
+        cells, a, b = read[0]
+    else:
+        cells, _, a, b = _spline_cells_of(blk)
+    off = b.mean(axis=0)
+    tree = _OffsetTree(cKDTree(b - off), off)
+    normals = _NormalCache(b, tree.tree, blk.neighbours_k, offset=off)
+    grid = _target_grid(b, blk.backend)
+    if grid is not None and blk.neighbours_k <= grid.MAX_NORMAL_K:
+        normals.device = grid
+    origin, h, n_x, n_y = call.frame
+    frame = SplineField(origin, h, n_x, n_y, np.zeros((n_y + 3, n_x + 3, 3)))
+    chunk = SplineChunk(
+        a[cells.points], frame=frame, before=b, tree=tree, normals=normals,
+        gate_m=blk.gate_m, seg=np.asarray(call.cell_index)[cells.seg], grid=grid,
+    )  # fmt: skip
+    _keep(blk.key, chunk, 400.0 * len(chunk) + 150.0 * len(b))
+    return chunk
+
+
+def _keep(key, value, size: float) -> None:
+    """Keep ``value`` in this process's cache of spline blocks (an earlier run's entries and
+    the least recently used dropped to stay within :data:`SPLINE_CACHE_BYTES`)."""
+    for k in [k for k in _CHUNKS if k[0] != key[0]]:  # an earlier run's blocks
+        del _CHUNKS[k]
+    while _CHUNKS and sum(v[1] for v in _CHUNKS.values()) + size > SPLINE_CACHE_BYTES:
+        _CHUNKS.popitem(last=False)
+    if size <= SPLINE_CACHE_BYTES:
+        _CHUNKS[key] = (value, size)
+
+
+def _spline_block(call: _SplineCall):
+    """One stage of a tiled spline fit on one block (see :func:`_icp_spline_tiled`)."""
+    with _quiet_core():
+        if call.stage == "cells":
+            return _spline_survey(call.block)
+        chunk = _spline_chunk(call)
+        return getattr(chunk, call.stage)(*call.args)
+
+
+def _drop_chunks(token: str) -> None:
+    for k in [k for k in _CHUNKS if k[0] == token]:
+        del _CHUNKS[k]
+
+
+def check_spline_memory(n_knots: float, n_points: float) -> None:
+    """A tiled spline field's driver memory from the headers (knots, after-points), before
+    anything is read: the normal matrix twice (the blocks' shares in flight and their sum),
+    its LU factor and the residuals of every point; refused naming ``spline_spacing_m``."""
+    from .resources import check_grid_memory
+
+    k = max(float(n_knots), 1.0)
+    entries = 2.0 * SPLINE_MATRIX_ENTRIES + SPLINE_LU_ENTRIES_PER_SQRT_KNOT * math.sqrt(k)
+    per_knot = 12.0 * entries + SPLINE_POINT_BYTES * float(n_points) / k
+    check_grid_memory(
+        "spline_spacing_m", k, bytes_per_cell=per_knot,
+        what="spline field (its normal equations, their factor and every point's residual)",
+    )  # fmt: skip
+
+
+def _icp_spline_tiled(
+    cells_res, tasks: List[_IcpTask], *, engine, progress, lattice, buffer_m, spline_kw,
+    sigma_kw, icp_kw,
+):  # fmt: skip
+    """The spline field of a tiled run: the cells' motions (``cells_res``, the tiled cell
+    pass) start one B-spline field fitted over every block's points; each Gauss-Newton
+    iteration adds the blocks' shares of the normal equations
+    (:func:`~slipmap.core.icp_spline.fit_spline_chunks`), so the field, and every value the
+    cells report, are the one-file run's."""
+    import uuid
+
+    from ..core.icp import (
+        _Cells,
+        _deformation_field,
+        _near_pairs,
+        _options,
+        finish_cells,
+        spline_cells,
+    )
+    from ..core.icp_spline import MIN_SPLINE_CELLS, SplineCellsError, fit_spline_chunks, knot_frame
+
+    x0, y0, n_rows, n_cols, cell = lattice
+    kw = dict(icp_kw)
+    minp = int(kw.pop("min_points", 100))
+    mpc = kw.pop("max_points_per_cell", None)
+    seed = int(kw.pop("seed", 0))
+    med_thr = float(kw.pop("median_threshold", 2.0))
+    med_eps = float(kw.pop("median_eps_m", 0.02))
+    backend = kw.pop("backend", "numpy")
+    option_keys = ("max_iterations", "tolerance_m", "tolerance_rad", "max_correspondence_m",
+                   "trim_fraction", "robust", "neighbours_k", "tolerance_sigma")  # fmt: skip
+    o_kw = {k: kw[k] for k in option_keys if k in kw}
+    buf = 0.5 * cell if buffer_m is None else float(buffer_m)
+    if "max_correspondence_m" not in o_kw and buf > 0:
+        o_kw["max_correspondence_m"] = buf
+    opts = _options(**o_kw)
+    gate = math.inf if opts.max_correspondence_m is None else opts.max_correspondence_m
+    reach = gate if math.isfinite(gate) else buf
+    # a point moves by less than the gate (else it pairs with nothing): its target lies within
+    # two gates of its cell, the target's normal neighbourhood (k nearest points) within a
+    # cell more (a cell holds min_points or more)
+    halo = 2.0 * reach + cell
+    token = uuid.uuid4().hex
+    blocks = [
+        _SplineBlock(
+            t.before.restricted(t.block, halo),
+            t.after.restricted(t.block, halo),
+            t.block,
+            halo,
+            lattice,
+            buf,
+            minp,
+            mpc,
+            seed,
+            opts.neighbours_k,
+            gate,
+            backend,
+            t.selection,
+            (token, i),
+        )  # fmt: skip
+        for i, t in enumerate(tasks)
+    ]
+    state = {"f": 0.0}
+
+    def cancel_only(_fraction, message):  # the engine's per-block ticks: cancel between them
+        report(progress, state["f"], message)
+
+    def outer(fraction, message):
+        state["f"] = fraction
+        report(progress, fraction, message)
+
+    outer(0.5, "spline field: the cells of every block")
+    survey = _engine(engine).map(
+        _spline_block, [_SplineCall(b, "cells") for b in blocks],
+        names=[f"spline block at x {b.block.xmin:.1f}, y {b.block.ymin:.1f}" for b in blocks],
+        progress=cancel_only if progress is not None else None, what="block",
+    )  # fmt: skip
+    full = sum(s["full"] for s in survey)
+    if full < MIN_SPLINE_CELLS:
+        raise SplineCellsError(
+            f"{full} cell(s) of {cell:g} m hold {minp} points or more; a spline field needs "
+            f"{MIN_SPLINE_CELLS} at least",
+            cells=full,
+        )
+    keys = np.concatenate([s["keys"] for s in survey]).astype(np.int64)
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    row, col = np.divmod(keys, n_cols)
+    k = len(keys)
+    cells = _Cells(
+        points=np.zeros(0, dtype=np.int64), seg=np.zeros(0, dtype=np.int64),
+        centres=np.concatenate([s["centres"] for s in survey]).reshape(-1, 3)[order],
+        boxes=np.zeros((k, 4)), row=row, col=col,
+        n_after=np.concatenate([s["n_after"] for s in survey])[order],
+        n_before=np.concatenate([s["n_before"] for s in survey])[order],
+    )  # fmt: skip
+    # the cell pass's values on these cells (the cells it could not fit are not ok)
+    done = (cells_res.row * n_cols + cells_res.col).astype(np.int64)
+    at = np.searchsorted(keys, done)
+    if not (np.all(at < k) and np.array_equal(keys[np.minimum(at, k - 1)], done)):
+        raise InputDataError("the tiled cell pass and the spline blocks disagree on the cells")
+    ok = np.zeros(k, dtype=bool)
+    ok[at] = True
+    d = np.full((k, 3), np.nan)
+    d[at] = np.column_stack([cells_res.dx, cells_res.dy, cells_res.dz])
+    iterations = np.zeros(k, dtype=np.int64)
+    iterations[at] = cells_res.iterations
+    converged = np.zeros(k, dtype=bool)
+    converged[at] = np.asarray(cells_res.converged, dtype=bool)
+    usable = ok & np.all(np.isfinite(d), axis=1)
+    start, _ = _deformation_field(cells, d, usable, n_rows, n_cols, x0, y0, cell)
+    near = _near_pairs(cells.row, cells.col, reach=2)
+    lo = np.min([s["lo"] for s in survey], axis=0)
+    hi = np.max([s["hi"] for s in survey], axis=0)
+    h = spline_kw["spacing_m"]
+    frame = knot_frame(lo, hi, cells.centres[:, :2], h)
+    frame_t = (frame.origin_xy, frame.spacing_m, frame.n_x, frame.n_y)
+    live = [i for i, s in enumerate(survey) if len(s["keys"])]
+    index_of = {i: np.searchsorted(keys, survey[i]["keys"]) for i in live}
+    names = [f"spline block at x {blocks[i].block.xmin:.1f}, y {blocks[i].block.ymin:.1f}"
+             for i in live]  # fmt: skip
+    warned = []
+
+    def run(stage, *args):
+        c = args[0]
+        if not warned and float(np.max(np.linalg.norm(c, axis=1), initial=0.0)) > reach:
+            warned.append(True)
+            log.warning(
+                "the spline field moves by more than the %.2f m gate somewhere: tiled blocks "
+                "may differ from the one-file run at their edges; give a larger buffer_m",
+                reach,
+            )  # fmt: skip
+        calls = [_SplineCall(blocks[i], stage, args, frame_t, index_of[i]) for i in live]
+        return _engine(engine).map(
+            _spline_block, calls, names=names, what="block",
+            progress=cancel_only if progress is not None else None,
+        )  # fmt: skip
+
+    log.info(
+        "spline field on %d block(s): %d cells, %d x %d knot intervals of %g m (halo %.1f m)",
+        len(live), k, frame.n_x, frame.n_y, h, halo,
+    )  # fmt: skip
+    try:
+        sfit = fit_spline_chunks(
+            run, frame=frame, initial=start, report_xy=cells.centres[:, :2], report_pairs=near,
+            smoothing=spline_kw["smoothing"], gate_m=gate, opts=opts,
+            progress=scaled(outer if progress is not None else None, 0.55, 1.0),
+        )  # fmt: skip
+    finally:
+        _drop_chunks(token)
+    sp = spline_cells(sfit, cells, ok, min_points=minp, median_threshold=med_thr,
+                      median_eps_m=med_eps, n_rows=n_rows, n_cols=n_cols)  # fmt: skip
+    return finish_cells(
+        cells, ok=sp["ok"], d=sp["d"], cov_d=sp["cov_d"], grad=sp["grad"], rot=None,
+        sig_rot=sp["sig_rot"], rmse=sp["rmse"], sigma0=sp["sigma0"], n_used=sp["n"],
+        iterations=iterations, converged=converged, flagged=sp["flagged"],
+        skipped=cells_res.skipped, min_points=minp, max_iterations=opts.max_iterations,
+        origin_xy=(float(x0), float(y0)), cell_m=cell, n_rows=n_rows, n_cols=n_cols,
+        prealignment=None, t_start=0.0, cell_model=cells_res.cell_model,
+        deform_passes=cells_res.deform_passes, field_model="spline", near=near,
+        pair_cov=sfit.pair_cov, **sigma_kw,
+    )  # fmt: skip

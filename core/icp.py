@@ -1796,11 +1796,10 @@ def windowed_icp(
                 f"field needs {MIN_SPLINE_CELLS} at least",
                 cells=full,
             )
-    rb, cb = _cell_index(b, x0, y0, cell)
-    inb = (rb >= 0) & (rb < n_rows) & (cb >= 0) & (cb < n_cols)
-    nb_cell = np.bincount(rb[inb] * n_cols + cb[inb], minlength=n_rows * n_cols)
-
-    skipped = {"few_after_points": 0, "few_before_points": 0, "icp_failed": 0}
+    cells, skipped, uk, sel = select_cells(
+        a, b, x0=x0, y0=y0, n_rows=n_rows, n_cols=n_cols, cell_m=cell, buffer_m=buf,
+        min_points=minp, max_points_per_cell=mpc, seed=seed,
+    )  # fmt: skip
     gate = math.inf if opts.max_correspondence_m is None else opts.max_correspondence_m
     # starting motion of every cell in one call (a per-cell call of a sampler is slow)
     start_d = np.zeros((len(uk), 3))
@@ -1809,25 +1808,6 @@ def windowed_icp(
         centres_xy = np.column_stack([x0 + (cols_u + 0.5) * cell, y0 - (rows_u + 0.5) * cell])
         start_d = np.asarray(initial_displacement(centres_xy), dtype=np.float64)
         start_d = np.where(np.isfinite(start_d), start_d, 0.0).reshape(len(uk), 3)
-    # the cells to fit: their (sampled) after-points, concatenated cell by cell
-    sel, idx_parts = [], []
-    for ci, (key, s0, cnt) in enumerate(zip(uk, starts, counts)):
-        if cnt < minp:
-            skipped["few_after_points"] += 1
-            continue
-        if nb_cell[key] < minp:
-            skipped["few_before_points"] += 1
-            continue
-        idx = order[s0 : s0 + cnt]
-        if mpc is not None and cnt > mpc:
-            pri = sample_priority(a[idx], seed)
-            idx = np.sort(idx[np.argpartition(pri, mpc - 1)[:mpc]])
-        sel.append(ci)
-        idx_parts.append(idx)
-    sel = np.asarray(sel, dtype=np.int64)
-    cells = _Cells.build(
-        a, idx_parts, uk[sel], counts[sel], nb_cell[uk[sel]], x0, y0, cell, buf, n_cols
-    )
     report(progress, 0.1 if pre is not None else 0.02, f"ICP: {len(sel)} cells")
     fit_kw = dict(
         before=b, tree=tree, normals=normals, gate=gate, opts=opts, engine=engine, grid=grid
@@ -1908,6 +1888,8 @@ def windowed_icp(
                 int(flagged.sum()),
             )
     rmse, sigma0, n_used = fits.rmse, fits.sigma0, fits.n
+    ok, rot, sig_rot = fits.ok, fits.rotation, fits.sigma_rotation
+    near = pair_src = None
     if field_model == "spline":
         from .icp_spline import fit_spline_field
 
@@ -1931,49 +1913,154 @@ def windowed_icp(
             progress=scaled(progress, 0.9, 1.0),
             grid=grid,
         )
-        d, grad, cov_d = sfit.d, sfit.gradient, sfit.cov[:, :3, :3]
-        rmse, n_used = sfit.rmse, sfit.n
-        sigma0 = np.full(len(d), sfit.sigma0_m)
-        # the spline's rotations: antisymmetric part of its gradient; rows of sfit.cov are
-        # (d, d d/dx, d d/dy) x (x, y, z): rz = (ddy/dx - ddx/dy) / 2, rx = ddz/dy / 2,
-        # ry = -ddz/dx / 2
-        c9 = sfit.cov
-        spline_sig_rot = 0.5 * np.sqrt(
-            np.maximum(
-                np.column_stack(
-                    [c9[:, 8, 8], c9[:, 5, 5], c9[:, 4, 4] + c9[:, 6, 6] - 2 * c9[:, 4, 6]]
-                ),
-                0.0,
-            )
+        sp = spline_cells(sfit, cells, fits.ok, min_points=minp, median_threshold=med_thr,
+                          median_eps_m=med_eps, n_rows=n_rows, n_cols=n_cols)  # fmt: skip
+        d, grad, cov_d, rmse, n_used = sp["d"], sp["grad"], sp["cov_d"], sp["rmse"], sp["n"]
+        sigma0, sig_rot, ok, flagged = sp["sigma0"], sp["sig_rot"], sp["ok"], sp["flagged"]
+        pair_src = sfit.pair_cov
+    if not (passes == 0 and model == "rigid" and field_model == "cells"):
+        rot = None  # from the gradient of the total motion
+    return finish_cells(
+        cells, ok=ok, d=d, cov_d=cov_d, grad=grad, rot=rot, sig_rot=sig_rot, rmse=rmse,
+        sigma0=sigma0, n_used=n_used, iterations=fits.iterations, converged=fits.converged,
+        flagged=flagged, skipped=skipped, min_points=minp, max_iterations=opts.max_iterations,
+        origin_xy=(float(x0), float(y0)), cell_m=cell, n_rows=n_rows, n_cols=n_cols,
+        prealignment=pre, t_start=t_start, cell_model=model, deform_passes=passes,
+        field_model=field_model, near=near, pair_cov=pair_src, sigma_scaling=sigma_scaling,
+        sigma_regions=n_regions, sigma_region_by=sigma_region_by,
+    )  # fmt: skip
+
+
+def select_cells(
+    a: np.ndarray,
+    b: np.ndarray,
+    *,
+    x0: float,
+    y0: float,
+    n_rows: int,
+    n_cols: int,
+    cell_m: float,
+    buffer_m: float,
+    min_points: int,
+    max_points_per_cell: Optional[int] = None,
+    seed: int = 0,
+    owned: Optional[Callable[[np.ndarray], np.ndarray]] = None,
+):
+    """The cells a windowed-ICP run fits on its lattice: those with ``min_points`` after-
+    and before-points, their (sampled) after-points concatenated cell by cell.
+
+    Parameters
+    ----------
+    a, b : (N2, 3), (N1, 3) float64
+        After and before points, metres.
+    x0, y0, n_rows, n_cols, cell_m
+        The lattice: west edge of column 0, north edge of row 0, its size, the cell side.
+    buffer_m, min_points, max_points_per_cell, seed
+        As :func:`windowed_icp`.
+    owned : callable, optional
+        ``owned(xy (K, 2)) -> (K,) bool`` of cell centres: only those cells are taken (and
+        counted); a tile block owns the cells whose centre it holds.
+
+    Returns
+    -------
+    (cells, skipped, uk, sel)
+        ``_Cells``; the skipped counts; the lattice keys (``row * n_cols + col``) of the
+        cells with after-points and the indices into them of the cells taken.
+    """
+    cell = float(cell_m)
+    ra, ca = _cell_index(a, x0, y0, cell)
+    keys_a = ra * n_cols + ca
+    order = np.argsort(keys_a, kind="stable")
+    uk, starts, counts = np.unique(keys_a[order], return_index=True, return_counts=True)
+    if owned is not None and len(uk):
+        rows_u, cols_u = np.divmod(uk, n_cols)
+        mine = owned(np.column_stack([x0 + (cols_u + 0.5) * cell, y0 - (rows_u + 0.5) * cell]))
+        uk, starts, counts = uk[mine], starts[mine], counts[mine]
+    rb, cb = _cell_index(b, x0, y0, cell)
+    inb = (rb >= 0) & (rb < n_rows) & (cb >= 0) & (cb < n_cols)
+    nb_cell = np.bincount(rb[inb] * n_cols + cb[inb], minlength=n_rows * n_cols)
+    skipped = {"few_after_points": 0, "few_before_points": 0, "icp_failed": 0}
+    sel, idx_parts = [], []
+    for ci, (key, s0, cnt) in enumerate(zip(uk, starts, counts)):
+        if cnt < min_points:
+            skipped["few_after_points"] += 1
+            continue
+        if nb_cell[key] < min_points:
+            skipped["few_before_points"] += 1
+            continue
+        idx = order[s0 : s0 + cnt]
+        if max_points_per_cell is not None and cnt > max_points_per_cell:
+            pri = sample_priority(a[idx], seed)
+            idx = np.sort(idx[np.argpartition(pri, max_points_per_cell - 1)[:max_points_per_cell]])
+        sel.append(ci)
+        idx_parts.append(idx)
+    sel = np.asarray(sel, dtype=np.int64)
+    cells = _Cells.build(
+        a, idx_parts, uk[sel], counts[sel], nb_cell[uk[sel]], x0, y0, cell, buffer_m, n_cols
+    )
+    return cells, skipped, uk, sel
+
+
+def spline_cells(sfit, cells: _Cells, cells_ok, *, min_points, median_threshold,
+                 median_eps_m, n_rows, n_cols) -> Dict[str, np.ndarray]:  # fmt: skip
+    """What the cells report from a spline field (:class:`~.icp_spline.SplineFit` at their
+    centres): ``d``, ``grad``, ``cov_d``, ``rmse``, ``n``, ``sigma0``, ``sig_rot`` (the
+    rotations' sigmas), ``ok`` (``cells_ok`` and ``min_points`` used points) and ``flagged``
+    (the median test on the field's values)."""
+    d, grad, cov_d = sfit.d, sfit.gradient, sfit.cov[:, :3, :3]
+    # the spline's rotations: antisymmetric part of its gradient; rows of sfit.cov are
+    # (d, d d/dx, d d/dy) x (x, y, z): rz = (ddy/dx - ddx/dy) / 2, rx = ddz/dy / 2,
+    # ry = -ddz/dx / 2
+    c9 = sfit.cov
+    sig_rot = 0.5 * np.sqrt(
+        np.maximum(
+            np.column_stack(
+                [c9[:, 8, 8], c9[:, 5, 5], c9[:, 4, 4] + c9[:, 6, 6] - 2 * c9[:, 4, 6]]
+            ),
+            0.0,
         )
-        fits = replace(fits, ok=fits.ok & (n_used >= minp) & np.all(np.isfinite(d), axis=1))
-        if med_thr > 0:
-            flagged, _, _ = _median_flags(cells, d, fits.ok, n_rows, n_cols, med_eps, med_thr)
-    ok = fits.ok
+    )
+    ok = cells_ok & (sfit.n >= min_points) & np.all(np.isfinite(d), axis=1)
+    flagged = np.zeros(len(d), dtype=bool)
+    if median_threshold > 0:
+        flagged, _, _ = _median_flags(cells, d, ok, n_rows, n_cols, median_eps_m, median_threshold)
+    return dict(d=d, grad=grad, cov_d=cov_d, rmse=sfit.rmse, n=sfit.n,
+                sigma0=np.full(len(d), sfit.sigma0_m), sig_rot=sig_rot, ok=ok,
+                flagged=flagged)  # fmt: skip
+
+
+def finish_cells(
+    cells: _Cells, *, ok, d, cov_d, grad, rot, sig_rot, rmse, sigma0, n_used, iterations,
+    converged, flagged, skipped, min_points, max_iterations, origin_xy, cell_m, n_rows,
+    n_cols, prealignment, t_start, cell_model, deform_passes, field_model, near=None,
+    pair_cov=None, sigma_scaling="field", sigma_regions=3, sigma_region_by="roughness",
+) -> WindowedICPResult:  # fmt: skip
+    """The result of a windowed-ICP run from its cells' values (``rot`` None: the
+    antisymmetric part of ``grad``), the cells not ``ok`` left out and counted, the sigmas
+    scaled as ``sigma_scaling`` says (``near``, ``pair_cov``: the spline field's pairs of
+    cells and their covariances). A tiled spline run finishes here too."""
+    skipped = dict(skipped)
     skipped["icp_failed"] = int(np.count_nonzero(~ok))
     n_ok = int(np.count_nonzero(ok))
     if n_ok == 0:
         why = "; ".join(f"{v} {_SKIP_WORDS[k]}" for k, v in skipped.items() if v)
         raise InputDataError(
             f"no cell could be registered: all {sum(skipped.values())} cells with points were "
-            f"skipped ({why}); use a larger cell_m or a smaller min_points (now {minp})"
+            f"skipped ({why}); use a larger cell_m or a smaller min_points (now {min_points})"
         )
-    n_fail_nonconv = int(np.count_nonzero(~fits.converged[ok]))
+    n_fail_nonconv = int(np.count_nonzero(~converged[ok]))
     if n_fail_nonconv:
         log.warning(
             "%d of %d cells did not converge in %d iterations",
             n_fail_nonconv,
             n_ok,
-            opts.max_iterations,
+            max_iterations,
         )
-    if passes == 0 and model == "rigid" and field_model == "cells":
-        rot, sig_rot = fits.rotation, fits.sigma_rotation
-    else:
+    if rot is None:
         # rotation of the total motion: antisymmetric part of its gradient; sigma of the
-        # last pass's residual model
+        # last pass's residual model (or the spline's)
         w = 0.5 * (grad - np.transpose(grad, (0, 2, 1)))
         rot = np.stack([w[:, 2, 1], w[:, 0, 2], w[:, 1, 0]], axis=1)
-        sig_rot = spline_sig_rot if field_model == "spline" else fits.sigma_rotation
     sd = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
     res = WindowedICPResult(
         x=cells.centres[ok, 0],
@@ -1997,31 +2084,31 @@ def windowed_icp(
         n=n_used[ok],
         n_after=cells.n_after[ok],
         n_before=cells.n_before[ok],
-        iterations=fits.iterations[ok],
-        converged=fits.converged[ok],
+        iterations=iterations[ok],
+        converged=converged[ok],
         row=cells.row[ok],
         col=cells.col[ok],
-        origin_xy=(float(x0), float(y0)),
-        cell_m=cell,
+        origin_xy=origin_xy,
+        cell_m=cell_m,
         n_rows=n_rows,
         n_cols=n_cols,
         skipped=skipped,
-        prealignment=pre,
+        prealignment=prealignment,
         seconds=time.perf_counter() - t_start,
         exx=grad[ok, 0, 0],
         eyy=grad[ok, 1, 1],
         exy=0.5 * (grad[ok, 0, 1] + grad[ok, 1, 0]),
-        cell_model=model,
-        deform_passes=passes,
+        cell_model=cell_model,
+        deform_passes=deform_passes,
         field_model=field_model,
         flagged=flagged[ok],
     )
-    pair_cov = None
-    if field_model == "spline":  # the cells share one field: their errors are correlated
+    pairs = None
+    if pair_cov is not None:  # the cells share one field: their errors are correlated
         new = np.cumsum(ok) - 1
         both = ok[near[:, 0]] & ok[near[:, 1]]
-        pair_cov = (new[near[both]], sfit.pair_cov[both])
-    res = _apply_sigma_scaling(res, sigma_scaling, n_regions, sigma_region_by, pair_cov)
+        pairs = (new[near[both]], pair_cov[both])
+    res = _apply_sigma_scaling(res, sigma_scaling, sigma_regions, sigma_region_by, pairs)
     log.info("windowed ICP: %d cells fitted%s, %.1f s", n_ok, skipped_cells_text(skipped),
              res.seconds)  # fmt: skip
     return res

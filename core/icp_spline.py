@@ -29,12 +29,17 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
 from .errors import InputDataError, InvalidParameterError
-from .icp_options import MAD_TO_SIGMA, _Options, _shared_target_inflation, _weights
+from .icp_options import (
+    MAD_TO_SIGMA,
+    _Options,
+    _robust_weights,
+    _shared_target_inflation,
+)
 from .progress import ProgressCallback, report
 
 log = logging.getLogger(__name__)
@@ -107,7 +112,18 @@ def check_spline_size(span_xy, spacing_m: float) -> None:
     )
 
 
-__all__ = ["SplineField", "SplineFit", "fit_spline_field", "bspline_weights"]
+__all__ = [
+    "ChunkNormals",
+    "ChunkReport",
+    "SplineChunk",
+    "SplineField",
+    "SplineFit",
+    "Weighting",
+    "bspline_weights",
+    "fit_spline_chunks",
+    "fit_spline_field",
+    "knot_frame",
+]
 
 
 def bspline_weights(t: np.ndarray) -> np.ndarray:
@@ -251,14 +267,18 @@ def _second_differences(kx: int, ky: int):
     return (r.T @ r).tocsr()
 
 
-def _assemble(order, bounds, idx16, w16, nrm, v, wt, n_k):
+def _assemble(order, bounds, idx16, w16, nrm, v, wt, n_k, ok=None):
     """Normal matrix (3K, 3K, sparse) and right-hand side (3K,) of the weighted point-to-plane
     residuals, one dense (48, 48) product per knot interval (``order`` sorts the points by
-    interval, ``bounds`` delimit them; ``order=None``: already sorted)."""
+    interval, ``bounds`` delimit them; ``order=None``: already sorted). With ``ok`` (P,) bool,
+    also the Gram matrix (K, K, sparse) ``sum b_p b_pᵀ`` of the basis rows of the ``ok``
+    points (the field's RMS change at them is ``sqrt(sum_j dc_jᵀ G dc_j / n_ok)``)."""
     import scipy.sparse as sp
 
     rows, cols, vals = [], [], []
+    g_rows, g_cols, g_vals = [], [], []
     rhs = np.zeros(3 * n_k)
+    okf = None if ok is None else ok.astype(np.float64)
     for s0, s1 in zip(bounds[:-1], bounds[1:]):
         if s1 <= s0:
             continue
@@ -272,13 +292,23 @@ def _assemble(order, bounds, idx16, w16, nrm, v, wt, n_k):
         rows.append(np.repeat(gidx, 48))
         cols.append(np.tile(gidx, 48))
         vals.append(nblk.reshape(-1))
-    if not rows:
-        return sp.csr_matrix((3 * n_k, 3 * n_k)), rhs
-    n = sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-        shape=(3 * n_k, 3 * n_k),
-    )
-    return n, rhs
+        if okf is not None:
+            wb = w16[sel]
+            g_rows.append(np.repeat(idx16[first], 16))
+            g_cols.append(np.tile(idx16[first], 16))
+            g_vals.append(((wb * okf[sel, None]).T @ wb).reshape(-1))
+
+    def matrix(r, c, x, n):
+        if not r:
+            return sp.csr_matrix((n, n))
+        return sp.csr_matrix(
+            (np.concatenate(x), (np.concatenate(r), np.concatenate(c))), shape=(n, n)
+        )
+
+    n = matrix(rows, cols, vals, 3 * n_k)
+    if okf is None:
+        return n, rhs
+    return n, rhs, matrix(g_rows, g_cols, g_vals, n_k)
 
 
 def _trace_inv_block(factor, r2, j: int, n_k: int, seed: int = 0) -> float:
@@ -321,6 +351,291 @@ def _variance_components(factor, r2, lam_abs, c, wvv: float, n_obs: int) -> np.n
     return out
 
 
+def knot_frame(points_lo_xy, points_hi_xy, report_xy: np.ndarray, spacing_m: float) -> SplineField:
+    """The knot lattice of a spline field over points spanning ``points_lo_xy`` ..
+    ``points_hi_xy`` (x, y metres) and the report positions ``report_xy`` (K, 2): a
+    :class:`SplineField` of zero coefficients. A tiled run gives the extremes of its blocks'
+    points and gets the one-file run's lattice.
+
+    Raises
+    ------
+    InvalidParameterError
+        ``spacing_m`` not positive.
+    SplineCellsError
+        Fewer than :data:`MIN_SPLINE_CELLS` report positions.
+    SplineSizeError
+        More than :data:`MAX_KNOTS` knots.
+    """
+    h = float(spacing_m)
+    if not (np.isfinite(h) and h > 0):
+        raise InvalidParameterError(f"spline_spacing_m must be > 0, got {spacing_m!r}")
+    rxy = np.asarray(report_xy, dtype=np.float64).reshape(-1, 2)
+    if len(rxy) < MIN_SPLINE_CELLS:
+        raise SplineCellsError(
+            f"{len(rxy)} cell(s) with points, a spline field needs {MIN_SPLINE_CELLS} at least",
+            cells=len(rxy),
+        )
+    lo = np.minimum(np.asarray(points_lo_xy, np.float64), rxy.min(axis=0)) - 1e-6 * h
+    hi = np.maximum(np.asarray(points_hi_xy, np.float64), rxy.max(axis=0))
+    check_spline_size(hi - lo, h)
+    n_x, n_y = (int(v) for v in np.maximum(np.ceil((hi - lo) / h), 1))
+    return SplineField((float(lo[0]), float(lo[1])), h, n_x, n_y, np.zeros((n_y + 3, n_x + 3, 3)))
+
+
+@dataclass(frozen=True)
+class Weighting:
+    """The robust weights of one iteration, from the residuals of every chunk together (as
+    :func:`~.icp_options._weights` finds them from one array): points with ``|v| <=
+    threshold_m`` are kept (trimming), and weighed at robust ``scale_m``.
+
+    Attributes
+    ----------
+    threshold_m : float
+        Largest kept ``|v|``, metres (inf: no trimming).
+    scale_m : float
+        Robust scale (MAD of the kept residuals), metres.
+    robust : str or None
+        ``"tukey"``, ``"huber"`` or None (unit weights).
+    median_abs_m : float
+        Median ``|v|`` of all paired points, metres (the stop test's floor).
+    """
+
+    threshold_m: float
+    scale_m: float
+    robust: Optional[str]
+    median_abs_m: float
+
+    @classmethod
+    def of(cls, abs_v: np.ndarray, opts: _Options) -> Weighting:
+        """From the ``|v|`` (N,) of every paired point of every chunk (their order is free:
+        only quantiles are taken)."""
+        av = np.asarray(abs_v, dtype=np.float64)
+        thr = np.inf
+        if opts.trim_fraction > 0 and av.size > 20:
+            thr = float(np.quantile(av, 1.0 - opts.trim_fraction))
+        scale = np.nan
+        if opts.robust is not None:
+            scale = MAD_TO_SIGMA * float(np.median(av[av <= thr]))
+        return cls(thr, scale, opts.robust, float(np.median(av)))
+
+    def apply(self, v: np.ndarray):
+        """Residuals ``v`` (N,) of a chunk -> (keep, w, psi'(v)), equal to
+        :func:`~.icp_options._weights` of all chunks' residuals together."""
+        keep = np.abs(v) <= self.threshold_m
+        if self.robust is None:
+            w = keep.astype(np.float64)
+            return keep, w, w
+        w, dpsi = _robust_weights(v, max(self.scale_m, 1e-12), keep, self.robust)
+        return keep, w, dpsi
+
+
+@dataclass(frozen=True)
+class ChunkNormals:
+    """One chunk's share of an iteration's normal equations (sums over its points).
+
+    Attributes
+    ----------
+    nmat : (3K, 3K) scipy.sparse matrix
+        ``sum w_p a_p a_pᵀ`` (component-major unknowns), m⁻²·m².
+    rhs : (3K,) float64
+        ``sum w_p a_p v_p``.
+    gram : (K, K) scipy.sparse matrix
+        ``sum b_p b_pᵀ`` of the paired points' basis rows.
+    wvv : float
+        ``sum w_p v_p²``, m².
+    n_obs : int
+        Points of non-zero weight.
+    n_ok : int
+        Paired points.
+    """
+
+    nmat: object
+    rhs: np.ndarray
+    gram: object
+    wvv: float
+    n_obs: int
+    n_ok: int
+
+
+@dataclass(frozen=True)
+class ChunkReport:
+    """One chunk's share of the final fit's sums.
+
+    Attributes
+    ----------
+    ss_psi : float
+        ``sum psi²`` of the weighted residuals, m².
+    used : int
+        Points kept with non-zero weight.
+    sum_dpsi : float
+        ``sum psi'`` over the kept points.
+    n_ok : int
+        Paired points.
+    knots : (J,) int64
+        Knots touched by paired points.
+    targets : (T, 3) float64
+        Target (epoch-1) points of the kept points, map metres (their identity across chunks).
+    target_psi : (T,) float64
+        ``sum psi`` per target.
+    cells : (C,) int64
+        Report positions (cells) of the chunk's used points.
+    cell_n : (C,) int64
+        Used points per cell.
+    cell_ss : (C,) float64
+        ``sum v²`` per cell, m².
+    """
+
+    ss_psi: float
+    used: int
+    sum_dpsi: float
+    n_ok: int
+    knots: np.ndarray
+    targets: np.ndarray
+    target_psi: np.ndarray
+    cells: np.ndarray
+    cell_n: np.ndarray
+    cell_ss: np.ndarray
+
+
+class SplineChunk:
+    """The after-points of one chunk of a spline fit (all of a one-file run's, or the points
+    a tile block owns: each point in exactly one chunk) with their basis rows and their
+    matcher; the fit's per-point work is a function of (chunk, current coefficients).
+
+    Parameters
+    ----------
+    after : (P, 3) float64
+        The chunk's epoch-2 points, metres.
+    frame : SplineField
+        The knot lattice (:func:`knot_frame`; coefficients unused).
+    before, tree, normals, gate_m, grid
+        As :func:`fit_spline_field`; ``before`` must hold every epoch-1 point within the gate
+        (and their normals' neighbourhoods) of the chunk's moved points.
+    seg : (P,) int64, optional
+        Report position (cell) of each point, for the per-cell ``rmse`` and ``n`` (-1: none).
+    """
+
+    def __init__(self, after, *, frame, before, tree, normals, gate_m=np.inf, seg=None,
+                 grid=None):  # fmt: skip
+        a = np.asarray(after, dtype=np.float64).reshape(-1, 3)
+        self.n_k = (frame.n_x + 3) * (frame.n_y + 3)
+        idx16, w16 = frame._basis(a[:, :2])
+        kx = frame.n_x + 3
+        # the points sorted by knot interval, so that each interval's points are one slice
+        cell_of = (idx16[:, 0] // kx) * frame.n_x + idx16[:, 0] % kx
+        perm = np.argsort(cell_of, kind="stable")
+        self.a, self.idx16, self.w16 = a[perm], idx16[perm], w16[perm]
+        self.seg = None if seg is None else np.asarray(seg, dtype=np.int64)[perm]
+        _, starts = np.unique(cell_of[perm], return_index=True)
+        self.bounds = np.append(starts, len(a))
+        self.before, self.normals = before, normals
+        m_pts = len(before)
+        self.m_pts = m_pts
+        if grid is None:
+            from .icp_cells import _Matcher
+
+            self._matcher = _Matcher(before, tree, normals, gate_m, None, np.zeros((1, 3)), len(a))
+            self._nearest = self._matcher._nearest
+        else:
+            from .opencl.nearest import CellNearest
+
+            matcher = CellNearest(before, grid, normals, gate_m, None, np.zeros((1, 3)), len(a))
+            one_cell = np.zeros(len(a), dtype=np.int64)
+
+            def nearest(q, gi):
+                j = matcher.nearest(q, one_cell, gi)
+                return np.where(j < m_pts, j, m_pts)
+
+            self._nearest = nearest
+        self._at = None  # coefficients of the cached pairs
+        self._pairs = None
+
+    def __len__(self) -> int:
+        return len(self.a)
+
+    def moved(self, c: np.ndarray) -> np.ndarray:
+        """The points moved back by the field of coefficients ``c`` (K, 3)."""
+        return self.a - np.einsum("pk,pkj->pj", self.w16, c[self.idx16])
+
+    def pairs(self, c: np.ndarray):
+        """``(ok, normals, v, target)`` of the points moved by coefficients ``c``: paired
+        (P,) bool, the target normals (P, 3) and point-to-plane residuals (P,) (zero where
+        not paired), the target indices into ``before`` (P,)."""
+        c = np.asarray(c, dtype=np.float64)
+        if self._at is not None and np.array_equal(self._at, c):
+            return self._pairs
+        q = self.moved(c)
+        n = len(q)
+        j = self._nearest(q, np.arange(n))
+        ok = j < self.m_pts
+        nrm = np.zeros((n, 3))
+        nn = self.normals(j[ok])
+        good = np.all(np.isfinite(nn), axis=1)
+        ok[ok] = good
+        nrm[ok] = nn[good]
+        v = np.zeros(n)
+        v[ok] = np.einsum("ij,ij->i", nrm[ok], q[ok] - self.before[j[ok]])
+        self._at, self._pairs = c.copy(), (ok, nrm, v, j)
+        return self._pairs
+
+    def residuals(self, c: np.ndarray) -> np.ndarray:
+        """``|v|`` (N,) of the paired points at coefficients ``c`` (for :meth:`Weighting.of`)."""
+        ok, _, v, _ = self.pairs(c)
+        return np.abs(v[ok])
+
+    def normal_equations(self, c: np.ndarray, weighting: Weighting) -> ChunkNormals:
+        """The chunk's share of the normal equations at coefficients ``c``."""
+        ok, nrm, v, _ = self.pairs(c)
+        keep, wv, _ = weighting.apply(v[ok])
+        wt = np.zeros(len(v))
+        wt[ok] = np.where(keep, wv, 0.0)
+        nmat, rhs, gram = _assemble(
+            None, self.bounds, self.idx16, self.w16, nrm, v, wt, self.n_k, ok=ok
+        )
+        return ChunkNormals(
+            nmat, rhs, gram, float(np.sum(wt * v * v)), int(np.count_nonzero(wt)),
+            int(np.count_nonzero(ok)),
+        )  # fmt: skip
+
+    def report(self, c: np.ndarray, weighting: Weighting) -> ChunkReport:
+        """The chunk's share of the final sums at coefficients ``c``."""
+        ok, _, v, tid = self.pairs(c)
+        keep, wv, dpsi = weighting.apply(v[ok])
+        psi = np.where(keep, wv * v[ok], 0.0)
+        tk = tid[ok][keep]
+        ut, inv = np.unique(tk, return_inverse=True)
+        target_psi = np.bincount(inv.reshape(-1), weights=psi[keep], minlength=ut.size)
+        good = ok.copy()
+        good[ok] = keep & (wv > 0)
+        cells = np.zeros(0, dtype=np.int64)
+        cell_n = np.zeros(0, dtype=np.int64)
+        cell_ss = np.zeros(0)
+        if self.seg is not None:
+            s, vs = self.seg[good], v[good]
+            inside = s >= 0
+            cells, ci = np.unique(s[inside], return_inverse=True)
+            ci = ci.reshape(-1)
+            cell_n = np.bincount(ci, minlength=cells.size).astype(np.int64)
+            cell_ss = np.bincount(ci, weights=vs[inside] ** 2, minlength=cells.size)
+        return ChunkReport(
+            ss_psi=float(np.sum(psi * psi)),
+            used=int(np.count_nonzero(keep & (wv > 0))),
+            sum_dpsi=float(np.sum(np.where(keep, dpsi, 0.0))),
+            n_ok=int(np.count_nonzero(ok)),
+            knots=np.unique(self.idx16[ok].reshape(-1)),
+            targets=self.before[ut],
+            target_psi=target_psi,
+            cells=cells,
+            cell_n=cell_n,
+            cell_ss=cell_ss,
+        )
+
+
+#: ``run(stage, *args) -> [result of every chunk]``: the chunks' methods ``residuals``,
+#: ``normal_equations`` and ``report`` run on every chunk, in process or on tile blocks
+ChunkRunner = Callable[..., Sequence]
+
+
 def fit_spline_field(
     after: np.ndarray,
     *,
@@ -339,6 +654,9 @@ def fit_spline_field(
     grid=None,
 ) -> SplineFit:
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
+
+    One chunk of all the points through :func:`fit_spline_chunks` (a tiled run gives it one
+    chunk per tile block: the same code).
 
     Parameters
     ----------
@@ -391,30 +709,80 @@ def fit_spline_field(
     InputDataError
         Too few correspondences for the knots.
     """
+    a = np.asarray(after, dtype=np.float64)
+    _check_smoothing(smoothing)
+    frame = knot_frame(a[:, :2].min(axis=0), a[:, :2].max(axis=0), report_xy, spacing_m)
+    chunk = SplineChunk(
+        a, frame=frame, before=before, tree=tree, normals=normals, gate_m=gate_m,
+        seg=report_seg, grid=grid,
+    )  # fmt: skip
+
+    def run(stage, *args):
+        return [getattr(chunk, stage)(*args)]
+
+    return fit_spline_chunks(
+        run, frame=frame, initial=initial, report_xy=report_xy, report_pairs=report_pairs,
+        smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress,
+    )  # fmt: skip
+
+
+def _check_smoothing(smoothing) -> float:
+    lam = AUTO_START if smoothing is None else float(smoothing)
+    if not (np.isfinite(lam) and lam >= 0):
+        raise InvalidParameterError(f"spline_smoothing must be >= 0, got {smoothing!r}")
+    return lam
+
+
+def _sum_sparse(parts, n: int):
+    import scipy.sparse as sp
+
+    out = sp.csr_matrix((n, n))
+    for p in parts:
+        out = out + p
+    return out.tocsr()
+
+
+def fit_spline_chunks(
+    run: ChunkRunner,
+    *,
+    frame: SplineField,
+    initial: Callable[[np.ndarray], np.ndarray],
+    report_xy: np.ndarray,
+    report_pairs: Optional[np.ndarray] = None,
+    smoothing: Optional[float] = None,
+    gate_m: float = np.inf,
+    opts: _Options,
+    progress: Optional[ProgressCallback] = None,
+) -> SplineFit:
+    """:func:`fit_spline_field` over chunks of points: the Gauss-Newton normal equations,
+    the weights' scale and the final sums are sums (or quantiles) over the after-points, so
+    each chunk (:class:`SplineChunk`) gives its share and this driver adds them, solves once
+    per iteration and hands the new coefficients back.
+
+    Parameters
+    ----------
+    run : callable
+        ``run(stage, *args) -> [result per chunk]``, ``stage`` one of :class:`SplineChunk`'s
+        ``residuals(c)``, ``normal_equations(c, weighting)``, ``report(c, weighting)``; every
+        after-point in exactly one chunk, each chunk's ``seg`` indexing ``report_xy``.
+    frame : SplineField
+        The knot lattice (:func:`knot_frame` of all chunks' points).
+    initial, report_xy, report_pairs, smoothing, gate_m, opts, progress
+        As :func:`fit_spline_field`.
+
+    Returns
+    -------
+    SplineFit
+    """
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
-    from .icp_cells import _Matcher
-
-    h = float(spacing_m)
-    if not (np.isfinite(h) and h > 0):
-        raise InvalidParameterError(f"spline_spacing_m must be > 0, got {spacing_m!r}")
     auto = smoothing is None
-    lam = AUTO_START if auto else float(smoothing)
-    if not (np.isfinite(lam) and lam >= 0):
-        raise InvalidParameterError(f"spline_smoothing must be >= 0, got {smoothing!r}")
+    lam = _check_smoothing(smoothing)
     lam_abs = None  # absolute penalty weight per component, set at the first iteration
-    a = np.asarray(after, dtype=np.float64)
     rxy = np.asarray(report_xy, dtype=np.float64).reshape(-1, 2)
-    if len(rxy) < MIN_SPLINE_CELLS:
-        raise SplineCellsError(
-            f"{len(rxy)} cell(s) with points, a spline field needs {MIN_SPLINE_CELLS} at least",
-            cells=len(rxy),
-        )
-    lo = np.minimum(a[:, :2].min(axis=0), rxy.min(axis=0)) - 1e-6 * h
-    hi = np.maximum(a[:, :2].max(axis=0), rxy.max(axis=0))
-    check_spline_size(hi - lo, h)
-    n_x, n_y = (int(v) for v in np.maximum(np.ceil((hi - lo) / h), 1))
+    h, n_x, n_y = frame.spacing_m, frame.n_x, frame.n_y
+    lo = np.asarray(frame.origin_xy, dtype=np.float64)
     kx, ky = n_x + 3, n_y + 3
     n_k = kx * ky
     # start: least-squares fit of the initial field on a 4-per-interval lattice
@@ -433,57 +801,28 @@ def fit_spline_field(
     lhs0 = (bmat.T @ bmat + 1e-6 * r2 + 1e-9 * sp.identity(n_k)).tocsc()
     c = splu(lhs0).solve(np.asarray(bmat.T @ f0))  # (K, 3)
 
-    idx16, w16 = field._basis(a[:, :2])
-    # the points sorted by knot interval, so that each interval's points are one slice
-    cell_of = (idx16[:, 0] // kx) * n_x + idx16[:, 0] % kx
-    perm = np.argsort(cell_of, kind="stable")
-    a, idx16, w16 = a[perm], idx16[perm], w16[perm]
-    seg_sorted = None if report_seg is None else np.asarray(report_seg)[perm]
-    bounds = np.searchsorted(cell_of[perm], np.arange(n_x * n_y + 1))
+    def weighting_at(c):
+        absv = np.concatenate([np.asarray(p, dtype=np.float64) for p in run("residuals", c)])
+        if absv.size < 3 * 16:
+            raise InputDataError(
+                f"spline field: only {absv.size} correspondences within "
+                f"{gate_m:g} m; use a larger spline_spacing_m or check the epochs' overlap"
+            )
+        return Weighting.of(absv, opts)
+
     converged, it = False, 0
-    m_pts = len(before)
     factor = None
-    every = np.arange(len(a))
-    # nearest targets re-queried only for points that may have changed pair
-    if grid is None:
-        matcher = _Matcher(before, tree, normals, gate_m, None, np.zeros((1, 3)), len(a))
-        nearest = matcher._nearest
-    else:
-        from .opencl.nearest import CellNearest
-
-        matcher = CellNearest(before, grid, normals, gate_m, None, np.zeros((1, 3)), len(a))
-        one_cell = np.zeros(len(a), dtype=np.int64)
-
-        def nearest(q, gi):
-            j = matcher.nearest(q, one_cell, gi)
-            return np.where(j < 0, m_pts, j)
-
-    def pairs(q):
-        j = nearest(q, every)
-        ok = j < m_pts
-        nrm = np.zeros((len(a), 3))
-        nn = normals(j[ok])
-        good = np.all(np.isfinite(nn), axis=1)
-        ok[ok] = good
-        nrm[ok] = nn[good]
-        v = np.zeros(len(a))
-        v[ok] = np.einsum("ij,ij->i", nrm[ok], q[ok] - before[j[ok]])
-        return ok, nrm, v, j
-
     best, since_best = np.inf, 0
     for it in range(1, opts.max_iterations + 1):
         report(progress, (it - 1) / opts.max_iterations, f"spline field: iteration {it}")
-        q = a - np.einsum("pk,pkj->pj", w16, c[idx16])
-        ok, nrm, v, _ = pairs(q)
-        if np.count_nonzero(ok) < 3 * 16:
-            raise InputDataError(
-                f"spline field: only {int(np.count_nonzero(ok))} correspondences within "
-                f"{gate_m:g} m; use a larger spline_spacing_m or check the epochs' overlap"
-            )
-        keep, wv, _ = _weights(v[ok], opts)
-        wt = np.zeros(len(a))
-        wt[ok] = np.where(keep, wv, 0.0)
-        nmat, rhs = _assemble(None, bounds, idx16, w16, nrm, v, wt, n_k)
+        wgt = weighting_at(c)
+        parts = run("normal_equations", c, wgt)
+        nmat = _sum_sparse([p.nmat for p in parts], 3 * n_k)
+        gram = _sum_sparse([p.gram for p in parts], n_k)
+        rhs = np.sum([p.rhs for p in parts], axis=0)
+        wvv = float(sum(p.wvv for p in parts))
+        n_obs = int(sum(p.n_obs for p in parts))
+        n_ok = int(sum(p.n_ok for p in parts))
         if lam_abs is None:
             dg = nmat.diagonal()
             scale = float(np.median(dg[dg > 0])) if np.any(dg > 0) else 1.0
@@ -496,35 +835,40 @@ def fit_spline_field(
         dc = step.reshape(3, n_k).T
         c = c + dc
         if auto:
-            new = _variance_components(
-                factor, r2, lam_abs, c, float(np.sum(wt * v * v)), int(np.count_nonzero(wt))
-            )
+            new = _variance_components(factor, r2, lam_abs, c, wvv, n_obs)
             new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
             auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
             lam_abs = new
-        du = np.einsum("pk,pkj->pj", w16, dc[idx16])
-        rms_du = float(np.sqrt(np.mean(np.sum(du[ok] ** 2, axis=1))))
+        # RMS change of the field at the paired points: sum_j dc_j' G dc_j over their count
+        du2 = sum(float(dc[:, j] @ (gram @ dc[:, j])) for j in range(3))
+        rms_du = float(np.sqrt(max(du2, 0.0) / max(n_ok, 1)))
         log.debug("spline field: iteration %d, RMS change %.2e m", it, rms_du)
         # the nearest-neighbour pairs flip as the field moves and the steps shrink slowly
         # (by ~0.8 an iteration on lone-star) towards a jitter: stop at CHANGE_FLOOR of the
         # residuals' robust spread (or at tolerance_m), or when the change stalls
-        floor = CHANGE_FLOOR * MAD_TO_SIGMA * float(np.median(np.abs(v[ok])))
+        floor = CHANGE_FLOOR * MAD_TO_SIGMA * wgt.median_abs_m
         best, since_best = (rms_du, 0) if rms_du < best else (best, since_best + 1)
         if rms_du < max(opts.tolerance_m, floor) or since_best >= STALL_ITERATIONS:
             converged = True
             break
     # final residuals, sigma0 and the report
-    ok, nrm, v, tid = pairs(a - np.einsum("pk,pkj->pj", w16, c[idx16]))
-    keep, wv, dpsi = _weights(v[ok], opts)
-    psi = np.where(keep, wv * v[ok], 0.0)
-    used = int(np.count_nonzero(keep & (wv > 0)))
-    data_knots = np.unique(idx16[ok].reshape(-1)).size
+    wgt = weighting_at(c)
+    parts = run("report", c, wgt)
+    ss = float(sum(p.ss_psi for p in parts))
+    used = int(sum(p.used for p in parts))
+    n_ok = int(sum(p.n_ok for p in parts))
+    data_knots = np.unique(np.concatenate([p.knots for p in parts])).size
     dof = max(used - 3 * data_knots, 1)
-    mean_dpsi = float(np.mean(np.where(keep, dpsi, 0.0))) if keep.size else 1.0
-    # points sharing a target point share its error, as in the cells' sigma0
-    ss = float(np.sum(psi * psi))
-    one = np.zeros(psi.size, dtype=np.int64)
-    inflation = float(_shared_target_inflation(psi, keep, one, tid[ok], np.array([ss]))[0])
+    mean_dpsi = float(sum(p.sum_dpsi for p in parts)) / n_ok if n_ok else 1.0
+    # points sharing a target point share its error, as in the cells' sigma0; a target is
+    # known by its coordinates (chunks of tile blocks share the targets of their halos)
+    targets = np.concatenate([p.targets for p in parts]).reshape(-1, 3)
+    t_psi = np.concatenate([p.target_psi for p in parts])
+    _, tid = np.unique(targets, axis=0, return_inverse=True)
+    tid = tid.reshape(-1)
+    one = np.zeros(t_psi.size, dtype=np.int64)
+    every = np.ones(t_psi.size, dtype=bool)
+    inflation = float(_shared_target_inflation(t_psi, every, one, tid, np.array([ss]))[0])
     s0sq = ss / dof / max(mean_dpsi, 1e-12) ** 2 * inflation
     field = SplineField(field.origin_xy, h, n_x, n_y, c.reshape(ky, kx, 3))
     ridx, rw, rwx, rwy = field._basis(rxy, slopes=True)
@@ -558,18 +902,12 @@ def fit_spline_field(
                 column = (pairs[sel, 0] - part.start) * 9 + comp
                 vals = sol[comp * n_k + ridx[pj], column[:, None]]  # (S, 16)
                 pair_cov[sel, comp] = s0sq * np.sum(vals * rw[pj], axis=1)
-    rmse = np.full(k, np.nan)
     n_used = np.zeros(k, dtype=np.int64)
-    if seg_sorted is not None:
-        seg = seg_sorted
-        good = ok.copy()
-        good[ok] = keep & (wv > 0)
-        s = seg[good]
-        vs = v[good]
-        inside = s >= 0
-        n_used = np.bincount(s[inside], minlength=k).astype(np.int64)
-        ss = np.bincount(s[inside], weights=vs[inside] ** 2, minlength=k)
-        rmse = np.where(n_used > 0, np.sqrt(ss / np.maximum(n_used, 1)), np.nan)
+    ss_cell = np.zeros(k)
+    for p in parts:
+        np.add.at(n_used, p.cells, p.cell_n)
+        np.add.at(ss_cell, p.cells, p.cell_ss)
+    rmse = np.where(n_used > 0, np.sqrt(ss_cell / np.maximum(n_used, 1)), np.nan)
     log.info(
         "spline field: %d knots of %.2f m, %d iterations%s, sigma0 %.4f m (shared-target "
         "inflation %.2f)",

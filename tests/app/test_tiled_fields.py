@@ -288,7 +288,6 @@ def test_piv_and_icp_of_tiles_on_two_dask_workers_equal_one_file(epochs, tmp_pat
     "job, extra, flag",
     [
         ("icp", ["--cell", "5", "--prealign"], "--prealign"),
-        ("icp", ["--cell", "5", "--field-model", "spline"], "--field-model"),
         ("piv", ["--grid", "0.5", "--write-dems"], "--write-dems"),
     ],
 )

@@ -1,0 +1,95 @@
+"""The spline field fitted over chunks of points (issue #29, the field on tiles): the robust
+weights found from every chunk's residuals equal those of one array, and a fit over three
+chunks (each point in one) equals the one-chunk fit in every value it reports."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_icp import cloud
+
+from slipmap.core.icp import _NormalCache, _options
+from slipmap.core.icp_options import _weights
+from slipmap.core.icp_spline import (
+    SplineChunk,
+    Weighting,
+    fit_spline_chunks,
+    fit_spline_field,
+    knot_frame,
+)
+from slipmap.core.synthetic import LobeField
+
+
+@pytest.mark.parametrize("robust", ["tukey", "huber", None])
+@pytest.mark.parametrize("trim", [0.0, 0.1])
+def test_weights_from_chunks_equal_those_of_one_array(robust, trim):
+    rng = np.random.default_rng(1)
+    v = np.r_[rng.normal(0.0, 0.004, 3000), rng.normal(0.0, 0.2, 60)]
+    rng.shuffle(v)
+    opts = _options(robust=robust, trim_fraction=trim)
+    keep, w, dpsi = _weights(v, opts)
+    parts = np.split(v, [700, 2100])
+    wgt = Weighting.of(np.concatenate([np.abs(p) for p in parts[::-1]]), opts)
+    got = [wgt.apply(p) for p in parts]
+    assert np.array_equal(np.concatenate([g[0] for g in got]), keep)
+    np.testing.assert_array_equal(np.concatenate([g[1] for g in got]), w)
+    np.testing.assert_array_equal(np.concatenate([g[2] for g in got]), dpsi)
+    assert wgt.median_abs_m == np.median(np.abs(v))
+
+
+def test_a_fit_over_three_chunks_equals_the_one_chunk_fit():
+    """A lobe (0.3 m) on 24 m of rough ground, cells of 4 m: the after-points split into
+    three uneven chunks by x; the driver adds their shares. Same field, covariances, per-cell
+    residuals and counts, sigma0 and iterations (up to the sums' rounding)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(7)
+    lobe = LobeField(centre_xy=(11.0, 12.0), radius_x_m=6.0, radius_y_m=6.0,
+                     max_d_m=(0.1, -0.3, -0.1))  # fmt: skip
+    before = cloud(rng, -3.0, 27.0, 25, 0.003)
+    after = cloud(rng, 0.0, 24.0, 25, 0.003)
+    after = after + lobe(after[:, :2])
+    tree = cKDTree(before)
+    g = np.arange(2.0, 24.0, 4.0)
+    rxy = np.array([(x, y) for y in g for x in g])
+    seg = (np.floor(after[:, 1] / 4.0) * 6 + np.floor(after[:, 0] / 4.0)).astype(np.int64)
+    pairs = np.array([(i, i + 1) for i in range(len(rxy) - 1)])
+    kw = dict(
+        initial=lambda xy: np.zeros((len(xy), 3)), report_xy=rxy, report_pairs=pairs,
+        gate_m=1.0, opts=_options(),
+    )  # fmt: skip
+    one = fit_spline_field(
+        after, before=before, tree=tree, normals=_NormalCache(before, tree, 12),
+        report_seg=seg, spacing_m=4.0, **kw,
+    )  # fmt: skip
+    frame = knot_frame(after[:, :2].min(axis=0), after[:, :2].max(axis=0), rxy, 4.0)
+    normals = _NormalCache(before, tree, 12)
+    cut = np.digitize(after[:, 0], [5.3, 17.9])
+    chunks = [
+        SplineChunk(
+            after[cut == i],
+            frame=frame,
+            before=before,
+            tree=tree,
+            normals=normals,
+            gate_m=1.0,
+            seg=seg[cut == i],
+        )  # fmt: skip
+        for i in (2, 0, 1)
+    ]
+
+    def run(stage, *args):
+        return [getattr(c, stage)(*args) for c in chunks]
+
+    three = fit_spline_chunks(run, frame=frame, **kw)
+    assert three.iterations == one.iterations and three.converged == one.converged
+    assert np.array_equal(three.n, one.n) and one.n.min() > 200
+    assert three.n_coefficients == one.n_coefficients
+    for key in ("d", "gradient", "rmse"):
+        np.testing.assert_allclose(getattr(three, key), getattr(one, key), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(three.cov, one.cov, rtol=1e-7, atol=1e-16)
+    np.testing.assert_allclose(three.pair_cov, one.pair_cov, rtol=1e-7, atol=1e-16)
+    assert three.sigma0_m == pytest.approx(one.sigma0_m, rel=1e-9)
+    # and the field is the lobe's (the fit works, not only agrees with itself)
+    err = np.linalg.norm(one.d - lobe(rxy), axis=1)
+    assert np.sqrt(np.mean(err**2)) < 0.03
