@@ -1168,7 +1168,7 @@ def _interpolator(res: WindowedICPResult) -> Callable[[np.ndarray], np.ndarray]:
 CELL_MODELS = ("rigid", "affine")
 FIELD_MODELS = ("cells", "spline")
 ENGINES = ("batched", "per_cell")
-BACKENDS = ("numpy", "opencl", "auto")
+BACKENDS = ("numpy", "numba", "opencl", "auto")
 
 
 @dataclass(frozen=True)
@@ -1316,26 +1316,39 @@ def _fit_pass(
 
 
 def _target_grid(before: np.ndarray, backend: str):
-    """The epoch-1 points on an OpenCL device for the batched matcher, or None (numpy)."""
+    """The epoch-1 points for the batched matcher's compiled kernels, or None (numpy).
+
+    ``"numba"``: :class:`~slipmap.core.icp_numba.NumbaTargets` (CPU); ``"opencl"``:
+    :class:`~slipmap.core.opencl.nearest.GridTargets`; ``"auto"``: OpenCL when a device
+    starts (asked in a child process first: some drivers abort instead of raising), else Numba
+    when it imports, else numpy."""
     if backend == "numpy":
         return None
-    if backend == "auto":
-        from .opencl.backend import probe_runtime
+    if backend == "numba":
+        from .icp_numba import NumbaTargets
 
-        # some drivers abort the process instead of raising: try them in a child first
-        reason = probe_runtime()
-        if reason is not None:
-            log.info("OpenCL unavailable (%s); the ICP pairs come from numpy", reason)
-            return None
-    try:
+        return NumbaTargets(before)
+    if backend == "opencl":
         from .opencl.nearest import GridTargets
 
         return GridTargets(before)
-    except DependencyError as exc:
-        if backend == "auto":
-            log.info("OpenCL unavailable (%s); the ICP pairs come from numpy", exc)
-            return None
-        raise
+    from .icp_numba import NumbaTargets, unavailable
+    from .opencl.backend import probe_runtime
+
+    reason = probe_runtime()
+    if reason is None:
+        try:
+            from .opencl.nearest import GridTargets
+
+            return GridTargets(before)
+        except DependencyError as exc:
+            reason = str(exc)
+    why = unavailable()
+    if why is None:
+        log.info("OpenCL unavailable (%s); the ICP pairs come from Numba's CPU kernels", reason)
+        return NumbaTargets(before)
+    log.info("OpenCL unavailable (%s), %s; the ICP pairs come from numpy", reason, why)
+    return None
 
 
 def _near_pairs(row: np.ndarray, col: np.ndarray, *, reach: int) -> np.ndarray:

@@ -377,8 +377,9 @@ def fit_spline_field(
         points), ``robust``, ``trim_fraction``.
     progress : callable, optional
         ``progress(fraction, message)`` per iteration; may raise CancelledError.
-    grid : slipmap.core.opencl.nearest.GridTargets, optional
-        ``before`` on an OpenCL device: the pairs are found there (the same pairs).
+    grid : slipmap.core.icp_numba.NumbaTargets or slipmap.core.opencl.nearest.GridTargets, optional
+        ``before`` for compiled kernels (CPU or OpenCL): the pairs are found there (the same
+        pairs).
 
     Returns
     -------
@@ -449,9 +450,7 @@ def fit_spline_field(
         matcher = _Matcher(before, tree, normals, gate_m, None, np.zeros((1, 3)), len(a))
         nearest = matcher._nearest
     else:
-        from .opencl.nearest import CellNearest
-
-        matcher = CellNearest(before, grid, normals, gate_m, None, np.zeros((1, 3)), len(a))
+        matcher = grid.matcher(before, normals, gate_m, None, np.zeros((1, 3)), len(a))
         one_cell = np.zeros(len(a), dtype=np.int64)
 
         def nearest(q, gi):
