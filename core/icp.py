@@ -1518,7 +1518,7 @@ def windowed_icp(
     spline_spacing_m: Optional[float] = None,
     spline_smoothing: Optional[float] = None,
     engine: str = "batched",
-    backend: str = "numpy",
+    backend: str = "auto",
     median_threshold: float = 2.0,
     median_eps_m: float = 0.02,
     median_restart: bool = False,
@@ -1647,11 +1647,13 @@ def windowed_icp(
     engine : {"batched", "per_cell"}
         ``"batched"`` (default) fits all cells together (one KD-tree query per iteration,
         stacked solves); ``"per_cell"`` is the slow obvious reference, one cell at a time.
-    backend : {"numpy", "opencl", "auto"}
-        Where the batched engine finds its pairs: numpy and a KD-tree (the reference), or an
-        OpenCL device through PyOpenCL (:mod:`slipmap.core.opencl.nearest`; the same pairs,
-        hence the same results up to exact distance ties); ``"auto"`` takes OpenCL when a
-        device starts. Only the batched engine uses it.
+    backend : {"auto", "numpy", "numba", "opencl"}
+        Where the batched engine finds its pairs: numpy and a KD-tree (the reference),
+        compiled CPU kernels through Numba (:mod:`slipmap.core.icp_numba`, an optional
+        dependency), or an OpenCL device through PyOpenCL (:mod:`slipmap.core.opencl.nearest`);
+        the same pairs, hence the same results up to exact distance ties and rounding.
+        ``"auto"`` (default) takes OpenCL when a device starts, else Numba when it is
+        installed, else numpy. Only the batched engine uses it.
     seed : int
         Seed of the samples.
     progress : callable, optional
