@@ -305,7 +305,11 @@ def cap_per_cell(points: np.ndarray, cell: float, cap: int) -> np.ndarray:
 
 
 def lobe_icp(
-    pair, cell: float, cap: Optional[int] = None, repeat: int = 1, timing_only: bool = False,
+    pair,
+    cell: float,
+    cap: Optional[int] = None,
+    repeat: int = 1,
+    timing_only: bool = False,
     backends=None,
 ) -> dict:
     """SlipMap windowed ICP variants and Open3D's per-cell ICP on the same cells (with

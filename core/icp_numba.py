@@ -178,7 +178,9 @@ def _match_point(
     if j >= 0 and use_boxes:
         tx = tp[j, 0]
         ty = tp[j, 1]
-        if not (tx >= boxes[c, 0] and tx <= boxes[c, 1] and ty >= boxes[c, 2] and ty <= boxes[c, 3]):
+        if not (
+            tx >= boxes[c, 0] and tx <= boxes[c, 1] and ty >= boxes[c, 2] and ty <= boxes[c, 3]
+        ):
             j = -1
     return j
 
@@ -448,9 +450,7 @@ def _run(kernel, n: int, *args, parallel_min: int = PARALLEL_MIN) -> None:
     if _POOL is None:
         _POOL = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="slipmap-icp")
     bounds = np.linspace(0, n, _CHUNKS_PER_CORE * workers + 1).astype(np.int64)
-    futures = [
-        _POOL.submit(kernel, *args, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])
-    ]
+    futures = [_POOL.submit(kernel, *args, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
     for f in futures:
         f.result()
 
@@ -502,7 +502,7 @@ class NumbaTargets:
             )  # fmt: skip
         return out, hard
 
-    def matcher(self, before, normals, gate, boxes, centres, n_points) -> "CellNearestCPU":
+    def matcher(self, before, normals, gate, boxes, centres, n_points) -> CellNearestCPU:
         """The batched ICP's matcher over these targets (:class:`CellNearestCPU`)."""
         return CellNearestCPU(before, self, normals, gate, boxes, centres, n_points)
 

@@ -105,7 +105,7 @@ class GridTargets:
             self.nx, self.ny, self.h, self.M,
         )  # fmt: skip
 
-    def matcher(self, before, normals, gate, boxes, centres, n_points) -> "CellNearest":
+    def matcher(self, before, normals, gate, boxes, centres, n_points) -> CellNearest:
         """The batched ICP's matcher over these targets (:class:`CellNearest`)."""
         return CellNearest(before, self, normals, gate, boxes, centres, n_points)
 
