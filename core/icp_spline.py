@@ -441,6 +441,11 @@ def fit_spline_field(
     a, idx16, w16 = a[perm], idx16[perm], w16[perm]
     seg_sorted = None if report_seg is None else np.asarray(report_seg)[perm]
     bounds = np.searchsorted(cell_of[perm], np.arange(n_x * n_y + 1))
+    # the field at the points is basis_pts @ c: a sparse product, 8x faster than gathering
+    # c[idx16] (P, 16, 3) each iteration (issue #29)
+    basis_pts = sp.csr_matrix(
+        (w16.ravel(), idx16.ravel(), np.arange(0, idx16.size + 1, 16)), shape=(len(a), n_k)
+    )
     converged, it = False, 0
     m_pts = len(before)
     factor = None
@@ -472,7 +477,7 @@ def fit_spline_field(
     best, since_best = np.inf, 0
     for it in range(1, opts.max_iterations + 1):
         report(progress, (it - 1) / opts.max_iterations, f"spline field: iteration {it}")
-        q = a - np.einsum("pk,pkj->pj", w16, c[idx16])
+        q = a - basis_pts @ c
         ok, nrm, v, _ = pairs(q)
         if np.count_nonzero(ok) < 3 * 16:
             raise InputDataError(
@@ -501,7 +506,7 @@ def fit_spline_field(
             new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
             auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
             lam_abs = new
-        du = np.einsum("pk,pkj->pj", w16, dc[idx16])
+        du = basis_pts @ dc
         rms_du = float(np.sqrt(np.mean(np.sum(du[ok] ** 2, axis=1))))
         log.debug("spline field: iteration %d, RMS change %.2e m", it, rms_du)
         # the nearest-neighbour pairs flip as the field moves and the steps shrink slowly
@@ -513,7 +518,7 @@ def fit_spline_field(
             converged = True
             break
     # final residuals, sigma0 and the report
-    ok, nrm, v, tid = pairs(a - np.einsum("pk,pkj->pj", w16, c[idx16]))
+    ok, nrm, v, tid = pairs(a - basis_pts @ c)
     keep, wv, dpsi = _weights(v[ok], opts)
     psi = np.where(keep, wv * v[ok], 0.0)
     used = int(np.count_nonzero(keep & (wv > 0)))
