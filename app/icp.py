@@ -218,7 +218,7 @@ SPEC = JobSpec(
             "else Numba when installed, else numpy",
             "Backend",
             default="auto",
-            choices=("auto", "numpy", "numba", "opencl"),
+            choices=("numpy", "opencl", "auto", "numba"),
             advanced=True,
         ),
         _opt(
