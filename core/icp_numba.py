@@ -429,6 +429,7 @@ def normal_matrices(A: np.ndarray, w: np.ndarray, v: np.ndarray, seg: np.ndarray
 
 # ----------------------------------------------------------------------------- host side
 _POOL: Optional[ThreadPoolExecutor] = None
+_POOL_PID = 0
 
 
 def _cores() -> int:
@@ -442,13 +443,14 @@ def _run(kernel, n: int, *args, parallel_min: int = PARALLEL_MIN) -> None:
     """``kernel(*args, i0, i1)`` over ``0 .. n``: in one call below ``parallel_min`` items,
     else in chunks on a thread pool, a few per core so that a core slowed by other work
     holds up little (the kernels release the GIL and write disjoint rows)."""
-    global _POOL
+    global _POOL, _POOL_PID
     workers = _cores()
     if n < parallel_min or workers == 1:
         kernel(*args, 0, n)
         return
-    if _POOL is None:
+    if _POOL is None or _POOL_PID != os.getpid():  # a forked child has none of its threads
         _POOL = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="slipmap-icp")
+        _POOL_PID = os.getpid()
     bounds = np.linspace(0, n, _CHUNKS_PER_CORE * workers + 1).astype(np.int64)
     futures = [_POOL.submit(kernel, *args, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
     for f in futures:

@@ -174,3 +174,30 @@ def test_auto_backend_takes_numba_when_opencl_cannot_start(monkeypatch, caplog):
     assert "no OpenCL device (test)" in caplog.text and "Numba" in caplog.text
     np.testing.assert_allclose(np.c_[auto.dx, auto.dy, auto.dz], np.c_[ref.dx, ref.dy, ref.dz],
                                rtol=0, atol=1e-10)  # fmt: skip
+
+
+def test_a_forked_child_makes_its_own_thread_pool(monkeypatch):
+    """The pool's threads do not survive a fork (Dask's or multiprocessing's workers): a
+    child process starts a new pool instead of waiting on the parent's forever."""
+    import multiprocessing as mp
+
+    if "fork" not in mp.get_all_start_methods():
+        pytest.skip("no fork here")
+    monkeypatch.setattr(icp_numba, "_cores", lambda: 2)
+    monkeypatch.setitem(icp_numba._run.__kwdefaults__, "parallel_min", 1)
+    _, before, src = _clouds(7, n_before=500, n_src=100)
+    centre = np.array([[5.0, 5.0, 0.0]]) + UTM
+    seg, gi = np.zeros(len(src), dtype=np.int64), np.arange(len(src))
+    grid = icp_numba.NumbaTargets(before)
+    ref = grid.matcher(before, None, np.inf, None, centre, len(src)).nearest(src - centre, seg, gi)
+    with mp.get_context("fork").Pool(1) as pool:  # the parent's pool exists now
+        got = pool.apply_async(_nearest_in_child, (before, src, centre)).get(timeout=120)
+    np.testing.assert_array_equal(got, ref)
+
+
+def _nearest_in_child(before, src, centre):
+    icp_numba._cores = lambda: 2
+    icp_numba._run.__kwdefaults__["parallel_min"] = 1
+    seg, gi = np.zeros(len(src), dtype=np.int64), np.arange(len(src))
+    m = icp_numba.NumbaTargets(before).matcher(before, None, np.inf, None, centre, len(src))
+    return m.nearest(src - centre, seg, gi)
