@@ -12,11 +12,12 @@ use, into the host's :class:`slipmap.core.icp._NormalCache`.
 Why a kernel and not numpy/scipy: at 0.3-0.5 million source points per iteration the numpy
 matcher spends about 0.6 microseconds per point and iteration in passes over the points
 (gathers, masks, the tree query of the points that moved), two thirds of the batched ICP's
-time; a compiled pass does the same work in one read of each point. PyOpenCL is the
-project's one optional compiled path (PoCL runs it on the CPU).
+time; a compiled pass does the same work in one read of each point. The same kernels run
+on the CPU through Numba (:mod:`slipmap.core.icp_numba`, ``backend="numba"``), where no
+OpenCL driver is installed.
 
-Targets are bucketed by the columns of a 2D grid (see ``nearest.cl``); coordinates are
-centred on the targets' mean before they reach the device.
+Targets are bucketed by the columns of a 2D grid (:mod:`slipmap.core.target_grid`, see
+``nearest.cl``); coordinates are centred on the targets' mean before they reach the device.
 """
 
 from __future__ import annotations
