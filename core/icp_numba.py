@@ -477,7 +477,10 @@ class NumbaTargets:
         if numba is None:
             from .errors import DependencyError
 
-            raise DependencyError(f"{_IMPORT_ERROR}; {INSTALL_HINT}")
+            raise DependencyError(
+                f"backend 'numba': {_IMPORT_ERROR}; {INSTALL_HINT}, or choose backend 'auto' "
+                "(numpy where Numba is missing)"
+            )
         g = target_grid(before)
         self.M = len(before)
         self.offset, self.h, self.nx, self.ny, self.lo = g.offset, g.h, g.nx, g.ny, g.lo
