@@ -213,12 +213,13 @@ SPEC = JobSpec(
         _opt(
             "backend",
             "choice",
-            "where the cells' point pairs are found: numpy (the reference) or an OpenCL "
-            "device through PyOpenCL (the same pairs and results, faster on many points); "
-            "auto uses OpenCL when a device is available",
+            "where the cells' point pairs are found: numpy (the reference), compiled CPU "
+            "kernels through Numba, or an OpenCL device through PyOpenCL (the same pairs and "
+            "results, faster on many points); auto uses OpenCL when a device is available, "
+            "else Numba when installed, else numpy",
             "Backend",
-            default="numpy",
-            choices=("numpy", "opencl", "auto"),
+            default="auto",
+            choices=("numpy", "opencl", "auto", "numba"),
             advanced=True,
         ),
         _opt(

@@ -39,7 +39,7 @@ Usage::
     python benchmarks/bench_fields.py [--dem 2500] [--n 5000000] [--cell 5] [--seed 0]
     python benchmarks/bench_fields.py --case lobe [--seeds 0 1 2] [--grid 0.1]
         [--windows 64 32 16 16] [--lobe-cell 5] [--icp-points-per-cell N] [--no-piv]
-        [--repeat N] [--icp-timing-only]
+        [--repeat N] [--icp-timing-only] [--backends numpy numba opencl auto]
 
 The last line is JSON.
 """
@@ -276,6 +276,16 @@ def opencl_runs() -> tuple:
     return (("slipmap rigid, OpenCL pairs", {"coarse_to_fine": 0, "backend": "opencl"}),)
 
 
+def backend_runs(backends) -> tuple:
+    """The rigid run once per named backend (``--backends``); None: the OpenCL run when a
+    device starts (:func:`opencl_runs`)."""
+    if backends is None:
+        return opencl_runs()
+    return tuple(
+        (f"slipmap rigid, backend {b}", {"coarse_to_fine": 0, "backend": b}) for b in backends
+    )
+
+
 def cap_per_cell(points: np.ndarray, cell: float, cap: int) -> np.ndarray:
     """At most ``cap`` points per ``cell``-metre square (on multiples of ``cell``, the
     windowed ICP's lattice): the sample ``max_points_per_cell`` draws
@@ -295,18 +305,23 @@ def cap_per_cell(points: np.ndarray, cell: float, cap: int) -> np.ndarray:
 
 
 def lobe_icp(
-    pair, cell: float, cap: Optional[int] = None, repeat: int = 1, timing_only: bool = False
+    pair,
+    cell: float,
+    cap: Optional[int] = None,
+    repeat: int = 1,
+    timing_only: bool = False,
+    backends=None,
 ) -> dict:
     """SlipMap windowed ICP variants and Open3D's per-cell ICP on the same cells (with
     ``cap``: both on the same sample of at most ``cap`` after-points per cell). With
     ``repeat`` > 1 SlipMap's rigid run and Open3D's run ``repeat`` times more, alternately,
     and each reports every time (``runs_s``) and the fastest (``min_s``): on a shared VM the
     spread between runs of the same work is larger than the difference asked about.
-    ``timing_only``: the rigid runs (numpy and OpenCL pairs) alone."""
+    ``timing_only``: the rigid runs (the default backend and ``backends``) alone."""
     if cap is not None:
         pair = replace(pair, after=cap_per_cell(pair.after, cell, cap))
     runs = {}
-    todo = (ICP_RUNS[:1] if timing_only else ICP_RUNS) + opencl_runs()
+    todo = (ICP_RUNS[:1] if timing_only else ICP_RUNS) + backend_runs(backends)
     for name, kw in todo:
         t0 = time.perf_counter()
         runs[name] = (windowed_icp(pair.before, pair.after, cell_m=cell, **kw), t0)
@@ -366,18 +381,27 @@ def lobe_icp(
         ok = m & np.all(np.isfinite(d), axis=1)
         out["methods"][name][k] = _stats(d[ok] - truth[ok])
     if repeat > 1:
-        timed = (ICP_RUNS[0],) + opencl_runs()
+        timed = (ICP_RUNS[0],) + backend_runs(backends)
         times = {n: [runs[n][1]] for n, _ in timed}
+        cpus = {n: [] for n, _ in timed}
         times[name] = [float(o["seconds"])]
+        cpus[name] = [float(o["cpu_seconds"])] if "cpu_seconds" in o else []
         for _ in range(repeat - 1):
             for rigid_name, rigid_kw in timed:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 windowed_icp(pair.before, pair.after, cell_m=cell, **rigid_kw)
                 times[rigid_name].append(time.perf_counter() - t0)
-            times[name].append(float(run_script("open3d_cells.py", peer_in)["seconds"]))
+                cpus[rigid_name].append(time.process_time() - c0)  # all threads
+            o = run_script("open3d_cells.py", peer_in)
+            times[name].append(float(o["seconds"]))
+            if "cpu_seconds" in o:
+                cpus[name].append(float(o["cpu_seconds"]))
         for n, ts in times.items():
             out["methods"][n]["runs_s"] = [round(t, 2) for t in ts]
             out["methods"][n]["min_s"] = round(min(ts), 2)
+            if cpus[n]:  # CPU seconds of the repeats (a loaded machine stretches wall time)
+                out["methods"][n]["cpu_runs_s"] = [round(t, 2) for t in cpus[n]]
+                out["methods"][n]["min_cpu_s"] = round(min(cpus[n]), 2)
     return out
 
 
@@ -403,7 +427,9 @@ def shift_icp(pts, seed: int, cell: float, cap: Optional[int] = None) -> dict:
     return out
 
 
-def bench_lobe(seeds, piv_cases, cell, cap=None, repeat=1, timing_only=False) -> list:
+def bench_lobe(
+    seeds, piv_cases, cell, cap=None, repeat=1, timing_only=False, backends=None
+) -> list:
     """The lone-star lobe cases, one per seed (PIV and ICP with their peers)."""
     from slipmap.core.io.las import read_las
     from slipmap.core.synthetic import make_lobe_pair
@@ -423,7 +449,7 @@ def bench_lobe(seeds, piv_cases, cell, cap=None, repeat=1, timing_only=False) ->
                 else:
                     line += f"; OpenPIV windef {op['seconds']} s {op[name]}"
                 print(line)
-        i = lobe_icp(pair, cell, cap, repeat, timing_only)
+        i = lobe_icp(pair, cell, cap, repeat, timing_only, backends)
         for name, r in i["methods"].items():
             if "skipped" in r:
                 print(f"seed {seed} ICP {name}: skipped: {r['skipped']}")
@@ -434,6 +460,8 @@ def bench_lobe(seeds, piv_cases, cell, cap=None, repeat=1, timing_only=False) ->
                     line += f" lobe cells with sigma <= 1 cm {r['lobe_sigma_le_1cm']}"
                 if "min_s" in r:
                     line += f" runs {r['runs_s']} s, fastest {r['min_s']} s"
+                if "min_cpu_s" in r:
+                    line += f"; CPU {r['cpu_runs_s']} s, least {r['min_cpu_s']} s"
                 print(line)
         sh = {} if timing_only else shift_icp(pts, seed, cell, cap)
         for name, r in sh.items():
@@ -469,6 +497,11 @@ def main(argv=None) -> int:
         "--icp-timing-only", action="store_true",
         help="lobe case: SlipMap's rigid ICP (numpy and OpenCL pairs) and Open3D's only",
     )  # fmt: skip
+    ap.add_argument(
+        "--backends", nargs="+", default=None, choices=("numpy", "numba", "opencl", "auto"),
+        help="lobe case: the rigid run again with each of these backends, timed alternately "
+        "with the default one and Open3D (default: OpenCL when a device starts)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     if args.case == "lobe":
         logging.basicConfig(level=logging.WARNING)
@@ -479,7 +512,7 @@ def main(argv=None) -> int:
             cases = []
         out = bench_lobe(
             args.seeds, cases, args.lobe_cell, args.icp_points_per_cell, args.repeat,
-            args.icp_timing_only,
+            args.icp_timing_only, args.backends,
         )  # fmt: skip
         print(json.dumps({"lobe": out}))
         return 0

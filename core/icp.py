@@ -1168,7 +1168,7 @@ def _interpolator(res: WindowedICPResult) -> Callable[[np.ndarray], np.ndarray]:
 CELL_MODELS = ("rigid", "affine")
 FIELD_MODELS = ("cells", "spline")
 ENGINES = ("batched", "per_cell")
-BACKENDS = ("numpy", "opencl", "auto")
+BACKENDS = ("numpy", "numba", "opencl", "auto")
 
 
 @dataclass(frozen=True)
@@ -1316,26 +1316,39 @@ def _fit_pass(
 
 
 def _target_grid(before: np.ndarray, backend: str):
-    """The epoch-1 points on an OpenCL device for the batched matcher, or None (numpy)."""
+    """The epoch-1 points for the batched matcher's compiled kernels, or None (numpy).
+
+    ``"numba"``: :class:`~slipmap.core.icp_numba.NumbaTargets` (CPU); ``"opencl"``:
+    :class:`~slipmap.core.opencl.nearest.GridTargets`; ``"auto"``: OpenCL when a device
+    starts (asked in a child process first: some drivers abort instead of raising), else Numba
+    when it imports, else numpy."""
     if backend == "numpy":
         return None
-    if backend == "auto":
-        from .opencl.backend import probe_runtime
+    if backend == "numba":
+        from .icp_numba import NumbaTargets
 
-        # some drivers abort the process instead of raising: try them in a child first
-        reason = probe_runtime()
-        if reason is not None:
-            log.info("OpenCL unavailable (%s); the ICP pairs come from numpy", reason)
-            return None
-    try:
+        return NumbaTargets(before)
+    if backend == "opencl":
         from .opencl.nearest import GridTargets
 
         return GridTargets(before)
-    except DependencyError as exc:
-        if backend == "auto":
-            log.info("OpenCL unavailable (%s); the ICP pairs come from numpy", exc)
-            return None
-        raise
+    from .icp_numba import NumbaTargets, unavailable
+    from .opencl.backend import probe_runtime
+
+    reason = probe_runtime()
+    if reason is None:
+        try:
+            from .opencl.nearest import GridTargets
+
+            return GridTargets(before)
+        except DependencyError as exc:
+            reason = str(exc)
+    why = unavailable()
+    if why is None:
+        log.info("OpenCL unavailable (%s); the ICP pairs come from Numba's CPU kernels", reason)
+        return NumbaTargets(before)
+    log.info("OpenCL unavailable (%s), %s; the ICP pairs come from numpy", reason, why)
+    return None
 
 
 def _near_pairs(row: np.ndarray, col: np.ndarray, *, reach: int) -> np.ndarray:
@@ -1505,7 +1518,7 @@ def windowed_icp(
     spline_spacing_m: Optional[float] = None,
     spline_smoothing: Optional[float] = None,
     engine: str = "batched",
-    backend: str = "numpy",
+    backend: str = "auto",
     median_threshold: float = 2.0,
     median_eps_m: float = 0.02,
     median_restart: bool = False,
@@ -1634,11 +1647,13 @@ def windowed_icp(
     engine : {"batched", "per_cell"}
         ``"batched"`` (default) fits all cells together (one KD-tree query per iteration,
         stacked solves); ``"per_cell"`` is the slow obvious reference, one cell at a time.
-    backend : {"numpy", "opencl", "auto"}
-        Where the batched engine finds its pairs: numpy and a KD-tree (the reference), or an
-        OpenCL device through PyOpenCL (:mod:`slipmap.core.opencl.nearest`; the same pairs,
-        hence the same results up to exact distance ties); ``"auto"`` takes OpenCL when a
-        device starts. Only the batched engine uses it.
+    backend : {"auto", "numpy", "numba", "opencl"}
+        Where the batched engine finds its pairs: numpy and a KD-tree (the reference),
+        compiled CPU kernels through Numba (:mod:`slipmap.core.icp_numba`, an optional
+        dependency), or an OpenCL device through PyOpenCL (:mod:`slipmap.core.opencl.nearest`);
+        the same pairs, hence the same results up to exact distance ties and rounding.
+        ``"auto"`` (default) takes OpenCL when a device starts, else Numba when it is
+        installed, else numpy. Only the batched engine uses it.
     seed : int
         Seed of the samples.
     progress : callable, optional

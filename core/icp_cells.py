@@ -21,7 +21,8 @@ Two cell models:
 ``s`` are source (epoch 2) coordinates centred on the cell's reference point, so the ground
 motion at that point is ``-t`` for both models and its covariance the ``t`` block.
 
-Everything is numpy + ``scipy.spatial.cKDTree``; no file I/O.
+Everything is numpy + ``scipy.spatial.cKDTree`` (the pairs optionally from compiled kernels:
+:mod:`slipmap.core.icp_numba`, :mod:`slipmap.core.opencl.nearest`); no file I/O.
 """
 
 from __future__ import annotations
@@ -104,6 +105,7 @@ def _seg_sum(values: np.ndarray, seg: np.ndarray, k: int) -> np.ndarray:
 
 
 _LOOP_MIN_MEAN = 64  # mean points per segment from which a loop over segments beats bincount
+_BLAS_ROWS = 8192  # rows per matrix product of the normal equations
 
 
 def _blocks(seg: np.ndarray, k: int):
@@ -142,9 +144,12 @@ def _normal_matrices(A: np.ndarray, w: np.ndarray, v: np.ndarray, seg: np.ndarra
         N = np.zeros((k, p, p))
         b = np.zeros((k, p))
         for i in np.flatnonzero(counts):
-            a0, a1 = bounds[i]
-            N[i] = Aw[a0:a1].T @ A[a0:a1]
-            b[i] = -(Aw[a0:a1].T @ v[a0:a1])
+            # in slices: a thin product over tens of thousands of rows makes OpenBLAS start
+            # its threads, 4-10x slower than one thread on a small machine (measured)
+            for a0 in range(bounds[i, 0], bounds[i, 1], _BLAS_ROWS):
+                a1 = min(a0 + _BLAS_ROWS, bounds[i, 1])
+                N[i] += Aw[a0:a1].T @ A[a0:a1]
+                b[i] -= Aw[a0:a1].T @ v[a0:a1]
         return N, b
     N = np.zeros((k, p, p))
     for i in range(p):
@@ -404,9 +409,9 @@ def fit_cells(
         Starting translations (minus the expected ground motion), metres.
     progress : callable, optional
         ``progress(fraction, message)`` once per iteration; may raise CancelledError.
-    grid : slipmap.core.opencl.nearest.GridTargets, optional
-        ``before`` on an OpenCL device: the pairs are found there
-        (:class:`~slipmap.core.opencl.nearest.CellNearest`, the same pairs up to exact ties).
+    grid : slipmap.core.icp_numba.NumbaTargets or slipmap.core.opencl.nearest.GridTargets, optional
+        ``before`` for compiled kernels (on the CPU through Numba, or on an OpenCL device):
+        the pairs are found there (``grid.matcher``, the same pairs up to exact ties).
 
     Returns
     -------
@@ -426,11 +431,11 @@ def fit_cells(
     has_prev = np.zeros(k, dtype=bool)
     if grid is None:
         match = _Matcher(before, tree, normals, gate, boxes, centres, len(src))
-    else:
-        from .opencl.nearest import CellNearest
-
-        match = CellNearest(before, grid, normals, gate, boxes, centres, len(src))
-    # rigid cells with a normal cache: each iteration's rows come from the device
+    else:  # compiled (Numba) or OpenCL kernels
+        match = grid.matcher(before, normals, gate, boxes, centres, len(src))
+    # the kernels' normal equations where they have them (numpy's are the reference)
+    normal_eqs = getattr(match, "normal_matrices", _normal_matrices)
+    # rigid cells with a normal cache: each iteration's rows come from the kernels
     fused = grid is not None and model == "rigid" and hasattr(normals, "ensure")
     if fused:
         match.load_sources(src, seg)
@@ -476,7 +481,7 @@ def fit_cells(
         iters[ia] = it
         keep, w, _ = _seg_weights(v, sg, k, opts)
         wk = np.where(keep, w, 0.0)
-        N, b = _normal_matrices(A, wk, v, sg, k)
+        N, b = normal_eqs(A, wk, v, sg, k)
         radius = np.sqrt(_seg_sum(qq, sg, k) / np.maximum(cnt, 1))
         radius = np.maximum(radius, 1e-9)
         x, Ninv, _, undet = _solve_scaled_batch(N[ia], b[ia], radius[ia], n_lin)

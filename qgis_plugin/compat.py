@@ -13,8 +13,14 @@ PACKAGES = ("laspy", "lazrs", "scipy")
 NEEDS = {"strain": ("scipy",)}
 DEFAULT_NEEDS = PACKAGES
 #: package -> (Debian package, conda-forge package); None: not packaged (pip)
-_DEBIAN = {"scipy": "python3-scipy"}
+_DEBIAN = {"scipy": "python3-scipy", "numba": "python3-numba"}
 _CONDA = {"lazrs": "lazrs-python"}
+#: optional packages that make an algorithm faster, never needed to run it (package -> what
+#: it speeds up); a missing one is said in the run's log with its install command
+SPEEDUPS = {
+    "numba": "the windowed ICP's compiled CPU kernels (the point pairs several times faster "
+    "where no OpenCL device is available)",
+}
 
 
 def needs(algorithm_id: str = "") -> tuple:
@@ -143,6 +149,19 @@ INSTALL_HINT = (
     "with the command for your platform and restart QGIS -- "
     + " -- ".join(f"{where}: {command}" for where, command in PLATFORM_COMMANDS)
 )
+
+
+def speedup_message(name: str, kind: str = "") -> str:
+    """One plain-text line for the run's log where the optional package ``name`` (a key of
+    :data:`SPEEDUPS`) is missing, with its install command at the end; empty where it is
+    installed."""
+    if _importable(name):
+        return ""
+    return (
+        f"Optional: the Python package {name} is not installed; it would speed up "
+        f"{SPEEDUPS[name]}. Run this command {_WHERE[kind or platform_kind()]}, then restart "
+        f"QGIS: {install_command([name], kind)}"
+    )
 
 
 def can_execute(algorithm_id: str = ""):

@@ -86,7 +86,7 @@ install_venv() {
   [ -n "$pins" ] && echo "setup: .venv keeps the system's $(echo "$pins" | paste -sd' ')"
   .venv/bin/python -m pip install -q --upgrade "pip>=23" -c constraints.txt
   .venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt \
-    -c .venv/.slipmap-system-pins -e '.[dev,dask]'
+    -c .venv/.slipmap-system-pins -e '.[dev,dask,fast]'
   touch .venv/.slipmap-installed
 }
 

@@ -198,6 +198,40 @@ print(usable[0].name.strip())
 _probe_result: Dict[float, Optional[str]] = {}
 
 
+def _no_driver_registered() -> Optional[str]:
+    """On Linux, where the OpenCL ICD loader finds drivers only through ``*.icd`` files
+    (``OCL_ICD_VENDORS`` or else ``OPENCL_VENDOR_PATH`` and ``/etc/OpenCL/vendors``, and the
+    environment's ``etc/OpenCL/vendors`` that pip and conda drivers use), one line saying
+    that none is registered, without starting a child process (the probe costs a second
+    where PyOpenCL is installed without a driver); else None (probe). Other systems: None."""
+    import importlib.util
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return None
+    if os.environ.get("OCL_ICD_FILENAMES"):
+        return None
+    if os.environ.get("OCL_ICD_VENDORS"):  # instead of the default folder
+        places = [os.environ["OCL_ICD_VENDORS"]]
+    else:
+        places = [os.environ.get("OPENCL_VENDOR_PATH"), "/etc/OpenCL/vendors"]
+    places.append(os.path.join(sys.prefix, "etc", "OpenCL", "vendors"))
+    for place in filter(None, places):
+        if os.path.isfile(place):
+            return None
+        try:
+            if any(name.endswith(".icd") for name in os.listdir(place)):
+                return None
+        except OSError:
+            continue
+    try:  # pip's PoCL wheel registers itself from its package
+        if importlib.util.find_spec("pocl_binary_distribution") is not None:
+            return None
+    except (ImportError, ValueError):  # pragma: no cover
+        return None
+    return "no OpenCL driver is registered (no *.icd file in the ICD loader's folders)"
+
+
 def probe_runtime(*, timeout_s: float = 300.0) -> Optional[str]:
     """Whether the OpenCL runtime can start, tried in a child process.
 
@@ -223,10 +257,14 @@ def probe_runtime(*, timeout_s: float = 300.0) -> Optional[str]:
 
     if timeout_s in _probe_result:
         return _probe_result[timeout_s]
+    reason: Optional[str] = _no_driver_registered()
+    if reason is not None:
+        _probe_result[timeout_s] = reason
+        return reason
     try:
         import pyopencl  # noqa: F401 - only whether it imports
     except ImportError as exc:
-        reason: Optional[str] = f"PyOpenCL cannot be imported ({exc})"
+        reason = f"PyOpenCL cannot be imported ({exc})"
     else:
         try:
             run = subprocess.run(

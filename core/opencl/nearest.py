@@ -12,11 +12,12 @@ use, into the host's :class:`slipmap.core.icp._NormalCache`.
 Why a kernel and not numpy/scipy: at 0.3-0.5 million source points per iteration the numpy
 matcher spends about 0.6 microseconds per point and iteration in passes over the points
 (gathers, masks, the tree query of the points that moved), two thirds of the batched ICP's
-time; a compiled pass does the same work in one read of each point. PyOpenCL is the
-project's one optional compiled path (PoCL runs it on the CPU).
+time; a compiled pass does the same work in one read of each point. The same kernels run
+on the CPU through Numba (:mod:`slipmap.core.icp_numba`, ``backend="numba"``), where no
+OpenCL driver is installed.
 
-Targets are bucketed by the columns of a 2D grid (see ``nearest.cl``); coordinates are
-centred on the targets' mean before they reach the device.
+Targets are bucketed by the columns of a 2D grid (:mod:`slipmap.core.target_grid`, see
+``nearest.cl``); coordinates are centred on the targets' mean before they reach the device.
 """
 
 from __future__ import annotations
@@ -28,13 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..target_grid import target_grid
 from .backend import _runtime
 
 log = logging.getLogger(__name__)
 
 KERNEL_FILE = Path(__file__).parent / "nearest.cl"
-_PER_COLUMN = 2.0  # targets per grid column on average (measured: 2 beats 1, 4 and 8)
-_MAX_COLUMN_FACTOR = 4  # at most this many columns per target
 CANDIDATES = 4  # KC of nearest.cl: the cached nearest targets per source point
 MAX_NORMAL_K = 64  # KMAX of nearest.cl: larger neighbourhoods stay on the host
 
@@ -90,38 +90,25 @@ class GridTargets:
     def __init__(self, before: np.ndarray) -> None:
         self.rt = _runtime()
         self.kernels = _Program.get(self.rt)
-        b = np.asarray(before, dtype=np.float64)
-        self.M = len(b)
+        self.M = len(before)
         if self.M >= np.iinfo(np.int32).max:
             raise ValueError("more than 2**31 target points")
-        self.offset = b.mean(axis=0) if self.M else np.zeros(3)
-        c = b - self.offset
-        lo = c[:, :2].min(axis=0) if self.M else np.zeros(2)
-        ext = np.maximum((c[:, :2].max(axis=0) - lo) if self.M else np.ones(2), 1e-9)
-        # about _PER_COLUMN targets per column over the bounding box, halved while the
-        # occupied columns are crowded (uneven coverage), never more than a few per target
-        h = max(math.sqrt(ext[0] * ext[1] * _PER_COLUMN / max(self.M, 1)), 1e-6)
-        for _ in range(6):
-            col, nx, ny = self._columns(c, lo, ext, h)
-            occupied = np.count_nonzero(np.bincount(col, minlength=nx * ny)) if self.M else 1
-            if self.M / max(occupied, 1) <= 8 * _PER_COLUMN:
-                break
-            h2 = h / 2
-            if (ext[0] / h2 + 1) * (ext[1] / h2 + 1) > _MAX_COLUMN_FACTOR * self.M + 1024:
-                break
-            h = h2
-        self.h, self.nx, self.ny, self.lo = h, nx, ny, lo
-        order = np.argsort(col, kind="stable")
-        self.perm = order.astype(np.int32)
-        self.points = np.ascontiguousarray(c[order])
-        colstart = np.searchsorted(col[order], np.arange(nx * ny + 1)).astype(np.int32)
+        g = target_grid(before)
+        self.offset, self.h, self.nx, self.ny, self.lo = g.offset, g.h, g.nx, g.ny, g.lo
+        self.perm = g.perm.astype(np.int32)
+        self.points = g.points
         self.buf_points = self.rt.to_device(self.points)
-        self.buf_colstart = self.rt.to_device(colstart)
+        self.buf_colstart = self.rt.to_device(g.colstart.astype(np.int32))
         self.buf_perm = self.rt.to_device(self.perm)
-        iperm = np.empty(self.M, dtype=np.int32)
-        iperm[order] = np.arange(self.M, dtype=np.int32)
-        self.buf_iperm = self.rt.to_device(iperm)
-        log.debug("OpenCL target grid: %d x %d columns of %.3f m for %d points", nx, ny, h, self.M)
+        self.buf_iperm = self.rt.to_device(g.iperm.astype(np.int32))
+        log.debug(
+            "OpenCL target grid: %d x %d columns of %.3f m for %d points",
+            self.nx, self.ny, self.h, self.M,
+        )  # fmt: skip
+
+    def matcher(self, before, normals, gate, boxes, centres, n_points) -> CellNearest:
+        """The batched ICP's matcher over these targets (:class:`CellNearest`)."""
+        return CellNearest(before, self, normals, gate, boxes, centres, n_points)
 
     def run(self, name: str, n: int, *args) -> None:
         """Enqueue kernel ``name`` over ``n`` work-items (rounded up to whole work groups;
@@ -150,14 +137,6 @@ class GridTargets:
         rt.read(out, bo)
         rt.read(hard, bh)
         return out, hard.astype(bool)
-
-    @staticmethod
-    def _columns(c, lo, ext, h):
-        nx = int(ext[0] // h) + 1
-        ny = int(ext[1] // h) + 1
-        ix = np.clip(((c[:, 0] - lo[0]) // h).astype(np.int64), 0, nx - 1)
-        iy = np.clip(((c[:, 1] - lo[1]) // h).astype(np.int64), 0, ny - 1)
-        return iy * nx + ix, nx, ny
 
 
 class CellNearest:

@@ -12,6 +12,7 @@ from qgis.core import (
 )
 
 from ...app import icp as job
+from ..compat import speedup_message
 from ._base import (
     SlipMapAlgorithm,
     add_parameters,
@@ -74,6 +75,10 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
         opts = self.job_options(parameters, context)
+        if opts.get("backend", "auto") in ("auto", "numba"):
+            hint = speedup_message("numba")
+            if hint:
+                feedback.pushInfo(hint)
         outputs = file_outputs(self, parameters, context, job.SPEC, _FILES)
         stable_mask = None
         if is_set(parameters, "STABLE_MASK", context):

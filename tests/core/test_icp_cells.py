@@ -249,16 +249,33 @@ def test_segment_loops_equal_the_vectorised_reference(monkeypatch, n_cells):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
 
 
-def test_auto_backend_falls_back_to_numpy_when_opencl_cannot_start(monkeypatch, caplog):
+def test_auto_backend_falls_back_to_numpy_without_opencl_and_numba(monkeypatch, caplog):
     """``backend="auto"`` asks the child-process probe first (a driver may abort the process)
-    and, when it says no, finds the pairs with numpy: the numpy field, and a log line."""
+    and, when it says no and Numba is missing too, finds the pairs with numpy: the numpy
+    field, and a log line."""
+    from slipmap.core import icp_numba
     from slipmap.core.opencl import backend
 
     monkeypatch.setattr(backend, "probe_runtime", lambda **kw: "no OpenCL device (test)")
+    monkeypatch.setattr(icp_numba, "unavailable", lambda: "no Numba (test)")
     before, after = field_pair(4, shift_left=np.array([0.05, 0.0, 0.01]), density=20)
     kw = dict(cell_m=5.0, min_points=100)
     with caplog.at_level("INFO", logger="slipmap.core.icp"):
         auto = windowed_icp(before, after, backend="auto", **kw)
     ref = windowed_icp(before, after, backend="numpy", **kw)
     assert "OpenCL unavailable" in caplog.text and "no OpenCL device (test)" in caplog.text
+    assert "no Numba (test)" in caplog.text
     np.testing.assert_array_equal(np.c_[auto.dx, auto.dy, auto.dz], np.c_[ref.dx, ref.dy, ref.dz])
+
+
+def test_numba_backend_without_numba_says_what_to_do(monkeypatch):
+    """``backend="numba"`` where Numba cannot be imported: a DependencyError naming the
+    backend, the install command and the fallback."""
+    from slipmap.core import icp_numba
+    from slipmap.core.errors import DependencyError
+
+    monkeypatch.setattr(icp_numba, "numba", None)
+    monkeypatch.setattr(icp_numba, "_IMPORT_ERROR", "Numba cannot be imported (test)")
+    before, after = field_pair(4, shift_left=np.array([0.05, 0.0, 0.01]), density=20)
+    with pytest.raises(DependencyError, match="backend 'numba'.*pip install numba.*'auto'"):
+        windowed_icp(before, after, cell_m=5.0, backend="numba")

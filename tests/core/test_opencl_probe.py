@@ -12,7 +12,31 @@ from slipmap.core.opencl import backend  # noqa: E402
 @pytest.fixture
 def fresh(monkeypatch):
     monkeypatch.setattr(backend, "_probe_result", {})
+    monkeypatch.setattr(backend, "_no_driver_registered", lambda: None)  # the child runs
     return monkeypatch
+
+
+def test_no_registered_driver_is_answered_without_a_child(monkeypatch, tmp_path):
+    """Linux: no ``*.icd`` where the ICD loader looks (``OCL_ICD_VENDORS`` replaces the
+    default folder) -> the probe answers at once, no child process (issue #29)."""
+    import subprocess
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the ICD folders are Linux's")
+    monkeypatch.setattr(backend, "_probe_result", {})
+    monkeypatch.delenv("OCL_ICD_FILENAMES", raising=False)
+    monkeypatch.setenv("OCL_ICD_VENDORS", str(tmp_path))
+    monkeypatch.setattr(sys, "prefix", str(tmp_path / "env"))
+
+    def no_child(*a, **kw):
+        raise AssertionError("the probe started a child")
+
+    monkeypatch.setattr(subprocess, "run", no_child)
+    reason = backend.probe_runtime(timeout_s=60)
+    assert reason is not None and "no OpenCL driver is registered" in reason
+    (tmp_path / "vendor.icd").write_text("libvendor.so\n")
+    assert backend._no_driver_registered() is None  # a driver: the child decides
 
 
 def test_probe_reports_an_abort_instead_of_dying(fresh):

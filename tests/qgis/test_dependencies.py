@@ -323,3 +323,17 @@ def test_qgis_process_list_help_and_run_say_what_is_missing(blocker, tmp_path):
     code, out, err = call("run", "slipmap:piv", "--", "BEFORE=a.las")
     assert code != 0
     assert "--break-system-packages laspy lazrs" in err, err  # refused at once, the command
+
+
+def test_a_missing_speedup_is_said_with_its_command(monkeypatch):
+    """Numba is optional (issue #29): where it is missing the windowed ICP's log says what it
+    would speed up and the command that installs it, per platform; installed: nothing."""
+    from slipmap.qgis_plugin import compat
+
+    monkeypatch.setattr(compat, "_importable", lambda name: name != "numba")
+    line = compat.speedup_message("numba", "osgeo4w")
+    assert "numba" in line and line.endswith("python -m pip install numba")
+    assert "sudo apt install python3-numba" in compat.speedup_message("numba", "debian")
+    assert compat.speedup_message("numba", "conda").endswith("conda install -c conda-forge numba")
+    monkeypatch.setattr(compat, "_importable", lambda name: True)
+    assert compat.speedup_message("numba", "osgeo4w") == ""
