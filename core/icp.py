@@ -992,6 +992,10 @@ class WindowedICPResult:
         With ``sigma_scaling="region"``: the factor of each region (lowest class first).
     sigma_region : (K,) int64 or None
         With ``sigma_scaling="region"``: each cell's region (-1: none, the field's factor).
+    breaklines : Breaklines or None
+        The lines the spline field was allowed to jump across (given or detected).
+    breaklines_source : str
+        ``"given"``, ``"detected"`` or ``"none"``.
     """
 
     x: np.ndarray
@@ -1039,6 +1043,8 @@ class WindowedICPResult:
     sigma_factor_cell: Optional[np.ndarray] = None
     sigma_region_factors: Tuple[float, ...] = ()
     sigma_region: Optional[np.ndarray] = None
+    breaklines: object = None
+    breaklines_source: str = "none"
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -1504,6 +1510,8 @@ def windowed_icp(
     field_model: str = "cells",
     spline_spacing_m: Optional[float] = None,
     spline_smoothing: Optional[float] = None,
+    breaklines=None,
+    detect_breaklines: bool = False,
     engine: str = "batched",
     backend: str = "numpy",
     median_threshold: float = 2.0,
@@ -1613,6 +1621,17 @@ def windowed_icp(
         Second-difference penalty of ``field_model="spline"`` relative to the median
         diagonal of its normal matrix (>= 0); None (default): estimated per component by
         variance-component estimation.
+    breaklines : Breaklines or sequence of (M, 2) float64, optional
+        Lines (scarps, a fault, the edge of a slab; map coordinates of ``after``) across which
+        ``field_model="spline"`` may jump: the field is smooth on each side
+        (:func:`slipmap.core.icp_spline.fit_spline_field`). Ignored by ``field_model="cells"``.
+    detect_breaklines : bool
+        With ``field_model="spline"`` and no ``breaklines``: look for them in the cells'
+        motions (:func:`slipmap.core.breaklines.detect_breaklines`: edges where the motion
+        jumps by far more than the cells' sigmas and the neighbouring edges' differences,
+        chained into lines), place them on the points (each point near a line goes to the
+        side whose field fits it: :func:`slipmap.core.icp_spline.refine_breaklines`), and fit
+        the field smooth on each side. The result's ``breaklines`` holds what was found.
     median_threshold : float
         Wrong-minimum test (0: off): a cell whose motion differs from the median of its
         8-neighbours by more than this many times their median spread (plus
@@ -1703,6 +1722,15 @@ def windowed_icp(
         if spline_smoothing is None
         else _positive("spline_smoothing", spline_smoothing, allow_zero=True)
     )
+    from .breaklines import Breaklines, from_sequence
+
+    try:
+        lines = from_sequence(breaklines)
+    except InvalidParameterError as exc:
+        raise InvalidParameterError(f"breaklines: {exc}") from exc
+    if breaklines is not None and not isinstance(breaklines, (Breaklines, list, tuple)):
+        raise InvalidParameterError("breaklines must be a Breaklines or a list of (M, 2) arrays")
+    lines_source = "given" if lines is not None else "none"
     med_thr = _positive("median_threshold", median_threshold, allow_zero=True)
     med_eps = _positive("median_eps_m", median_eps_m, allow_zero=True)
     if engine not in ENGINES:
@@ -1915,8 +1943,7 @@ def windowed_icp(
         start, _ = _deformation_field(cells, d, usable, n_rows, n_cols, x0, y0, cell)
         report(progress, 0.9, "fitting one spline field to all cells")
         near = _near_pairs(cells.row, cells.col, reach=2)
-        sfit = fit_spline_field(
-            a[cells.points],
+        spline_kw = dict(
             before=b,
             tree=tree,
             normals=normals,
@@ -1928,8 +1955,28 @@ def windowed_icp(
             smoothing=spline_lam,
             gate_m=gate,
             opts=opts,
-            progress=scaled(progress, 0.9, 1.0),
             grid=grid,
+        )
+        if lines is None and detect_breaklines:
+            lines = _detect_lines(cells, d, usable & ~flagged, cov_d, n_rows, n_cols, x0, y0, cell)
+            if lines is not None:
+                from .icp_spline import refine_breaklines
+
+                first = fit_spline_field(
+                    a[cells.points], breaklines=lines, progress=scaled(progress, 0.9, 0.95),
+                    **spline_kw,
+                )  # fmt: skip
+                lines = refine_breaklines(
+                    first.field, a[cells.points], before=b, tree=tree, normals=normals,
+                    gate_m=gate, reach_m=cell,
+                )  # fmt: skip
+                lines_source = "detected"
+                progress = scaled(progress, 0.95, 1.0)
+        sfit = fit_spline_field(
+            a[cells.points],
+            breaklines=lines,
+            progress=scaled(progress, 0.9, 1.0),
+            **spline_kw,
         )
         d, grad, cov_d = sfit.d, sfit.gradient, sfit.cov[:, :3, :3]
         rmse, n_used = sfit.rmse, sfit.n
@@ -2015,6 +2062,8 @@ def windowed_icp(
         deform_passes=passes,
         field_model=field_model,
         flagged=flagged[ok],
+        breaklines=lines if field_model == "spline" else None,
+        breaklines_source=lines_source if field_model == "spline" else "none",
     )
     pair_cov = None
     if field_model == "spline":  # the cells share one field: their errors are correlated
@@ -2025,6 +2074,30 @@ def windowed_icp(
     log.info("windowed ICP: %d cells fitted%s, %.1f s", n_ok, skipped_cells_text(skipped),
              res.seconds)  # fmt: skip
     return res
+
+
+def _detect_lines(cells, d, usable, cov_d, n_rows, n_cols, x0, y0, cell):
+    """Breaklines of the cells' motions (:func:`slipmap.core.breaklines.detect_breaklines`)
+    on the cell grid; None when none is found."""
+    from .breaklines import detect_breaklines
+
+    gd = np.full((n_rows, n_cols, 3), np.nan)
+    gv = np.zeros((n_rows, n_cols), dtype=bool)
+    gs = np.full((n_rows, n_cols), np.nan)
+    gd[cells.row, cells.col] = d
+    gv[cells.row, cells.col] = usable
+    gs[cells.row, cells.col] = np.sqrt(np.maximum(np.trace(cov_d, axis1=1, axis2=2), 0.0))
+    xs = x0 + (np.arange(n_cols) + 0.5) * cell
+    ys = y0 - (np.arange(n_rows) + 0.5) * cell
+    found = detect_breaklines(gd, x=xs, y=ys, valid=gv, sigma=gs)
+    if found is None:
+        log.info("breaklines: none found in the cells' motions")
+    else:
+        log.info(
+            "breaklines: %d found in the cells' motions (%.1f m in all)",
+            len(found), found.length_m(),
+        )  # fmt: skip
+    return found
 
 
 #: words for the reasons a cell is skipped (the keys of the ``skipped`` counts)

@@ -107,7 +107,15 @@ def check_spline_size(span_xy, spacing_m: float) -> None:
     )
 
 
-__all__ = ["SplineField", "SplineFit", "fit_spline_field", "bspline_weights"]
+__all__ = [
+    "SplineField",
+    "SplineFit",
+    "fit_spline_field",
+    "bspline_weights",
+    "spline_basis",
+    "knot_copies",
+    "sided_second_differences",
+]
 
 
 def bspline_weights(t: np.ndarray) -> np.ndarray:
@@ -138,9 +146,134 @@ def _bspline_slopes(t: np.ndarray) -> np.ndarray:
     )
 
 
+def knot_xy(origin_xy, spacing_m: float, n_x: int, n_y: int) -> np.ndarray:
+    """(ky kx, 2) map positions of the knots of a field, row-major (coefficient ``(j, i)``
+    sits at ``origin + spacing (i - 1, j - 1)``)."""
+    kx, ky = n_x + 3, n_y + 3
+    gx, gy = np.meshgrid(np.arange(kx) - 1.0, np.arange(ky) - 1.0)
+    return np.column_stack(
+        [origin_xy[0] + spacing_m * gx.ravel(), origin_xy[1] + spacing_m * gy.ravel()]
+    )
+
+
+def knot_copies(origin_xy, spacing_m: float, n_x: int, n_y: int, lines) -> np.ndarray:
+    """Which knots get a second copy for the far side of a breakline.
+
+    A knot's basis function reaches ``2 spacing_m`` along x and y; a breakline that passes
+    within ``2 sqrt(2) spacing_m`` of the knot may cut its support, and the points beyond the
+    line (the segment from the knot to the point crosses it an odd number of times) then use
+    the knot's copy. Depends on the geometry alone, so any chunk of points (a tile) finds the
+    same copies.
+
+    Parameters
+    ----------
+    origin_xy, spacing_m, n_x, n_y
+        The field's lattice (:class:`SplineField`).
+    lines : Breaklines or None
+
+    Returns
+    -------
+    (ky kx,) int64
+        Index of each knot's copy in the field's coefficient list (``ky kx + j`` for the
+        j-th copy), -1 for a knot without one.
+    """
+    from .breaklines import distance_m
+
+    n_grid = (n_x + 3) * (n_y + 3)
+    out = np.full(n_grid, -1, dtype=np.int64)
+    if lines is None or lines.empty:
+        return out
+    near = distance_m(knot_xy(origin_xy, spacing_m, n_x, n_y), lines) < 2.0 * np.sqrt(2.0) * (
+        spacing_m * (1.0 + 1e-9)
+    )
+    k = np.flatnonzero(near)
+    out[k] = n_grid + np.arange(k.size)
+    return out
+
+
+def spline_basis(
+    xy: np.ndarray,
+    *,
+    origin_xy,
+    spacing_m: float,
+    n_x: int,
+    n_y: int,
+    lines=None,
+    copy_index: Optional[np.ndarray] = None,
+    slopes: bool = False,
+):
+    """The 16 knots and weights of a (breakline-aware) bicubic B-spline at each position.
+
+    Works on any chunk of points: the answer for a point depends on its position and the
+    field's geometry (lattice, breaklines) only.
+
+    Parameters
+    ----------
+    xy : (P, 2) float64
+        Map positions, metres.
+    origin_xy, spacing_m, n_x, n_y
+        The lattice (:class:`SplineField`).
+    lines : Breaklines, optional
+        Breaklines; with ``copy_index``, each of a point's knots that has a copy is replaced
+        by its copy where the segment from the knot's position to the point crosses the
+        lines an odd number of times (the point lies on the knot's far side).
+    copy_index : (ky kx,) int64, optional
+        :func:`knot_copies` of the same lattice and lines.
+    slopes : bool
+        Also return the weights' x and y derivatives (per metre).
+
+    Returns
+    -------
+    idx : (P, 16) int64
+        Coefficient indices (grid knots row-major, then the copies).
+    w : (P, 16) float64
+        Weights (sum 1).
+    wx, wy : (P, 16) float64
+        Only with ``slopes``.
+    """
+    h = spacing_m
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    u = (xy[:, 0] - origin_xy[0]) / h
+    v = (xy[:, 1] - origin_xy[1]) / h
+    iu = np.clip(np.floor(u).astype(np.int64), 0, n_x - 1)
+    iv = np.clip(np.floor(v).astype(np.int64), 0, n_y - 1)
+    fu, fv = u - iu, v - iv
+    kx = n_x + 3
+    rows = iv[:, None] + np.arange(4)
+    idx = (rows[:, :, None] * kx + (iu[:, None] + np.arange(4))[:, None, :]).reshape(-1, 16)
+    if lines is not None and copy_index is not None and not lines.empty:
+        idx = _sided(idx, xy, origin_xy, h, kx, lines, copy_index)
+    bu, bv = bspline_weights(fu), bspline_weights(fv)
+    w = (bv[:, :, None] * bu[:, None, :]).reshape(-1, 16)
+    if not slopes:
+        return idx, w
+    du, dv = _bspline_slopes(fu) / h, _bspline_slopes(fv) / h
+    wx = (bv[:, :, None] * du[:, None, :]).reshape(-1, 16)
+    wy = (dv[:, :, None] * bu[:, None, :]).reshape(-1, 16)
+    return idx, w, wx, wy
+
+
+def _sided(idx, xy, origin_xy, h, kx, lines, copy_index):
+    """``idx`` with each knot that has a copy replaced by it where the point lies beyond a
+    breakline as seen from the knot (odd crossings of knot -> point)."""
+    from .breaklines import crossings
+
+    has = copy_index[idx] >= 0
+    p, k = np.nonzero(has)
+    if p.size == 0:
+        return idx
+    g = idx[p, k]
+    kxy = np.column_stack([origin_xy[0] + h * (g % kx - 1.0), origin_xy[1] + h * (g // kx - 1.0)])
+    odd = crossings(kxy, xy[p], lines) % 2 == 1
+    out = idx.copy()
+    out[p[odd], k[odd]] = copy_index[g[odd]]
+    return out
+
+
 @dataclass(frozen=True)
 class SplineField:
-    """A bicubic B-spline displacement field of the horizontal position.
+    """A bicubic B-spline displacement field of the horizontal position, smooth on each side
+    of its breaklines and free to jump across them.
 
     Attributes
     ----------
@@ -152,6 +285,10 @@ class SplineField:
         Knot intervals along x and y.
     coefficients : (n_y + 3, n_x + 3, 3) float64
         Control vectors (dx, dy, dz), metres.
+    lines : Breaklines or None
+        Breaklines the field may jump across.
+    copy_coefficients : (C, 3) float64 or None
+        Control vectors of the knots' far-side copies (:func:`knot_copies`, in its order).
     """
 
     origin_xy: tuple
@@ -159,35 +296,41 @@ class SplineField:
     n_x: int
     n_y: int
     coefficients: np.ndarray
+    lines: object = None
+    copy_coefficients: Optional[np.ndarray] = None
 
-    def _basis(self, xy: np.ndarray, slopes: bool = False):
-        h = self.spacing_m
-        u = (xy[:, 0] - self.origin_xy[0]) / h
-        v = (xy[:, 1] - self.origin_xy[1]) / h
-        iu = np.clip(np.floor(u).astype(np.int64), 0, self.n_x - 1)
-        iv = np.clip(np.floor(v).astype(np.int64), 0, self.n_y - 1)
-        fu, fv = u - iu, v - iv
-        kx = self.n_x + 3
-        rows = iv[:, None] + np.arange(4)
-        idx = rows[:, :, None] * kx + (iu[:, None] + np.arange(4))[:, None, :]
-        bu, bv = bspline_weights(fu), bspline_weights(fv)
-        w = (bv[:, :, None] * bu[:, None, :]).reshape(-1, 16)
-        if not slopes:
-            return idx.reshape(-1, 16), w
-        du, dv = _bspline_slopes(fu) / h, _bspline_slopes(fv) / h
-        wx = (bv[:, :, None] * du[:, None, :]).reshape(-1, 16)
-        wy = (dv[:, :, None] * bu[:, None, :]).reshape(-1, 16)
-        return idx.reshape(-1, 16), w, wx, wy
+    @property
+    def copy_index(self) -> np.ndarray:
+        """:func:`knot_copies` of this field's lattice and lines."""
+        return knot_copies(self.origin_xy, self.spacing_m, self.n_x, self.n_y, self.lines)
+
+    def all_coefficients(self) -> np.ndarray:
+        """(ky kx + C, 3): the grid's control vectors, row-major, then the copies'."""
+        c = self.coefficients.reshape(-1, 3)
+        if self.copy_coefficients is None or len(self.copy_coefficients) == 0:
+            return c
+        return np.vstack([c, self.copy_coefficients])
+
+    def _basis(self, xy: np.ndarray, slopes: bool = False, copy_index=None):
+        lines = self.lines
+        if lines is not None and copy_index is None:
+            copy_index = self.copy_index
+        return spline_basis(
+            xy, origin_xy=self.origin_xy, spacing_m=self.spacing_m, n_x=self.n_x,
+            n_y=self.n_y, lines=lines, copy_index=copy_index, slopes=slopes,
+        )  # fmt: skip
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
-        """(K, 2) map positions -> (K, 3) displacements, metres."""
+        """(K, 2) map positions -> (K, 3) displacements, metres (each position takes the
+        knots of its own side of the breaklines)."""
         idx, w = self._basis(np.asarray(xy, dtype=np.float64))
-        return np.einsum("pk,pkj->pj", w, self.coefficients.reshape(-1, 3)[idx])
+        return np.einsum("pk,pkj->pj", w, self.all_coefficients()[idx])
 
     def gradient(self, xy: np.ndarray) -> np.ndarray:
-        """(K, 2) map positions -> (K, 3, 3) gradient ``d(d_i)/d(x_j)`` (z column zero)."""
+        """(K, 2) map positions -> (K, 3, 3) gradient ``d(d_i)/d(x_j)`` (z column zero), on
+        the position's side."""
         idx, _, wx, wy = self._basis(np.asarray(xy, dtype=np.float64), slopes=True)
-        c = self.coefficients.reshape(-1, 3)[idx]
+        c = self.all_coefficients()[idx]
         out = np.zeros((len(idx), 3, 3))
         out[:, :, 0] = np.einsum("pk,pkj->pj", wx, c)
         out[:, :, 1] = np.einsum("pk,pkj->pj", wy, c)
@@ -248,6 +391,67 @@ def _second_differences(kx: int, ky: int):
         return sp.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(max(n - 2, 0), n))
 
     r = sp.vstack([sp.kron(sp.identity(ky), d2(kx)), sp.kron(d2(ky), sp.identity(kx))])
+    return (r.T @ r).tocsr()
+
+
+def sided_second_differences(
+    origin_xy, spacing_m: float, n_x: int, n_y: int, lines, copy_index: np.ndarray
+):
+    """Penalty matrix ``RᵀR`` of the second differences of a knot grid with far-side copies,
+    sparse ((ky kx + C), (ky kx + C)).
+
+    Each knot version (the knot itself, or its copy for the far side of a breakline) is the
+    middle of one second difference along x and one along y, taken with the versions of its
+    two neighbours that lie on the same side as seen from the middle knot: for the knot
+    itself, a neighbour across the line (odd crossings of the segment between their
+    positions) enters by its copy; for the copy, a neighbour across the line enters as itself
+    and one on the knot's own side by its copy. A difference whose neighbour version does not
+    exist is left out. Without lines this is :func:`_second_differences`.
+    """
+    import scipy.sparse as sp
+
+    from .breaklines import crossings
+
+    kx, ky = n_x + 3, n_y + 3
+    n_grid = kx * ky
+    n_tot = n_grid + int(np.count_nonzero(copy_index >= 0))
+    pos = knot_xy(origin_xy, spacing_m, n_x, n_y)
+    grid = np.arange(n_grid).reshape(ky, kx)
+    triples = [
+        np.column_stack([grid[:, :-2].ravel(), grid[:, 1:-1].ravel(), grid[:, 2:].ravel()]),
+        np.column_stack([grid[:-2, :].ravel(), grid[1:-1, :].ravel(), grid[2:, :].ravel()]),
+    ]
+    t = np.vstack(triples)  # (T, 3): left, middle, right
+    sided = lines is not None and not lines.empty
+    rows_idx = [t]
+    if sided:
+        odd = np.zeros((len(t), 2), dtype=bool)
+        for s, col in enumerate((0, 2)):
+            has = (copy_index[t[:, 1]] >= 0) | (copy_index[t[:, col]] >= 0)
+            j = np.flatnonzero(has)
+            odd[j, s] = crossings(pos[t[j, 1]], pos[t[j, col]], lines) % 2 == 1
+        out = []
+        # the middle knot itself: neighbours across the line by their copies
+        main = t.copy()
+        for s, col in enumerate((0, 2)):
+            main[odd[:, s], col] = copy_index[t[odd[:, s], col]]
+        out.append(main)
+        # the middle knot's copy: neighbours on its own side by their copies
+        m = copy_index[t[:, 1]] >= 0
+        cp = t[m].copy()
+        cp[:, 1] = copy_index[t[m, 1]]
+        for s, col in enumerate((0, 2)):
+            same = ~odd[m, s]
+            cp[same, col] = copy_index[t[m][same, col]]
+        out.append(cp)
+        rows_idx = [np.vstack(out)]
+    r_idx = rows_idx[0]
+    r_idx = r_idx[np.all(r_idx >= 0, axis=1)]
+    n_r = len(r_idx)
+    r = sp.csr_matrix(
+        (np.tile([1.0, -2.0, 1.0], n_r), (np.repeat(np.arange(n_r), 3), r_idx.ravel())),
+        shape=(n_r, n_tot),
+    )
     return (r.T @ r).tocsr()
 
 
@@ -337,6 +541,7 @@ def fit_spline_field(
     opts: _Options,
     progress: Optional[ProgressCallback] = None,
     grid=None,
+    breaklines=None,
 ) -> SplineFit:
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
 
@@ -379,6 +584,16 @@ def fit_spline_field(
         ``progress(fraction, message)`` per iteration; may raise CancelledError.
     grid : slipmap.core.opencl.nearest.GridTargets, optional
         ``before`` on an OpenCL device: the pairs are found there (the same pairs).
+    breaklines : Breaklines, optional
+        Lines the field may jump across (:mod:`slipmap.core.breaklines`, in the frame of
+        ``after``): every knot whose support a line may cut gets a copy for the line's far
+        side (:func:`knot_copies`), each point and report position takes, of its 16 knots,
+        the versions on its own side (:func:`spline_basis`), and the penalty's second
+        differences join only versions on one side (:func:`sided_second_differences`). The
+        field is then smooth on each side and free to jump across a line; around the tip of
+        a line that ends inside the area the penalty ties the copies to the other side's
+        knots, so the field stays continuous there (as far as the data let it). Copies that no
+        point uses are held by the penalty and a small ridge.
 
     Returns
     -------
@@ -416,30 +631,40 @@ def fit_spline_field(
     check_spline_size(hi - lo, h)
     n_x, n_y = (int(v) for v in np.maximum(np.ceil((hi - lo) / h), 1))
     kx, ky = n_x + 3, n_y + 3
-    n_k = kx * ky
+    n_grid = kx * ky
+    bl = None if breaklines is None or breaklines.empty else breaklines
+    copy_index = knot_copies((float(lo[0]), float(lo[1])), h, n_x, n_y, bl)
+    n_k = n_grid + int(np.count_nonzero(copy_index >= 0))  # grid knots, then their copies
     # start: least-squares fit of the initial field on a 4-per-interval lattice
     gx, gy = np.meshgrid(
         lo[0] + h * np.arange(4 * n_x + 1) / 4, lo[1] + h * np.arange(4 * n_y + 1) / 4
     )
-    field = SplineField((float(lo[0]), float(lo[1])), h, n_x, n_y, np.zeros((ky, kx, 3)))
+    field = SplineField((float(lo[0]), float(lo[1])), h, n_x, n_y, np.zeros((ky, kx, 3)), lines=bl)
     gxy = np.column_stack([gx.ravel(), gy.ravel()])
-    gi, gw = field._basis(gxy)
+    gi, gw = field._basis(gxy, copy_index=copy_index)
     bmat = sp.csr_matrix(
         (gw.ravel(), gi.ravel(), np.arange(0, gi.size + 1, 16)), shape=(len(gxy), n_k)
     )
     f0 = np.asarray(initial(gxy), dtype=np.float64).reshape(-1, 3)
     f0 = np.where(np.isfinite(f0), f0, 0.0)
-    r2 = _second_differences(kx, ky)
+    r2 = sided_second_differences(field.origin_xy, h, n_x, n_y, bl, copy_index)
     lhs0 = (bmat.T @ bmat + 1e-6 * r2 + 1e-9 * sp.identity(n_k)).tocsc()
     c = splu(lhs0).solve(np.asarray(bmat.T @ f0))  # (K, 3)
 
-    idx16, w16 = field._basis(a[:, :2])
-    # the points sorted by knot interval, so that each interval's points are one slice
-    cell_of = (idx16[:, 0] // kx) * n_x + idx16[:, 0] % kx
+    idx16, w16 = field._basis(a[:, :2], copy_index=copy_index)
+    # the points sorted by their 16 knots (the knot interval, and with breaklines the side
+    # of each knot), so that the points sharing them are one slice
+    if bl is None:
+        cell_of = (idx16[:, 0] // kx) * n_x + idx16[:, 0] % kx
+        n_groups = n_x * n_y
+    else:
+        _, cell_of = np.unique(idx16, axis=0, return_inverse=True)
+        cell_of = cell_of.reshape(-1)
+        n_groups = int(cell_of.max()) + 1 if cell_of.size else 0
     perm = np.argsort(cell_of, kind="stable")
     a, idx16, w16 = a[perm], idx16[perm], w16[perm]
     seg_sorted = None if report_seg is None else np.asarray(report_seg)[perm]
-    bounds = np.searchsorted(cell_of[perm], np.arange(n_x * n_y + 1))
+    bounds = np.searchsorted(cell_of[perm], np.arange(n_groups + 1))
     converged, it = False, 0
     m_pts = len(before)
     factor = None
@@ -489,6 +714,11 @@ def fit_spline_field(
             scale = float(np.median(dg[dg > 0])) if np.any(dg > 0) else 1.0
             lam_abs = np.full(3, lam * scale)
             ridge = sp.identity(3 * n_k, format="csr") * (1e-12 * scale)
+            if n_k > n_grid:  # copies no point uses: held by the penalty and a small ridge
+                idle = np.ones(n_k, dtype=bool)
+                idle[np.unique(idx16[ok])] = False
+                idle[:n_grid] = False
+                ridge = ridge + sp.diags(np.tile(idle * (1e-6 * scale), 3), format="csr")
         penalty = sp.block_diag([w * r2 for w in lam_abs], format="csr") + ridge
         cvec = c.T.reshape(-1)  # component-major
         factor = splu((nmat + penalty).tocsc())
@@ -526,8 +756,11 @@ def fit_spline_field(
     one = np.zeros(psi.size, dtype=np.int64)
     inflation = float(_shared_target_inflation(psi, keep, one, tid[ok], np.array([ss]))[0])
     s0sq = ss / dof / max(mean_dpsi, 1e-12) ** 2 * inflation
-    field = SplineField(field.origin_xy, h, n_x, n_y, c.reshape(ky, kx, 3))
-    ridx, rw, rwx, rwy = field._basis(rxy, slopes=True)
+    field = SplineField(
+        field.origin_xy, h, n_x, n_y, c[:n_grid].reshape(ky, kx, 3), lines=bl,
+        copy_coefficients=c[n_grid:] if n_k > n_grid else None,
+    )  # fmt: skip
+    ridx, rw, rwx, rwy = field._basis(rxy, slopes=True, copy_index=copy_index)
     k = len(rxy)
     # rows of (d, d/dx, d/dy) x 3 components against the component-major coefficients
     g = np.zeros((k, 9, 3, 16))
@@ -588,3 +821,135 @@ def fit_spline_field(
         n_coefficients=3 * data_knots,
         pair_cov=pair_cov,
     )
+
+
+def refine_breaklines(
+    field: SplineField,
+    after: np.ndarray,
+    *,
+    before: np.ndarray,
+    tree,
+    normals: Callable[[np.ndarray], np.ndarray],
+    gate_m: float,
+    reach_m: float,
+    step_m: Optional[float] = None,
+):
+    """Move a field's breaklines to where the points say its sides change.
+
+    A line found on a grid of cells lies on a cell edge, up to a cell from the scarp. Each
+    point within ``reach_m`` of a line is moved back by the field of its own side and by
+    that of the other side (its knots' copies swapped), and its point-to-plane residual
+    against epoch 1 says which side it belongs to (where the two differ by more than twice
+    the residuals' robust spread). Along each line, every ``step_m`` (default ``reach_m``),
+    the line is shifted across by the offset that puts the fewest such points on the wrong
+    side (searched over ``±reach_m`` in 41 steps; the median of three neighbouring offsets
+    kept), and the shifted stations make the new line.
+
+    Parameters
+    ----------
+    field : SplineField
+        A field fitted with the lines (``field.lines``).
+    after : (P, 3) float64
+        Epoch-2 points (the frame of the field).
+    before, tree, normals, gate_m
+        Epoch 1, its nearest-neighbour structure, normals and the pairs' gate, as in
+        :func:`fit_spline_field`.
+    reach_m : float
+        How far from a line points are looked at and the line may move, metres.
+    step_m : float, optional
+        Spacing of the stations along a line, metres.
+
+    Returns
+    -------
+    Breaklines
+    """
+    from .breaklines import _douglas_peucker, breaklines, distance_m
+
+    lines = field.lines
+    if lines is None or lines.empty:
+        return lines
+    step = float(reach_m if step_m is None else step_m)
+    a = np.asarray(after, dtype=np.float64)
+    a = a[distance_m(a, lines) < reach_m]
+    if len(a) < 50:
+        return lines
+    ci = field.copy_index
+    n_grid = ci.size
+    idx, w = field._basis(a[:, :2], copy_index=ci)
+    copy_of = np.flatnonzero(ci >= 0)
+    flip = idx.copy()
+    main = idx < n_grid
+    m_has = main & (ci[np.where(main, idx, 0)] >= 0)
+    flip[m_has] = ci[idx[m_has]]
+    flip[~main] = copy_of[idx[~main] - n_grid]
+    coef = field.all_coefficients()
+
+    def residual(q):
+        dist, j = tree.query(q)
+        j = np.asarray(j)
+        nn = normals(j)
+        v = np.einsum("ij,ij->i", nn, q - before[j])
+        return np.where((np.asarray(dist) <= gate_m) & np.all(np.isfinite(nn), axis=1), v, np.nan)
+
+    v_own = np.abs(residual(a - np.einsum("pk,pkj->pj", w, coef[idx])))
+    v_flip = np.abs(residual(a - np.einsum("pk,pkj->pj", w, coef[flip])))
+    spread = MAD_TO_SIGMA * float(np.nanmedian(v_own)) if np.any(np.isfinite(v_own)) else 0.0
+    own_i = np.where(np.isfinite(v_own), v_own, np.inf)
+    flip_i = np.where(np.isfinite(v_flip), v_flip, np.inf)
+    decisive = np.abs(own_i - flip_i) > 2.0 * spread
+    decisive &= np.isfinite(own_i) | np.isfinite(flip_i)
+    flipped = flip_i < own_i
+    xy, flipped = a[decisive, :2], flipped[decisive]
+    parts_d = [distance_m(xy, breaklines([p])) for p in lines.parts]
+    nearest = np.argmin(np.vstack(parts_d), axis=0) if parts_d else np.zeros(0, int)
+    offsets = np.linspace(-reach_m, reach_m, 41)
+    out = []
+    for k, part in enumerate(lines.parts):
+        pxy = xy[nearest == k]
+        pfl = flipped[nearest == k]
+        seg_a, seg_b = part[:-1], part[1:]
+        seg_d = seg_b - seg_a
+        seg_len = np.hypot(seg_d[:, 0], seg_d[:, 1])
+        cum = np.r_[0.0, np.cumsum(seg_len)]
+        # each point's nearest segment, its arc position and signed offset (left +)
+        rel = pxy[:, None, :] - seg_a[None]
+        t = np.clip(np.sum(rel * seg_d[None], axis=2) / (seg_len**2)[None], 0.0, 1.0)
+        foot = seg_a[None] + t[..., None] * seg_d[None]
+        j = np.argmin(np.sum((pxy[:, None, :] - foot) ** 2, axis=2), axis=1)
+        dj = seg_d[j] / seg_len[j, None]
+        r = pxy - seg_a[j]
+        s = dj[:, 0] * r[:, 1] - dj[:, 1] * r[:, 0]
+        ell = cum[j] + t[np.arange(len(j)), j] * seg_len[j]
+        true_side = np.sign(s) * np.where(pfl, -1.0, 1.0)
+        n_st = max(int(np.ceil(cum[-1] / step)), 1)
+        st = np.linspace(0.0, cum[-1], n_st + 1)
+        shift = np.full(len(st), np.nan)
+        for i, e in enumerate(st):
+            sel = np.abs(ell - e) <= 0.5 * step + 1e-9
+            if np.count_nonzero(sel) < 20:
+                continue
+            wrong = [np.count_nonzero(np.sign(s[sel] - o) != true_side[sel]) for o in offsets]
+            wrong = np.asarray(wrong)
+            best = np.flatnonzero(wrong == wrong.min())
+            shift[i] = offsets[best[np.argmin(np.abs(offsets[best]))]]
+        if not np.any(np.isfinite(shift)):
+            out.append(part)
+            continue
+        good = np.isfinite(shift)
+        shift = np.interp(st, st[good], shift[good])
+        if len(shift) >= 3:
+            shift = np.r_[shift[0], np.median(np.c_[shift[:-2], shift[1:-1], shift[2:]], axis=1),
+                          shift[-1]]  # fmt: skip
+        # stations on the line and its left normal there
+        seg_of = np.clip(np.searchsorted(cum, st, side="right") - 1, 0, len(seg_len) - 1)
+        tt = (st - cum[seg_of]) / seg_len[seg_of]
+        base = seg_a[seg_of] + tt[:, None] * seg_d[seg_of]
+        dirs = seg_d[seg_of] / seg_len[seg_of, None]
+        normal = np.c_[-dirs[:, 1], dirs[:, 0]]
+        out.append(_douglas_peucker(base + shift[:, None] * normal, 0.1 * step))
+    log.info(
+        "breaklines placed on the points: %d decisive points, shifts up to %.2f m",
+        int(decisive.sum()),
+        float(np.max(np.abs(shift))) if out else 0.0,
+    )
+    return breaklines(out)
