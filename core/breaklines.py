@@ -339,8 +339,8 @@ def detect_breaklines(
     of a cell) and extended by :data:`DETECT_EXTEND_CELLS` cells at both ends (the chain
     stops at the last pair of cells that both pass the test), or to the edge of the valid
     vectors where that is at most :data:`DETECT_REACH_EDGE_CELLS` cells away. Smooth fields
-    (a lobe whose differences grow and shrink over several cells) give no step edges; a lone wrong vector boxes itself in with four and is dropped by
-    ``min_cells``.
+    (a lobe whose differences grow and shrink over several cells) give no step edges; a
+    lone wrong vector boxes itself in with four and is dropped by ``min_cells``.
 
     Parameters
     ----------
