@@ -18,10 +18,15 @@ X0, Y0 = 512000.0, 4780000.0
 pytestmark = pytest.mark.usefixtures("drop_cli_log_handlers")
 
 
-def test_spec_declares_the_spline_options_once_with_cells_by_default():
+def test_spec_declares_the_spline_options_once_with_spline_by_default():
     by_key = {o.key: o for o in SPEC.options}
     assert [o.key for o in SPEC.options].count("field_model") == 1
-    assert by_key["field_model"].default == "cells"
+    assert by_key["field_model"].default is None  # unset: the spline (cells for tiles)
+    assert core_kwargs({})["field_model"] == "spline"
+    assert core_kwargs({})["detect_breaklines"] is True
+    assert core_kwargs({"field_model": "cells"})["field_model"] == "cells"
+    assert "detect_breaklines" not in core_kwargs({"field_model": "cells"})
+    assert by_key["breaklines"].name_in("cli") == "--breaklines"
     assert by_key["field_model"].choices == ("cells", "spline")
     assert by_key["spline_spacing_m"].default is None
     assert by_key["spline_spacing_m"].name_in("qgis") == "SPLINE_SPACING"
