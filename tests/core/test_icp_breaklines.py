@@ -47,8 +47,10 @@ def _slow_basis(xy, parts, copy_index):
 
 def test_the_sided_basis_equals_a_slow_per_point_reference():
     rng = np.random.default_rng(0)
-    parts = [np.array([[103.0, -52.0], [108.5, -45.0], [111.0, -30.0]]),
-             np.array([[112.0, -47.0], [118.0, -44.5]])]  # fmt: skip  (the second ends inside)
+    parts = [
+        np.array([[103.0, -52.0], [108.5, -45.0], [111.0, -30.0]]),
+        np.array([[112.0, -47.0], [118.0, -44.5]]),
+    ]  # fmt: skip  (the second ends inside)
     bl = breaklines(parts)
     ci = knot_copies(ORIGIN, H, NX, NY, bl)
     assert 0 < np.count_nonzero(ci >= 0) < ci.size
