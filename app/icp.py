@@ -315,9 +315,8 @@ SPEC = JobSpec(
 
 def _check(opts) -> None:
     """The tiled-input refusals, and the spline field's: one fit over all points."""
-    from .tiled import is_tiled
-
     from .options import warn_option
+    from .tiled import is_tiled
 
     check_fields_tiled(opts, refused=CHECK_TILED)
     if opts.get("spline_spacing_m") is not None and opts.get("field_model") == "cells":
