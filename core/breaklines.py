@@ -254,6 +254,9 @@ def step_edges(
     * ``|J_i| > ratio * max(|J_(i-1)|, |J_(i+1)|)``
 
     (the parallel edges on either side; one missing is left out, both missing: no test).
+    A cell that straddles a step takes a motion between the two sides' and splits the jump
+    over its two edges: the same test on the pair of edges (``J_i + J_(i+1)``, in the same
+    direction, against ``J_(i-1)`` and ``J_(i+2)``) marks the pair's larger edge.
 
     Parameters
     ----------
@@ -311,6 +314,32 @@ def step_edges(
             & (dev > np.maximum(n_sigma * sd, floor_m))
             & (mag > ratio * other)
         )
+        # a cell that straddles the step takes a motion between the sides' and splits the
+        # jump over its two edges: the same test on the pair (J_i + J_(i+1) against J_(i-1)
+        # and J_(i+2)), the step put on the pair's larger edge
+        j2 = j[:, :-1] + j[:, 1:]  # (R, C-2, K)
+        js2 = js[:, :-1] + js[:, 1:]
+        prev2, next2 = prev[:, :-1], nxt[:, 1:]
+        both2 = np.stack([prev2, next2])
+        have2 = np.all(np.isfinite(both2), axis=3)
+        n2 = have2.sum(axis=0)
+        bg2 = np.where(
+            n2[..., None] > 0, np.nansum(both2, axis=0) / np.maximum(n2, 1)[..., None], np.nan
+        )
+        dev2 = np.linalg.norm(j2 - 2.0 * bg2, axis=2)
+        mag2 = np.linalg.norm(j2, axis=2)
+        other2 = np.nanmax(np.where(have2, np.linalg.norm(both2, axis=3), -np.inf), axis=0)
+        same_way = np.sum(j[:, :-1] * j[:, 1:], axis=2) > 0
+        pair = (
+            (n2 > 0)
+            & np.isfinite(mag2)
+            & same_way
+            & (dev2 > np.maximum(n_sigma * np.sqrt(1.25 * js2), floor_m))
+            & (mag2 > 2.0 * ratio * other2)
+        )
+        r_i, c_i = np.nonzero(pair)
+        first = mag[r_i, c_i] >= mag[r_i, c_i + 1]
+        step[r_i, np.where(first, c_i, c_i + 1)] = True
         return step
 
     rows = along(d, s2)

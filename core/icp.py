@@ -1966,11 +1966,13 @@ def windowed_icp(
                     a[cells.points], breaklines=lines, progress=scaled(progress, 0.9, 0.95),
                     **spline_kw,
                 )  # fmt: skip
+                from .breaklines import DETECT_FLOOR_M
+
                 lines = refine_breaklines(
                     first.field, a[cells.points], before=b, tree=tree, normals=normals,
-                    gate_m=gate, reach_m=cell,
+                    gate_m=gate, reach_m=cell, min_jump_m=DETECT_FLOOR_M,
                 )  # fmt: skip
-                lines_source = "detected"
+                lines_source = "none" if lines is None else "detected"
                 progress = scaled(progress, 0.95, 1.0)
         sfit = fit_spline_field(
             a[cells.points],

@@ -833,8 +833,10 @@ def refine_breaklines(
     gate_m: float,
     reach_m: float,
     step_m: Optional[float] = None,
+    min_jump_m: float = 0.0,
 ):
-    """Move a field's breaklines to where the points say its sides change.
+    """Move a field's breaklines to where the points say its sides change, and drop those
+    across which the field does not jump.
 
     A line found on a grid of cells lies on a cell edge, up to a cell from the scarp. Each
     point within ``reach_m`` of a line is moved back by the field of its own side and by
@@ -843,7 +845,10 @@ def refine_breaklines(
     the residuals' robust spread). Along each line, every ``step_m`` (default ``reach_m``),
     the line is shifted across by the offset that puts the fewest such points on the wrong
     side (searched over ``±reach_m`` in 41 steps; the median of three neighbouring offsets
-    kept), and the shifted stations make the new line.
+    kept), and the shifted stations make the new line. A line across which the two sides'
+    fields differ by less than ``min_jump_m`` at the median point near it is dropped: the
+    smooth field explains the data there (a steep lobe's flank that the cells took for a
+    step).
 
     Parameters
     ----------
@@ -858,10 +863,13 @@ def refine_breaklines(
         How far from a line points are looked at and the line may move, metres.
     step_m : float, optional
         Spacing of the stations along a line, metres.
+    min_jump_m : float
+        Smallest median jump of the field across a line that keeps it, metres.
 
     Returns
     -------
-    Breaklines
+    Breaklines or None
+        None when every line is dropped.
     """
     from .breaklines import _douglas_peucker, breaklines, distance_m
 
@@ -891,8 +899,25 @@ def refine_breaklines(
         v = np.einsum("ij,ij->i", nn, q - before[j])
         return np.where((np.asarray(dist) <= gate_m) & np.all(np.isfinite(nn), axis=1), v, np.nan)
 
-    v_own = np.abs(residual(a - np.einsum("pk,pkj->pj", w, coef[idx])))
-    v_flip = np.abs(residual(a - np.einsum("pk,pkj->pj", w, coef[flip])))
+    u_own = np.einsum("pk,pkj->pj", w, coef[idx])
+    u_flip = np.einsum("pk,pkj->pj", w, coef[flip])
+    jump = np.linalg.norm(u_own - u_flip, axis=1)
+    near_part = np.argmin(np.vstack([distance_m(a, breaklines([p])) for p in lines.parts]), axis=0)
+    keep_part = [
+        bool(np.any(near_part == k)) and float(np.median(jump[near_part == k])) >= min_jump_m
+        for k in range(len(lines))
+    ]
+    for k, kept in enumerate(keep_part):
+        if not kept:
+            log.info(
+                "breakline %d dropped: the field jumps by %.3f m across it (median), less "
+                "than %.3f m", k, float(np.median(jump[near_part == k])) if np.any(
+                    near_part == k) else 0.0, min_jump_m,
+            )  # fmt: skip
+    if not any(keep_part):
+        return None
+    v_own = np.abs(residual(a - u_own))
+    v_flip = np.abs(residual(a - u_flip))
     spread = MAD_TO_SIGMA * float(np.nanmedian(v_own)) if np.any(np.isfinite(v_own)) else 0.0
     own_i = np.where(np.isfinite(v_own), v_own, np.inf)
     flip_i = np.where(np.isfinite(v_flip), v_flip, np.inf)
@@ -905,6 +930,8 @@ def refine_breaklines(
     offsets = np.linspace(-reach_m, reach_m, 41)
     out = []
     for k, part in enumerate(lines.parts):
+        if not keep_part[k]:
+            continue
         pxy = xy[nearest == k]
         pfl = flipped[nearest == k]
         seg_a, seg_b = part[:-1], part[1:]
