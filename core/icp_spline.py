@@ -844,8 +844,12 @@ def refine_breaklines(
     against epoch 1 says which side it belongs to (where the two differ by more than twice
     the residuals' robust spread). Along each line, every ``step_m`` (default ``reach_m``),
     the line is shifted across by the offset that puts the fewest such points on the wrong
-    side (searched over ``±reach_m`` in 41 steps; the median of three neighbouring offsets
-    kept), and the shifted stations make the new line. A line across which the two sides'
+    side (searched over ``±reach_m`` in 41 steps; the middle of the offsets within 1 % of the
+    fewest; none where those span more than half the reach, e.g. a scan shadow; the median of
+    three neighbouring offsets kept). The side a point belongs to is the one whose field, a
+    cell and a half from the line, fits it better (a point on the wrong side bends its side's
+    field near the line, not there). The shifted stations make the new line, continued
+    straight to the old line's reach. A line across which the two sides'
     fields differ by less than ``min_jump_m`` at the median point near it is dropped: the
     smooth field explains the data there (a steep lobe's flank that the cells took for a
     step).
@@ -916,24 +920,14 @@ def refine_breaklines(
             )  # fmt: skip
     if not any(keep_part):
         return None
-    v_own = np.abs(residual(a - u_own))
-    v_flip = np.abs(residual(a - u_flip))
-    spread = MAD_TO_SIGMA * float(np.nanmedian(v_own)) if np.any(np.isfinite(v_own)) else 0.0
-    own_i = np.where(np.isfinite(v_own), v_own, np.inf)
-    flip_i = np.where(np.isfinite(v_flip), v_flip, np.inf)
-    decisive = np.abs(own_i - flip_i) > 2.0 * spread
-    decisive &= np.isfinite(own_i) | np.isfinite(flip_i)
-    flipped = flip_i < own_i
-    xy, flipped = a[decisive, :2], flipped[decisive]
-    parts_d = [distance_m(xy, breaklines([p])) for p in lines.parts]
-    nearest = np.argmin(np.vstack(parts_d), axis=0) if parts_d else np.zeros(0, int)
     offsets = np.linspace(-reach_m, reach_m, 41)
-    out = []
+    far = 1.5 * reach_m  # where each side's field is not bent by points put on the wrong side
+    out, n_decisive, largest = [], 0, 0.0
     for k, part in enumerate(lines.parts):
         if not keep_part[k]:
             continue
-        pxy = xy[nearest == k]
-        pfl = flipped[nearest == k]
+        pts = a[near_part == k]
+        pxy = pts[:, :2]
         seg_a, seg_b = part[:-1], part[1:]
         seg_d = seg_b - seg_a
         seg_len = np.hypot(seg_d[:, 0], seg_d[:, 1])
@@ -947,7 +941,19 @@ def refine_breaklines(
         r = pxy - seg_a[j]
         s = dj[:, 0] * r[:, 1] - dj[:, 1] * r[:, 0]
         ell = cum[j] + t[np.arange(len(j)), j] * seg_len[j]
-        true_side = np.sign(s) * np.where(pfl, -1.0, 1.0)
+        # which side's motion fits each point: the field a cell and a half to its left and
+        # to its right of the line (a point put on the wrong side bends its side's field
+        # near the line, not there)
+        nrm = np.c_[-dj[:, 1], dj[:, 0]]
+        v_left = np.abs(residual(pts - field(pxy + (far - s)[:, None] * nrm)))
+        v_right = np.abs(residual(pts - field(pxy - (far + s)[:, None] * nrm)))
+        spread = MAD_TO_SIGMA * float(np.nanmedian(np.fmin(v_left, v_right)))
+        vl = np.where(np.isfinite(v_left), v_left, np.inf)
+        vr = np.where(np.isfinite(v_right), v_right, np.inf)
+        decisive = (np.abs(vl - vr) > 2.0 * spread) & (np.isfinite(vl) | np.isfinite(vr))
+        n_decisive += int(decisive.sum())
+        s, ell = s[decisive], ell[decisive]
+        true_side = np.where(vl[decisive] < vr[decisive], 1.0, -1.0)
         n_st = max(int(np.ceil(cum[-1] / step)), 1)
         st = np.linspace(0.0, cum[-1], n_st + 1)
         shift = np.full(len(st), np.nan)
@@ -957,26 +963,45 @@ def refine_breaklines(
                 continue
             wrong = [np.count_nonzero(np.sign(s[sel] - o) != true_side[sel]) for o in offsets]
             wrong = np.asarray(wrong)
-            best = np.flatnonzero(wrong == wrong.min())
-            shift[i] = offsets[best[np.argmin(np.abs(offsets[best]))]]
+            best = np.flatnonzero(wrong <= wrong.min() + 0.01 * sel.sum())
+            if np.ptp(offsets[best]) > 0.5 * reach_m:
+                continue  # no points across the candidates (a scan shadow): the line goes
+                # on as its neighbouring stations place it
+            shift[i] = offsets[best[np.argmin(np.abs(offsets[best] - np.median(offsets[best])))]]
         if not np.any(np.isfinite(shift)):
             out.append(part)
             continue
-        good = np.isfinite(shift)
-        shift = np.interp(st, st[good], shift[good])
-        if len(shift) >= 3:
-            shift = np.r_[shift[0], np.median(np.c_[shift[:-2], shift[1:-1], shift[2:]], axis=1),
-                          shift[-1]]  # fmt: skip
-        # stations on the line and its left normal there
+        log.debug("breakline %d: stations %s, shifts %s", k, np.round(st, 1), shift)
+        good = np.flatnonzero(np.isfinite(shift))
+        if good.size < 2:
+            out.append(part)
+            continue
+        sh = shift[good]
+        if sh.size >= 3:
+            sh = np.r_[sh[0], np.median(np.c_[sh[:-2], sh[1:-1], sh[2:]], axis=1), sh[-1]]
+        # stations with points, on the line and shifted along its left normal there
         seg_of = np.clip(np.searchsorted(cum, st, side="right") - 1, 0, len(seg_len) - 1)
         tt = (st - cum[seg_of]) / seg_len[seg_of]
         base = seg_a[seg_of] + tt[:, None] * seg_d[seg_of]
         dirs = seg_d[seg_of] / seg_len[seg_of, None]
         normal = np.c_[-dirs[:, 1], dirs[:, 0]]
-        out.append(_douglas_peucker(base + shift[:, None] * normal, 0.1 * step))
+        placed = base[good] + sh[:, None] * normal[good]
+        # beyond the first and last stations with points the line goes on straight, along
+        # the placed line's end (over up to three stations), as far as it reached before
+        k_end = min(2, len(placed) - 1)
+        ends = []
+        for reach, tip, back in (
+            (st[good[0]] - st[0], placed[0], placed[k_end]),
+            (st[-1] - st[good[-1]], placed[-1], placed[-1 - k_end]),
+        ):
+            t = tip - back
+            ends.append(tip + reach * t / max(float(np.hypot(*t)), 1e-12))
+        line = np.vstack([ends[0], placed, ends[1]])
+        out.append(_douglas_peucker(line, 0.1 * step))
+        largest = max(largest, float(np.nanmax(np.abs(shift))))
     log.info(
         "breaklines placed on the points: %d decisive points, shifts up to %.2f m",
-        int(decisive.sum()),
-        float(np.max(np.abs(shift))) if out else 0.0,
+        n_decisive,
+        largest,
     )
     return breaklines(out)
