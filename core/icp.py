@@ -1977,6 +1977,9 @@ def windowed_icp(
         sfit = fit_spline_field(
             a[cells.points],
             breaklines=lines,
+            # a detected line is placed to about a metre: the points that close to it are
+            # left out (on lone-star's scarp, 5 m cells: 5.6 cm -> 0.6 cm at cells >= 3 m)
+            breakline_gap_m=DETECTED_GAP_CELLS * cell if lines_source == "detected" else 0.0,
             progress=scaled(progress, 0.9, 1.0),
             **spline_kw,
         )
@@ -2076,6 +2079,10 @@ def windowed_icp(
     log.info("windowed ICP: %d cells fitted%s, %.1f s", n_ok, skipped_cells_text(skipped),
              res.seconds)  # fmt: skip
     return res
+
+
+#: points closer than this many cells to a detected breakline are left out of the final fit
+DETECTED_GAP_CELLS = 0.3
 
 
 def _detect_lines(cells, d, usable, cov_d, n_rows, n_cols, x0, y0, cell):

@@ -542,6 +542,7 @@ def fit_spline_field(
     progress: Optional[ProgressCallback] = None,
     grid=None,
     breaklines=None,
+    breakline_gap_m: float = 0.0,
 ) -> SplineFit:
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
 
@@ -594,6 +595,10 @@ def fit_spline_field(
         a line that ends inside the area the penalty ties the copies to the other side's
         knots, so the field stays continuous there (as far as the data let it). Copies that no
         point uses are held by the penalty and a small ridge.
+    breakline_gap_m : float
+        Points closer than this to a breakline are left out (a line placed from the data is
+        known to this much only: the points between it and the scarp would pull the wrong
+        side's field).
 
     Returns
     -------
@@ -664,6 +669,11 @@ def fit_spline_field(
     perm = np.argsort(cell_of, kind="stable")
     a, idx16, w16 = a[perm], idx16[perm], w16[perm]
     seg_sorted = None if report_seg is None else np.asarray(report_seg)[perm]
+    gap = np.zeros(len(a), dtype=bool)
+    if bl is not None and breakline_gap_m > 0:
+        from .breaklines import distance_m
+
+        gap = distance_m(a, bl) < breakline_gap_m
     bounds = np.searchsorted(cell_of[perm], np.arange(n_groups + 1))
     converged, it = False, 0
     m_pts = len(before)
@@ -708,6 +718,7 @@ def fit_spline_field(
         keep, wv, _ = _weights(v[ok], opts)
         wt = np.zeros(len(a))
         wt[ok] = np.where(keep, wv, 0.0)
+        wt[gap] = 0.0
         nmat, rhs = _assemble(None, bounds, idx16, w16, nrm, v, wt, n_k)
         if lam_abs is None:
             dg = nmat.diagonal()
