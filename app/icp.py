@@ -25,6 +25,7 @@ from .fields import (
     ARYAL,
     JSON_FILTER,
     PNG_FILTER,
+    breaklines_option,
     check_overlap,
     compare_control,
     control_option,
@@ -34,6 +35,7 @@ from .fields import (
     output_option,
     pair_inputs,
     pair_options,
+    read_breaklines,
     read_control,
     read_pair,
     write_tif,
@@ -67,7 +69,11 @@ CHECK_TILED = {
     "the epochs first (e.g. with a global ICP) or run on one file per epoch",
     "prealign": "the pre-alignment is one fit over both whole epochs; align the epochs first "
     "or run on one file per epoch",
+    "breaklines": "the tiled spline field has no breaklines yet (its blocks sum one field "
+    "that is smooth everywhere); run on one file per epoch",
 }
+#: the field model when field_model is not set (too few cells: cells, with a warning)
+DEFAULT_FIELD_MODEL = "spline"
 
 SPEC = JobSpec(
     name="icp",
@@ -158,14 +164,16 @@ SPEC = JobSpec(
         _opt(
             "field_model",
             "choice",
-            "what each cell reports: cells (its own transform, the study's) or spline (after "
-            "the cells, one smooth B-spline field fitted to all points at once; each cell "
-            "gives the field at its centre, with its covariance and strain; follows a "
-            "landslide lobe only 3-4 cells wide; on tiles the blocks' shares of each iteration's "
-            "normal equations are summed: the one-file run's field)",
-            "Field model",
-            default="cells",
+            "what each cell reports: spline (after the cells, one B-spline field fitted to "
+            "all points at once, smooth on each side of the breaklines and free to jump "
+            "across them; each cell gives the field at its centre, with its covariance and "
+            "strain; follows a landslide lobe only 3-4 cells wide; on tiles the blocks' shares "
+            "of each iteration's normal equations are summed: the one-file run's field) or "
+            "cells (each cell's own transform, the study's). Default spline; cells where fewer "
+            "than 4 cells hold points (with a warning)",
+            "Field model (default spline)",
             choices=("cells", "spline"),
+            unset_text="spline",
             advanced=True,
         ),
         _opt(
@@ -188,6 +196,21 @@ SPEC = JobSpec(
             "Spline smoothing (default: estimated)",
             minimum=0,
             metavar="W",
+            advanced=True,
+        ),
+        breaklines_option(
+            "the spline field is smooth on each side and may jump across them (given, "
+            "nothing is detected); written to the GeoPackage's breaklines layer"
+        ),
+        _opt(
+            "detect_breaklines",
+            "bool",
+            "with the spline field and no breaklines given: find them in the cells' motions "
+            "(edges where neighbouring cells step by far more than their sigmas and than the "
+            "neighbouring edges), place them on the points and fit the field smooth on each "
+            "side",
+            "Detect breaklines (when none are given)",
+            default=True,
             advanced=True,
         ),
         _opt(
@@ -294,13 +317,18 @@ SPEC = JobSpec(
 
 def _check(opts) -> None:
     """The tiled-input refusals, and the spline options' consistency."""
-    check_fields_tiled(opts, refused=CHECK_TILED)
-    if opts.get("spline_spacing_m") is not None and opts.get("field_model") != "spline":
-        from .options import warn_option
+    from .options import warn_option
 
+    check_fields_tiled(opts, refused=CHECK_TILED)
+    if opts.get("spline_spacing_m") is not None and opts.get("field_model") == "cells":
         warn_option(
             "{spline_spacing_m} is set but {field_model} is not spline: the knot spacing is "
             "not used; set {field_model} to spline for the spline field"
+        )
+    if opts.get("breaklines") and opts.get("field_model") == "cells":
+        warn_option(
+            "{breaklines} is given but {field_model} is cells: the cells do not use them; "
+            "set {field_model} to spline for a field that may jump across them"
         )
 
 
@@ -313,7 +341,6 @@ CORE_KEYS = (
     "coarse_to_fine",
     "deform_passes",
     "cell_model",
-    "field_model",
     "spline_spacing_m",
     "spline_smoothing",
     "median_threshold",
@@ -325,7 +352,18 @@ _KEYS = ("table", "layers", "raster", "plot", "summary")
 
 def core_kwargs(opts: Mapping[str, Any]) -> Dict[str, Any]:
     """``windowed_icp`` keywords of the options (unset ones left to the core's default)."""
+    from .tiled import is_tiled
+
     kw = {k: opts[k] for k in CORE_KEYS if opts.get(k) is not None}
+    kw["field_model"] = field_model_of(opts)
+    tiled = opts.get("before") is not None and is_tiled(opts, "before", "after")
+    if kw["field_model"] == "spline" and not tiled:
+        kw["detect_breaklines"] = bool(opts.get("detect_breaklines", True))
+    elif kw["field_model"] == "spline" and opts.get("detect_breaklines", True):
+        log.info(
+            "tiled inputs: breaklines are not detected (the tiled spline field is smooth "
+            "everywhere; run on one file per epoch for a field that may jump at scarps)"
+        )
     regions = int(opts.get("sigma_regions") or 1)
     if opts.get("formal_sigma"):
         kw["sigma_scaling"] = "formal"
@@ -336,6 +374,15 @@ def core_kwargs(opts: Mapping[str, Any]) -> Dict[str, Any]:
     else:
         kw["sigma_scaling"] = "field"
     return kw
+
+
+def field_model_of(opts: Mapping[str, Any]) -> str:
+    """The field model of a run: ``field_model`` when set, else :data:`DEFAULT_FIELD_MODEL`
+    (one-file and tiled inputs alike)."""
+    chosen = opts.get("field_model")
+    if chosen:
+        return chosen
+    return DEFAULT_FIELD_MODEL
 
 
 def default_names(opts: Mapping[str, Any]) -> Dict[str, str]:
@@ -427,6 +474,7 @@ def run(
     outputs: Mapping[str, Any],
     *,
     stable_mask: Optional[Callable[[Any], List[np.ndarray]]] = None,
+    breaklines: Optional[Callable[[Any], Any]] = None,
     progress: Optional[Progress] = None,
 ) -> JobResult:
     """Read both epochs, run windowed ICP, compare with control points and write.
@@ -441,6 +489,9 @@ def run(
     stable_mask
         ``f(crs) -> [ring (K, 2)]``: the moving-area polygons in the clouds' CRS (QGIS gives
         its layer this way); default: read ``opts["stable_mask"]``.
+    breaklines
+        ``f(crs) -> [polyline (M, 2)]``: the breaklines in the clouds' CRS (QGIS gives its
+        line layer this way); default: read ``opts["breaklines"]``.
 
     Returns
     -------
@@ -454,8 +505,10 @@ def run(
     tiled = is_tiled(opts, "before", "after")
     if tiled and stable_mask is not None:  # QGIS gives the moving area as a layer
         raise tiled_refusal("stable_mask", CHECK_TILED["stable_mask"])
+    if tiled and breaklines is not None:
+        raise tiled_refusal("breaklines", CHECK_TILED["breaklines"])
     plan = OutputPlan.for_outputs(
-        inputs=pair_inputs(opts, "before", "after", "control", "stable_mask"),
+        inputs=pair_inputs(opts, "before", "after", "control", "stable_mask", "breaklines"),
         outputs=outputs,
         default_names=default_names(opts),
     )
@@ -476,16 +529,34 @@ def run(
                 stable_mask = _mask_reader(opts["stable_mask"])
             if stable_mask is not None:
                 exclude = stable_mask(crs)
+            lines = _breaklines_of(opts, breaklines, crs)
             check_lattice(after, opts["cell_m"])
-            with spline_errors():
-                res = windowed_icp(
-                    before,
-                    after,
-                    prealign=bool(exclude) or bool(opts.get("prealign")),
-                    exclude_polygons=exclude,
-                    progress=progress,
-                    **core_kwargs(opts),
+            kw = core_kwargs(opts)
+            if kw["field_model"] == "spline":
+                kw["breaklines"] = lines
+            run_kw = dict(
+                prealign=bool(exclude) or bool(opts.get("prealign")),
+                exclude_polygons=exclude,
+                progress=progress,
+            )
+            try:
+                with spline_errors():
+                    res = windowed_icp(before, after, **run_kw, **kw)
+            except OptionError as exc:
+                if opts.get("field_model") or exc.key != "cell_m":
+                    raise
+                from .options import warn_option
+
+                warn_option(
+                    "too few cells for the default spline field (%s): the field is the "
+                    "cells'; use a smaller {cell_m}, or set {field_model} to cells to "
+                    "silence this",
+                    str(exc),
                 )
+                kw.update(field_model="cells")
+                kw.pop("breaklines", None)
+                kw.pop("detect_breaklines", None)
+                res = windowed_icp(before, after, **run_kw, **kw)
         comparison = None
         if control is not None:
             field = field_of_columns(
@@ -507,6 +578,7 @@ def run(
             "min_points": opts["min_points"],
             "coarse_to_fine": opts["coarse_to_fine"],
             **icp_summary(res),
+            "breaklines": breaklines_summary(res, opts.get("breaklines")),
             "control": comparison,
             "crs": None if crs is None else crs.to_wkt(),
             "slipmap_version": __version__,
@@ -530,6 +602,42 @@ def run(
     files = {k: plan.final(k) for k in _KEYS if plan.wants(k) and plan.final(k).exists()}
     data = {"result": res, "columns": columns, "rings": rings, "crs": crs}
     return JobResult(summary, lines, files, data=data)
+
+
+def _breaklines_of(opts, reader, crs):
+    """The run's breaklines in the clouds' CRS: QGIS's layer (``reader``) or the file of
+    ``opts["breaklines"]``; None when neither is given."""
+    if reader is not None:
+        from ..core.breaklines import from_sequence
+
+        return from_sequence(reader(crs))
+    return read_breaklines(opts.get("breaklines"), crs)
+
+
+def breaklines_summary(res, path=None) -> Dict[str, Any]:
+    """``icp.json``'s ``breaklines``: where they came from (``given``, ``detected``,
+    ``none``), how many lines, their length (m), the file given and each line's vertices."""
+    lines = getattr(res, "breaklines", None)
+    src = getattr(res, "breaklines_source", "none")
+    if lines is None or lines.empty:
+        return {"source": src, "count": 0, "length_m": 0.0, "file": path}
+    return {
+        "source": src,
+        "count": len(lines),
+        "length_m": round(lines.length_m(), 3),
+        "file": None if path is None else str(path),
+        "lines": [np.round(p, 3).tolist() for p in lines.parts],
+    }
+
+
+def breaklines_columns(res) -> Dict[str, np.ndarray]:
+    """Attribute columns of the ``breaklines`` layer: ``source`` (given/detected) and
+    ``length_m`` of each line."""
+    parts = res.breaklines.parts
+    return {
+        "source": np.array([res.breaklines_source] * len(parts), dtype=object),
+        "length_m": np.array([float(np.hypot(*np.diff(p, axis=0).T).sum()) for p in parts]),
+    }
 
 
 def _mask_reader(path) -> Callable[[Any], List[np.ndarray]]:
@@ -565,6 +673,12 @@ def _write(plan: OutputPlan, res, columns, rings, crs, before) -> None:
             VectorLayer("cells", "Polygon", [r[:-1] for r in rings], columns),
             VectorLayer("vectors", "LineString", vectors, columns),
         ]
+        if getattr(res, "breaklines", None) is not None and not res.breaklines.empty:
+            layers.append(
+                VectorLayer(
+                    "breaklines", "LineString", list(res.breaklines.parts), breaklines_columns(res)
+                )
+            )
         write_gpkg_layers(plan.file("layers"), layers, crs=crs, styles=gpkg_styles("icp", layers))
     if plan.wants("raster"):
         write_tif(

@@ -106,6 +106,7 @@ TILES = VectorStyle("slip_tiles", RIGHT_LATERAL)
 STRIPS = VectorStyle("slip_strips", RIGHT_LATERAL)
 PLANES = VectorStyle("slip_planes")
 TRACE = VectorStyle("fault_trace")
+BREAKLINES = VectorStyle("icp_breaklines")  # given or detected breaklines of the ICP field
 ICP_CELLS = VectorStyle("icp_cells", DZ_UP, sigma=True)
 ICP_VECTORS = VectorStyle("icp_vectors", arrows=True, sigma=True)  # points (QGIS's sinks)
 ICP_VECTOR_LINES = VectorStyle("icp_vectors_lines", arrows=True, sigma=True)  # lines (gpkg)
@@ -116,7 +117,17 @@ PIV_VECTORS = VectorStyle(
 #: the vector styles by template name (the QGIS algorithms name the style of each sink)
 VECTOR_STYLES = {
     s.name: s
-    for s in (TILES, STRIPS, PLANES, TRACE, ICP_CELLS, ICP_VECTORS, ICP_VECTOR_LINES, PIV_VECTORS)
+    for s in (
+        TILES,
+        STRIPS,
+        PLANES,
+        TRACE,
+        BREAKLINES,
+        ICP_CELLS,
+        ICP_VECTORS,
+        ICP_VECTOR_LINES,
+        PIV_VECTORS,
+    )
 }
 
 WINDOWS = RasterStyle("slip_windows", ends=("left-lateral", "right-lateral"))
@@ -143,7 +154,7 @@ OUTPUT_STYLES: Dict[str, Dict[str, Any]] = {
         "windows_dy": DY,
     },
     "icp": {
-        "layers": {"cells": ICP_CELLS, "vectors": ICP_VECTOR_LINES},
+        "layers": {"cells": ICP_CELLS, "vectors": ICP_VECTOR_LINES, "breaklines": BREAKLINES},
         "raster": RasterStyle("vertical", band=3, ends=("down", "up")),  # bands dx, dy, dz, ..
     },
     "piv": {"dx": DX, "dy": DY, "dz": DZ},

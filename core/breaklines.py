@@ -22,7 +22,16 @@ import numpy as np
 
 from .errors import InvalidParameterError
 
-__all__ = ["Breaklines", "breaklines", "crossings", "same_side", "distance_m", "from_sequence"]
+__all__ = [
+    "Breaklines",
+    "breaklines",
+    "crossings",
+    "same_side",
+    "distance_m",
+    "from_sequence",
+    "detect_breaklines",
+    "step_edges",
+]
 
 
 @dataclass(frozen=True)
@@ -205,3 +214,293 @@ def from_sequence(parts: Sequence[np.ndarray] | Breaklines | None) -> Breaklines
         return None if parts.empty else parts
     bl = breaklines(parts)
     return None if bl.empty else bl
+
+
+# --------------------------------------------------------------------------- detection
+
+#: a jump counts when it exceeds this many times the larger jump of the parallel edges on
+#: either side (a step sits on one edge; a smooth field's differences change slowly)
+DETECT_RATIO = 3.0
+#: ... and this many sigmas of the difference (the cells' sigmas, inflated as they come)
+DETECT_SIGMAS = 5.0
+#: ... and this many metres (the noise floor of a "jump")
+DETECT_FLOOR_M = 0.05
+#: a line is kept when its cell edges span this many cells at least (a single wrong cell
+#: is boxed by 4 jumping edges over 1.4 cells)
+DETECT_MIN_CELLS = 3.0
+#: a detected line is extended by this many cells at both ends
+DETECT_EXTEND_CELLS = 2.0
+#: ... and to the edge of the vectors (one cell beyond) where that is at most this far
+DETECT_REACH_EDGE_CELLS = 4.0
+
+
+def step_edges(
+    d: np.ndarray,
+    *,
+    valid: np.ndarray | None = None,
+    sigma: np.ndarray | None = None,
+    ratio: float = DETECT_RATIO,
+    n_sigma: float = DETECT_SIGMAS,
+    floor_m: float = DETECT_FLOOR_M,
+):
+    """Edges of a regular grid of vectors across which the field steps.
+
+    The edge between neighbours ``i`` and ``i + 1`` (along rows or along columns) carries
+    the difference ``J_i = d_(i+1) - d_i``; a smooth field's differences change slowly from
+    one edge to the next, a step puts its whole jump on one edge. An edge is a step when
+
+    * ``|J_i - (J_(i-1) + J_(i+1)) / 2| > max(n_sigma s, floor_m)`` (``s``: the sigma of
+      that combination from the vectors' sigmas, as if independent), and
+    * ``|J_i| > ratio * max(|J_(i-1)|, |J_(i+1)|)``
+
+    (the parallel edges on either side; one missing is left out, both missing: no test).
+    A cell that straddles a step takes a motion between the two sides' and splits the jump
+    over its two edges: the same test on the pair of edges (``J_i + J_(i+1)``, in the same
+    direction, against ``J_(i-1)`` and ``J_(i+2)``) marks the pair's larger edge.
+
+    Parameters
+    ----------
+    d : (R, C, K) float64
+        The vectors (K components, e.g. dx, dy, dz), metres.
+    valid : (R, C) bool, optional
+        Usable vectors (default: all finite).
+    sigma : (R, C) or (R, C, K) float64, optional
+        1-sigma of the vectors (per component or one value), metres; default 0.
+
+    Returns
+    -------
+    along_rows : (R, C - 1) bool
+        Step between ``(r, c)`` and ``(r, c + 1)``.
+    along_cols : (R - 1, C) bool
+        Step between ``(r, c)`` and ``(r + 1, c)``.
+    """
+    d = np.asarray(d, dtype=np.float64)
+    if d.ndim == 2:
+        d = d[:, :, None]
+    ok = np.all(np.isfinite(d), axis=2)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool)
+    if sigma is None:
+        s2 = np.zeros(ok.shape)
+    else:
+        sg = np.asarray(sigma, dtype=np.float64)
+        s2 = np.sum(sg**2, axis=2) if sg.ndim == 3 else sg**2
+        s2 = np.where(np.isfinite(s2), s2, np.inf)
+    d = np.where(ok[:, :, None], d, np.nan)
+
+    def along(dd, ss):  # steps between neighbours along axis 1
+        j = dd[:, 1:] - dd[:, :-1]  # (R, C-1, K)
+        js = ss[:, 1:] + ss[:, :-1]
+        pad = np.full_like(j[:, :1], np.nan)
+        prev = np.concatenate([pad, j[:, :-1]], axis=1)
+        nxt = np.concatenate([j[:, 1:], pad], axis=1)
+        both = np.stack([prev, nxt])
+        have = np.all(np.isfinite(both), axis=3)  # (2, R, C-1)
+        n_have = have.sum(axis=0)
+        bg = np.where(
+            n_have[..., None] > 0,
+            np.nansum(both, axis=0) / np.maximum(n_have, 1)[..., None],
+            np.nan,
+        )
+        dev = np.linalg.norm(j - bg, axis=2)
+        # variance of J - mean(J_prev, J_next): the edge's two vectors enter with weight
+        # 1.5, the outer ones with 0.5 (both neighbours), roughly 1.25 x var(J)
+        sd = np.sqrt(1.25 * js)
+        mag = np.linalg.norm(j, axis=2)
+        other = np.nanmax(np.where(have, np.linalg.norm(both, axis=3), -np.inf), axis=0)
+        step = (
+            (n_have > 0)
+            & np.isfinite(mag)
+            & (dev > np.maximum(n_sigma * sd, floor_m))
+            & (mag > ratio * other)
+        )
+        # a cell that straddles the step takes a motion between the sides' and splits the
+        # jump over its two edges: the same test on the pair (J_i + J_(i+1) against J_(i-1)
+        # and J_(i+2)), the step put on the pair's larger edge
+        j2 = j[:, :-1] + j[:, 1:]  # (R, C-2, K)
+        js2 = js[:, :-1] + js[:, 1:]
+        prev2, next2 = prev[:, :-1], nxt[:, 1:]
+        both2 = np.stack([prev2, next2])
+        have2 = np.all(np.isfinite(both2), axis=3)
+        n2 = have2.sum(axis=0)
+        bg2 = np.where(
+            n2[..., None] > 0, np.nansum(both2, axis=0) / np.maximum(n2, 1)[..., None], np.nan
+        )
+        dev2 = np.linalg.norm(j2 - 2.0 * bg2, axis=2)
+        mag2 = np.linalg.norm(j2, axis=2)
+        other2 = np.nanmax(np.where(have2, np.linalg.norm(both2, axis=3), -np.inf), axis=0)
+        same_way = np.sum(j[:, :-1] * j[:, 1:], axis=2) > 0
+        pair = (
+            (n2 > 0)
+            & np.isfinite(mag2)
+            & same_way
+            & (dev2 > np.maximum(n_sigma * np.sqrt(1.25 * js2), floor_m))
+            & (mag2 > 2.0 * ratio * other2)
+        )
+        r_i, c_i = np.nonzero(pair)
+        first = mag[r_i, c_i] >= mag[r_i, c_i + 1]
+        step[r_i, np.where(first, c_i, c_i + 1)] = True
+        return step
+
+    rows = along(d, s2)
+    cols = along(np.transpose(d, (1, 0, 2)), s2.T).T
+    return rows, cols
+
+
+def detect_breaklines(
+    d: np.ndarray,
+    *,
+    x: np.ndarray,
+    y: np.ndarray,
+    valid: np.ndarray | None = None,
+    sigma: np.ndarray | None = None,
+    ratio: float = DETECT_RATIO,
+    n_sigma: float = DETECT_SIGMAS,
+    floor_m: float = DETECT_FLOOR_M,
+    min_cells: float = DETECT_MIN_CELLS,
+) -> Breaklines | None:
+    """Breaklines of a regular grid of displacement vectors (ICP cells, PIV vectors).
+
+    The step edges (:func:`step_edges`) are chained through the grid's cell corners into
+    connected sets; a set that spans ``min_cells`` cells or more becomes one line: the
+    longest chain of corners through it (a graph's diameter, by SciPy's shortest paths),
+    smoothed by a running mean of three corners, simplified (Douglas-Peucker, a quarter
+    of a cell) and extended by :data:`DETECT_EXTEND_CELLS` cells at both ends (the chain
+    stops at the last pair of cells that both pass the test), or to the edge of the valid
+    vectors where that is at most :data:`DETECT_REACH_EDGE_CELLS` cells away. Smooth fields
+    (a lobe whose differences grow and shrink over several cells) give no step edges; a
+    lone wrong vector boxes itself in with four and is dropped by ``min_cells``.
+
+    Parameters
+    ----------
+    d : (R, C, K) float64
+        Vectors, metres; ``d[r, c]`` sits at ``(x[c], y[r])``.
+    x : (C,) float64
+        Column positions (equally spaced, either direction), metres.
+    y : (R,) float64
+        Row positions (equally spaced, either direction), metres.
+    valid, sigma, ratio, n_sigma, floor_m
+        As in :func:`step_edges`.
+    min_cells : float
+        Smallest extent of a line, in cells.
+
+    Returns
+    -------
+    Breaklines or None
+        None when no line is found.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components, shortest_path
+
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    d = np.asarray(d, dtype=np.float64)
+    if d.ndim == 2:
+        d = d[:, :, None]
+    n_r, n_c = d.shape[:2]
+    if len(x) != n_c or len(y) != n_r:
+        raise InvalidParameterError(f"x, y must have {n_c} and {n_r} positions")
+    if n_r < 2 and n_c < 2:
+        return None
+    sx = float(x[1] - x[0]) if n_c > 1 else float(abs(y[1] - y[0]))
+    sy = float(y[1] - y[0]) if n_r > 1 else float(abs(sx))
+    rows, cols = step_edges(
+        d, valid=valid, sigma=sigma, ratio=ratio, n_sigma=n_sigma, floor_m=floor_m
+    )
+    # corners (i, j), i = 0..R, j = 0..C, at x[0] + (j - 0.5) sx, y[0] + (i - 0.5) sy
+    n_cc = n_c + 1
+    r, c = np.nonzero(rows)  # edge between (r, c), (r, c+1): corners (r, c+1)-(r+1, c+1)
+    e0 = [r * n_cc + c + 1]
+    e1 = [(r + 1) * n_cc + c + 1]
+    r, c = np.nonzero(cols)  # between (r, c), (r+1, c): corners (r+1, c)-(r+1, c+1)
+    e0.append((r + 1) * n_cc + c)
+    e1.append((r + 1) * n_cc + c + 1)
+    a, b = np.concatenate(e0), np.concatenate(e1)
+    if a.size == 0:
+        return None
+    n_nodes = (n_r + 1) * n_cc
+    g = coo_matrix((np.ones(a.size), (a, b)), shape=(n_nodes, n_nodes)).tocsr()
+    g = g + g.T
+    _, label = connected_components(g, directed=False)
+    used = np.unique(np.concatenate([a, b]))
+    have = np.all(np.isfinite(d), axis=2) if valid is None else np.asarray(valid, bool)
+    rr, cc = np.nonzero(have)
+    box_pos = _corner_xy(
+        np.concatenate([rr * n_cc + cc, (rr + 1) * n_cc + cc + 1]), n_cc, x[0], y[0], sx, sy
+    )
+    box_lo, box_hi = box_pos.min(axis=0), box_pos.max(axis=0)
+    cell = float(np.hypot(sx, sy) / np.sqrt(2.0))
+    parts = []
+    for lab in np.unique(label[used]):
+        nodes = used[label[used] == lab]
+        pos = _corner_xy(nodes, n_cc, x[0], y[0], sx, sy)
+        span = np.max(np.ptp(pos, axis=0)) / cell
+        if span < min_cells - 1e-9:
+            continue
+        sub = g[nodes][:, nodes]
+        far = shortest_path(sub, directed=False, unweighted=True, indices=0)
+        s0 = int(np.argmax(np.where(np.isfinite(far), far, -1)))
+        dist, pred = shortest_path(
+            sub, directed=False, unweighted=True, indices=s0, return_predecessors=True
+        )
+        s1 = int(np.argmax(np.where(np.isfinite(dist), dist, -1)))
+        path = [s1]
+        while path[-1] != s0:
+            path.append(int(pred[path[-1]]))
+        line = pos[np.asarray(path)]
+        if len(line) > 2:  # running mean of three corners, ends kept
+            inner = (line[:-2] + line[1:-1] + line[2:]) / 3.0
+            line = np.vstack([line[:1], inner, line[-1:]])
+        line = _douglas_peucker(line, 0.25 * cell)
+        # the chain stops at the last pair of cells that both pass the test; the scarp goes
+        # on under the cells beyond (the partial cells at the data's edge, a cell that
+        # straddles it with a mixed motion): two cells; beyond a scarp's true tip the field's
+        # two sides then meet the same data and agree. To the edge of the vectors (and a cell
+        # beyond) where that is at most DETECT_REACH_EDGE_CELLS away
+        for end, inner in ((0, 1), (-1, -2)):
+            t = line[end] - line[inner]
+            t = t / max(np.hypot(*t), 1e-12)
+            to_edge = _exit_distance(line[end], t, box_lo, box_hi)
+            reach = DETECT_EXTEND_CELLS * cell
+            if to_edge <= DETECT_REACH_EDGE_CELLS * cell:
+                reach = max(reach, to_edge + cell)
+            line[end] = line[end] + reach * t
+        parts.append(line)
+    return from_sequence(parts) if parts else None
+
+
+def _exit_distance(p, t, lo, hi) -> float:
+    """How far from ``p`` along the unit direction ``t`` the box ``[lo, hi]`` is left."""
+    out = np.inf
+    for k in range(2):
+        if t[k] > 1e-12:
+            out = min(out, (hi[k] - p[k]) / t[k])
+        elif t[k] < -1e-12:
+            out = min(out, (lo[k] - p[k]) / t[k])
+    return max(float(out), 0.0)
+
+
+def _corner_xy(nodes, n_cc, x0, y0, sx, sy):
+    i, j = np.divmod(nodes, n_cc)
+    return np.column_stack([x0 + (j - 0.5) * sx, y0 + (i - 0.5) * sy])
+
+
+def _douglas_peucker(line: np.ndarray, tol: float) -> np.ndarray:
+    """Douglas-Peucker simplification of an (M, 2) polyline (a dozen lines of numpy; the
+    geometry libraries at hand, OGR through GDAL, belong to core.io, not to core)."""
+    if len(line) <= 2:
+        return line
+    a, b = line[0], line[-1]
+    ab = b - a
+    n = np.hypot(*ab)
+    rel = line - a
+    if n == 0:
+        dist = np.hypot(rel[:, 0], rel[:, 1])
+    else:
+        dist = np.abs(ab[0] * rel[:, 1] - ab[1] * rel[:, 0]) / n
+    k = int(np.argmax(dist))
+    if dist[k] <= tol:
+        return np.vstack([a, b])
+    left = _douglas_peucker(line[: k + 1], tol)
+    right = _douglas_peucker(line[k:], tol)
+    return np.vstack([left[:-1], right])

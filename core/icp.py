@@ -992,6 +992,10 @@ class WindowedICPResult:
         With ``sigma_scaling="region"``: the factor of each region (lowest class first).
     sigma_region : (K,) int64 or None
         With ``sigma_scaling="region"``: each cell's region (-1: none, the field's factor).
+    breaklines : Breaklines or None
+        The lines the spline field was allowed to jump across (given or detected).
+    breaklines_source : str
+        ``"given"``, ``"detected"`` or ``"none"``.
     """
 
     x: np.ndarray
@@ -1039,6 +1043,8 @@ class WindowedICPResult:
     sigma_factor_cell: Optional[np.ndarray] = None
     sigma_region_factors: Tuple[float, ...] = ()
     sigma_region: Optional[np.ndarray] = None
+    breaklines: object = None
+    breaklines_source: str = "none"
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -1517,6 +1523,8 @@ def windowed_icp(
     field_model: str = "cells",
     spline_spacing_m: Optional[float] = None,
     spline_smoothing: Optional[float] = None,
+    breaklines=None,
+    detect_breaklines: bool = False,
     engine: str = "batched",
     backend: str = "auto",
     median_threshold: float = 2.0,
@@ -1626,6 +1634,17 @@ def windowed_icp(
         Second-difference penalty of ``field_model="spline"`` relative to the median
         diagonal of its normal matrix (>= 0); None (default): estimated per component by
         variance-component estimation.
+    breaklines : Breaklines or sequence of (M, 2) float64, optional
+        Lines (scarps, a fault, the edge of a slab; map coordinates of ``after``) across which
+        ``field_model="spline"`` may jump: the field is smooth on each side
+        (:func:`slipmap.core.icp_spline.fit_spline_field`). Ignored by ``field_model="cells"``.
+    detect_breaklines : bool
+        With ``field_model="spline"`` and no ``breaklines``: look for them in the cells'
+        motions (:func:`slipmap.core.breaklines.detect_breaklines`: edges where the motion
+        jumps by far more than the cells' sigmas and the neighbouring edges' differences,
+        chained into lines), place them on the points (each point near a line goes to the
+        side whose field fits it: :func:`slipmap.core.icp_spline.refine_breaklines`), and fit
+        the field smooth on each side. The result's ``breaklines`` holds what was found.
     median_threshold : float
         Wrong-minimum test (0: off): a cell whose motion differs from the median of its
         8-neighbours by more than this many times their median spread (plus
@@ -1718,6 +1737,15 @@ def windowed_icp(
         if spline_smoothing is None
         else _positive("spline_smoothing", spline_smoothing, allow_zero=True)
     )
+    from .breaklines import Breaklines, from_sequence
+
+    try:
+        lines = from_sequence(breaklines)
+    except InvalidParameterError as exc:
+        raise InvalidParameterError(f"breaklines: {exc}") from exc
+    if breaklines is not None and not isinstance(breaklines, (Breaklines, list, tuple)):
+        raise InvalidParameterError("breaklines must be a Breaklines or a list of (M, 2) arrays")
+    lines_source = "given" if lines is not None else "none"
     med_thr = _positive("median_threshold", median_threshold, allow_zero=True)
     med_eps = _positive("median_eps_m", median_eps_m, allow_zero=True)
     if engine not in ENGINES:
@@ -1912,8 +1940,7 @@ def windowed_icp(
         start, _ = _deformation_field(cells, d, usable, n_rows, n_cols, x0, y0, cell)
         report(progress, 0.9, "fitting one spline field to all cells")
         near = _near_pairs(cells.row, cells.col, reach=2)
-        sfit = fit_spline_field(
-            a[cells.points],
+        spline_kw = dict(
             before=b,
             tree=tree,
             normals=normals,
@@ -1925,8 +1952,33 @@ def windowed_icp(
             smoothing=spline_lam,
             gate_m=gate,
             opts=opts,
-            progress=scaled(progress, 0.9, 1.0),
             grid=grid,
+        )
+        if lines is None and detect_breaklines:
+            lines = _detect_lines(cells, d, usable & ~flagged, cov_d, n_rows, n_cols, x0, y0, cell)
+            if lines is not None:
+                from .icp_spline import refine_breaklines
+
+                first = fit_spline_field(
+                    a[cells.points], breaklines=lines, progress=scaled(progress, 0.9, 0.95),
+                    **spline_kw,
+                )  # fmt: skip
+                from .breaklines import DETECT_FLOOR_M
+
+                lines = refine_breaklines(
+                    first.field, a[cells.points], before=b, tree=tree, normals=normals,
+                    gate_m=gate, reach_m=cell, min_jump_m=DETECT_FLOOR_M,
+                )  # fmt: skip
+                lines_source = "none" if lines is None else "detected"
+                progress = scaled(progress, 0.95, 1.0)
+        sfit = fit_spline_field(
+            a[cells.points],
+            breaklines=lines,
+            # a detected line is placed to about a metre: the points that close to it are
+            # left out (on lone-star's scarp, 5 m cells: 5.6 cm -> 0.6 cm at cells >= 3 m)
+            breakline_gap_m=DETECTED_GAP_CELLS * cell if lines_source == "detected" else 0.0,
+            progress=scaled(progress, 0.9, 1.0),
+            **spline_kw,
         )
         sp = spline_cells(sfit, cells, fits.ok, min_points=minp, median_threshold=med_thr,
                           median_eps_m=med_eps, n_rows=n_rows, n_cols=n_cols)  # fmt: skip
@@ -1942,7 +1994,8 @@ def windowed_icp(
         origin_xy=(float(x0), float(y0)), cell_m=cell, n_rows=n_rows, n_cols=n_cols,
         prealignment=pre, t_start=t_start, cell_model=model, deform_passes=passes,
         field_model=field_model, near=near, pair_cov=pair_src, sigma_scaling=sigma_scaling,
-        sigma_regions=n_regions, sigma_region_by=sigma_region_by,
+        sigma_regions=n_regions, sigma_region_by=sigma_region_by, lines=lines,
+        lines_source=lines_source,
     )  # fmt: skip
 
 
@@ -2049,6 +2102,7 @@ def finish_cells(
     converged, flagged, skipped, min_points, max_iterations, origin_xy, cell_m, n_rows,
     n_cols, prealignment, t_start, cell_model, deform_passes, field_model, near=None,
     pair_cov=None, sigma_scaling="field", sigma_regions=3, sigma_region_by="roughness",
+    lines=None, lines_source="none",
 ) -> WindowedICPResult:  # fmt: skip
     """The result of a windowed-ICP run from its cells' values (``rot`` None: the
     antisymmetric part of ``grad``), the cells not ``ok`` left out and counted, the sigmas
@@ -2117,6 +2171,8 @@ def finish_cells(
         deform_passes=deform_passes,
         field_model=field_model,
         flagged=flagged[ok],
+        breaklines=lines if field_model == "spline" else None,
+        breaklines_source=lines_source if field_model == "spline" else "none",
     )
     pairs = None
     if pair_cov is not None:  # the cells share one field: their errors are correlated
@@ -2127,6 +2183,34 @@ def finish_cells(
     log.info("windowed ICP: %d cells fitted%s, %.1f s", n_ok, skipped_cells_text(skipped),
              res.seconds)  # fmt: skip
     return res
+
+
+#: points closer than this many cells to a detected breakline are left out of the final fit
+DETECTED_GAP_CELLS = 0.3
+
+
+def _detect_lines(cells, d, usable, cov_d, n_rows, n_cols, x0, y0, cell):
+    """Breaklines of the cells' motions (:func:`slipmap.core.breaklines.detect_breaklines`)
+    on the cell grid; None when none is found."""
+    from .breaklines import detect_breaklines
+
+    gd = np.full((n_rows, n_cols, 3), np.nan)
+    gv = np.zeros((n_rows, n_cols), dtype=bool)
+    gs = np.full((n_rows, n_cols), np.nan)
+    gd[cells.row, cells.col] = d
+    gv[cells.row, cells.col] = usable
+    gs[cells.row, cells.col] = np.sqrt(np.maximum(np.trace(cov_d, axis1=1, axis2=2), 0.0))
+    xs = x0 + (np.arange(n_cols) + 0.5) * cell
+    ys = y0 - (np.arange(n_rows) + 0.5) * cell
+    found = detect_breaklines(gd, x=xs, y=ys, valid=gv, sigma=gs)
+    if found is None:
+        log.info("breaklines: none found in the cells' motions")
+    else:
+        log.info(
+            "breaklines: %d found in the cells' motions (%.1f m in all)",
+            len(found), found.length_m(),
+        )  # fmt: skip
+    return found
 
 
 #: words for the reasons a cell is skipped (the keys of the ``skipped`` counts)

@@ -113,16 +113,19 @@ def check_spline_size(span_xy, spacing_m: float) -> None:
 
 
 __all__ = [
+    "bspline_weights",
     "ChunkNormals",
     "ChunkReport",
+    "fit_spline_chunks",
+    "fit_spline_field",
+    "knot_copies",
+    "knot_frame",
+    "sided_second_differences",
+    "spline_basis",
     "SplineChunk",
     "SplineField",
     "SplineFit",
     "Weighting",
-    "bspline_weights",
-    "fit_spline_chunks",
-    "fit_spline_field",
-    "knot_frame",
 ]
 
 
@@ -154,9 +157,134 @@ def _bspline_slopes(t: np.ndarray) -> np.ndarray:
     )
 
 
+def knot_xy(origin_xy, spacing_m: float, n_x: int, n_y: int) -> np.ndarray:
+    """(ky kx, 2) map positions of the knots of a field, row-major (coefficient ``(j, i)``
+    sits at ``origin + spacing (i - 1, j - 1)``)."""
+    kx, ky = n_x + 3, n_y + 3
+    gx, gy = np.meshgrid(np.arange(kx) - 1.0, np.arange(ky) - 1.0)
+    return np.column_stack(
+        [origin_xy[0] + spacing_m * gx.ravel(), origin_xy[1] + spacing_m * gy.ravel()]
+    )
+
+
+def knot_copies(origin_xy, spacing_m: float, n_x: int, n_y: int, lines) -> np.ndarray:
+    """Which knots get a second copy for the far side of a breakline.
+
+    A knot's basis function reaches ``2 spacing_m`` along x and y; a breakline that passes
+    within ``2 sqrt(2) spacing_m`` of the knot may cut its support, and the points beyond the
+    line (the segment from the knot to the point crosses it an odd number of times) then use
+    the knot's copy. Depends on the geometry alone, so any chunk of points (a tile) finds the
+    same copies.
+
+    Parameters
+    ----------
+    origin_xy, spacing_m, n_x, n_y
+        The field's lattice (:class:`SplineField`).
+    lines : Breaklines or None
+
+    Returns
+    -------
+    (ky kx,) int64
+        Index of each knot's copy in the field's coefficient list (``ky kx + j`` for the
+        j-th copy), -1 for a knot without one.
+    """
+    from .breaklines import distance_m
+
+    n_grid = (n_x + 3) * (n_y + 3)
+    out = np.full(n_grid, -1, dtype=np.int64)
+    if lines is None or lines.empty:
+        return out
+    near = distance_m(knot_xy(origin_xy, spacing_m, n_x, n_y), lines) < 2.0 * np.sqrt(2.0) * (
+        spacing_m * (1.0 + 1e-9)
+    )
+    k = np.flatnonzero(near)
+    out[k] = n_grid + np.arange(k.size)
+    return out
+
+
+def spline_basis(
+    xy: np.ndarray,
+    *,
+    origin_xy,
+    spacing_m: float,
+    n_x: int,
+    n_y: int,
+    lines=None,
+    copy_index: Optional[np.ndarray] = None,
+    slopes: bool = False,
+):
+    """The 16 knots and weights of a (breakline-aware) bicubic B-spline at each position.
+
+    Works on any chunk of points: the answer for a point depends on its position and the
+    field's geometry (lattice, breaklines) only.
+
+    Parameters
+    ----------
+    xy : (P, 2) float64
+        Map positions, metres.
+    origin_xy, spacing_m, n_x, n_y
+        The lattice (:class:`SplineField`).
+    lines : Breaklines, optional
+        Breaklines; with ``copy_index``, each of a point's knots that has a copy is replaced
+        by its copy where the segment from the knot's position to the point crosses the
+        lines an odd number of times (the point lies on the knot's far side).
+    copy_index : (ky kx,) int64, optional
+        :func:`knot_copies` of the same lattice and lines.
+    slopes : bool
+        Also return the weights' x and y derivatives (per metre).
+
+    Returns
+    -------
+    idx : (P, 16) int64
+        Coefficient indices (grid knots row-major, then the copies).
+    w : (P, 16) float64
+        Weights (sum 1).
+    wx, wy : (P, 16) float64
+        Only with ``slopes``.
+    """
+    h = spacing_m
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    u = (xy[:, 0] - origin_xy[0]) / h
+    v = (xy[:, 1] - origin_xy[1]) / h
+    iu = np.clip(np.floor(u).astype(np.int64), 0, n_x - 1)
+    iv = np.clip(np.floor(v).astype(np.int64), 0, n_y - 1)
+    fu, fv = u - iu, v - iv
+    kx = n_x + 3
+    rows = iv[:, None] + np.arange(4)
+    idx = (rows[:, :, None] * kx + (iu[:, None] + np.arange(4))[:, None, :]).reshape(-1, 16)
+    if lines is not None and copy_index is not None and not lines.empty:
+        idx = _sided(idx, xy, origin_xy, h, kx, lines, copy_index)
+    bu, bv = bspline_weights(fu), bspline_weights(fv)
+    w = (bv[:, :, None] * bu[:, None, :]).reshape(-1, 16)
+    if not slopes:
+        return idx, w
+    du, dv = _bspline_slopes(fu) / h, _bspline_slopes(fv) / h
+    wx = (bv[:, :, None] * du[:, None, :]).reshape(-1, 16)
+    wy = (dv[:, :, None] * bu[:, None, :]).reshape(-1, 16)
+    return idx, w, wx, wy
+
+
+def _sided(idx, xy, origin_xy, h, kx, lines, copy_index):
+    """``idx`` with each knot that has a copy replaced by it where the point lies beyond a
+    breakline as seen from the knot (odd crossings of knot -> point)."""
+    from .breaklines import crossings
+
+    has = copy_index[idx] >= 0
+    p, k = np.nonzero(has)
+    if p.size == 0:
+        return idx
+    g = idx[p, k]
+    kxy = np.column_stack([origin_xy[0] + h * (g % kx - 1.0), origin_xy[1] + h * (g // kx - 1.0)])
+    odd = crossings(kxy, xy[p], lines) % 2 == 1
+    out = idx.copy()
+    out[p[odd], k[odd]] = copy_index[g[odd]]
+    return out
+
+
 @dataclass(frozen=True)
 class SplineField:
-    """A bicubic B-spline displacement field of the horizontal position.
+    """A bicubic B-spline displacement field of the horizontal position, smooth on each side
+    of its breaklines and free to jump across them.
 
     Attributes
     ----------
@@ -168,6 +296,10 @@ class SplineField:
         Knot intervals along x and y.
     coefficients : (n_y + 3, n_x + 3, 3) float64
         Control vectors (dx, dy, dz), metres.
+    lines : Breaklines or None
+        Breaklines the field may jump across.
+    copy_coefficients : (C, 3) float64 or None
+        Control vectors of the knots' far-side copies (:func:`knot_copies`, in its order).
     """
 
     origin_xy: tuple
@@ -175,35 +307,41 @@ class SplineField:
     n_x: int
     n_y: int
     coefficients: np.ndarray
+    lines: object = None
+    copy_coefficients: Optional[np.ndarray] = None
 
-    def _basis(self, xy: np.ndarray, slopes: bool = False):
-        h = self.spacing_m
-        u = (xy[:, 0] - self.origin_xy[0]) / h
-        v = (xy[:, 1] - self.origin_xy[1]) / h
-        iu = np.clip(np.floor(u).astype(np.int64), 0, self.n_x - 1)
-        iv = np.clip(np.floor(v).astype(np.int64), 0, self.n_y - 1)
-        fu, fv = u - iu, v - iv
-        kx = self.n_x + 3
-        rows = iv[:, None] + np.arange(4)
-        idx = rows[:, :, None] * kx + (iu[:, None] + np.arange(4))[:, None, :]
-        bu, bv = bspline_weights(fu), bspline_weights(fv)
-        w = (bv[:, :, None] * bu[:, None, :]).reshape(-1, 16)
-        if not slopes:
-            return idx.reshape(-1, 16), w
-        du, dv = _bspline_slopes(fu) / h, _bspline_slopes(fv) / h
-        wx = (bv[:, :, None] * du[:, None, :]).reshape(-1, 16)
-        wy = (dv[:, :, None] * bu[:, None, :]).reshape(-1, 16)
-        return idx.reshape(-1, 16), w, wx, wy
+    @property
+    def copy_index(self) -> np.ndarray:
+        """:func:`knot_copies` of this field's lattice and lines."""
+        return knot_copies(self.origin_xy, self.spacing_m, self.n_x, self.n_y, self.lines)
+
+    def all_coefficients(self) -> np.ndarray:
+        """(ky kx + C, 3): the grid's control vectors, row-major, then the copies'."""
+        c = self.coefficients.reshape(-1, 3)
+        if self.copy_coefficients is None or len(self.copy_coefficients) == 0:
+            return c
+        return np.vstack([c, self.copy_coefficients])
+
+    def _basis(self, xy: np.ndarray, slopes: bool = False, copy_index=None):
+        lines = self.lines
+        if lines is not None and copy_index is None:
+            copy_index = self.copy_index
+        return spline_basis(
+            xy, origin_xy=self.origin_xy, spacing_m=self.spacing_m, n_x=self.n_x,
+            n_y=self.n_y, lines=lines, copy_index=copy_index, slopes=slopes,
+        )  # fmt: skip
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
-        """(K, 2) map positions -> (K, 3) displacements, metres."""
+        """(K, 2) map positions -> (K, 3) displacements, metres (each position takes the
+        knots of its own side of the breaklines)."""
         idx, w = self._basis(np.asarray(xy, dtype=np.float64))
-        return np.einsum("pk,pkj->pj", w, self.coefficients.reshape(-1, 3)[idx])
+        return np.einsum("pk,pkj->pj", w, self.all_coefficients()[idx])
 
     def gradient(self, xy: np.ndarray) -> np.ndarray:
-        """(K, 2) map positions -> (K, 3, 3) gradient ``d(d_i)/d(x_j)`` (z column zero)."""
+        """(K, 2) map positions -> (K, 3, 3) gradient ``d(d_i)/d(x_j)`` (z column zero), on
+        the position's side."""
         idx, _, wx, wy = self._basis(np.asarray(xy, dtype=np.float64), slopes=True)
-        c = self.coefficients.reshape(-1, 3)[idx]
+        c = self.all_coefficients()[idx]
         out = np.zeros((len(idx), 3, 3))
         out[:, :, 0] = np.einsum("pk,pkj->pj", wx, c)
         out[:, :, 1] = np.einsum("pk,pkj->pj", wy, c)
@@ -264,6 +402,67 @@ def _second_differences(kx: int, ky: int):
         return sp.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(max(n - 2, 0), n))
 
     r = sp.vstack([sp.kron(sp.identity(ky), d2(kx)), sp.kron(d2(ky), sp.identity(kx))])
+    return (r.T @ r).tocsr()
+
+
+def sided_second_differences(
+    origin_xy, spacing_m: float, n_x: int, n_y: int, lines, copy_index: np.ndarray
+):
+    """Penalty matrix ``RᵀR`` of the second differences of a knot grid with far-side copies,
+    sparse ((ky kx + C), (ky kx + C)).
+
+    Each knot version (the knot itself, or its copy for the far side of a breakline) is the
+    middle of one second difference along x and one along y, taken with the versions of its
+    two neighbours that lie on the same side as seen from the middle knot: for the knot
+    itself, a neighbour across the line (odd crossings of the segment between their
+    positions) enters by its copy; for the copy, a neighbour across the line enters as itself
+    and one on the knot's own side by its copy. A difference whose neighbour version does not
+    exist is left out. Without lines this is :func:`_second_differences`.
+    """
+    import scipy.sparse as sp
+
+    from .breaklines import crossings
+
+    kx, ky = n_x + 3, n_y + 3
+    n_grid = kx * ky
+    n_tot = n_grid + int(np.count_nonzero(copy_index >= 0))
+    pos = knot_xy(origin_xy, spacing_m, n_x, n_y)
+    grid = np.arange(n_grid).reshape(ky, kx)
+    triples = [
+        np.column_stack([grid[:, :-2].ravel(), grid[:, 1:-1].ravel(), grid[:, 2:].ravel()]),
+        np.column_stack([grid[:-2, :].ravel(), grid[1:-1, :].ravel(), grid[2:, :].ravel()]),
+    ]
+    t = np.vstack(triples)  # (T, 3): left, middle, right
+    sided = lines is not None and not lines.empty
+    rows_idx = [t]
+    if sided:
+        odd = np.zeros((len(t), 2), dtype=bool)
+        for s, col in enumerate((0, 2)):
+            has = (copy_index[t[:, 1]] >= 0) | (copy_index[t[:, col]] >= 0)
+            j = np.flatnonzero(has)
+            odd[j, s] = crossings(pos[t[j, 1]], pos[t[j, col]], lines) % 2 == 1
+        out = []
+        # the middle knot itself: neighbours across the line by their copies
+        main = t.copy()
+        for s, col in enumerate((0, 2)):
+            main[odd[:, s], col] = copy_index[t[odd[:, s], col]]
+        out.append(main)
+        # the middle knot's copy: neighbours on its own side by their copies
+        m = copy_index[t[:, 1]] >= 0
+        cp = t[m].copy()
+        cp[:, 1] = copy_index[t[m, 1]]
+        for s, col in enumerate((0, 2)):
+            same = ~odd[m, s]
+            cp[same, col] = copy_index[t[m][same, col]]
+        out.append(cp)
+        rows_idx = [np.vstack(out)]
+    r_idx = rows_idx[0]
+    r_idx = r_idx[np.all(r_idx >= 0, axis=1)]
+    n_r = len(r_idx)
+    r = sp.csr_matrix(
+        (np.tile([1.0, -2.0, 1.0], n_r), (np.repeat(np.arange(n_r), 3), r_idx.ravel())),
+        shape=(n_r, n_tot),
+    )
     return (r.T @ r).tocsr()
 
 
@@ -351,7 +550,9 @@ def _variance_components(factor, r2, lam_abs, c, wvv: float, n_obs: int) -> np.n
     return out
 
 
-def knot_frame(points_lo_xy, points_hi_xy, report_xy: np.ndarray, spacing_m: float) -> SplineField:
+def knot_frame(
+    points_lo_xy, points_hi_xy, report_xy: np.ndarray, spacing_m: float, lines=None
+) -> SplineField:
     """The knot lattice of a spline field over points spanning ``points_lo_xy`` ..
     ``points_hi_xy`` (x, y metres) and the report positions ``report_xy`` (K, 2): a
     :class:`SplineField` of zero coefficients. A tiled run gives the extremes of its blocks'
@@ -365,6 +566,9 @@ def knot_frame(points_lo_xy, points_hi_xy, report_xy: np.ndarray, spacing_m: flo
         Fewer than :data:`MIN_SPLINE_CELLS` report positions.
     SplineSizeError
         More than :data:`MAX_KNOTS` knots.
+
+    ``lines`` (:class:`~slipmap.core.breaklines.Breaklines`, optional): the field's
+    breaklines; the lattice's knots get their far-side copies (:func:`knot_copies`).
     """
     h = float(spacing_m)
     if not (np.isfinite(h) and h > 0):
@@ -379,7 +583,10 @@ def knot_frame(points_lo_xy, points_hi_xy, report_xy: np.ndarray, spacing_m: flo
     hi = np.maximum(np.asarray(points_hi_xy, np.float64), rxy.max(axis=0))
     check_spline_size(hi - lo, h)
     n_x, n_y = (int(v) for v in np.maximum(np.ceil((hi - lo) / h), 1))
-    return SplineField((float(lo[0]), float(lo[1])), h, n_x, n_y, np.zeros((n_y + 3, n_x + 3, 3)))
+    bl = None if lines is None or lines.empty else lines
+    return SplineField(
+        (float(lo[0]), float(lo[1])), h, n_x, n_y, np.zeros((n_y + 3, n_x + 3, 3)), lines=bl
+    )
 
 
 @dataclass(frozen=True)
@@ -516,15 +723,30 @@ class SplineChunk:
     """
 
     def __init__(self, after, *, frame, before, tree, normals, gate_m=np.inf, seg=None,
-                 grid=None):  # fmt: skip
+                 grid=None, breakline_gap_m: float = 0.0):  # fmt: skip
         a = np.asarray(after, dtype=np.float64).reshape(-1, 3)
-        self.n_k = (frame.n_x + 3) * (frame.n_y + 3)
-        idx16, w16 = frame._basis(a[:, :2])
         kx = frame.n_x + 3
-        # the points sorted by knot interval, so that each interval's points are one slice
-        cell_of = (idx16[:, 0] // kx) * frame.n_x + idx16[:, 0] % kx
+        n_grid = kx * (frame.n_y + 3)
+        lines = frame.lines
+        copy_index = None if lines is None else frame.copy_index
+        self.n_k = n_grid + (0 if copy_index is None else int(np.count_nonzero(copy_index >= 0)))
+        idx16, w16 = frame._basis(a[:, :2], copy_index=copy_index)
+        # the points sorted by their 16 knots (the knot interval, and with breaklines the
+        # side of each knot), so that the points sharing them are one slice
+        if lines is None:
+            cell_of = (idx16[:, 0] // kx) * frame.n_x + idx16[:, 0] % kx
+        else:
+            _, cell_of = np.unique(idx16, axis=0, return_inverse=True)
+            cell_of = cell_of.reshape(-1)
         perm = np.argsort(cell_of, kind="stable")
         self.a, self.idx16, self.w16 = a[perm], idx16[perm], w16[perm]
+        # points closer than breakline_gap_m to a line carry no weight (a line placed from
+        # the data is known to about that much: they would pull the wrong side's field)
+        self.gap = np.zeros(len(a), dtype=bool)
+        if lines is not None and breakline_gap_m > 0:
+            from .breaklines import distance_m
+
+            self.gap = distance_m(self.a, lines) < breakline_gap_m
         self.seg = None if seg is None else np.asarray(seg, dtype=np.int64)[perm]
         _, starts = np.unique(cell_of[perm], return_index=True)
         self.bounds = np.append(starts, len(a))
@@ -596,6 +818,7 @@ class SplineChunk:
         keep, wv, _ = weighting.apply(v[ok])
         wt = np.zeros(len(v))
         wt[ok] = np.where(keep, wv, 0.0)
+        wt[self.gap] = 0.0
         nmat, rhs, gram = _assemble(
             None, self.bounds, self.idx16, self.w16, nrm, v, wt, self.n_k, ok=ok
         )
@@ -659,6 +882,8 @@ def fit_spline_field(
     opts: _Options,
     progress: Optional[ProgressCallback] = None,
     grid=None,
+    breaklines=None,
+    breakline_gap_m: float = 0.0,
 ) -> SplineFit:
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
 
@@ -705,6 +930,20 @@ def fit_spline_field(
     grid : slipmap.core.icp_numba.NumbaTargets or slipmap.core.opencl.nearest.GridTargets, optional
         ``before`` for compiled kernels (CPU or OpenCL): the pairs are found there (the same
         pairs).
+    breaklines : Breaklines, optional
+        Lines the field may jump across (:mod:`slipmap.core.breaklines`, in the frame of
+        ``after``): every knot whose support a line may cut gets a copy for the line's far
+        side (:func:`knot_copies`), each point and report position takes, of its 16 knots,
+        the versions on its own side (:func:`spline_basis`), and the penalty's second
+        differences join only versions on one side (:func:`sided_second_differences`). The
+        field is then smooth on each side and free to jump across a line; around the tip of
+        a line that ends inside the area the penalty ties the copies to the other side's
+        knots, so the field stays continuous there (as far as the data let it). Copies that no
+        point uses are held by the penalty and a small ridge.
+    breakline_gap_m : float
+        Points closer than this to a breakline are left out (a line placed from the data is
+        known to this much only: the points between it and the scarp would pull the wrong
+        side's field).
 
     Returns
     -------
@@ -719,10 +958,12 @@ def fit_spline_field(
     """
     a = np.asarray(after, dtype=np.float64)
     _check_smoothing(smoothing)
-    frame = knot_frame(a[:, :2].min(axis=0), a[:, :2].max(axis=0), report_xy, spacing_m)
+    frame = knot_frame(
+        a[:, :2].min(axis=0), a[:, :2].max(axis=0), report_xy, spacing_m, lines=breaklines
+    )
     chunk = SplineChunk(
         a, frame=frame, before=before, tree=tree, normals=normals, gate_m=gate_m,
-        seg=report_seg, grid=grid,
+        seg=report_seg, grid=grid, breakline_gap_m=breakline_gap_m,
     )  # fmt: skip
 
     def run(stage, *args):
@@ -792,20 +1033,23 @@ def fit_spline_chunks(
     h, n_x, n_y = frame.spacing_m, frame.n_x, frame.n_y
     lo = np.asarray(frame.origin_xy, dtype=np.float64)
     kx, ky = n_x + 3, n_y + 3
-    n_k = kx * ky
+    n_grid = kx * ky
+    bl = frame.lines
+    copy_index = knot_copies((float(lo[0]), float(lo[1])), h, n_x, n_y, bl)
+    n_k = n_grid + int(np.count_nonzero(copy_index >= 0))  # grid knots, then their copies
     # start: least-squares fit of the initial field on a 4-per-interval lattice
     gx, gy = np.meshgrid(
         lo[0] + h * np.arange(4 * n_x + 1) / 4, lo[1] + h * np.arange(4 * n_y + 1) / 4
     )
-    field = SplineField((float(lo[0]), float(lo[1])), h, n_x, n_y, np.zeros((ky, kx, 3)))
+    field = SplineField((float(lo[0]), float(lo[1])), h, n_x, n_y, np.zeros((ky, kx, 3)), lines=bl)
     gxy = np.column_stack([gx.ravel(), gy.ravel()])
-    gi, gw = field._basis(gxy)
+    gi, gw = field._basis(gxy, copy_index=copy_index)
     bmat = sp.csr_matrix(
         (gw.ravel(), gi.ravel(), np.arange(0, gi.size + 1, 16)), shape=(len(gxy), n_k)
     )
     f0 = np.asarray(initial(gxy), dtype=np.float64).reshape(-1, 3)
     f0 = np.where(np.isfinite(f0), f0, 0.0)
-    r2 = _second_differences(kx, ky)
+    r2 = sided_second_differences(field.origin_xy, h, n_x, n_y, bl, copy_index)
     lhs0 = (bmat.T @ bmat + 1e-6 * r2 + 1e-9 * sp.identity(n_k)).tocsc()
     c = splu(lhs0).solve(np.asarray(bmat.T @ f0))  # (K, 3)
 
@@ -836,6 +1080,10 @@ def fit_spline_chunks(
             scale = float(np.median(dg[dg > 0])) if np.any(dg > 0) else 1.0
             lam_abs = np.full(3, lam * scale)
             ridge = sp.identity(3 * n_k, format="csr") * (1e-12 * scale)
+            if n_k > n_grid:  # copies no point uses: held by the penalty and a small ridge
+                idle = nmat.diagonal().reshape(3, n_k).sum(axis=0) <= 0
+                idle[:n_grid] = False
+                ridge = ridge + sp.diags(np.tile(idle * (1e-6 * scale), 3), format="csr")
         penalty = sp.block_diag([w * r2 for w in lam_abs], format="csr") + ridge
         cvec = c.T.reshape(-1)  # component-major
         factor = splu((nmat + penalty).tocsc())
@@ -878,8 +1126,11 @@ def fit_spline_chunks(
     every = np.ones(t_psi.size, dtype=bool)
     inflation = float(_shared_target_inflation(t_psi, every, one, tid, np.array([ss]))[0])
     s0sq = ss / dof / max(mean_dpsi, 1e-12) ** 2 * inflation
-    field = SplineField(field.origin_xy, h, n_x, n_y, c.reshape(ky, kx, 3))
-    ridx, rw, rwx, rwy = field._basis(rxy, slopes=True)
+    field = SplineField(
+        field.origin_xy, h, n_x, n_y, c[:n_grid].reshape(ky, kx, 3), lines=bl,
+        copy_coefficients=c[n_grid:] if n_k > n_grid else None,
+    )  # fmt: skip
+    ridx, rw, rwx, rwy = field._basis(rxy, slopes=True, copy_index=copy_index)
     k = len(rxy)
     # rows of (d, d/dx, d/dy) x 3 components against the component-major coefficients
     g = np.zeros((k, 9, 3, 16))
@@ -934,3 +1185,187 @@ def fit_spline_chunks(
         n_coefficients=3 * data_knots,
         pair_cov=pair_cov,
     )
+
+
+def refine_breaklines(
+    field: SplineField,
+    after: np.ndarray,
+    *,
+    before: np.ndarray,
+    tree,
+    normals: Callable[[np.ndarray], np.ndarray],
+    gate_m: float,
+    reach_m: float,
+    step_m: Optional[float] = None,
+    min_jump_m: float = 0.0,
+):
+    """Move a field's breaklines to where the points say its sides change, and drop those
+    across which the field does not jump.
+
+    A line found on a grid of cells lies on a cell edge, up to a cell from the scarp. Each
+    point within ``reach_m`` of a line is moved back by the field of its own side and by
+    that of the other side (its knots' copies swapped), and its point-to-plane residual
+    against epoch 1 says which side it belongs to (where the two differ by more than twice
+    the residuals' robust spread). Along each line, every ``step_m`` (default ``reach_m``),
+    the line is shifted across by the offset that puts the fewest such points on the wrong
+    side (searched over ``±reach_m`` in 41 steps; the middle of the offsets within 1 % of the
+    fewest; none where those span more than half the reach, e.g. a scan shadow; the median of
+    three neighbouring offsets kept). The side a point belongs to is the one whose field, a
+    cell and a half from the line, fits it better (a point on the wrong side bends its side's
+    field near the line, not there). The shifted stations make the new line, continued
+    straight to the old line's reach. A line across which the two sides'
+    fields differ by less than ``min_jump_m`` at the median point near it is dropped: the
+    smooth field explains the data there (a steep lobe's flank that the cells took for a
+    step).
+
+    Parameters
+    ----------
+    field : SplineField
+        A field fitted with the lines (``field.lines``).
+    after : (P, 3) float64
+        Epoch-2 points (the frame of the field).
+    before, tree, normals, gate_m
+        Epoch 1, its nearest-neighbour structure, normals and the pairs' gate, as in
+        :func:`fit_spline_field`.
+    reach_m : float
+        How far from a line points are looked at and the line may move, metres.
+    step_m : float, optional
+        Spacing of the stations along a line, metres.
+    min_jump_m : float
+        Smallest median jump of the field across a line that keeps it, metres.
+
+    Returns
+    -------
+    Breaklines or None
+        None when every line is dropped.
+    """
+    from .breaklines import _douglas_peucker, breaklines, distance_m
+
+    lines = field.lines
+    if lines is None or lines.empty:
+        return lines
+    step = float(reach_m if step_m is None else step_m)
+    a = np.asarray(after, dtype=np.float64)
+    a = a[distance_m(a, lines) < reach_m]
+    if len(a) < 50:
+        return lines
+    ci = field.copy_index
+    n_grid = ci.size
+    idx, w = field._basis(a[:, :2], copy_index=ci)
+    copy_of = np.flatnonzero(ci >= 0)
+    flip = idx.copy()
+    main = idx < n_grid
+    m_has = main & (ci[np.where(main, idx, 0)] >= 0)
+    flip[m_has] = ci[idx[m_has]]
+    flip[~main] = copy_of[idx[~main] - n_grid]
+    coef = field.all_coefficients()
+
+    def residual(q):
+        dist, j = tree.query(q)
+        j = np.asarray(j)
+        nn = normals(j)
+        v = np.einsum("ij,ij->i", nn, q - before[j])
+        return np.where((np.asarray(dist) <= gate_m) & np.all(np.isfinite(nn), axis=1), v, np.nan)
+
+    u_own = np.einsum("pk,pkj->pj", w, coef[idx])
+    u_flip = np.einsum("pk,pkj->pj", w, coef[flip])
+    jump = np.linalg.norm(u_own - u_flip, axis=1)
+    near_part = np.argmin(np.vstack([distance_m(a, breaklines([p])) for p in lines.parts]), axis=0)
+    keep_part = [
+        bool(np.any(near_part == k)) and float(np.median(jump[near_part == k])) >= min_jump_m
+        for k in range(len(lines))
+    ]
+    for k, kept in enumerate(keep_part):
+        if not kept:
+            log.info(
+                "breakline %d dropped: the field jumps by %.3f m across it (median), less "
+                "than %.3f m", k, float(np.median(jump[near_part == k])) if np.any(
+                    near_part == k) else 0.0, min_jump_m,
+            )  # fmt: skip
+    if not any(keep_part):
+        return None
+    offsets = np.linspace(-reach_m, reach_m, 41)
+    far = 1.5 * reach_m  # where each side's field is not bent by points put on the wrong side
+    out, n_decisive, largest = [], 0, 0.0
+    for k, part in enumerate(lines.parts):
+        if not keep_part[k]:
+            continue
+        pts = a[near_part == k]
+        pxy = pts[:, :2]
+        seg_a, seg_b = part[:-1], part[1:]
+        seg_d = seg_b - seg_a
+        seg_len = np.hypot(seg_d[:, 0], seg_d[:, 1])
+        cum = np.r_[0.0, np.cumsum(seg_len)]
+        # each point's nearest segment, its arc position and signed offset (left +)
+        rel = pxy[:, None, :] - seg_a[None]
+        t = np.clip(np.sum(rel * seg_d[None], axis=2) / (seg_len**2)[None], 0.0, 1.0)
+        foot = seg_a[None] + t[..., None] * seg_d[None]
+        j = np.argmin(np.sum((pxy[:, None, :] - foot) ** 2, axis=2), axis=1)
+        dj = seg_d[j] / seg_len[j, None]
+        r = pxy - seg_a[j]
+        s = dj[:, 0] * r[:, 1] - dj[:, 1] * r[:, 0]
+        ell = cum[j] + t[np.arange(len(j)), j] * seg_len[j]
+        # which side's motion fits each point: the field a cell and a half to its left and
+        # to its right of the line (a point put on the wrong side bends its side's field
+        # near the line, not there)
+        nrm = np.c_[-dj[:, 1], dj[:, 0]]
+        v_left = np.abs(residual(pts - field(pxy + (far - s)[:, None] * nrm)))
+        v_right = np.abs(residual(pts - field(pxy - (far + s)[:, None] * nrm)))
+        spread = MAD_TO_SIGMA * float(np.nanmedian(np.fmin(v_left, v_right)))
+        vl = np.where(np.isfinite(v_left), v_left, np.inf)
+        vr = np.where(np.isfinite(v_right), v_right, np.inf)
+        decisive = (np.abs(vl - vr) > 2.0 * spread) & (np.isfinite(vl) | np.isfinite(vr))
+        n_decisive += int(decisive.sum())
+        s, ell = s[decisive], ell[decisive]
+        true_side = np.where(vl[decisive] < vr[decisive], 1.0, -1.0)
+        n_st = max(int(np.ceil(cum[-1] / step)), 1)
+        st = np.linspace(0.0, cum[-1], n_st + 1)
+        shift = np.full(len(st), np.nan)
+        for i, e in enumerate(st):
+            sel = np.abs(ell - e) <= 0.5 * step + 1e-9
+            if np.count_nonzero(sel) < 20:
+                continue
+            wrong = [np.count_nonzero(np.sign(s[sel] - o) != true_side[sel]) for o in offsets]
+            wrong = np.asarray(wrong)
+            best = np.flatnonzero(wrong <= wrong.min() + 0.01 * sel.sum())
+            if np.ptp(offsets[best]) > 0.5 * reach_m:
+                continue  # no points across the candidates (a scan shadow): the line goes
+                # on as its neighbouring stations place it
+            shift[i] = offsets[best[np.argmin(np.abs(offsets[best] - np.median(offsets[best])))]]
+        if not np.any(np.isfinite(shift)):
+            out.append(part)
+            continue
+        log.debug("breakline %d: stations %s, shifts %s", k, np.round(st, 1), shift)
+        good = np.flatnonzero(np.isfinite(shift))
+        if good.size < 2:
+            out.append(part)
+            continue
+        sh = shift[good]
+        if sh.size >= 3:
+            sh = np.r_[sh[0], np.median(np.c_[sh[:-2], sh[1:-1], sh[2:]], axis=1), sh[-1]]
+        # stations with points, on the line and shifted along its left normal there
+        seg_of = np.clip(np.searchsorted(cum, st, side="right") - 1, 0, len(seg_len) - 1)
+        tt = (st - cum[seg_of]) / seg_len[seg_of]
+        base = seg_a[seg_of] + tt[:, None] * seg_d[seg_of]
+        dirs = seg_d[seg_of] / seg_len[seg_of, None]
+        normal = np.c_[-dirs[:, 1], dirs[:, 0]]
+        placed = base[good] + sh[:, None] * normal[good]
+        # beyond the first and last stations with points the line goes on straight, along
+        # the placed line's end (over up to three stations), as far as it reached before
+        k_end = min(2, len(placed) - 1)
+        ends = []
+        for reach, tip, back in (
+            (st[good[0]] - st[0], placed[0], placed[k_end]),
+            (st[-1] - st[good[-1]], placed[-1], placed[-1 - k_end]),
+        ):
+            t = tip - back
+            ends.append(tip + reach * t / max(float(np.hypot(*t)), 1e-12))
+        line = np.vstack([ends[0], placed, ends[1]])
+        out.append(_douglas_peucker(line, 0.1 * step))
+        largest = max(largest, float(np.nanmax(np.abs(shift))))
+    log.info(
+        "breaklines placed on the points: %d decisive points, shifts up to %.2f m",
+        n_decisive,
+        largest,
+    )
+    return breaklines(out)

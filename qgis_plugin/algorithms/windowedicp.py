@@ -48,7 +48,10 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
             "sigma_dz (1-sigma, m), rmse (point-to-plane, m), n (correspondences), the "
             "rotations and their sigmas, the iterations, magnitude (horizontal, m) and "
             "azimuth_deg (clockwise from north); a JSON summary; optionally a figure (PNG). "
-            "The moving area may be a polygon layer in any CRS (reprojected to the clouds').",
+            "The moving area may be a polygon layer in any CRS (reprojected to the clouds'). "
+            "Breaklines (optional line layer, any CRS): scarps, faults or slab edges across "
+            "which the default spline field may jump; left empty, they are detected in the "
+            "cells' motions (the summary lists them).",
         )
 
     def initAlgorithm(self, config=None):  # noqa: N802 (QGIS API name)
@@ -58,6 +61,12 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
             "STABLE_MASK", mask.dialog_label, [QgsProcessing.TypeVectorPolygon], optional=True
         )
         p.setHelp(mask.help)
+        self.addParameter(p)
+        lines = job.SPEC["breaklines"]
+        p = QgsProcessingParameterFeatureSource(
+            "BREAKLINES", lines.dialog_label, [QgsProcessing.TypeVectorLine], optional=True
+        )
+        p.setHelp(lines.help)
         self.addParameter(p)
         self.addParameter(
             QgsProcessingParameterFeatureSink("CELLS", "ICP cells", QgsProcessing.TypeVectorPolygon)
@@ -90,7 +99,20 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
             def stable_mask(crs):
                 return source_parts(source, qgs_crs(crs), context, parameter=label, polygons=True)
 
-        result = self.run_job(job, opts, outputs, feedback, stable_mask=stable_mask)
+        breaklines = None
+        if is_set(parameters, "BREAKLINES", context):
+            lines = self.parameterAsSource(parameters, "BREAKLINES", context)
+            lines_label = f'"{job.SPEC["breaklines"].dialog_label}"'
+            if lines is None:
+                raise QgsProcessingException(f"{lines_label}: the layer cannot be read")
+
+            def breaklines(crs):
+                return source_parts(lines, qgs_crs(crs), context, parameter=lines_label,
+                                    polygons=False)  # fmt: skip
+
+        result = self.run_job(
+            job, opts, outputs, feedback, stable_mask=stable_mask, breaklines=breaklines
+        )
         res, cols, crs = result.data["result"], result.data["columns"], qgs_crs(result.data["crs"])
         cells_id = write_polygon_sink(
             self, parameters, "CELLS", context, crs, result.data["rings"], cols

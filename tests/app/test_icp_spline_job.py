@@ -18,10 +18,15 @@ X0, Y0 = 512000.0, 4780000.0
 pytestmark = pytest.mark.usefixtures("drop_cli_log_handlers")
 
 
-def test_spec_declares_the_spline_options_once_with_cells_by_default():
+def test_spec_declares_the_spline_options_once_with_spline_by_default():
     by_key = {o.key: o for o in SPEC.options}
     assert [o.key for o in SPEC.options].count("field_model") == 1
-    assert by_key["field_model"].default == "cells"
+    assert by_key["field_model"].default is None  # unset: the spline (cells for tiles)
+    assert core_kwargs({})["field_model"] == "spline"
+    assert core_kwargs({})["detect_breaklines"] is True
+    assert core_kwargs({"field_model": "cells"})["field_model"] == "cells"
+    assert "detect_breaklines" not in core_kwargs({"field_model": "cells"})
+    assert by_key["breaklines"].name_in("cli") == "--breaklines"
     assert by_key["field_model"].choices == ("cells", "spline")
     assert by_key["spline_spacing_m"].default is None
     assert by_key["spline_spacing_m"].name_in("qgis") == "SPLINE_SPACING"
@@ -69,3 +74,75 @@ def test_cli_run_reports_the_spline_field_at_the_cell_centres(tmp_path, capsys):
     assert np.abs(np.median(d[inner], axis=0) - shift).max() < 0.003
     summary = json.loads((out / "icp.json").read_text())
     assert summary["model"]["field"] == "spline" and summary["n_cells"] == len(rows)
+
+
+def _line_geojson(path, xy, crs):
+    """A one-line GeoJSON (through OGR, as users make them)."""
+    from osgeo import ogr, osr
+
+    ds = ogr.GetDriverByName("GeoJSON").CreateDataSource(str(path))
+    srs = osr.SpatialReference()
+    srs.ImportFromWkt(crs.to_wkt())
+    layer = ds.CreateLayer("scarp", srs, ogr.wkbLineString)
+    line = ogr.Geometry(ogr.wkbLineString)
+    for x, y in xy:
+        line.AddPoint_2D(float(x), float(y))
+    f = ogr.Feature(layer.GetLayerDefn())
+    f.SetGeometry(line)
+    layer.CreateFeature(f)
+    ds = None
+
+
+def test_cli_breaklines_file_gives_a_field_that_jumps_across_it(tmp_path, capsys):
+    """A slab moved 0.3 m beyond a straight scarp; ``--breaklines`` a GeoJSON line: the
+    default field (the spline) recovers both sides, the line goes to icp.gpkg (styled) and
+    icp.json."""
+    pyproj = pytest.importorskip("pyproj")
+    pytest.importorskip("osgeo.ogr", reason="GDAL/OGR (python3-gdal) missing")
+    from slipmap.core.io.las import PointCloud, write_las
+    from slipmap.core.io.vector import gpkg_layer_names, read_gpkg_layer
+
+    crs = pyproj.CRS.from_epsg(32612)
+    slab = np.array([0.0, -0.3, -0.05])
+    a0, a1 = np.array([X0 + 13.7, Y0 - 5.0]), np.array([X0 + 15.2, Y0 + 35.0])
+
+    def east(xy):
+        return ((a1[0] - a0[0]) * (xy[:, 1] - a0[1]) - (a1[1] - a0[1]) * (xy[:, 0] - a0[0])) < 0
+
+    after = _rough(40000, 2)
+    after = after + east(after[:, :2])[:, None] * slab
+    b, a, lines = tmp_path / "b.las", tmp_path / "a.las", tmp_path / "scarp.geojson"
+    write_las(b, PointCloud(xyz=_rough(40000, 1), crs=crs))
+    write_las(a, PointCloud(xyz=after, crs=crs))
+    _line_geojson(lines, [a0, a1], crs)
+    out = tmp_path / "out"
+    argv = ["icp", str(b), str(a), "--cell", "5", "--breaklines", str(lines), "--out", str(out)]
+    try:
+        rc = main(argv)
+    except SystemExit as e:
+        rc = e.code
+    assert rc == 0, capsys.readouterr().err
+    with open(out / "icp.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+    d = np.array([[float(r[k]) for k in ("dx", "dy", "dz")] for r in rows])
+    n = np.array([float(r["n"]) for r in rows])
+    truth = east(xy - slab[:2])[:, None] * slab
+    from slipmap.core.breaklines import breaklines, distance_m
+
+    far = (distance_m(xy, breaklines([np.array([a0, a1])])) >= 2.5) & (n > 500)
+    assert far.sum() >= 12
+    err = np.linalg.norm(d[far] - truth[far], axis=1)
+    assert np.sqrt(np.mean(err**2)) < 0.005, err  # LAS stores millimetres
+    summary = json.loads((out / "icp.json").read_text())
+    assert summary["model"]["field"] == "spline"
+    assert summary["breaklines"]["source"] == "given" and summary["breaklines"]["count"] == 1
+    assert "breaklines" in gpkg_layer_names(out / "icp.gpkg")
+    geoms, cols = read_gpkg_layer(out / "icp.gpkg", "breaklines")
+    np.testing.assert_allclose(geoms[0][:, :2], [a0, a1], atol=1e-6)
+    assert list(cols["source"]) == ["given"]
+    import sqlite3
+
+    with sqlite3.connect(out / "icp.gpkg") as db:
+        styled = dict(db.execute("SELECT f_table_name, styleQML FROM layer_styles"))
+    assert "215,25,28,255" in styled["breaklines"]  # styles/icp_breaklines.qml

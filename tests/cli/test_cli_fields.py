@@ -215,9 +215,10 @@ def test_icp_cli_equals_core_and_writes_layers(shifted_pair, tmp_path):
         ]
     )
     assert rc == 0
-    core = windowed_icp(
-        read_las(d / "b.las").xyz, read_las(d / "a.las").xyz, cell_m=5.0, coarse_to_fine=1
-    )
+    core = windowed_icp(  # the job's defaults: the spline field, breaklines detected
+        read_las(d / "b.las").xyz, read_las(d / "a.las").xyz, cell_m=5.0, coarse_to_fine=1,
+        field_model="spline", detect_breaklines=True,
+    )  # fmt: skip
     cols = read_csv_columns(
         out / "icp.csv",
         required=("x", "y", "z", "dx", "dy", "dz", "sigma_dx", "sigma_dy", "sigma_dz", "rmse", "n"),

@@ -412,6 +412,7 @@ def _icp_params(paths, tmp_path, **params):
         "CELL": 6.0,
         "MIN_POINTS": 50,
         "COARSE_TO_FINE": 0,
+        "FIELD_MODEL": 0,  # cells: the core's default these tests compare with
         "CELLS": str(tmp_path / "cells.gpkg"),
         "VECTORS": str(tmp_path / "vectors.gpkg"),
         "SUMMARY": str(tmp_path / "icp.json"),
@@ -490,6 +491,43 @@ def test_windowedicp_spline_field_equals_core(provider, epochs, tmp_path):
     for name in ("dx", "dy", "dz", "sigma_dx"):
         np.testing.assert_allclose(_col(names, rows, name), getattr(ref, name), rtol=1e-9)
     assert json.loads(Path(res["SUMMARY"]).read_text())["model"]["field"] == "spline"
+
+
+def _line_layer(xy_utm):
+    """A line memory layer in EPSG:4326 (so the algorithm has to reproject it)."""
+    from qgis.core import QgsFeature, QgsGeometry, QgsPointXY, QgsVectorLayer
+
+    tr = pyproj.Transformer.from_crs(UTM12, "EPSG:4326", always_xy=True)
+    lon, lat = tr.transform(xy_utm[:, 0], xy_utm[:, 1])
+    layer = QgsVectorLayer("LineString?crs=EPSG:4326", "scarp", "memory")
+    f = QgsFeature()
+    f.setGeometry(QgsGeometry.fromPolylineXY([QgsPointXY(a, b) for a, b in zip(lon, lat)]))
+    layer.dataProvider().addFeatures([f])
+    return layer
+
+
+def test_windowedicp_breaklines_layer_reaches_the_default_spline_field(provider, epochs, tmp_path):
+    """BREAKLINES (an optional line layer, reprojected) with the default field model: the
+    same field as the core's spline with those breaklines, and the summary says so."""
+    from slipmap.core.icp import windowed_icp
+
+    paths, clouds = epochs
+    line = np.array([[X0 + 11.3, Y0 - 2.0], [X0 + 12.1, Y0 + 30.0]])
+    params = _icp_params(paths, tmp_path, BREAKLINES=_line_layer(line), SPLINE_SPACING=4.0)
+    del params["FIELD_MODEL"]  # the default: the spline field
+    res = _run("windowedicp", params)
+    summary = json.loads(Path(res["SUMMARY"]).read_text())
+    assert summary["model"]["field"] == "spline"
+    assert summary["breaklines"]["source"] == "given" and summary["breaklines"]["count"] == 1
+    got = np.array(summary["breaklines"]["lines"][0])
+    np.testing.assert_allclose(got, line, atol=1e-3)  # through EPSG:4326 and back
+    ref = windowed_icp(
+        clouds["before"], clouds["after"], cell_m=6.0, min_points=50, coarse_to_fine=0,
+        field_model="spline", spline_spacing_m=4.0, breaklines=[got],
+    )  # fmt: skip
+    _, names, rows = _features(res["VECTORS"])
+    assert len(rows) == len(ref)
+    np.testing.assert_allclose(_col(names, rows, "dx"), ref.dx, atol=1e-4)  # line to 1 mm
 
 
 def test_windowedicp_stable_mask_is_reprojected(provider, epochs, tmp_path):
