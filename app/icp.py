@@ -168,8 +168,8 @@ SPEC = JobSpec(
             "all points at once, smooth on each side of the breaklines and free to jump "
             "across them; each cell gives the field at its centre, with its covariance and "
             "strain; follows a landslide lobe only 3-4 cells wide) or cells (each cell's own "
-            "transform, the study's). Default spline; cells for tiled inputs and where fewer "
-            "than 4 cells hold points (with a warning)",
+            "transform, the study's); by default spline, cells for tiled inputs and where "
+            "fewer than 4 cells hold points (with a warning)",
             "Field model (default spline)",
             choices=("cells", "spline"),
             unset_text="spline",
