@@ -146,3 +146,26 @@ def test_cli_breaklines_file_gives_a_field_that_jumps_across_it(tmp_path, capsys
     with sqlite3.connect(out / "icp.gpkg") as db:
         styled = dict(db.execute("SELECT f_table_name, styleQML FROM layer_styles"))
     assert "215,25,28,255" in styled["breaklines"]  # styles/icp_breaklines.qml
+
+
+def test_default_falls_back_to_cells_where_too_few_cells_hold_points(tmp_path, capsys):
+    """One 40 m cell: too few for the default spline field; the run gives the cells' field
+    and warns naming the option (asking for the spline explicitly is refused, as before)."""
+    pyproj = pytest.importorskip("pyproj")
+    pytest.importorskip("osgeo.ogr", reason="GDAL/OGR (python3-gdal) missing")
+    from slipmap.core.io.las import PointCloud, write_las
+
+    crs = pyproj.CRS.from_epsg(32612)
+    b, a = tmp_path / "b.las", tmp_path / "a.las"
+    write_las(b, PointCloud(xyz=_rough(20000, 1), crs=crs))
+    write_las(a, PointCloud(xyz=_rough(20000, 2) + [0.05, -0.03, 0.01], crs=crs))
+    out = tmp_path / "out"
+    try:
+        rc = main(["icp", str(b), str(a), "--cell", "40", "--out", str(out), "--no-progress"])
+    except SystemExit as e:
+        rc = e.code
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    assert "too few cells for the default spline field" in err and "--cell" in err
+    summary = json.loads((out / "icp.json").read_text())
+    assert summary["model"]["field"] == "cells" and summary["breaklines"]["source"] == "none"

@@ -268,16 +268,14 @@ def test_piv_and_icp_of_tiles_on_two_dask_workers_equal_one_file(epochs, tmp_pat
     for job, (extra, table) in runs.items():
         ref = tmp_path / f"{job}_one"
         args = [job, str(epochs / "before.laz"), str(epochs / "after.laz"), *extra]
-        # the one-file default is the spline field; tiles fall back to the cells (issue #29)
+        # the cells here (the tiled spline field equals the one-file one: test_tiled_spline)
         cells = ["--field-model", "cells"] if job == "icp" else []
         rc, err = _cli([*args, *cells, "--out", str(ref)], capsys)
         assert rc == 0, err
         out = tmp_path / f"{job}_dask"
-        tiled = [job, str(epochs / "before_tiles"), str(epochs / "after_tiles"), *extra]
+        tiled = [job, str(epochs / "before_tiles"), str(epochs / "after_tiles"), *extra, *cells]
         rc, err = _cli([*tiled, "--out", str(out), "--workers", "2", "--tile-size", "20"], capsys)
         assert rc == 0, err
-        if job == "icp":  # defaults on tiles: the cells, with a warning naming the option
-            assert "--field-model" in err and "tiled inputs" in err, err
         got, want = _rows(out / table), _rows(ref / table)
         assert set(got) == set(want)
         # a cell that stops at the iteration limit ends where rounding (the points' order in

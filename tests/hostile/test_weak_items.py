@@ -149,10 +149,11 @@ def test_gps_gap_without_gps_time_units_warned(pair, tmp_path):
 
 
 def test_spline_spacing_without_spline_field_warned(pair, tmp_path):
+    # field model unset is the spline, which uses the spacing: the warning is for cells
     res = _cli(
         "--quiet", "icp", pair / "nope.laz", pair / "after.laz", "--cell", 10,
         "--spline-spacing", 2, "--field-model", "cells", "--out", tmp_path / "out",
-    )  # fmt: skip  (unset, the field model is the spline, which uses the spacing)
+    )  # fmt: skip
     _no_mess(res, tmp_path)
     assert "--spline-spacing is set but --field-model is not spline" in res.stderr
 

@@ -85,8 +85,8 @@ def test_dem_difference_and_icp_of_tile_folders_equal_one_file(provider, epochs,
             {"BEFORE": str(b), "AFTER": str(a), "CELL": 6.0, "MIN_POINTS": 50,
              "TILE_SIZE": 12.0, "CELLS": "memory:", "VECTORS": "memory:",
              "SUMMARY": str(tmp_path / f"{name}_icp.json"),
-             # tiles with the defaults run the cells (issue #29); the file is told to
-             **({"FIELD_MODEL": 0} if name == "file" else {})},
+             # the cells for both (the tiled spline field: tests/app/test_tiled_spline.py)
+             "FIELD_MODEL": 0},
         )  # fmt: skip
         layer = res["CELLS"]
         if isinstance(layer, str):
