@@ -55,6 +55,8 @@ ADAPTIVE_LEVELS = 2  # automatic max node size = min node size * 2**ADAPTIVE_LEV
 MIN_PLANE_LEAVES = 3  # automatic min_plane_points = this many typical leaves
 REFINE_RMS_SIGMAS = 1.3  # one plane: its inlier points' RMS is at most this many noise sigmas
 SPLIT_RMS_SIGMAS = 1.5  # segments whose inlier RMS exceeds this many sigmas are split
+FINE_LEVELS = 1  # failing leaves are split this many levels below the leaf size
+FINE_MIN_POINTS = 6
 
 
 @dataclass(frozen=True)
@@ -979,7 +981,11 @@ def segment_planes(
         automatic.append("angle_threshold_deg")
     if min_plane_points is None:
         # a plane spans a few leaves: single curved patches (spheres, trees) stay unlabelled
-        min_plane_points = max(30, int(round(MIN_PLANE_LEAVES * typical_n)))
+        # leaves of the nominal size (30 points, or 8 noise sigmas wide): the octree's
+        # power-of-two leaf can be up to 1.4x wider, and three such leaves' points are more
+        # than a 100 m2 wall holds at 2 pts/m2
+        nominal_n = (max(spacing * math.sqrt(TARGET_LEAF_POINTS), 8.0 * noise) / spacing) ** 2
+        min_plane_points = max(30, int(round(MIN_PLANE_LEAVES * min(typical_n, nominal_n))))
         automatic.append("min_plane_points")
     if max_node_size_m is None:
         top_level = max(1, leaf_level - ADAPTIVE_LEVELS)
@@ -1015,7 +1021,9 @@ def segment_planes(
     names = ("key", "level", "start", "count", "planar", "mean", "normal", "ratio", "n_within")
     leaves: Dict[str, List[np.ndarray]] = {k: [] for k in names}
     active = None  # sorted positions of the points still to test; None = all
-    for level in range(top_level, leaf_level + 1):
+    fine_level = min(tree.depth, leaf_level + FINE_LEVELS)
+    fine_min = min(min_leaf_points, FINE_MIN_POINTS)
+    for level in range(top_level, fine_level + 1):
         keys_l = tree.keys >> np.uint64(3 * (tree.depth - level))
         if active is None:
             nkeys, starts, counts = run_boundaries(keys_l)
@@ -1026,7 +1034,7 @@ def segment_planes(
         if starts.size == 0:
             break
         mean, evals, normal, n_within, within = kernels.node_fit(sub, starts, counts, thr)
-        fitted = counts >= min_leaf_points
+        fitted = counts >= (min_leaf_points if level <= leaf_level else fine_min)
         # planar: enough points within the threshold, and spread in two directions (not a line)
         planar = fitted & (n_within >= planarity_ratio * counts)
         planar &= np.sqrt(np.maximum(evals[:, 1], 0.0)) > thr
@@ -1035,12 +1043,12 @@ def segment_planes(
         # plane; then test again.
         # Above the leaf level only nodes with a majority on their first plane: the others
         # split anyway, and their leaves get the robust refit.
-        last = level == leaf_level
+        last = level == fine_level
         flat = evals[:, 0] <= (REFIT_FLATNESS**2) * evals[:, 1]  # not a blob of clutter
         pl = np.flatnonzero(
             fitted
             & (n_within < CONTAMINATED * counts)
-            & (planar | (2 * n_within >= counts) | (last & flat))
+            & (planar | (2 * n_within >= counts) | ((level >= leaf_level) & flat))
         )
         if pl.size:
             core = _refit_robust(
@@ -1074,7 +1082,7 @@ def segment_planes(
             active = np.flatnonzero(keep) if active is None else active[keep]
             if active.size == 0:
                 break
-        report(progress, 0.3 + 0.3 * (level - top_level + 1) / (leaf_level - top_level + 1), "")
+        report(progress, 0.3 + 0.3 * (level - top_level + 1) / (fine_level - top_level + 1), "")
     lv = {k: np.concatenate(v) for k, v in leaves.items()}
     order = np.argsort(lv["start"], kind="stable")
     lv = {k: v[order] for k, v in lv.items()}
