@@ -57,6 +57,7 @@ REFINE_RMS_SIGMAS = 1.3  # one plane: its inlier points' RMS is at most this man
 SPLIT_RMS_SIGMAS = 1.5  # segments whose inlier RMS exceeds this many sigmas are split
 FINE_LEVELS = 1  # failing leaves are split this many levels below the leaf size
 FINE_MIN_POINTS = 6
+MERGE_CHI2 = 16.27  # chi-square(3) at 99.9 %: one plane for two adds at most this (sigma^2)
 
 
 @dataclass(frozen=True)
@@ -1142,11 +1143,18 @@ def segment_planes(
             for sid, (wp, mp, cp) in pieces.items():
                 w_seg[sid], m_seg[sid], c_seg[sid] = wp, mp, cp
     seg = seg_of_leaf[planar_ids].astype(np.int64)
-    group, g_mean, g_cov = _merge_coplanar(seg_of_leaf, ni, nj, w_seg, m_seg, c_seg, tol)
+    group, g_mean, g_cov = _merge_coplanar(
+        seg_of_leaf, ni, nj, w_seg, m_seg, c_seg, tol, noise_m=params.noise_m
+    )
     # support = inliers of the plane's planar leaves; boundary points do not make a plane
     sizes = np.bincount(seg, weights=lv["n_within"][planar_ids], minlength=nseg)
     group_size = np.bincount(group, weights=sizes, minlength=nseg)
-    roots_kept = (group == np.arange(nseg)) & (group_size >= params.min_plane_points)
+    # a plane needs min_plane_points in the end (boundary points included, below), and a
+    # third of them (one leaf's worth) from its planar leaves: boundary points join planes
+    # but do not make them. (Counting only planar-leaf inliers lost sparse walls a leaf or
+    # two high, where most leaves hold an edge: 2 pts/m2, 5 m walls of 210 points.)
+    min_support = max(3.0, params.min_plane_points / MIN_PLANE_LEAVES)
+    roots_kept = (group == np.arange(nseg)) & (group_size >= min_support)
     # final ids in Morton order of each group's first leaf
     first_leaf = np.full(nseg, n_leaves, dtype=np.int64)
     np.minimum.at(first_leaf, group[seg], planar_ids)
@@ -1190,10 +1198,9 @@ def segment_planes(
     lab_sorted[on[far]] = -1
     near_f = f[~far]
     close = dist[~far] <= thr / PLANARITY_SIGMAS
-    share = np.bincount(near_f, weights=close, minlength=kept.size) / np.maximum(
-        np.bincount(near_f, minlength=kept.size), 1
-    )
-    clutter = share < SURFACE_CORE_SHARE
+    n_final = np.bincount(near_f, minlength=kept.size)
+    share = np.bincount(near_f, weights=close, minlength=kept.size) / np.maximum(n_final, 1)
+    clutter = (share < SURFACE_CORE_SHARE) | (n_final < params.min_plane_points)
     if clutter.any():
         renum = np.full(kept.size + 1, -1, dtype=np.int32)
         renum[:-1][~clutter] = np.arange(int((~clutter).sum()), dtype=np.int32)
@@ -1397,6 +1404,8 @@ def _merge_coplanar(
     means: np.ndarray,
     covs: np.ndarray,
     tolerance_m: float,
+    *,
+    noise_m: float = float("nan"),
 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Merge touching segments that are one plane.
 
@@ -1410,6 +1419,13 @@ def _merge_coplanar(
     (S,), ``means`` (S, 3), centred ``covs`` (S, 3, 3)). Pairs are merged greedily from the
     best fit, always testing the whole groups, so a small fragment at a corner joins the wall
     that fits it and never chains two walls together. Backend independent.
+
+    With ``noise_m`` (sigma), a union whose RMS exceeds the tolerance still merges when one
+    plane instead of two adds no more to the residual sum of squares than noise does: at most
+    ``MERGE_CHI2`` sigma² (the 99.9 % point of chi-square with 3 degrees of freedom, the
+    parameters one plane fewer frees). The RMS of a few dozen points scatters by ~10 %, so
+    small pieces of one sparse wall failed the RMS rule by chance; two surfaces at an angle
+    or apart add far more.
     """
     nseg = counts.size
     group = np.arange(nseg, dtype=np.int64)
@@ -1417,15 +1433,16 @@ def _merge_coplanar(
         return group, means, covs
     a_seg, b_seg = seg_of_leaf[ni].astype(np.int64), seg_of_leaf[nj].astype(np.int64)
     touch = (a_seg >= 0) & (b_seg >= 0) & (a_seg < b_seg)
-    if not touch.any():
+    ba, bb = _bridged_pairs(seg_of_leaf, ni, nj, nseg)
+    if not touch.any() and not ba.size:
         return group, means, covs
-    pair = np.unique(a_seg[touch] * nseg + b_seg[touch])
+    pair = np.unique(np.concatenate([a_seg[touch] * nseg + b_seg[touch], ba * nseg + bb]))
     pa, pb = pair // nseg, pair % nseg
     w, m, c = counts.astype(np.float64).copy(), means.copy(), covs.copy()
     ok = (w[pa] > 0) & (w[pb] > 0)
     pa, pb = pa[ok], pb[ok]
-    rms = _merged_rms(w[pa], m[pa], c[pa], w[pb], m[pb], c[pb])
-    cand = np.flatnonzero(rms <= tolerance_m)
+    rms, ok = _merge_test(w[pa], m[pa], c[pa], w[pb], m[pb], c[pb], tolerance_m, noise_m)
+    cand = np.flatnonzero(ok)
     cand = cand[np.argsort(rms[cand], kind="stable")]
 
     def find(i: int) -> int:
@@ -1439,12 +1456,68 @@ def _merge_coplanar(
         if ra == rb:
             continue
         lo, hi = min(ra, rb), max(ra, rb)
-        r = _merged_rms(w[[lo]], m[[lo]], c[[lo]], w[[hi]], m[[hi]], c[[hi]])[0]
-        if r > tolerance_m:
+        _, fits = _merge_test(
+            w[[lo]], m[[lo]], c[[lo]], w[[hi]], m[[hi]], c[[hi]], tolerance_m, noise_m
+        )
+        if not fits[0]:
             continue
         _union(w, m, c, lo, hi)
         group[hi] = lo
     return np.array([find(i) for i in range(nseg)], dtype=np.int64), m, c
+
+
+def _bridged_pairs(
+    seg_of_leaf: np.ndarray, ni: np.ndarray, nj: np.ndarray, nseg: int
+) -> Tuple[np.ndarray, np.ndarray]:
+    """Pairs (a < b) of segments that both touch one leaf of no segment, or two such leaves
+    that touch each other.
+
+    Where few points fill a leaf (airborne densities: a wall a leaf or two high), the leaves
+    along an edge, a window or a tree fail the planarity test and cut one surface into pieces
+    that do not touch; such pieces are merge candidates too (the merge's test decides).
+    """
+    from scipy import sparse
+
+    s = seg_of_leaf.astype(np.int64)
+    n = s.size
+    e = (s[ni] < 0) & (s[nj] >= 0)
+    if not e.any():
+        return np.empty(0, np.int64), np.empty(0, np.int64)
+    touch = sparse.csr_matrix(
+        (np.ones(int(e.sum()), dtype=np.int32), (ni[e], s[nj[e]])), shape=(n, nseg)
+    )
+    free = (s[ni] < 0) & (s[nj] < 0)
+    hop = sparse.csr_matrix(
+        (np.ones(int(free.sum()), dtype=np.int32), (ni[free], nj[free])), shape=(n, n)
+    )
+    reach = (touch + hop @ touch).tocsr()  # segments within two free leaves of each free leaf
+    reach.sum_duplicates()
+    reach.sort_indices()
+    size = np.diff(reach.indptr)
+    seg = reach.indices.astype(np.int64)
+    first = reach.indptr[:-1]
+    rank = np.arange(seg.size) - np.repeat(first, size)
+    later = np.repeat(size, size) - rank - 1  # partners after each element in its row
+    a = np.repeat(np.arange(seg.size), later)
+    step = np.arange(a.size) - np.repeat(np.cumsum(later) - later, later) + 1
+    code = np.unique(seg[a] * nseg + seg[a + step])
+    return code // nseg, code % nseg
+
+
+def _merge_test(wa, ma, ca, wb, mb, cb, tolerance_m, noise_m):
+    """RMS (K,) of each pair's union about its best plane, and whether the pair is one plane:
+    that RMS within ``tolerance_m``, or (``noise_m`` finite) one plane for both adds at most
+    ``MERGE_CHI2`` noise variances to the residual sum of squares of two."""
+    cov = _combine(wa, ma, ca, wb, mb, cb)[2]
+    lam = np.maximum(np.linalg.eigvalsh(cov)[:, 0], 0.0)
+    rms = np.sqrt(lam)
+    ok = rms <= tolerance_m
+    if np.isfinite(noise_m) and noise_m > 0:
+        la = np.maximum(np.linalg.eigvalsh(ca)[:, 0], 0.0)
+        lb = np.maximum(np.linalg.eigvalsh(cb)[:, 0], 0.0)
+        extra = (wa + wb) * lam - wa * la - wb * lb
+        ok |= extra <= MERGE_CHI2 * noise_m**2
+    return rms, ok
 
 
 def _merged_rms(wa, ma, ca, wb, mb, cb) -> np.ndarray:
