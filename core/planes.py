@@ -982,11 +982,11 @@ def segment_planes(
         automatic.append("angle_threshold_deg")
     if min_plane_points is None:
         # a plane spans a few leaves: single curved patches (spheres, trees) stay unlabelled
-        # leaves of the nominal size (30 points, or 8 noise sigmas wide): the octree's
-        # power-of-two leaf can be up to 1.4x wider, and three such leaves' points are more
-        # than a 100 m2 wall holds at 2 pts/m2
+        # three leaves of the nominal size (30 points, or 8 noise sigmas wide), the smallest
+        # resolvable surface of docs/benchmarks.md: not the power-of-two leaf's count, up to
+        # 2.8x more or less (and the median leaf is clutter's in a cluttered cloud)
         nominal_n = (max(spacing * math.sqrt(TARGET_LEAF_POINTS), 8.0 * noise) / spacing) ** 2
-        min_plane_points = max(30, int(round(MIN_PLANE_LEAVES * min(typical_n, nominal_n))))
+        min_plane_points = max(30, int(round(MIN_PLANE_LEAVES * nominal_n)))
         automatic.append("min_plane_points")
     if max_node_size_m is None:
         top_level = max(1, leaf_level - ADAPTIVE_LEVELS)
@@ -1208,6 +1208,12 @@ def segment_planes(
     f = lab_sorted[on]
     dist = np.abs(np.einsum("ij,ij->i", ps[on] - k_mean[f], k_normal[f]))
     far = dist > RELEASE_THRESHOLDS * thr
+    # a plane whose points scatter more than the split rule allows (small planes with many
+    # boundary points, on rough ground) keeps only those within one threshold
+    ms = np.bincount(f, weights=np.where(far, 0.0, dist**2), minlength=kept.size)
+    ms /= np.maximum(np.bincount(f, weights=~far, minlength=kept.size), 1.0)
+    loose = ms > (SPLIT_RMS_SIGMAS * params.noise_m) ** 2
+    far |= loose[f] & (dist > thr)
     lab_sorted[on[far]] = -1
     near_f = f[~far]
     close = dist[~far] <= thr / PLANARITY_SIGMAS
@@ -1370,6 +1376,7 @@ def _split_segments(
         if leaves.size < 2:
             continue
         w, m, c = _leaf_moments(ps, inlier, lv, leaves)
+        wl, ml, cl = w.tolist(), m.tolist(), c.tolist()
         local = {int(g): k for k, g in enumerate(leaves)}
         sel = np.isin(ni, leaves) & np.isin(nj, leaves)
         adj: Dict[int, List[int]] = {}
@@ -1382,28 +1389,25 @@ def _split_segments(
             if not left[seed]:
                 continue
             left[seed] = False
-            pw, pm, pc = (
-                w[seed : seed + 1].copy(),
-                m[seed : seed + 1].copy(),
-                c[seed : seed + 1].copy(),
-            )
+            pw, pm, pc = wl[seed], ml[seed], cl[seed]
             members, queue = [seed], list(adj.get(seed, []))
             while queue:
                 j = queue.pop(0)
                 if not left[j]:
                     continue
-                tw, tm, tc = _combine(pw, pm, pc, w[j : j + 1], m[j : j + 1], c[j : j + 1])
-                if math.sqrt(max(np.linalg.eigvalsh(tc[0])[0], 0.0)) > tolerance_m:
+                tw, tm, tc = _combine_one(pw, pm, pc, wl[j], ml[j], cl[j])
+                if math.sqrt(_lambda_min(tc)) > tolerance_m:
                     continue  # another neighbour may still bring it in later
                 pw, pm, pc = tw, tm, tc
                 left[j] = False
                 members.append(j)
                 queue.extend(adj.get(j, []))
+            piece = (float(pw), np.array(pm), np.array(pc))
             if first:
-                pieces[int(s)] = (pw[0], pm[0], pc[0])
+                pieces[int(s)] = piece
             else:
                 seg_of_leaf[leaves[members]] = nseg
-                pieces[nseg] = (pw[0], pm[0], pc[0])
+                pieces[nseg] = piece
                 nseg += 1
             first = False
     return nseg, pieces
@@ -1447,6 +1451,12 @@ def _merge_coplanar(
     a_seg, b_seg = seg_of_leaf[ni].astype(np.int64), seg_of_leaf[nj].astype(np.int64)
     touch = (a_seg >= 0) & (b_seg >= 0) & (a_seg < b_seg)
     ba, bb = _bridged_pairs(seg_of_leaf, ni, nj, nseg)
+    if ba.size:
+        # pieces of one surface have normals within the widest angle threshold (15 deg);
+        # on rough ground a free leaf reaches many segments at all angles
+        nrm = np.linalg.eigh(covs)[1][:, :, 0]
+        keep = np.abs(np.einsum("ij,ij->i", nrm[ba], nrm[bb])) >= math.cos(math.radians(15.0))
+        ba, bb = ba[keep], bb[keep]
     if not touch.any() and not ba.size:
         return group, means, covs
     pair = np.unique(np.concatenate([a_seg[touch] * nseg + b_seg[touch], ba * nseg + bb]))
@@ -1494,8 +1504,7 @@ def _merge_coplanar(
 def _bridged_pairs(
     seg_of_leaf: np.ndarray, ni: np.ndarray, nj: np.ndarray, nseg: int
 ) -> Tuple[np.ndarray, np.ndarray]:
-    """Pairs (a < b) of segments that both touch one leaf of no segment, or two such leaves
-    that touch each other.
+    """Pairs (a < b) of segments that both touch one leaf of no segment.
 
     Where few points fill a leaf (airborne densities: a wall a leaf or two high), the leaves
     along an edge, a window or a tree fail the planarity test and cut one surface into pieces
@@ -1511,11 +1520,7 @@ def _bridged_pairs(
     touch = sparse.csr_matrix(
         (np.ones(int(e.sum()), dtype=np.int32), (ni[e], s[nj[e]])), shape=(n, nseg)
     )
-    free = (s[ni] < 0) & (s[nj] < 0)
-    hop = sparse.csr_matrix(
-        (np.ones(int(free.sum()), dtype=np.int32), (ni[free], nj[free])), shape=(n, n)
-    )
-    reach = (touch + hop @ touch).tocsr()  # segments within two free leaves of each free leaf
+    reach = touch.tocsr()
     reach.sum_duplicates()
     reach.sort_indices()
     size = np.diff(reach.indptr)
