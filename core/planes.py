@@ -1210,8 +1210,9 @@ def segment_planes(
     far = dist > RELEASE_THRESHOLDS * thr
     # a plane whose points scatter more than the split rule allows (small planes with many
     # boundary points, on rough ground) keeps only those within one threshold
-    ms = np.bincount(f, weights=np.where(far, 0.0, dist**2), minlength=kept.size)
-    ms /= np.maximum(np.bincount(f, weights=~far, minlength=kept.size), 1.0)
+    ms = np.bincount(f, weights=np.where(far, 0.0, dist**2), minlength=kept.size) / np.maximum(
+        np.bincount(f, weights=~far, minlength=kept.size), 1.0
+    )
     loose = ms > (SPLIT_RMS_SIGMAS * params.noise_m) ** 2
     far |= loose[f] & (dist > thr)
     lab_sorted[on[far]] = -1
