@@ -3,8 +3,10 @@
 Kusari et al. (2019), section II.B–C, with these refinements (see docs/methods.md):
 
 * Adaptive octree: nodes are tested top-down from ``max_node_size_m``; a planar node becomes a
-  leaf, a non-planar one is split until ``min_node_size_m``. Large flat surfaces are fitted with
-  many points, clutter is resolved finely. Neighbours are found across levels.
+  leaf, a non-planar one is split until ``min_node_size_m``, and once more where that finds a
+  planar child (fine leaves: at airborne density a leaf is as wide as a wall). Large flat
+  surfaces are fitted with many points, clutter is resolved finely. Neighbours are found
+  across levels.
 * Per-leaf plane from the covariance of the leaf's points centred on its centroid (Eq. 5-6),
   smallest-eigenvalue normal; the planarity test of Algorithm 1 (fraction of points within
   ``planarity_threshold_m`` reaches ``planarity_ratio``) plus a guard against line-like leaves.
@@ -12,8 +14,12 @@ Kusari et al. (2019), section II.B–C, with these refinements (see docs/methods
   (26-neighbourhood) join when normals agree (Eq. 7) and each centroid lies near the other's
   plane (Eq. 8, both ways); labels propagate to the minimum, with pointer jumping, until stable.
   Segments are gathered by sort + unique.
+* Segment refinement: segments no plane fits are split; touching segments, and segments that
+  touch one free leaf, merge when one plane fits both (RMS, or a chi-square test of the added
+  residuals for small pieces).
 * Points of a planar leaf that fail its distance test, and points of non-planar leaves, join the
-  nearest plane of a touching planar leaf when within ``planarity_threshold_m`` (boundaries).
+  nearest plane of a touching planar leaf when within ``planarity_threshold_m`` (boundaries),
+  unless the leaf's points near that plane scatter like vegetation (the vegetation test).
 * Automatic parameters from the data: point spacing from octree occupancy and noise from a robust
   quantile of leaf-fit residuals; every value can be overridden.
 
@@ -868,9 +874,10 @@ def segment_planes(
         Largest distance of a leaf's centroid to its neighbour's plane (Eq. 8). Default: the
         planarity threshold.
     min_plane_points : int, optional
-        Smallest reported plane, counted over the points of its planar leaves (boundary points
-        join planes but do not make them). Default: 3 typical leaves (at least 30 points), so
-        that single curved patches (spheres, tree crowns) are not reported as planes.
+        Smallest reported plane, in points, a third of them inliers of its planar leaves
+        (boundary points join planes but do not make them). Default: 3 nominal leaves (30
+        points, or 8 noise sigmas wide; at least 30 points), so that single curved patches
+        (spheres, tree crowns) are not reported as planes.
     min_leaf_points : int, optional
         Smallest leaf that is fitted. Default 10.
     backend : {'numpy', 'opencl', 'auto'}
