@@ -63,6 +63,7 @@ REFINE_RMS_SIGMAS = 1.3  # one plane: its inlier points' RMS is at most this man
 SPLIT_RMS_SIGMAS = 1.5  # segments whose inlier RMS exceeds this many sigmas are split
 FINE_MIN_POINTS = 6  # failing leaves are split once more; those children need this many
 MERGE_CHI2 = 16.27  # chi-square(3) at 99.9 %: one plane for two adds at most this (sigma^2)
+PLANE_SUPPORT_SHARE = 1.0 / 3.0  # of min_plane_points, from planar-leaf inliers
 MERGE_RMS_SDS = 1.0  # ... and the union's RMS within the tolerance plus this many of its sds
 
 
@@ -1029,7 +1030,9 @@ def segment_planes(
     names = ("key", "level", "start", "count", "planar", "mean", "normal", "ratio", "n_within")
     leaves: Dict[str, List[np.ndarray]] = {k: [] for k in names}
     active = None  # sorted positions of the points still to test; None = all
-    fine_level = min(tree.depth, leaf_level + 1)  # one level of fine leaves (see below)
+    fine_level = min(tree.depth, leaf_level + 1)  # one level of fine leaves (see below) ...
+    if tree.cell_size_m(fine_level) < 8.0 * params.noise_m:
+        fine_level = leaf_level  # ... wide compared with the noise, as leaves are
     pending: Dict[str, np.ndarray] = {}
     fine_min = min(min_leaf_points, FINE_MIN_POINTS)
     for level in range(top_level, fine_level + 1):
@@ -1173,7 +1176,7 @@ def segment_planes(
     # third of them (one leaf's worth) from its planar leaves: boundary points join planes
     # but do not make them. (Counting only planar-leaf inliers lost sparse walls a leaf or
     # two high, where most leaves hold an edge: 2 pts/m2, 5 m walls of 210 points.)
-    min_support = max(3.0, params.min_plane_points / MIN_PLANE_LEAVES)
+    min_support = max(3.0, PLANE_SUPPORT_SHARE * params.min_plane_points)
     roots_kept = (group == np.arange(nseg)) & (group_size >= min_support)
     # final ids in Morton order of each group's first leaf
     first_leaf = np.full(nseg, n_leaves, dtype=np.int64)
