@@ -1206,7 +1206,10 @@ def segment_planes(
     }
     seg_plane["mean"][on] = k_mean[seg_of_leaf[on]]
     seg_plane["normal"][on] = k_normal[seg_of_leaf[on]]
-    _assign_boundaries(ps, lab_sorted, lab_sorted >= 0, seg_plane, seg_of_leaf, ni, nj, thr)
+    lab_all = lab_sorted.copy()
+    _assign_boundaries(
+        ps, lab_sorted, lab_sorted >= 0, seg_plane, seg_of_leaf, ni, nj, thr, lab_all=lab_all
+    )
     # every labelled point lies within two thresholds of its segment's plane: inliers of a
     # leaf that joined at an angle, and far from the leaf, are let go (two, not one: the noise
     # is one figure for the cloud, and a cloud noisier in parts than the estimate must not
@@ -1226,10 +1229,16 @@ def segment_planes(
     loose = ms > (SPLIT_RMS_SIGMAS * params.noise_m) ** 2
     far |= loose[f] & (dist > thr)
     lab_sorted[on[far]] = -1
-    near_f = f[~far]
-    close = dist[~far] <= thr / PLANARITY_SIGMAS
-    n_final = np.bincount(near_f, minlength=kept.size)
-    share = np.bincount(near_f, weights=close, minlength=kept.size) / np.maximum(n_final, 1)
+    n_final = np.bincount(f[~far], minlength=kept.size)
+    # the surface test judges a plane by every point within two thresholds that its touching
+    # leaves hold, also those the vegetation test kept out: a patch of crown that passed leaf
+    # by leaf shows as clutter only with the crown around it
+    on_a = np.flatnonzero(lab_all >= 0)
+    fa = lab_all[on_a]
+    da = np.abs(np.einsum("ij,ij->i", ps[on_a] - k_mean[fa], k_normal[fa]))
+    band = da <= RELEASE_THRESHOLDS * thr
+    share = np.bincount(fa[band], weights=da[band] <= thr / PLANARITY_SIGMAS, minlength=kept.size)
+    share /= np.maximum(np.bincount(fa[band], minlength=kept.size), 1)
     clutter = (share < SURFACE_CORE_SHARE) | (n_final < params.min_plane_points)
     if clutter.any():
         renum = np.full(kept.size + 1, -1, dtype=np.int32)
@@ -1617,12 +1626,15 @@ def _assign_boundaries(
     ni: np.ndarray,
     nj: np.ndarray,
     threshold: float,
+    lab_all: Optional[np.ndarray] = None,
 ) -> None:
     """Unlabelled points join the closest plane of a touching planar leaf (in place).
 
     For every leaf, only one planar neighbour per segment is tried: the one whose centroid is
     nearest the leaf's. A point joins the segment whose plane is nearest, if within
-    ``threshold``.
+    ``threshold``, unless the vegetation test turns the leaf's points away from that plane;
+    ``lab_all`` (optional, in place) gets the assignment without that test (what the final
+    surface test of a plane judges it by).
     """
     keep = seg_of_leaf[nj] >= 0
     bi, bj = ni[keep], nj[keep]
@@ -1659,6 +1671,8 @@ def _assign_boundaries(
     # crowd the plane like a surface's noise (of those within 3 sigmas, half within 1 sigma:
     # 68 % for a surface, 33 % for a tree crown filling the band), so canopy beside a roof or
     # over the ground does not join it
+    if lab_all is not None:
+        _nearest_into(lab_all, cand, rep, j, cnt, dist, seg_of_leaf)
     band = np.isfinite(dist)
     if band.any():
         key = cl[rep[band]].astype(np.int64) * (int(seg_of_leaf.max()) + 1) + seg_of_leaf[j[band]]
@@ -1667,7 +1681,13 @@ def _assign_boundaries(
         n1 = np.bincount(inv, weights=dist[band] <= threshold / PLANARITY_SIGMAS)
         crowd = n1 >= SURFACE_CORE_SHARE * n3 - 0.5  # half a point: one point proves nothing
         lost = np.flatnonzero(band)[~crowd[inv]]
+        dist = dist.copy()
         dist[lost] = np.inf
+    _nearest_into(lab, cand, rep, j, cnt, dist, seg_of_leaf)
+
+
+def _nearest_into(lab, cand, rep, j, cnt, dist, seg_of_leaf) -> None:
+    """Each candidate (pairs grouped by candidate) takes the segment of its nearest finite pair."""
     group = np.cumsum(cnt) - cnt
     best = np.minimum.reduceat(dist, group)  # nearest plane of each candidate
     hit = np.isfinite(best)
