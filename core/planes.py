@@ -1237,8 +1237,8 @@ def segment_planes(
     fa = lab_all[on_a]
     da = np.abs(np.einsum("ij,ij->i", ps[on_a] - k_mean[fa], k_normal[fa]))
     band = da <= RELEASE_THRESHOLDS * thr
-    share = np.bincount(fa[band], weights=da[band] <= thr / PLANARITY_SIGMAS, minlength=kept.size)
-    share /= np.maximum(np.bincount(fa[band], minlength=kept.size), 1)
+    close = np.bincount(fa[band], weights=da[band] <= thr / PLANARITY_SIGMAS, minlength=kept.size)
+    share = close / np.maximum(np.bincount(fa[band], minlength=kept.size), 1)
     clutter = (share < SURFACE_CORE_SHARE) | (n_final < params.min_plane_points)
     if clutter.any():
         renum = np.full(kept.size + 1, -1, dtype=np.int32)
