@@ -1658,7 +1658,8 @@ def _assign_boundaries(
     cnt = deg[cl]
     rep = np.repeat(np.arange(cand.size), cnt)  # candidate of each pair; pairs grouped by it
     rank = np.arange(rep.size) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    j = bj[np.repeat(ptr[cl], cnt) + rank]
+    pair = np.repeat(ptr[cl], cnt) + rank  # index of (leaf, segment) in bi, bj
+    j = bj[pair]
     pos = cand[rep]
     dist = np.abs(
         ps[pos, 0] * nrm[j, 0]
@@ -1675,14 +1676,12 @@ def _assign_boundaries(
         _nearest_into(lab_all, cand, rep, j, cnt, dist, seg_of_leaf)
     band = np.isfinite(dist)
     if band.any():
-        key = cl[rep[band]].astype(np.int64) * (int(seg_of_leaf.max()) + 1) + seg_of_leaf[j[band]]
-        _, inv = np.unique(key, return_inverse=True)
-        n3 = np.bincount(inv)
-        n1 = np.bincount(inv, weights=dist[band] <= threshold / PLANARITY_SIGMAS)
+        n3 = np.bincount(pair[band], minlength=bj.size)
+        n1 = np.bincount(
+            pair[band], weights=dist[band] <= threshold / PLANARITY_SIGMAS, minlength=bj.size
+        )
         crowd = n1 >= SURFACE_CORE_SHARE * n3 - 0.5  # half a point: one point proves nothing
-        lost = np.flatnonzero(band)[~crowd[inv]]
-        dist = dist.copy()
-        dist[lost] = np.inf
+        dist = np.where(band & ~crowd[pair], np.inf, dist)
     _nearest_into(lab, cand, rep, j, cnt, dist, seg_of_leaf)
 
 
