@@ -1217,10 +1217,20 @@ def segment_planes(
     # surface when its points crowd its middle like noise does: of those within 3 sigmas,
     # 68 % lie within 1 sigma for Gaussian noise, 33 % for clutter filling the band evenly (a
     # vegetation patch that passed leaf by leaf); such planes are let go.
+    extra = np.flatnonzero((lab_all >= 0) & (lab_sorted < 0))  # kept out by the vegetation test
     on = np.flatnonzero(lab_sorted >= 0)
     f = lab_sorted[on]
     dist = np.abs(np.einsum("ij,ij->i", ps[on] - k_mean[f], k_normal[f]))
     far = dist > RELEASE_THRESHOLDS * thr
+    # the surface test judges a plane by every point within two thresholds that its touching
+    # leaves hold, also those the vegetation test kept out: a patch of crown that passed leaf
+    # by leaf shows as clutter only with the crown around it
+    fe = lab_all[extra]
+    de = np.abs(np.einsum("ij,ij->i", ps[extra] - k_mean[fe], k_normal[fe]))
+    fa, da = np.concatenate([f[~far], fe]), np.concatenate([dist[~far], de])
+    band = da <= RELEASE_THRESHOLDS * thr
+    close = np.bincount(fa[band], weights=da[band] <= thr / PLANARITY_SIGMAS, minlength=kept.size)
+    share = close / np.maximum(np.bincount(fa[band], minlength=kept.size), 1)
     # a plane whose points scatter more than the split rule allows (small planes with many
     # boundary points, on rough ground) keeps only those within one threshold
     ms = np.bincount(f, weights=np.where(far, 0.0, dist**2), minlength=kept.size) / np.maximum(
@@ -1230,15 +1240,6 @@ def segment_planes(
     far |= loose[f] & (dist > thr)
     lab_sorted[on[far]] = -1
     n_final = np.bincount(f[~far], minlength=kept.size)
-    # the surface test judges a plane by every point within two thresholds that its touching
-    # leaves hold, also those the vegetation test kept out: a patch of crown that passed leaf
-    # by leaf shows as clutter only with the crown around it
-    on_a = np.flatnonzero(lab_all >= 0)
-    fa = lab_all[on_a]
-    da = np.abs(np.einsum("ij,ij->i", ps[on_a] - k_mean[fa], k_normal[fa]))
-    band = da <= RELEASE_THRESHOLDS * thr
-    close = np.bincount(fa[band], weights=da[band] <= thr / PLANARITY_SIGMAS, minlength=kept.size)
-    share = close / np.maximum(np.bincount(fa[band], minlength=kept.size), 1)
     clutter = (share < SURFACE_CORE_SHARE) | (n_final < params.min_plane_points)
     if clutter.any():
         renum = np.full(kept.size + 1, -1, dtype=np.int32)
