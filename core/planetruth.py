@@ -35,9 +35,11 @@ from .errors import InvalidParameterError
 from .evaluation import score_segmentation
 
 __all__ = [
+    "AIRBORNE_MIN_SURFACE_POINTS",
     "GROUND_TILT_DEG",
     "MIN_RESOLVABLE_POINTS",
     "PlaneCase",
+    "make_airborne_case",
     "make_plane_case",
     "make_two_walls_case",
     "min_resolvable_extent_m",
@@ -206,14 +208,18 @@ def resolvable_surfaces(
 # --------------------------------------------------------------------------- scoring
 
 
-def score_case(case: PlaneCase, labels_pred: np.ndarray) -> dict:
+def score_case(
+    case: PlaneCase, labels_pred: np.ndarray, *, min_surface_points: Optional[int] = None
+) -> dict:
     """Score predicted plane labels against a :class:`PlaneCase`.
 
     Uses :func:`slipmap.core.evaluation.score_segmentation`. Recall counts only the resolvable
-    surfaces; points of non-resolvable surfaces are neither recall nor precision errors (a
-    labelled point of any true surface counts as correct for precision). A clutter point
-    within 3 noise sigmas of the true plane of the surface its predicted plane mostly holds
-    lies on that surface as far as any segmentation can tell: it is left out of precision.
+    surfaces (with ``min_surface_points``: the surfaces of at least that many points, the
+    airborne cases' rule, whatever their width); points of surfaces not counted are neither
+    recall nor precision errors (a labelled point of any true surface counts as correct for
+    precision). A clutter point within 3 noise sigmas of the true plane of the surface its
+    predicted plane mostly holds lies on that surface as far as any segmentation can tell: it
+    is left out of precision.
 
     Parameters
     ----------
@@ -230,7 +236,9 @@ def score_case(case: PlaneCase, labels_pred: np.ndarray) -> dict:
         surfaces, with 50 or more points there; ``n_planes``: predicted planes;
         ``n_resolvable``, ``n_recovered``, ``n_surfaces``; ``purity`` and
         ``labelled_fraction`` (see :class:`~slipmap.core.evaluation.SegmentationScores`);
-        ``missed``: ids of the resolvable surfaces not recovered.
+        ``missed``: ids of the resolvable surfaces not recovered; ``n_clutter_labelled``:
+        clutter points under a plane label (all of them, also those within 3 sigmas of a
+        surface), ``n_planes_with_clutter``: predicted planes holding any such point.
     """
     truth = np.asarray(case.labels).astype(np.int64)
     pred = np.asarray(labels_pred).astype(np.int64)
@@ -238,6 +246,8 @@ def score_case(case: PlaneCase, labels_pred: np.ndarray) -> dict:
         raise InvalidParameterError(f"labels_pred must have shape {truth.shape}, got {pred.shape}")
     # clutter inside the noise band of the surface its plane stands for: indistinguishable
     lab_clutter = np.flatnonzero((truth < 0) & (pred >= 0))
+    n_clutter_labelled = int(lab_clutter.size)
+    n_planes_with_clutter = int(np.unique(pred[lab_clutter]).size)
     if lab_clutter.size:
         on = (truth >= 0) & (pred >= 0)
         npred = int(pred.max()) + 1
@@ -252,7 +262,12 @@ def score_case(case: PlaneCase, labels_pred: np.ndarray) -> dict:
         pred = pred.copy()
         pred[inside] = -1  # neither a correct nor a wrong label
     full = score_segmentation(truth, pred, min_surface_points=1)
-    res_ids = np.flatnonzero(case.resolvable)
+    counted = (
+        case.resolvable
+        if min_surface_points is None
+        else np.asarray(case.n_points) >= int(min_surface_points)
+    )
+    res_ids = np.flatnonzero(counted)
     remap = np.full(case.n_surfaces + 1, -1, dtype=np.int64)  # index -1 (clutter) -> -1
     remap[res_ids] = np.arange(res_ids.size)
     truth_res = remap[truth]
@@ -277,6 +292,8 @@ def score_case(case: PlaneCase, labels_pred: np.ndarray) -> dict:
         "purity": round(full.purity, 4),
         "labelled_fraction": round(full.labelled_fraction, 4),
         "missed": missed,
+        "n_clutter_labelled": n_clutter_labelled,
+        "n_planes_with_clutter": n_planes_with_clutter,
     }
 
 
@@ -485,11 +502,19 @@ def _corner_layout(size: float, rng: np.random.Generator) -> _Layout:
     return _Layout(surfaces, trees, mid, mid.copy())
 
 
-def _town_layout(size: float, rng: np.random.Generator) -> _Layout:
-    """Ground with box buildings (8-25 m sides, 4-12 m eaves, flat or gable roofs), one tree
-    (3-10 m crown) next to each building. About 6 buildings per 100 m scene, ~38 per km."""
+def _town_layout(
+    size: float,
+    rng: np.random.Generator,
+    *,
+    eave_m: Tuple[float, float] = EAVE_HEIGHT_M,
+    gable_share: float = 0.5,
+    per_100m: float = 6.0,
+) -> _Layout:
+    """Ground with box buildings (8-25 m sides, ``eave_m`` eaves (4-12 m), flat or gable
+    roofs, a share ``gable_share`` gable), one tree (3-10 m crown) next to each building.
+    About ``per_100m`` (6) buildings per 100 m scene, ~38 per km at the default."""
     gc = 0.5 * size
-    n_target = max(1, int(round(6.0 * (size / 100.0) ** 0.8)))
+    n_target = max(1, int(round(per_100m * (size / 100.0) ** 0.8)))
     boxes: List[np.ndarray] = []
     params = []
     for _ in range(n_target):
@@ -505,8 +530,8 @@ def _town_layout(size: float, rng: np.random.Generator) -> _Layout:
                 math.dist(centre, b[:2]) < radius + math.hypot(b[3], b[4]) + 3.0 for b in boxes
             ):
                 continue
-            eave = rng.uniform(*EAVE_HEIGHT_M)
-            roof = "gable" if rng.random() < 0.5 else "flat"
+            eave = rng.uniform(*eave_m)
+            roof = "gable" if rng.random() < gable_share else "flat"
             pitch = math.radians(rng.uniform(*ROOF_PITCH_DEG))
             boxes.append(_box_row(centre, rot, length, width))
             params.append((centre, length, width, rot, eave, roof, pitch))
@@ -652,8 +677,13 @@ def _sample_crowns(
     return np.concatenate(parts)[:n]
 
 
-def _counts(prepared: Sequence[_Prepared], density: float) -> np.ndarray:
-    return np.array([int(round(density * p.area)) for p in prepared], dtype=np.int64)
+def _counts(prepared: Sequence[_Prepared], density: float, wall_factor: float = 1.0) -> np.ndarray:
+    """Points per surface: ``density`` per square metre (walls: times ``wall_factor``)."""
+    return np.array(
+        [int(round(density * (wall_factor if p.kind == "wall" else 1.0) * p.area))
+         for p in prepared],
+        dtype=np.int64,
+    )  # fmt: skip
 
 
 def _n_clutter(n_surface: int, clutter_fraction: float) -> int:
@@ -707,9 +737,10 @@ def _assemble(
     scatter_box: Optional[np.ndarray],
     origin: np.ndarray,
     rng: np.random.Generator,
+    wall_factor: float = 1.0,
 ) -> Tuple[np.ndarray, ...]:
     """Sample every surface and the clutter; return points, labels and the per-surface truth."""
-    counts = _counts(prepared, density)
+    counts = _counts(prepared, density, wall_factor)
     blocks, labels = [], []
     normals = np.empty((len(prepared), 3))
     offsets = np.empty(len(prepared))
@@ -962,6 +993,110 @@ def make_two_walls_case(
         seed=seed,
         origin=org,
         footprint_m=np.array([0.0, 0.0, 10.0, 10.0]),
+    )
+
+
+AIRBORNE_EAVE_M = (3.0, 8.0)  # short walls: one- and two-storey buildings
+AIRBORNE_GABLE_SHARE = 0.75  # most roofs gable, at any azimuth
+AIRBORNE_BUILDINGS_PER_100M = 10.0
+AIRBORNE_MIN_SURFACE_POINTS = 200  # recall of the airborne cases: surfaces of >= this many
+
+
+def make_airborne_case(
+    *,
+    density_pts_m2: float,
+    noise_m: float = 0.05,
+    size_m: float = 150.0,
+    vegetation_fraction: float = 0.3,
+    wall_density_factor: float = 1.0,
+    seed: int = 0,
+    origin: Sequence[float] = (0.0, 0.0, 0.0),
+) -> PlaneCase:
+    """A town seen from the air: short walls, gable roofs, trees, at 1-10 pts/m².
+
+    The layout of :func:`make_plane_case`'s town (a ground tilted 2 degrees, box buildings
+    with 8-25 m sides at any rotation, one tree of 3-10 m crown beside each), with
+    one- and two-storey buildings (eaves 3-8 m: short walls), three in four roofs gable (20-40
+    degree pitch, ridges at the buildings' random azimuths) and about 10 buildings per 100 m.
+    Roofs and ground are sampled at ``density_pts_m2``, walls at ``wall_density_factor``
+    times it (an airborne scanner sees walls obliquely: 1 as dense as the roofs, as in an
+    oblique or multi-strip survey; 0.3 a nadir survey's side looks; 0 not at all). Clutter
+    is vegetation only: ``vegetation_fraction`` of all points fill the crowns (no scattered
+    points; with no tree in the scene, none).
+
+    Recall on these cases is counted over the surfaces of at least
+    :data:`AIRBORNE_MIN_SURFACE_POINTS` (200) points (``score_case(...,
+    min_surface_points=200)``); ``resolvable`` keeps the general rule.
+
+    Parameters
+    ----------
+    density_pts_m2 : float
+        Points per square metre on roofs and ground.
+    noise_m : float
+        Standard deviation of the noise along the normals, metres.
+    size_m : float
+        Edge of the square footprint, metres (at least 50).
+    vegetation_fraction : float
+        Share of all points in the tree crowns, in [0, 0.9].
+    wall_density_factor : float
+        Wall density relative to ``density_pts_m2``, in [0, 1].
+    seed : int
+    origin : (3,) float
+
+    Returns
+    -------
+    PlaneCase
+        ``clutter_fraction`` is the vegetation share actually sampled.
+    """
+    density = _check_positive("density_pts_m2", density_pts_m2)
+    noise = _check_non_negative("noise_m", noise_m)
+    size = _check_positive("size_m", size_m)
+    if size < CORNER_SCENE_MAX_M:
+        raise InvalidParameterError(f"size_m must be at least {CORNER_SCENE_MAX_M:g}, got {size_m}")
+    veg = _check_non_negative("vegetation_fraction", vegetation_fraction)
+    if veg > 0.9:
+        raise InvalidParameterError(f"vegetation_fraction must be at most 0.9, got {veg}")
+    wall = _check_non_negative("wall_density_factor", wall_density_factor)
+    if wall > 1.0:
+        raise InvalidParameterError(f"wall_density_factor must be at most 1, got {wall}")
+    seed = _check_seed(seed)
+    org = _check_origin(origin)
+    rng = np.random.default_rng([seed, 4, int(round(size * 1000))])
+    layout = _town_layout(
+        size,
+        rng,
+        eave_m=AIRBORNE_EAVE_M,
+        gable_share=AIRBORNE_GABLE_SHARE,
+        per_100m=AIRBORNE_BUILDINGS_PER_100M,
+    )
+    box = (0.0, 0.0, size, size)
+    prepared = [p for p in _prepare(layout.surfaces, box) if wall > 0 or p.kind != "wall"]
+    n_surface = int(_counts(prepared, density, wall).sum())
+    n_veg = _n_clutter(n_surface, veg) if layout.trees.size else 0
+    points, labels, normals, offsets, counts = _assemble(
+        prepared=prepared,
+        trees=layout.trees,
+        box=box,
+        density=density,
+        noise=noise,
+        n_veg=n_veg,
+        n_scatter=0,
+        scatter_box=None,
+        origin=org,
+        rng=np.random.default_rng([seed, 5]),
+        wall_factor=wall,
+    )
+    return _plane_case(
+        prepared,
+        (points, labels, normals, offsets, counts),
+        density_pts_m2=density,
+        noise_m=noise,
+        size_m=size,
+        clutter_fraction=float(np.mean(labels < 0)) if labels.size else 0.0,
+        seed=seed,
+        origin=org,
+        footprint_m=np.array(box, dtype=np.float64),
+        notes=f"airborne: eaves 3-8 m, walls at {wall:g} x the density",
     )
 
 
