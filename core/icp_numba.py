@@ -34,7 +34,7 @@ from typing import Optional
 
 import numpy as np
 
-from .target_grid import target_grid
+from .target_grid import PairsFromNearest, target_grid
 
 log = logging.getLogger(__name__)
 
@@ -512,7 +512,7 @@ class NumbaTargets:
         return CellNearestCPU(before, self, normals, gate, boxes, centres, n_points)
 
 
-class CellNearestCPU:
+class CellNearestCPU(PairsFromNearest):
     """:class:`slipmap.core.icp_cells._Matcher` with the matching compiled (the same
     constructor arguments plus ``grid``, the same call, and the fused rigid :meth:`step` of
     :class:`slipmap.core.opencl.nearest.CellNearest`)."""
@@ -594,14 +594,3 @@ class CellNearestCPU:
                 np.ascontiguousarray(gi, dtype=np.int64), *self._cache(), out,
             )  # fmt: skip
         return out
-
-    def __call__(self, q: np.ndarray, seg: np.ndarray, gi: np.ndarray):
-        j = self.nearest(q, seg, gi)
-        ok = j >= 0
-        jj = j[ok]
-        nrm = self.normals(jj)
-        fin = np.isfinite(nrm).all(axis=1)
-        if not fin.all():
-            ok[np.flatnonzero(ok)[~fin]] = False
-            jj, nrm = jj[fin], nrm[fin]
-        return ok, self.before[jj] - self.centres[seg[ok]], nrm, jj

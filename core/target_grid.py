@@ -97,3 +97,21 @@ def target_grid(before: np.ndarray) -> TargetGrid:
         iperm=iperm,
         colstart=np.searchsorted(col[order], np.arange(nx * ny + 1)).astype(np.int64),
     )
+
+
+class PairsFromNearest:
+    """The batched ICP's matcher call shared by the compiled matchers (Numba on the CPU,
+    OpenCL): ``matcher(q, seg, gi) -> (ok, target - cell centre, normal, target id)`` from
+    the subclass's ``nearest(q, seg, gi)`` (-1: none within the gate), ``normals(ids)``,
+    ``before`` and ``centres``; targets whose normal is undefined are dropped."""
+
+    def __call__(self, q: np.ndarray, seg: np.ndarray, gi: np.ndarray):
+        j = self.nearest(q, seg, gi)
+        ok = j >= 0
+        jj = j[ok]
+        nrm = self.normals(jj)
+        fin = np.isfinite(nrm).all(axis=1)
+        if not fin.all():
+            ok[np.flatnonzero(ok)[~fin]] = False
+            jj, nrm = jj[fin], nrm[fin]
+        return ok, self.before[jj] - self.centres[seg[ok]], nrm, jj

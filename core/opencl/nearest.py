@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..target_grid import target_grid
+from ..target_grid import PairsFromNearest, target_grid
 from .backend import _runtime
 
 log = logging.getLogger(__name__)
@@ -139,7 +139,7 @@ class GridTargets:
         return out, hard.astype(bool)
 
 
-class CellNearest:
+class CellNearest(PairsFromNearest):
     """:class:`slipmap.core.icp_cells._Matcher` with the matching on an OpenCL device.
 
     Same constructor arguments plus ``grid`` (:class:`GridTargets` of ``before``); same
@@ -242,14 +242,3 @@ class CellNearest:
         )  # fmt: skip
         rt.read(out, bo)
         return out.astype(np.int64)
-
-    def __call__(self, q: np.ndarray, seg: np.ndarray, gi: np.ndarray):
-        j = self.nearest(q, seg, gi)
-        ok = j >= 0
-        jj = j[ok]
-        nrm = self.normals(jj)
-        fin = np.isfinite(nrm).all(axis=1)
-        if not fin.all():
-            ok[np.flatnonzero(ok)[~fin]] = False
-            jj, nrm = jj[fin], nrm[fin]
-        return ok, self.before[jj] - self.centres[seg[ok]], nrm, jj
