@@ -56,6 +56,7 @@ PREALIGN_MAX_POINTS = 200_000  # source points sampled for the global pre-alignm
 ROBUST_CHOICES = (None, "tukey", "huber")
 SIGMA_SCALING_CHOICES = ("field", "region", "formal")
 SIGMA_REGION_BY = ("roughness", "density", "sigma")
+SIGMA_MODELS = ("blocks", "independent")
 
 
 # --------------------------------------------------------------------------- rotations
@@ -992,6 +993,22 @@ class WindowedICPResult:
         With ``sigma_scaling="region"``: the factor of each region (lowest class first).
     sigma_region : (K,) int64 or None
         With ``sigma_scaling="region"``: each cell's region (-1: none, the field's factor).
+    sigma_model : str
+        ``"blocks"`` (the covariances count the residuals' spatial correlation, block sums
+        of the scores: :mod:`slipmap.core.icp_blocks`) or ``"independent"`` (formal).
+    sigma_block_m : float
+        The block side chosen from the data, metres (NaN: none, formal covariances).
+    sigma_block_ratio : float
+        The field's pooled ratio of block to formal variances at that size (the shrinkage
+        target of cells with few blocks; NaN: none).
+    sigma_n_cap : float
+        With ``sigma_model="blocks"`` and neighbour scaling: the most independent
+        observations a cell counts as (the cell-wide correlated error,
+        :func:`~slipmap.core.icp_blocks.cell_floor`; inf: none needed, NaN: not estimated).
+    sigma_floor_factor : float
+        With it, the multiplier of every cell's block sigmas (``sqrt(a)``, >= 1).
+    sigma_formal : (K, 3) float64 or None
+        The formal 1-sigma of ``dx, dy, dz`` (independent residuals, no factor), metres.
     """
 
     x: np.ndarray
@@ -1039,6 +1056,12 @@ class WindowedICPResult:
     sigma_factor_cell: Optional[np.ndarray] = None
     sigma_region_factors: Tuple[float, ...] = ()
     sigma_region: Optional[np.ndarray] = None
+    sigma_model: str = "independent"
+    sigma_block_m: float = math.nan
+    sigma_block_ratio: float = math.nan
+    sigma_formal: Optional[np.ndarray] = None
+    sigma_n_cap: float = math.nan
+    sigma_floor_factor: float = math.nan
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -1258,6 +1281,8 @@ class _PassFits:
     n: np.ndarray
     iterations: np.ndarray
     converged: np.ndarray
+    cov_d_blocks: np.ndarray  # (K, L, 3, 3) block covariances of d (icp_blocks)
+    n_blocks: np.ndarray  # (K, L)
 
 
 def _fit_pass(
@@ -1280,6 +1305,7 @@ def _fit_pass(
     """Fit every cell once. ``pts`` (P, 3) are the cells' after-points (pre-moved by the
     field in a deformation pass), ``moved_by`` (K, 3) how far each cell's centre was moved
     back, ``d_start`` (K, 3) the starting ground motion (the target box moves with it)."""
+    from .icp_blocks import BLOCK_LADDER_M
     from .icp_cells import fit_cells, ground_rotation
 
     centres = cells.centres - moved_by
@@ -1298,6 +1324,11 @@ def _fit_pass(
             src, cells.seg, centres, model=model, t_init=t_init, progress=progress, **kw
         )
     cov = fits.covariance[:, -3:, -3:]
+    k, n_lad = len(cov), len(BLOCK_LADDER_M)
+    if fits.block_covariance is None:
+        bcov, nblk = np.full((k, n_lad, 3, 3), np.nan), np.zeros((k, n_lad), dtype=np.int64)
+    else:
+        bcov, nblk = fits.block_covariance[:, :, -3:, -3:], fits.n_blocks
     rot, sig_rot = ground_rotation(fits, model)
     return _PassFits(
         ok=fits.ok,
@@ -1312,6 +1343,8 @@ def _fit_pass(
         n=fits.n,
         iterations=fits.iterations,
         converged=fits.converged,
+        cov_d_blocks=bcov,
+        n_blocks=nblk,
     )
 
 
@@ -1354,10 +1387,12 @@ def _fit_cells_per_cell(src, seg, centres, *, before, tree, normals, boxes, gate
     """Slow obvious reference of :func:`slipmap.core.icp_cells.fit_cells`: one cell at a time
     (rigid: :func:`_icp_engine` with its own matcher, the pre-issue-#18 loop; affine:
     ``fit_cells`` on one cell, so that the batching itself is what is compared)."""
+    from .icp_blocks import BLOCK_LADDER_M, block_meats_reference, sandwich
     from .icp_cells import CellFits, fit_cells, n_params
 
     k = len(centres)
     p = n_params(model)
+    n_lad = len(BLOCK_LADDER_M)
     out = {
         "ok": np.zeros(k, dtype=bool),
         "linear": np.repeat(np.eye(3)[None], k, axis=0),
@@ -1369,6 +1404,8 @@ def _fit_cells_per_cell(src, seg, centres, *, before, tree, normals, boxes, gate
         "n": np.zeros(k, dtype=np.int64),
         "iterations": np.zeros(k, dtype=np.int64),
         "converged": np.zeros(k, dtype=bool),
+        "block_covariance": np.full((k, n_lad, p, p), np.nan),
+        "n_blocks": np.zeros((k, n_lad), dtype=np.int64),
     }
     bounds = np.concatenate([[0], np.cumsum(np.bincount(seg, minlength=k))])
     M = len(before)
@@ -1418,7 +1455,66 @@ def _fit_cells_per_cell(src, seg, centres, *, before, tree, normals, boxes, gate
         out["n"][ci] = fit.n_correspondences
         out["iterations"][ci] = fit.iterations
         out["converged"][ci] = fit.converged
+        # block covariances at the final transform, as _final_fit forms its residuals
+        a = s @ fit.rotation.T
+        t = fit.params[3:]
+        okm, m, nrm, _ = match(a + t)
+        good = np.all(np.isfinite(nrm), axis=1)
+        a, m, nrm, xy = a[okm][good], m[good], nrm[good], (s[okm][good] + centre)[:, :2]
+        v = np.einsum("ij,ij->i", nrm, a + t - m)
+        keep, w, dpsi = _weights(v, opts)
+        A = np.concatenate([np.cross(a, nrm) @ _left_jacobian(fit.params[:3]), nrm], axis=1)
+        psi = np.where(keep, w * v, 0.0)
+        _, Ninv, _, _ = _solve_scaled(A[keep].T @ A[keep], np.zeros(6), _rms_radius(a))
+        nk = int(keep.sum())
+        scale = nk / max(nk - 6, 1) / (float(dpsi[keep].sum()) / nk) ** 2
+        meats, nb = block_meats_reference(A, psi, np.zeros(len(v), np.int64), xy, 1)
+        out["block_covariance"][ci] = sandwich(Ninv[None], meats, nb, np.array([scale]))[0]
+        out["n_blocks"][ci] = nb[0]
     return CellFits(**out)
+
+
+def _block_covariances(fits: _PassFits, cov_d: np.ndarray, flagged: np.ndarray):
+    """The cells' covariances of ``d`` with the residuals' spatial correlation: the block
+    size chosen over the converged, unflagged cells, each cell's block covariance shrunk
+    towards its formal one times the field's ratio (:mod:`slipmap.core.icp_blocks`).
+    Returns the :class:`~slipmap.core.icp_blocks.BlockChoice` and the (K, 3, 3) covariances
+    (the formal ones where no block size is eligible)."""
+    from .icp_blocks import choose_block_level, shrink_covariance
+
+    fvar = np.diagonal(cov_d, axis1=1, axis2=2)
+    bvar = np.diagonal(fits.cov_d_blocks, axis1=2, axis2=3)
+    usable = fits.ok & fits.converged & ~flagged & np.all(np.isfinite(fvar) & (fvar > 0), 1)
+    choice = choose_block_level(fvar, bvar, fits.n_blocks, usable)
+    if choice.level < 0:
+        return choice, cov_d
+    lev = choice.level
+    out = shrink_covariance(cov_d, fits.cov_d_blocks[:, lev], fits.n_blocks[:, lev], choice.kappa)
+    return choice, out
+
+
+def _spline_block_covariances(sfit, usable: np.ndarray, block, near: np.ndarray):
+    """The spline field's block covariances (``sfit.cov_blocks``), each cell shrunk towards
+    its formal covariance times the field's pooled ratio, and the pair covariances of
+    ``near`` scaled by ``sqrt(r_i r_j)`` (``r`` the cells' variance ratios per component).
+    Returns the :class:`~slipmap.core.icp_blocks.BlockChoice` (with the spline's ratio),
+    the (K, 9, 9) covariances and the (Q, 3) pair covariances."""
+    from .icp_blocks import shrink_covariance
+
+    fvar = np.diagonal(sfit.cov[:, :3, :3], axis1=1, axis2=2)
+    bvar = np.diagonal(sfit.cov_blocks[:, :3, :3], axis1=1, axis2=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.mean(bvar / fvar, axis=1)
+    m = usable & np.isfinite(ratio)
+    kappa = max(1.0, float(np.median(ratio[m]))) if m.any() else 1.0
+    c9 = shrink_covariance(sfit.cov, sfit.cov_blocks, sfit.n_blocks, kappa)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(fvar > 0, np.diagonal(c9[:, :3, :3], axis1=1, axis2=2) / fvar, 1.0)
+    pair = sfit.pair_cov
+    if pair is not None:
+        pair = pair * np.sqrt(r[near[:, 0]] * r[near[:, 1]])
+    log.info("spline field: block variance ratio %.2f (blocks of %g m)", kappa, block.block_m)
+    return replace(block, kappa=kappa), c9, pair
 
 
 def _median_flags(cells: _Cells, d, usable, n_rows, n_cols, eps_m, threshold):
@@ -1499,6 +1595,7 @@ def windowed_icp(
     sigma_scaling: str = "field",
     sigma_regions: int = 3,
     sigma_region_by: str = "roughness",
+    sigma_model: str = "blocks",
     deform_passes: int = 0,
     cell_model: str = "rigid",
     field_model: str = "cells",
@@ -1580,6 +1677,13 @@ def windowed_icp(
         misses the error neighbouring cells share; calibrated on lone-star, docs/fields.md);
         with ``field_model="spline"`` they count the pair covariances too.
         ``"formal"``: keep the formal covariances.
+    sigma_model : {"blocks", "independent"}
+        ``"blocks"`` (default): each cell's covariance counts the spatial correlation of its
+        point-to-plane residuals, the cluster-robust (sandwich) covariance with sub-cell
+        blocks as clusters, the block size chosen from the data and cells with few blocks
+        shrunk towards the field's typical ratio (:mod:`slipmap.core.icp_blocks`; rigid,
+        affine and spline fields alike); ``sigma_scaling`` then applies on top.
+        ``"independent"``: the formal covariance (independent residuals).
     sigma_regions : int
         Number of regions (quantile classes) of ``sigma_scaling="region"`` (>= 1).
     sigma_region_by : {"roughness", "density", "sigma"}
@@ -1683,6 +1787,10 @@ def windowed_icp(
             f"sigma_scaling must be one of {SIGMA_SCALING_CHOICES}, got {sigma_scaling!r}"
         )
     n_regions = _int_at_least("sigma_regions", sigma_regions, 1)
+    if sigma_model not in SIGMA_MODELS:
+        raise InvalidParameterError(
+            f"sigma_model must be one of {SIGMA_MODELS}, got {sigma_model!r}"
+        )
     if sigma_region_by not in SIGMA_REGION_BY:
         raise InvalidParameterError(
             f"sigma_region_by must be one of {SIGMA_REGION_BY}, got {sigma_region_by!r}"
@@ -1728,6 +1836,7 @@ def windowed_icp(
             coarse_to_fine=levels - 1,
             initial_displacement=initial_displacement,
             sigma_scaling="formal",
+            sigma_model="independent",
             engine=engine,
             backend=backend,
             median_threshold=median_threshold,
@@ -1908,6 +2017,14 @@ def windowed_icp(
                 int(flagged.sum()),
             )
     rmse, sigma0, n_used = fits.rmse, fits.sigma0, fits.n
+    sigma_formal = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
+    block, rot_scale = None, np.ones(len(sel))
+    if sigma_model == "blocks":
+        block, cov_d = _block_covariances(fits, cov_d, flagged)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rot_scale = np.sqrt(np.nanmean(np.diagonal(cov_d, axis1=1, axis2=2) /
+                                           sigma_formal**2, axis=1))  # fmt: skip
+        rot_scale = np.where(np.isfinite(rot_scale), rot_scale, 1.0)
     if field_model == "spline":
         from .icp_spline import fit_spline_field
 
@@ -1930,14 +2047,19 @@ def windowed_icp(
             opts=opts,
             progress=scaled(progress, 0.9, 1.0),
             grid=grid,
+            block_m=None if block is None or block.level < 0 else block.block_m,
         )
-        d, grad, cov_d = sfit.d, sfit.gradient, sfit.cov[:, :3, :3]
         rmse, n_used = sfit.rmse, sfit.n
+        c9, spline_pair = sfit.cov, sfit.pair_cov
+        sigma_formal = np.sqrt(np.diagonal(c9[:, :3, :3], axis1=1, axis2=2))
+        if sfit.cov_blocks is not None:
+            usable = fits.ok & fits.converged & ~flagged & (n_used >= minp)
+            block, c9, spline_pair = _spline_block_covariances(sfit, usable, block, near)
+        d, grad, cov_d = sfit.d, sfit.gradient, c9[:, :3, :3]
         sigma0 = np.full(len(d), sfit.sigma0_m)
         # the spline's rotations: antisymmetric part of its gradient; rows of sfit.cov are
         # (d, d d/dx, d d/dy) x (x, y, z): rz = (ddy/dx - ddx/dy) / 2, rx = ddz/dy / 2,
         # ry = -ddz/dx / 2
-        c9 = sfit.cov
         spline_sig_rot = 0.5 * np.sqrt(
             np.maximum(
                 np.column_stack(
@@ -1974,6 +2096,8 @@ def windowed_icp(
         w = 0.5 * (grad - np.transpose(grad, (0, 2, 1)))
         rot = np.stack([w[:, 2, 1], w[:, 0, 2], w[:, 1, 0]], axis=1)
         sig_rot = spline_sig_rot if field_model == "spline" else fits.sigma_rotation
+    if field_model != "spline":  # the blocks' ratio of the translation, for the rotations
+        sig_rot = sig_rot * rot_scale[:, None]
     sd = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
     res = WindowedICPResult(
         x=cells.centres[ok, 0],
@@ -2015,12 +2139,16 @@ def windowed_icp(
         deform_passes=passes,
         field_model=field_model,
         flagged=flagged[ok],
+        sigma_model=sigma_model,
+        sigma_block_m=math.nan if block is None else block.block_m,
+        sigma_block_ratio=math.nan if block is None or block.level < 0 else block.kappa,
+        sigma_formal=sigma_formal[ok],
     )
     pair_cov = None
     if field_model == "spline":  # the cells share one field: their errors are correlated
         new = np.cumsum(ok) - 1
         both = ok[near[:, 0]] & ok[near[:, 1]]
-        pair_cov = (new[near[both]], sfit.pair_cov[both])
+        pair_cov = (new[near[both]], spline_pair[both])
     res = _apply_sigma_scaling(res, sigma_scaling, n_regions, sigma_region_by, pair_cov)
     log.info("windowed ICP: %d cells fitted%s, %.1f s", n_ok, skipped_cells_text(skipped),
              res.seconds)  # fmt: skip
@@ -2114,12 +2242,52 @@ def _apply_sigma_scaling(
 ) -> WindowedICPResult:
     """``res`` with its covariances scaled as ``sigma_scaling`` says (see windowed_icp; the
     tiled run assembles its result and scales it here too). ``pair_cov``: the formal
-    covariances between cells of a correlated field (spline), for the field's factor."""
+    covariances between cells of a correlated field (spline), for the field's factor.
+    With ``sigma_model="blocks"`` the cell-wide floor comes first, the factor after it is the
+    check (about 1)."""
+    if sigma_scaling != "formal" and res.sigma_model == "blocks":
+        res = _apply_floor(res, pair_cov)
     if sigma_scaling == "field":
         return _scale_sigmas(res, pair_cov)
     if sigma_scaling == "region":
         return _scale_sigmas_by_region(res, int(sigma_regions), sigma_region_by, pair_cov)
     return res
+
+
+def _apply_floor(res: WindowedICPResult, pair_cov=None) -> WindowedICPResult:
+    """``res`` with each cell's covariance times ``a + n / n_cap`` (the cell-wide error its
+    residuals cannot show, :func:`slipmap.core.icp_blocks.cell_floor`); ``pair_cov`` is
+    kept (the floor is uncorrelated between cells)."""
+    from .icp_blocks import cell_floor
+
+    usable = np.asarray(res.converged, dtype=bool).copy()
+    if np.size(res.flagged) == usable.size:
+        usable &= ~np.asarray(res.flagged, dtype=bool)
+    fl = cell_floor(
+        res.row,
+        res.col,
+        np.column_stack([res.dx, res.dy, res.dz]),
+        np.column_stack([res.sigma_dx, res.sigma_dy, res.sigma_dz]),
+        res.n,
+        usable=usable,
+        pair_covariance=pair_cov,
+    )
+    res = replace(res, sigma_n_cap=fl.n_cap, sigma_floor_factor=fl.factor)
+    if not math.isfinite(fl.factor):
+        log.warning(
+            "only %d cells have 5 usable neighbours: the cell-wide error cannot be estimated "
+            "and the sigmas count only the residuals' correlation within each cell (likely "
+            "too small on real surfaces); use smaller cells or a larger area",
+            fl.n_cells,
+        )
+        return res
+    g = fl.scale(res.n)
+    f = np.sqrt(g)
+    scaled_cols = {
+        k: getattr(res, k) * f
+        for k in ("sigma_dx", "sigma_dy", "sigma_dz", "sigma_rx", "sigma_ry", "sigma_rz")
+    }
+    return replace(res, **scaled_cols, cov_d=res.cov_d * g[:, None, None])
 
 
 def _scale_sigmas(res: WindowedICPResult, pair_cov=None) -> WindowedICPResult:

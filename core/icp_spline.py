@@ -224,6 +224,12 @@ class SplineFit:
         Covariances between the displacements at the ``report_pairs`` positions, per
         component (x with x, y with y, z with z), m²: the field is one estimate, so nearby
         positions' errors are correlated. ``None`` without ``report_pairs``.
+    cov_blocks : (K, 9, 9) float64 or None
+        With ``block_m``: the covariance of the same rows with the residuals' spatial
+        correlation (block sums of the scores, :func:`slipmap.core.icp_blocks.
+        spline_block_covariance`), m² and m²/m.
+    n_blocks : (K,) int64 or None
+        With ``block_m``: blocks with used points in each cell (``report_seg``).
     """
 
     field: SplineField
@@ -237,6 +243,8 @@ class SplineFit:
     converged: bool
     n_coefficients: int
     pair_cov: Optional[np.ndarray] = None
+    cov_blocks: Optional[np.ndarray] = None
+    n_blocks: Optional[np.ndarray] = None
 
 
 def _second_differences(kx: int, ky: int):
@@ -337,6 +345,7 @@ def fit_spline_field(
     opts: _Options,
     progress: Optional[ProgressCallback] = None,
     grid=None,
+    block_m: Optional[float] = None,
 ) -> SplineFit:
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
 
@@ -379,6 +388,9 @@ def fit_spline_field(
         ``progress(fraction, message)`` per iteration; may raise CancelledError.
     grid : slipmap.core.opencl.nearest.GridTargets, optional
         ``before`` on an OpenCL device: the pairs are found there (the same pairs).
+    block_m : float, optional
+        Block side (metres) of the block covariance ``SplineFit.cov_blocks``
+        (:mod:`slipmap.core.icp_blocks`); None: not computed.
 
     Returns
     -------
@@ -558,6 +570,19 @@ def fit_spline_field(
                 column = (pairs[sel, 0] - part.start) * 9 + comp
                 vals = sol[comp * n_k + ridx[pj], column[:, None]]  # (S, 16)
                 pair_cov[sel, comp] = s0sq * np.sum(vals * rw[pj], axis=1)
+    cov_blocks = n_blocks = None
+    if block_m is not None:  # the residuals' spatial correlation (issue #29)
+        from .icp_blocks import spline_block_covariance
+
+        psi_all = np.zeros(len(a))
+        psi_all[ok] = psi
+        kw = np.where(keep, wv, 0.0)
+        c_scale = float(np.mean(kw)) / max(mean_dpsi, 1e-12) ** 2 * used / dof
+        cov_blocks, n_blocks = spline_block_covariance(
+            xy=a[:, :2], psi=psi_all, nrm=nrm, idx16=idx16, w16=w16,
+            rows=g.reshape(k, 9, 48), cols=cols, factor=factor, penalty=penalty, s0sq=s0sq,
+            scale=c_scale, block_m=block_m, seg=seg_sorted,
+        )  # fmt: skip
     rmse = np.full(k, np.nan)
     n_used = np.zeros(k, dtype=np.int64)
     if seg_sorted is not None:
@@ -587,4 +612,6 @@ def fit_spline_field(
         converged=converged,
         n_coefficients=3 * data_knots,
         pair_cov=pair_cov,
+        cov_blocks=cov_blocks,
+        n_blocks=n_blocks,
     )

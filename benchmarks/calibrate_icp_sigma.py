@@ -1,0 +1,290 @@
+"""Calibration and out-of-sample check of the windowed ICP's sigmas (issue #29, item 3).
+
+On lone-star (tests/data/lone-star.laz, split at random into two disjoint halves) three cases
+with a known motion of the second half:
+
+* ``shift``: a uniform shift (0.2, -0.4, 0.05) m (every cell rigid);
+* ``lobe``: the default lobe of :func:`slipmap.core.synthetic.make_lobe_pair`;
+* ``scarp``: a rigid slab beyond a straight scarp (a line through the cloud's centre at
+  azimuth 60 degrees): the after-points on its south-east side moved 0.3 m away from it
+  (and 5 cm down), the rest still (:func:`scarp_pair`, written here).
+
+Each run of :func:`slipmap.core.icp.windowed_icp` (5 m and 2 m cells, coarse-to-fine as
+:func:`_levels` says, rigid cells and the spline field) is scored per class of cell: all, dense /
+sparse (upper / lower tercile of the correspondences), rough / smooth (of the point-to-plane
+residual RMS), near / far from the scarp (a cell not crossed by it whose centre is within /
+beyond 1.5 cells), in / out of the lobe. Scored: cells with >= 500 correspondences, not
+flagged by the median test (no truth used to choose them), not crossed by the scarp. Per
+class the share of the error components (dx, dy, dz against the truth at the cell centre)
+within 2 sigma, for
+
+* ``formal``: independent residuals (``sigma_model="independent"``, no factor);
+* ``current``: the formal sigmas times the field's neighbour variance factor (the default
+  before issue #29);
+* ``blocks``: the block (cluster-robust) covariance alone (``sigma_scaling="formal"``);
+* ``new``: blocks, the cell-wide floor and the neighbour factor as a check (the default).
+
+Seeds 0-2 calibrate, 3-5 check. Usage::
+
+    python benchmarks/calibrate_icp_sigma.py --seeds 0 1 2 --cells 5 2 --models cells spline
+
+Prints one JSON line per run and the Markdown table of docs/fields.md; ``--out FILE`` writes
+the runs as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+import slipmap.core.icp as icp
+from slipmap.core.io.las import read_las
+from slipmap.core.synthetic import make_lobe_pair
+
+DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "lone-star.laz"
+SHIFT = np.array([0.2, -0.4, 0.05])
+VARIANTS = ("formal", "current", "blocks", "floor", "new")
+CLASSES = ("all", "dense", "sparse", "rough", "smooth", "near", "far", "lobe", "stable")
+
+
+class ScarpPair:
+    """Two halves of a cloud, the after half's points beyond a straight line moved rigidly."""
+
+    def __init__(self, pts, seed, *, azimuth_deg=60.0, slip_m=0.3, drop_m=0.05):
+        rng = np.random.default_rng(seed)
+        half = rng.random(len(pts)) < 0.5
+        self.before = pts[half]
+        after = pts[~half].copy()
+        self.point = 0.5 * (pts[:, :2].min(axis=0) + pts[:, :2].max(axis=0))
+        az = np.radians(azimuth_deg)
+        self.direction = np.array([np.sin(az), np.cos(az)])  # along the scarp
+        self.normal = np.array([self.direction[1], -self.direction[0]])  # to the slab (SE)
+        self.motion = np.r_[slip_m * self.normal, -drop_m]
+        moved = self.side(after[:, :2]) > 0
+        after[moved] += self.motion
+        self.after = after
+
+    def side(self, xy):
+        """Signed distance from the scarp line, metres (> 0: the slab)."""
+        return (np.asarray(xy) - self.point) @ self.normal
+
+    def truth(self, c_xy):
+        """Motion of the material now at ``c_xy`` (after frame)."""
+        on_slab = self.side(c_xy - self.motion[:2]) > 0
+        return np.where(on_slab[:, None], self.motion[None, :], 0.0)
+
+
+def scarp_pair(pts, seed, **kw) -> ScarpPair:
+    """A rigid slab beyond a straight scarp (see :class:`ScarpPair`)."""
+    return ScarpPair(pts, seed, **kw)
+
+
+def _truth_after_frame(field, c_xy, iterations=20):
+    p0 = c_xy.copy()
+    for _ in range(iterations):
+        p0 = c_xy - field(p0)[:, :2]
+    return field(p0)
+
+
+def _capture():
+    """Wrap ``_apply_sigma_scaling`` to keep the pair covariances windowed_icp passes it."""
+    box = {}
+    orig = icp._apply_sigma_scaling
+
+    def wrapped(res, *a, **kw):
+        args = list(a)
+        box["pair_cov"] = kw.get("pair_cov", args[3] if len(args) > 3 else None)
+        return orig(res, *a, **kw)
+
+    icp._apply_sigma_scaling = wrapped
+    return box, orig
+
+
+def variants(res, pair_cov):
+    """(K, 3) sigmas of dx, dy, dz per variant."""
+    sig = np.column_stack([res.sigma_dx, res.sigma_dy, res.sigma_dz])
+    formal = res.sigma_formal
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(formal > 0, sig / formal, 1.0)
+    pc_formal = None
+    if pair_cov is not None:  # the block pair covariances scale as sqrt(r_i r_j)
+        pairs, pc = pair_cov
+        pc_formal = (pairs, pc / (r[pairs[:, 0]] * r[pairs[:, 1]]))
+    ind = replace(
+        res,
+        sigma_model="independent",
+        sigma_dx=formal[:, 0],
+        sigma_dy=formal[:, 1],
+        sigma_dz=formal[:, 2],
+        cov_d=np.einsum("ki,ij->kij", formal**2, np.eye(3)),
+    )
+    cur = icp._apply_sigma_scaling(ind, "field", pair_cov=pc_formal)
+    new = icp._apply_sigma_scaling(res, "field", pair_cov=pair_cov)
+    floor = icp._apply_floor(res, pair_cov)
+
+    def s(x):
+        return np.column_stack([x.sigma_dx, x.sigma_dy, x.sigma_dz])
+
+    return {"formal": formal, "current": s(cur), "blocks": sig, "floor": s(floor), "new": s(new)}, {
+        "factor_current": cur.sigma_factor_estimate,
+        "factor_new": new.sigma_factor_estimate,
+        "n_cap": new.sigma_n_cap,
+        "floor_factor": new.sigma_floor_factor,
+        "block_m": res.sigma_block_m,
+        "block_ratio": res.sigma_block_ratio,
+    }
+
+
+def classes(res, case, extra):
+    """Boolean masks of the scored cells per class (K,)."""
+    base = (res.n >= 500) & ~np.asarray(res.flagged, dtype=bool)
+    out = {}
+    if case == "scarp":
+        c = np.column_stack([res.x, res.y])
+        half = 0.5 * res.cell_m
+        corners = np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]]) * half
+        sides = np.stack([extra.side(c + k) for k in corners], axis=1)
+        crossed = np.any(sides > 0, axis=1) & np.any(sides < 0, axis=1)
+        base &= ~crossed
+        dist = np.abs(extra.side(c))
+        out["near"] = base & (dist < 1.5 * res.cell_m)
+        out["far"] = base & (dist >= 1.5 * res.cell_m)
+    if case == "lobe":
+        inside = np.linalg.norm(extra, axis=1) > 0
+        out["lobe"] = base & inside
+        out["stable"] = base & ~inside
+    out["all"] = base
+    for name, score in (("dense", res.n.astype(float)), ("rough", res.rmse)):
+        lo, hi = np.quantile(score[base], [1 / 3, 2 / 3]) if base.any() else (0, 0)
+        low = {"dense": "sparse", "rough": "smooth"}[name]
+        out[name] = base & (score > hi)
+        out[low] = base & (score <= lo)
+    return out
+
+
+def _levels(case, cell):
+    """Coarse-to-fine levels: 1 (the CLI's default) where the motion is large against the
+    cell (the lobe's 1 m; 2 m cells), 0 for the 0.3-0.45 m shift and slab in 5 m cells (the
+    same fits there at a quarter of the time)."""
+    return 1 if case == "lobe" or cell < 3 else 0
+
+
+def run(case, pts, seed, cell, model, cache=None):
+    if case == "shift":
+        rng = np.random.default_rng(seed)
+        half = rng.random(len(pts)) < 0.5
+        before, after, extra = pts[half], pts[~half] + SHIFT, None
+    elif case == "lobe":
+        pair = make_lobe_pair(pts, seed=seed)
+        before, after, extra = pair.before, pair.after, pair
+    else:
+        pair = scarp_pair(pts, seed)
+        before, after, extra = pair.before, pair.after, pair
+    path = None if cache is None else cache / f"{case}_{seed}_{cell:g}_{model}.pkl"
+    t0 = time.perf_counter()
+    if path is not None and path.exists():  # the fits, to calibrate the post-processing
+        res, box = pickle.loads(path.read_bytes())
+    else:
+        box, orig = _capture()
+        try:
+            res = icp.windowed_icp(
+                before,
+                after,
+                cell_m=cell,
+                coarse_to_fine=_levels(case, cell),
+                field_model=model,
+                sigma_scaling="formal",
+            )
+        finally:
+            icp._apply_sigma_scaling = orig
+        if path is not None:
+            path.write_bytes(pickle.dumps((res, box)))
+    sec = time.perf_counter() - t0
+    c = np.column_stack([res.x, res.y])
+    if case == "shift":
+        truth = np.broadcast_to(SHIFT, (len(res), 3))
+    elif case == "lobe":
+        truth = _truth_after_frame(extra.field, c)
+        extra = truth
+    else:
+        truth = extra.truth(c)
+    err = np.column_stack([res.dx, res.dy, res.dz]) - truth
+    sig, info = variants(res, box.get("pair_cov"))
+    masks = classes(res, case, extra)
+    counts = {}
+    for cl, m in masks.items():
+        counts[cl] = {"cells": int(m.sum())}
+        for v, s in sig.items():
+            counts[cl][v] = int(np.sum(np.abs(err[m]) < 2 * s[m]))
+    return {
+        "case": case,
+        "seed": seed,
+        "cell_m": cell,
+        "model": model,
+        "seconds": round(sec, 1),
+        "rmse_3d_m": round(float(np.sqrt(np.mean(np.sum(err[masks["all"]] ** 2, 1)))), 4),
+        **{k: (round(v, 3) if np.isfinite(v) else str(v)) for k, v in info.items()},
+        "counts": counts,
+    }
+
+
+def table(runs, title):
+    """Markdown table: per case, cell, model and class the pooled share within 2 sigma."""
+    lines = [
+        f"{title}",
+        "",
+        "| case | cell (m) | model | class | cells | formal | current | blocks | floor | new |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    keys = sorted({(r["case"], r["cell_m"], r["model"]) for r in runs})
+    for case, cell, model in keys:
+        rs = [r for r in runs if (r["case"], r["cell_m"], r["model"]) == (case, cell, model)]
+        for cl in CLASSES:
+            have = [r["counts"][cl] for r in rs if cl in r["counts"]]
+            n = sum(h["cells"] for h in have)
+            if n == 0:
+                continue
+            share = [sum(h[v] for h in have) / (3 * n) for v in VARIANTS]
+            cells_txt = f"{n}"
+            lines.append(
+                f"| {case} | {cell:g} | {model} | {cl} | {cells_txt} | "
+                + " | ".join(f"{s:.2f}" for s in share)
+                + " |"
+            )
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--cells", type=float, nargs="+", default=[5.0])
+    ap.add_argument("--models", nargs="+", default=["cells"], choices=["cells", "spline"])
+    ap.add_argument("--cases", nargs="+", default=["shift", "lobe", "scarp"])
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--cache", type=Path, default=None, help="folder keeping the fits")
+    args = ap.parse_args(argv)
+    if args.cache:
+        args.cache.mkdir(parents=True, exist_ok=True)
+    pts = read_las(DATA).xyz
+    runs = []
+    for seed in args.seeds:
+        for case in args.cases:
+            for cell in args.cells:
+                for model in args.models:
+                    r = run(case, pts, seed, cell, model, args.cache)
+                    runs.append(r)
+                    print(json.dumps(r), flush=True)
+    print(table(runs, f"seeds {args.seeds}"))
+    if args.out:
+        args.out.write_text(json.dumps(runs, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
