@@ -335,6 +335,7 @@ def core_kwargs(opts: Mapping[str, Any]) -> Dict[str, Any]:
     regions = int(opts.get("sigma_regions") or 1)
     if opts.get("formal_sigma"):
         kw["sigma_scaling"] = "formal"
+        kw["sigma_model"] = "independent"
     elif regions > 1:
         kw["sigma_scaling"] = "region"
         kw["sigma_regions"] = regions

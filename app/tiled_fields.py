@@ -724,7 +724,7 @@ def icp_tiled(
     WindowedICPResult
         All cells of the whole run's lattice, in its order (row, then column).
     """
-    from ..core.icp import WindowedICPResult, _apply_sigma_scaling
+    from ..core.icp import WindowedICPResult, _apply_sigma_scaling, reblock
 
     if icp_kw.get("prealign"):
         raise InvalidParameterError("prealign is not available on tiled inputs")
@@ -806,9 +806,11 @@ def icp_tiled(
         seconds=0.0,
         cell_model=icp_kw.get("cell_model", "rigid"),
         deform_passes=int(icp_kw.get("deform_passes", 0)),
+        # the tiles' block covariances (each tile's block size); the floor comes here
+        sigma_model=icp_kw.get("sigma_model", "blocks"),
     )
     res = _apply_sigma_scaling(
-        res,
+        reblock(res),  # the block size over the whole field, as one run chooses it
         sigma_scaling,
         icp_kw.get("sigma_regions", 3),
         icp_kw.get("sigma_region_by", "roughness"),

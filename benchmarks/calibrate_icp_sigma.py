@@ -44,12 +44,13 @@ from pathlib import Path
 import numpy as np
 
 import slipmap.core.icp as icp
+from slipmap.core.icp_blocks import CellFloor
 from slipmap.core.io.las import read_las
 from slipmap.core.synthetic import make_lobe_pair
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "lone-star.laz"
 SHIFT = np.array([0.2, -0.4, 0.05])
-VARIANTS = ("formal", "current", "blocks", "floor", "new")
+VARIANTS = ("formal", "current", "blocks", "floor", "new", "cellfloor")
 CLASSES = ("all", "dense", "sparse", "rough", "smooth", "near", "far", "lobe", "stable")
 
 
@@ -163,8 +164,9 @@ def cells_result(res, box):
     )
 
 
-def variants(res, pair_cov):
-    """(K, 3) sigmas of dx, dy, dz per variant."""
+def variants(res, pair_cov, cells_floor):
+    """(K, 3) sigmas of dx, dy, dz per variant; ``cells_floor``: the rigid cells' floor of
+    the same run (for the spline, whose neighbours share one field)."""
     sig = np.column_stack([res.sigma_dx, res.sigma_dy, res.sigma_dz])
     formal = res.sigma_formal
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -188,7 +190,10 @@ def variants(res, pair_cov):
     def s(x):
         return np.column_stack([x.sigma_dx, x.sigma_dy, x.sigma_dz])
 
-    return {"formal": formal, "current": s(cur), "blocks": sig, "floor": s(floor), "new": s(new)}, {
+    cf = sig * np.sqrt(cells_floor.scale(res.n))[:, None]
+    out = {"formal": formal, "current": s(cur), "blocks": sig, "floor": s(floor), "new": s(new)}
+    out["cellfloor"] = cf
+    return out, {
         "factor_current": cur.sigma_factor_estimate,
         "factor_new": new.sigma_factor_estimate,
         "n_cap": new.sigma_n_cap,
@@ -264,11 +269,14 @@ def run(case, pts, seed, cell, cache=None):
         if path is not None:
             path.write_bytes(pickle.dumps((res, box)))
     sec = time.perf_counter() - t0
-    return [score(case, seed, cell, m, r, box, extra, sec) for m, r in (
-        ("cells", cells_result(res, box)), ("spline", res))]  # fmt: skip
+    cres = cells_result(res, box)
+    fl = icp._apply_floor(cres)
+    cfloor = CellFloor(fl.sigma_floor_factor, fl.sigma_n_cap, 0, float("nan"))
+    return [score(case, seed, cell, m, r, box, extra, sec, cfloor) for m, r in (
+        ("cells", cres), ("spline", res))]  # fmt: skip
 
 
-def score(case, seed, cell, model, res, box, extra, sec):
+def score(case, seed, cell, model, res, box, extra, sec, cfloor):
     """Shares within 2 sigma of one result per class and variant."""
     c = np.column_stack([res.x, res.y])
     if case == "shift":
@@ -279,7 +287,7 @@ def score(case, seed, cell, model, res, box, extra, sec):
     else:
         truth = extra.truth(c)
     err = np.column_stack([res.dx, res.dy, res.dz]) - truth
-    sig, info = variants(res, box.get("pair_cov") if model == "spline" else None)
+    sig, info = variants(res, box.get("pair_cov") if model == "spline" else None, cfloor)
     masks = classes(res, case, extra)
     counts = {}
     for cl, m in masks.items():
@@ -303,8 +311,8 @@ def table(runs, title):
     lines = [
         f"{title}",
         "",
-        "| case | cell (m) | model | class | cells | formal | current | blocks | floor | new |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| case | cell (m) | model | class | cells | " + " | ".join(VARIANTS) + " |",
+        "|---|---|---|---|---|" + "---|" * len(VARIANTS),
     ]
     keys = sorted({(r["case"], r["cell_m"], r["model"]) for r in runs})
     for case, cell, model in keys:

@@ -1009,6 +1009,14 @@ class WindowedICPResult:
         With it, the multiplier of every cell's block sigmas (``sqrt(a)``, >= 1).
     sigma_formal : (K, 3) float64 or None
         The formal 1-sigma of ``dx, dy, dz`` (independent residuals, no factor), metres.
+    cov_d_formal : (K, 3, 3) float64 or None
+        The formal covariance of ``dx, dy, dz`` (rigid and affine cells), m².
+    cov_d_blocks : (K, L, 3, 3) float64 or None
+        With ``sigma_model="blocks"`` (cells): the unshrunk block covariances per block size
+        of :data:`~slipmap.core.icp_blocks.BLOCK_LADDER_M`, so that a tiled run chooses the
+        block size over the whole field (:func:`reblock`).
+    n_blocks : (K, L) int64 or None
+        Their block counts.
     """
 
     x: np.ndarray
@@ -1062,6 +1070,9 @@ class WindowedICPResult:
     sigma_formal: Optional[np.ndarray] = None
     sigma_n_cap: float = math.nan
     sigma_floor_factor: float = math.nan
+    cov_d_formal: Optional[np.ndarray] = None
+    cov_d_blocks: Optional[np.ndarray] = None
+    n_blocks: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -1475,22 +1486,60 @@ def _fit_cells_per_cell(src, seg, centres, *, before, tree, normals, boxes, gate
 
 
 def _block_covariances(fits: _PassFits, cov_d: np.ndarray, flagged: np.ndarray):
+    """:func:`_choose_and_shrink` of a pass's cells (fitted, converged, not flagged)."""
+    return _choose_and_shrink(
+        cov_d, fits.cov_d_blocks, fits.n_blocks, fits.ok & fits.converged & ~flagged
+    )
+
+
+def _choose_and_shrink(cov_d, cov_blocks, n_blocks, usable):
     """The cells' covariances of ``d`` with the residuals' spatial correlation: the block
-    size chosen over the converged, unflagged cells, each cell's block covariance shrunk
-    towards its formal one times the field's ratio (:mod:`slipmap.core.icp_blocks`).
+    size chosen over the ``usable`` cells, each cell's block covariance shrunk towards its
+    formal one ``cov_d`` times the field's ratio (:mod:`slipmap.core.icp_blocks`).
     Returns the :class:`~slipmap.core.icp_blocks.BlockChoice` and the (K, 3, 3) covariances
     (the formal ones where no block size is eligible)."""
     from .icp_blocks import choose_block_level, shrink_covariance
 
     fvar = np.diagonal(cov_d, axis1=1, axis2=2)
-    bvar = np.diagonal(fits.cov_d_blocks, axis1=2, axis2=3)
-    usable = fits.ok & fits.converged & ~flagged & np.all(np.isfinite(fvar) & (fvar > 0), 1)
-    choice = choose_block_level(fvar, bvar, fits.n_blocks, usable)
+    bvar = np.diagonal(cov_blocks, axis1=2, axis2=3)
+    usable = usable & np.all(np.isfinite(fvar) & (fvar > 0), axis=1)
+    choice = choose_block_level(fvar, bvar, n_blocks, usable)
     if choice.level < 0:
         return choice, cov_d
     lev = choice.level
-    out = shrink_covariance(cov_d, fits.cov_d_blocks[:, lev], fits.n_blocks[:, lev], choice.kappa)
-    return choice, out
+    return choice, shrink_covariance(cov_d, cov_blocks[:, lev], n_blocks[:, lev], choice.kappa)
+
+
+def _rotation_scale(cov_d: np.ndarray, sigma_formal: np.ndarray) -> np.ndarray:
+    """(K,) multiplier of the rotations' formal sigmas: the root mean ratio of the
+    translation's variances to the formal ones (1 where undefined)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.sqrt(np.nanmean(np.diagonal(cov_d, axis1=1, axis2=2) / sigma_formal**2, axis=1))
+    return np.where(np.isfinite(r), r, 1.0)
+
+
+def reblock(res: WindowedICPResult) -> WindowedICPResult:
+    """``res`` (rigid or affine cells with ``sigma_model="blocks"``, e.g. assembled from
+    tiles that each chose their own block size) with the block size chosen and the cells
+    shrunk over the whole field, as one run over all cells does; unchanged otherwise."""
+    if res.sigma_model != "blocks" or res.cov_d_blocks is None or res.field_model != "cells":
+        return res
+    usable = np.asarray(res.converged, dtype=bool) & ~np.asarray(res.flagged, dtype=bool)
+    choice, cov = _choose_and_shrink(res.cov_d_formal, res.cov_d_blocks, res.n_blocks, usable)
+    old = _rotation_scale(res.cov_d, res.sigma_formal)
+    new = _rotation_scale(cov, res.sigma_formal)
+    sd = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    rot = {k: getattr(res, k) / old * new for k in ("sigma_rx", "sigma_ry", "sigma_rz")}
+    return replace(
+        res,
+        **rot,
+        cov_d=cov,
+        sigma_dx=sd[:, 0],
+        sigma_dy=sd[:, 1],
+        sigma_dz=sd[:, 2],
+        sigma_block_m=choice.block_m,
+        sigma_block_ratio=math.nan if choice.level < 0 else choice.kappa,
+    )
 
 
 def _spline_block_covariances(sfit, usable: np.ndarray, block, near: np.ndarray):
@@ -2018,13 +2067,11 @@ def windowed_icp(
             )
     rmse, sigma0, n_used = fits.rmse, fits.sigma0, fits.n
     sigma_formal = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
+    cov_formal = cov_d
     block, rot_scale = None, np.ones(len(sel))
     if sigma_model == "blocks":
         block, cov_d = _block_covariances(fits, cov_d, flagged)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rot_scale = np.sqrt(np.nanmean(np.diagonal(cov_d, axis1=1, axis2=2) /
-                                           sigma_formal**2, axis=1))  # fmt: skip
-        rot_scale = np.where(np.isfinite(rot_scale), rot_scale, 1.0)
+        rot_scale = _rotation_scale(cov_d, sigma_formal)
     if field_model == "spline":
         from .icp_spline import fit_spline_field
 
@@ -2143,6 +2190,11 @@ def windowed_icp(
         sigma_block_m=math.nan if block is None else block.block_m,
         sigma_block_ratio=math.nan if block is None or block.level < 0 else block.kappa,
         sigma_formal=sigma_formal[ok],
+        cov_d_formal=None if field_model == "spline" else cov_formal[ok],
+        cov_d_blocks=(
+            fits.cov_d_blocks[ok] if sigma_model == "blocks" and field_model == "cells" else None
+        ),
+        n_blocks=fits.n_blocks[ok] if sigma_model == "blocks" and field_model == "cells" else None,
     )
     pair_cov = None
     if field_model == "spline":  # the cells share one field: their errors are correlated

@@ -123,7 +123,9 @@ def test_few_blocks_are_shrunk_towards_the_fields_ratio():
     block = formal * np.array([10.0, 10.0, 1.0])[:, None, None]
     out = shrink_covariance(formal, block, np.array([2, 200, 8]), 4.0, prior_blocks=8.0)
     # 2 blocks: mostly the field's ratio (4); 200 blocks: its own (10); 8: half-way
-    np.testing.assert_allclose(out[:, 0, 0] / 1e-6, [0.2 * 10 + 0.8 * 4, 200 / 208 * 10 + 8 / 208 * 4, 2.5])
+    np.testing.assert_allclose(
+        out[:, 0, 0] / 1e-6, [0.2 * 10 + 0.8 * 4, 200 / 208 * 10 + 8 / 208 * 4, 2.5]
+    )
     undetermined = formal.copy()
     undetermined[0, 2, 2] = np.inf
     assert np.isinf(shrink_covariance(undetermined, block, np.array([50, 50, 50]), 2.0)[0, 2, 2])
