@@ -50,7 +50,8 @@ from slipmap.core.synthetic import make_lobe_pair
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "lone-star.laz"
 SHIFT = np.array([0.2, -0.4, 0.05])
-VARIANTS = ("formal", "current", "blocks", "floor", "new", "cellfloor")
+SHARES = (0.1, 0.2, 0.3, 0.5, 1.0)
+VARIANTS = ("formal", "current", "blocks", "floor", "new") + tuple(f"share{c:g}" for c in SHARES)
 CLASSES = ("all", "dense", "sparse", "rough", "smooth", "near", "far", "lobe", "stable")
 
 
@@ -190,9 +191,11 @@ def variants(res, pair_cov, cells_floor):
     def s(x):
         return np.column_stack([x.sigma_dx, x.sigma_dy, x.sigma_dz])
 
-    cf = sig * np.sqrt(cells_floor.scale(res.n))[:, None]
     out = {"formal": formal, "current": s(cur), "blocks": sig, "floor": s(floor), "new": s(new)}
-    out["cellfloor"] = cf
+    g_own = (s(floor) / np.where(sig > 0, sig, 1.0))[:, 0] ** 2
+    for c in SHARES:  # the spline: at least a share of the cells' excess multiplier
+        g = np.maximum(g_own, 1.0 + c * (cells_floor.scale(res.n) - 1.0))
+        out[f"share{c:g}"] = sig * np.sqrt(g)[:, None]
     return out, {
         "factor_current": cur.sigma_factor_estimate,
         "factor_new": new.sigma_factor_estimate,

@@ -1709,6 +1709,15 @@ def windowed_icp(
         ``f(xy (K, 2)) -> (K, 3)`` starting ground motion at cell centres (e.g. from PIV);
         used by the finest pass (or the coarsest, with ``coarse_to_fine``).
     sigma_scaling : {"field", "region", "formal"}
+        What the agreement of neighbouring cells does to the covariances. With
+        ``sigma_model="blocks"`` (the default) and ``"field"`` or ``"region"`` it first
+        supplies the error the cells' residuals cannot show, a factor and a cap on the cells'
+        effective observations (:func:`~slipmap.core.icp_blocks.cell_floor`: covariances
+        times ``a + n / n_cap``; a spline field takes at least
+        :data:`~slipmap.core.icp_blocks.SPLINE_FLOOR_SHARE` of its cells' excess); the
+        field's factor below is then only estimated and recorded as a check
+        (``"field"``), or the region factors are applied on top (``"region"``); ``"formal"``
+        leaves the block covariances. With ``sigma_model="independent"``:
         ``"field"`` (default): the cells' covariances are multiplied by the square of the
         field's a-posteriori variance factor (:func:`~slipmap.core.fields.
         neighbour_variance_factor` of dx, dy, dz over the converged cells, at least 1): each
@@ -1731,7 +1740,7 @@ def windowed_icp(
         point-to-plane residuals, the cluster-robust (sandwich) covariance with sub-cell
         blocks as clusters, the block size chosen from the data and cells with few blocks
         shrunk towards the field's typical ratio (:mod:`slipmap.core.icp_blocks`; rigid,
-        affine and spline fields alike); ``sigma_scaling`` then applies on top.
+        affine and spline fields alike); ``sigma_scaling`` then adds the cell-wide error.
         ``"independent"``: the formal covariance (independent residuals).
     sigma_regions : int
         Number of regions (quantile classes) of ``sigma_scaling="region"`` (>= 1).
@@ -2066,6 +2075,7 @@ def windowed_icp(
                 int(flagged.sum()),
             )
     rmse, sigma0, n_used = fits.rmse, fits.sigma0, fits.n
+    cells_floor = None
     sigma_formal = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
     cov_formal = cov_d
     block, rot_scale = None, np.ones(len(sel))
@@ -2102,6 +2112,15 @@ def windowed_icp(
         if sfit.cov_blocks is not None:
             usable = fits.ok & fits.converged & ~flagged & (n_used >= minp)
             block, c9, spline_pair = _spline_block_covariances(sfit, usable, block, near)
+            if sigma_scaling != "formal":  # the rigid cells' cell-wide error (icp_blocks)
+                from .icp_blocks import cell_floor
+
+                cu = fits.ok & fits.converged & ~flagged
+                sd_c = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
+                cells_floor = cell_floor(
+                    cells.row[fits.ok], cells.col[fits.ok], d[fits.ok], sd_c[fits.ok],
+                    fits.n[fits.ok], usable=cu[fits.ok],
+                )  # fmt: skip
         d, grad, cov_d = sfit.d, sfit.gradient, c9[:, :3, :3]
         sigma0 = np.full(len(d), sfit.sigma0_m)
         # the spline's rotations: antisymmetric part of its gradient; rows of sfit.cov are
@@ -2201,7 +2220,9 @@ def windowed_icp(
         new = np.cumsum(ok) - 1
         both = ok[near[:, 0]] & ok[near[:, 1]]
         pair_cov = (new[near[both]], spline_pair[both])
-    res = _apply_sigma_scaling(res, sigma_scaling, n_regions, sigma_region_by, pair_cov)
+    res = _apply_sigma_scaling(
+        res, sigma_scaling, n_regions, sigma_region_by, pair_cov, cells_floor=cells_floor
+    )
     log.info("windowed ICP: %d cells fitted%s, %.1f s", n_ok, skipped_cells_text(skipped),
              res.seconds)  # fmt: skip
     return res
@@ -2291,25 +2312,30 @@ def _apply_sigma_scaling(
     sigma_regions: int = 3,
     sigma_region_by: str = "roughness",
     pair_cov=None,
+    cells_floor=None,
 ) -> WindowedICPResult:
     """``res`` with its covariances scaled as ``sigma_scaling`` says (see windowed_icp; the
     tiled run assembles its result and scales it here too). ``pair_cov``: the formal
     covariances between cells of a correlated field (spline), for the field's factor.
-    With ``sigma_model="blocks"`` the cell-wide floor comes first, the factor after it is the
-    check (about 1)."""
+    With ``sigma_model="blocks"`` the cell-wide floor comes first and the field's factor
+    after it is a check only: estimated and recorded (``sigma_factor_estimate``, about 1),
+    not applied (on lone-star it over-covered, docs/fields.md)."""
     if sigma_scaling != "formal" and res.sigma_model == "blocks":
-        res = _apply_floor(res, pair_cov)
+        res = _apply_floor(res, pair_cov, cells_floor)
     if sigma_scaling == "field":
-        return _scale_sigmas(res, pair_cov)
+        return _scale_sigmas(res, pair_cov, apply=res.sigma_model != "blocks")
     if sigma_scaling == "region":
         return _scale_sigmas_by_region(res, int(sigma_regions), sigma_region_by, pair_cov)
     return res
 
 
-def _apply_floor(res: WindowedICPResult, pair_cov=None) -> WindowedICPResult:
+def _apply_floor(res: WindowedICPResult, pair_cov=None, cells_floor=None) -> WindowedICPResult:
     """``res`` with each cell's covariance times ``a + n / n_cap`` (the cell-wide error its
     residuals cannot show, :func:`slipmap.core.icp_blocks.cell_floor`); ``pair_cov`` is
-    kept (the floor is uncorrelated between cells)."""
+    kept (the floor is uncorrelated between cells). ``cells_floor``: the rigid cells' floor
+    of the same run (a spline field): the multiplier is at least
+    ``1 + SPLINE_FLOOR_SHARE (g_cells - 1)`` (:data:`~slipmap.core.icp_blocks.
+    SPLINE_FLOOR_SHARE`)."""
     from .icp_blocks import cell_floor
 
     usable = np.asarray(res.converged, dtype=bool).copy()
@@ -2334,6 +2360,10 @@ def _apply_floor(res: WindowedICPResult, pair_cov=None) -> WindowedICPResult:
         )
         return res
     g = fl.scale(res.n)
+    if cells_floor is not None and math.isfinite(cells_floor.factor):
+        from .icp_blocks import SPLINE_FLOOR_SHARE
+
+        g = np.maximum(g, 1.0 + SPLINE_FLOOR_SHARE * (cells_floor.scale(res.n) - 1.0))
     f = np.sqrt(g)
     scaled_cols = {
         k: getattr(res, k) * f
@@ -2342,10 +2372,11 @@ def _apply_floor(res: WindowedICPResult, pair_cov=None) -> WindowedICPResult:
     return replace(res, **scaled_cols, cov_d=res.cov_d * g[:, None, None])
 
 
-def _scale_sigmas(res: WindowedICPResult, pair_cov=None) -> WindowedICPResult:
+def _scale_sigmas(res: WindowedICPResult, pair_cov=None, apply: bool = True) -> WindowedICPResult:
     """``res`` with covariances scaled by the field's variance factor (see windowed_icp).
     ``pair_cov`` ((Q, 2) cell pairs, (Q, 3) covariances): the cells' formal errors are
-    correlated (one spline field); neighbour agreement must know it."""
+    correlated (one spline field); neighbour agreement must know it. ``apply=False``: the
+    factor is estimated and recorded only (a check of honest sigmas)."""
     from .fields import neighbour_variance_factor
 
     est = neighbour_variance_factor(
@@ -2366,6 +2397,14 @@ def _scale_sigmas(res: WindowedICPResult, pair_cov=None) -> WindowedICPResult:
         )
         return res
     f = max(1.0, est.factor)
+    if not apply:
+        log.info(
+            "check of the sigmas: the field's neighbour variance factor is %.2f from %d cells "
+            "(1: honest; not applied)",
+            est.factor,
+            est.n_cells,
+        )
+        return res
     log.info(
         "field variance factor %.2f from %d cells: sigmas multiplied by %.2f",
         est.factor,
