@@ -22,11 +22,13 @@ within 2 sigma, for
 * ``current``: the formal sigmas times the field's neighbour variance factor (the default
   before issue #29);
 * ``blocks``: the block (cluster-robust) covariance alone (``sigma_scaling="formal"``);
-* ``new``: blocks, the cell-wide floor and the neighbour factor as a check (the default).
+* ``new``: the default: blocks and the cell-wide floor (the spline with at least
+  ``SPLINE_FLOOR_SHARE`` of its cells' excess), the neighbour factor a check only.
 
-Seeds 0-2 calibrate, 3-5 check. Usage::
+Seeds 0-2 calibrated ``FLOOR_QUANTILE`` and ``SPLINE_FLOOR_SHARE`` (slimmer variants then
+in this script), 3-5 check. Usage::
 
-    python benchmarks/calibrate_icp_sigma.py --seeds 0 1 2 --cells 5 2 --models cells spline
+    python benchmarks/calibrate_icp_sigma.py --seeds 0 1 2 --cells 5 --cache DIR
 
 Prints one JSON line per run and the Markdown table of docs/fields.md; ``--out FILE`` writes
 the runs as JSON.
@@ -50,8 +52,7 @@ from slipmap.core.synthetic import make_lobe_pair
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "lone-star.laz"
 SHIFT = np.array([0.2, -0.4, 0.05])
-SHARES = (0.1, 0.2, 0.3, 0.5, 1.0)
-VARIANTS = ("formal", "current", "blocks", "floor", "new") + tuple(f"share{c:g}" for c in SHARES)
+VARIANTS = ("formal", "current", "blocks", "new")
 CLASSES = ("all", "dense", "sparse", "rough", "smooth", "near", "far", "lobe", "stable")
 
 
@@ -185,22 +186,20 @@ def variants(res, pair_cov, cells_floor):
         cov_d=np.einsum("ki,ij->kij", formal**2, np.eye(3)),
     )
     cur = icp._apply_sigma_scaling(ind, "field", pair_cov=pc_formal)
-    new = icp._apply_sigma_scaling(res, "field", pair_cov=pair_cov)
-    floor = icp._apply_floor(res, pair_cov)
+    spline = res.field_model == "spline"
+    new = icp._apply_sigma_scaling(
+        res, "field", pair_cov=pair_cov, cells_floor=cells_floor if spline else None
+    )
 
     def s(x):
         return np.column_stack([x.sigma_dx, x.sigma_dy, x.sigma_dz])
 
-    out = {"formal": formal, "current": s(cur), "blocks": sig, "floor": s(floor), "new": s(new)}
-    g_own = (s(floor) / np.where(sig > 0, sig, 1.0))[:, 0] ** 2
-    for c in SHARES:  # the spline: at least a share of the cells' excess multiplier
-        g = np.maximum(g_own, 1.0 + c * (cells_floor.scale(res.n) - 1.0))
-        out[f"share{c:g}"] = sig * np.sqrt(g)[:, None]
+    out = {"formal": formal, "current": s(cur), "blocks": sig, "new": s(new)}
     return out, {
         "factor_current": cur.sigma_factor_estimate,
-        "factor_new": new.sigma_factor_estimate,
+        "check_factor": new.sigma_factor_estimate,
         "n_cap": new.sigma_n_cap,
-        "floor_factor": new.sigma_floor_factor,
+        "a": new.sigma_floor_factor**2,
         "block_m": res.sigma_block_m,
         "block_ratio": res.sigma_block_ratio,
     }
@@ -335,6 +334,30 @@ def table(runs, title):
     return "\n".join(lines)
 
 
+def estimates(runs):
+    """Markdown table: per case, cell and model the ranges over the seeds of the chosen block
+    size, the block ratio, the floor's a and n_cap and the check factor."""
+    lines = [
+        "| case | cell (m) | model | block (m) | block ratio | a | n_cap | check factor | "
+        "old factor |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def rng(vals):
+        v = [float(x) for x in vals]
+        lo, hi = min(v), max(v)
+        fmt = (lambda t: f"{t:.0f}") if hi > 100 else (lambda t: f"{t:.2f}")
+        return fmt(lo) if lo == hi else f"{fmt(lo)}–{fmt(hi)}"
+
+    keys = sorted({(r["case"], r["cell_m"], r["model"]) for r in runs})
+    for case, cell, model in keys:
+        rs = [r for r in runs if (r["case"], r["cell_m"], r["model"]) == (case, cell, model)]
+        keys_ = ("block_m", "block_ratio", "a", "n_cap", "check_factor", "factor_current")
+        cols = [rng(r[k] for r in rs) for k in keys_]
+        lines.append(f"| {case} | {cell:g} | {model} | " + " | ".join(cols) + " |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
@@ -354,6 +377,8 @@ def main(argv=None) -> int:
                     runs.append(r)
                     print(json.dumps(r), flush=True)
     print(table(runs, f"seeds {args.seeds}"))
+    print()
+    print(estimates(runs))
     if args.out:
         args.out.write_text(json.dumps(runs, indent=1))
     return 0
