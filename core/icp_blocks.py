@@ -141,18 +141,45 @@ def block_meats(
     meats = np.zeros((k, L, q, q))
     n_blocks = np.zeros((k, L), dtype=np.int64)
     used = psi != 0
+    if not used.any():
+        return meats, n_blocks
     S = A[used] * psi[used, None]
-    sg, sxy = np.asarray(seg)[used], xy[used]
-    for li, bm in enumerate(ladder):
-        inv, bseg = block_index(sxy, sg, float(bm))
-        nb = len(bseg)
-        g = np.stack([np.bincount(inv, weights=S[:, j], minlength=nb) for j in range(q)], 1)
-        outer = g[:, :, None] * g[:, None, :]
-        for i in range(q):
-            for j in range(i, q):
-                s = np.bincount(bseg, weights=outer[:, i, j], minlength=k)
-                meats[:, li, i, j] = s
-                meats[:, li, j, i] = s
+    sg = np.asarray(seg, dtype=np.int64)[used]
+    sxy = xy[used]
+    # the finest blocks once (one sort of the points); the coarser ones are unions of them
+    b0 = float(ladder[0])
+    ratios = [int(round(float(b) / b0)) for b in ladder]
+    if any(abs(r * b0 - float(b)) > 1e-9 * float(b) for r, b in zip(ratios, ladder)):
+        raise ValueError("block sizes must be integer multiples of the smallest")
+    top = max(ratios)
+    bx = np.floor(sxy[:, 0] / b0).astype(np.int64)
+    by = np.floor(sxy[:, 1] / b0).astype(np.int64)
+    bx -= (bx.min() // top) * top  # a multiple of every ratio: the grid stays aligned
+    by -= (by.min() // top) * top
+    nx, ny = int(bx.max()) + 1, int(by.max()) + 1
+    ukey, inv0 = np.unique((sg * nx + bx) * ny + by, return_inverse=True)
+    inv0 = inv0.reshape(-1)
+    nb0 = len(ukey)
+    g0 = np.stack([np.bincount(inv0, weights=S[:, j], minlength=nb0) for j in range(q)], 1)
+    fseg, rest = np.divmod(ukey, nx * ny)
+    fbx, fby = np.divmod(rest, ny)
+    iu, ju = np.triu_indices(q)
+    for li, r in enumerate(ratios):
+        if r == 1:
+            g, bseg = g0, fseg
+        else:
+            nxl, nyl = (nx - 1) // r + 1, (ny - 1) // r + 1
+            uk, inv = np.unique((fseg * nxl + fbx // r) * nyl + fby // r, return_inverse=True)
+            inv = inv.reshape(-1)
+            g = np.stack(
+                [np.bincount(inv, weights=g0[:, j], minlength=len(uk)) for j in range(q)], 1
+            )
+            bseg = uk // (nxl * nyl)
+        prod = g[:, iu] * g[:, ju]
+        for c, (i, j) in enumerate(zip(iu, ju)):
+            sm = np.bincount(bseg, weights=prod[:, c], minlength=k)
+            meats[:, li, i, j] = sm
+            meats[:, li, j, i] = sm
         n_blocks[:, li] = np.bincount(bseg, minlength=k)
     return meats, n_blocks
 

@@ -160,7 +160,7 @@ def test_the_cell_floor_recovers_a_known_factor_and_cap(seed):
 def test_honest_sigmas_need_no_floor():
     row, col, values, sig, n = _grid_field(3, 1.0, np.inf)
     fl = cell_floor(row, col, values, sig, n)
-    assert fl.factor == pytest.approx(1.0, abs=0.1)
+    assert fl.factor == pytest.approx(1.0, abs=0.2)
     assert fl.n_cap > 50_000  # a cap far above the cells' points changes nothing
     assert np.all(fl.scale(n) < 1.6)
 
