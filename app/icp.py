@@ -245,9 +245,10 @@ SPEC = JobSpec(
         _opt(
             "formal_sigma",
             "bool",
-            "report the cells' formal sigmas; by default they are multiplied by the field's "
-            "variance factor from the agreement of neighbouring cells (formal sigmas assume "
-            "independent point residuals and are 2-4x too small on real surfaces)",
+            "report the cells' formal sigmas (independent point residuals, 2-4x too small on "
+            "real surfaces); by default each cell's covariance counts the spatial correlation "
+            "of its residuals (sub-cell blocks) and the cell-wide error that the agreement of "
+            "neighbouring cells shows",
             "Formal sigmas only",
             default=False,
             advanced=True,
