@@ -33,7 +33,13 @@ freedom).
   :data:`PRIOR_BLOCKS`: ``C = (B C_b + B0 kappa C_f) / (B + B0)``. A cell of a few blocks
   takes mostly the field's typical correlation, a cell of many blocks its own.
 
-The same blocks serve the spline field (:func:`spline_meat`): its scores are sums over all
+* **What the residuals cannot show** (:func:`cell_floor`): the part of a cell's error common
+  to all its points is absorbed by the fit (a constant offset of the residuals moves the
+  translation). It is modelled as ``C (a + n / n_cap)``, a cap ``n_cap`` on the cell's
+  independent observations, the field's ``a`` and ``n_cap`` from the agreement of
+  neighbouring cells. On lone-star it carries most of the correction (docs/fields.md).
+
+The same blocks serve the spline field (:func:`spline_block_covariance`): its scores are sums over all
 points of a block, and the covariance of the penalised estimate is
 ``A⁻¹ (c M + s0² P) A⁻¹`` (``P`` the penalty, ``M = sum_b g_b g_bᵀ``), which is the formal
 ``s0² A⁻¹`` when the residuals are independent.
@@ -395,8 +401,9 @@ def cell_floor(
     modelled as ``C_blocks (a + n / n_cap)``: a cell of ``n`` points behaves as
     ``n / (a + n / n_cap) < n_cap`` independent ones. The two numbers are the field's: ``a``
     (>= 1) makes the sparser half of the tested cells (by ``n``) agree with their neighbours
-    as their sigmas say (the median of their squared normalised neighbour residuals that of
-    chi²₁; :func:`slipmap.core.fields.neighbour_variance_factor`), ``n_cap`` (>= 1 or inf)
+    as their sigmas say (the :data:`FLOOR_QUANTILE` quantile of their squared normalised
+    neighbour residuals that of chi²₁, below the median so that cells next to a scarp weigh
+    less; :func:`slipmap.core.fields.neighbour_variance_factor`), ``n_cap`` (>= 1 or inf)
     the denser half; each by bisection in its logarithm, the two in turn (a cell's
     neighbours may sit in the other half). Dense cells, whose sigmas shrink most as
     ``1 / sqrt(n)``, get the most; a field whose neighbours agree already gets ``a = 1``
