@@ -39,8 +39,8 @@ freedom).
   independent observations, the field's ``a`` and ``n_cap`` from the agreement of
   neighbouring cells. On lone-star it carries most of the correction (docs/fields.md).
 
-The same blocks serve the spline field (:func:`spline_block_covariance`): its scores are sums over all
-points of a block, and the covariance of the penalised estimate is
+The same blocks serve the spline field (:func:`spline_block_covariance`): its scores are
+sums over all points of a block, and the covariance of the penalised estimate is
 ``A⁻¹ (c M + s0² P) A⁻¹`` (``P`` the penalty, ``M = sum_b g_b g_bᵀ``), which is the formal
 ``s0² A⁻¹`` when the residuals are independent.
 
