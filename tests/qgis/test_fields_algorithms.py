@@ -400,9 +400,7 @@ def test_windowedicp_equals_core(provider, epochs, tmp_path):
         ),
     )  # fmt: skip
     _, names, rows = _features(formal["VECTORS"])
-    np.testing.assert_allclose(
-        _col(names, rows, "sigma_dx"), ref.sigma_formal[:, 0], rtol=1e-12
-    )
+    np.testing.assert_allclose(_col(names, rows, "sigma_dx"), ref.sigma_formal[:, 0], rtol=1e-12)
     assert json.loads((tmp_path / "formal.json").read_text())["sigma_factor"]["applied"] == 1.0
 
 
