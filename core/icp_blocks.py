@@ -545,6 +545,7 @@ def spline_block_scores(
     block_m: float,
     origin_xy=(0.0, 0.0),
     seg: Optional[np.ndarray] = None,
+    group: Optional[np.ndarray] = None,
 ) -> BlockScores:
     """The summed scores of a spline fit's points per (block, 16-knot group).
 
@@ -568,6 +569,9 @@ def spline_block_scores(
         Origin of the block grid (the knot frame's), metres.
     seg : (P,) int64, optional
         Reported cell of each point (-1: none).
+    group : (P,) int64, optional
+        Each point's 16-knot row as a number (equal rows, equal numbers: a
+        :class:`~slipmap.core.icp_spline.SplineChunk` has them sorted); None: found here.
 
     Returns
     -------
@@ -586,7 +590,10 @@ def spline_block_scores(
     if not p_psi.size:
         z = np.zeros((0, 2), dtype=np.int64)
         return BlockScores(z, np.zeros((0, 16), dtype=np.int64), np.zeros((0, 48)), cell_blocks)
-    _, gid = np.unique(p_idx, axis=0, return_inverse=True)
+    if group is None:
+        _, gid = np.unique(p_idx, axis=0, return_inverse=True)
+    else:
+        gid = np.asarray(group)[used]
     gid = gid.reshape(-1).astype(np.int64)
     rx, ry = bx - bx.min(), by - by.min()
     nx, ny = int(rx.max()) + 1, int(ry.max()) + 1

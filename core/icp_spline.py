@@ -876,6 +876,7 @@ class SplineChunk:
             scores = spline_block_scores(
                 xy=self.a[:, :2], psi=psi_all, nrm=nrm, idx16=self.idx16, w16=self.w16,
                 block_m=block_m, origin_xy=self.origin_xy, seg=self.seg,
+                group=np.repeat(np.arange(len(self.bounds) - 1), np.diff(self.bounds)),
             )  # fmt: skip
         return ChunkReport(
             ss_psi=float(np.sum(psi * psi)),

@@ -156,6 +156,14 @@ def test_block_scores_equal_the_per_point_sums():
                 np.add.at(got[b], c * n_k + kn, vals[16 * c : 16 * c + 16])
     np.testing.assert_allclose(got, dense_ref, rtol=1e-12, atol=1e-15)
     assert sp.csr_matrix(got).nnz == sp.csr_matrix(dense_ref).nnz
+    # the rows given as numbers (as a chunk has them) group the same
+    rid = np.unique(idx16, axis=0, return_inverse=True)[1].reshape(-1)
+    again = spline_block_scores(xy=xy, psi=psi, nrm=nrm, idx16=idx16, w16=w16, block_m=bm,
+                                origin_xy=(-3.2, -2.9), group=rid * 7 + 3)  # fmt: skip
+    whole = spline_block_scores(xy=xy, psi=psi, nrm=nrm, idx16=idx16, w16=w16, block_m=bm,
+                                origin_xy=(-3.2, -2.9))  # fmt: skip
+    for key in ("keys", "knots", "vals"):
+        np.testing.assert_array_equal(getattr(again, key), getattr(whole, key))
     cb = np.unique(np.concatenate([sc.cell_blocks for sc in scores]), axis=0)
     want = {(int(seg[p]), *(int(np.floor((xy[p, k] - o) / bm)) for k, o in ((0, -3.2), (1, -2.9))))
             for p in range(n) if psi[p] != 0 and seg[p] >= 0}  # fmt: skip
