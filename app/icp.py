@@ -270,9 +270,10 @@ SPEC = JobSpec(
         _opt(
             "formal_sigma",
             "bool",
-            "report the cells' formal sigmas; by default they are multiplied by the field's "
-            "variance factor from the agreement of neighbouring cells (formal sigmas assume "
-            "independent point residuals and are 2-4x too small on real surfaces)",
+            "report the cells' formal sigmas (independent point residuals, 2-4x too small on "
+            "real surfaces); by default each cell's covariance counts the spatial correlation "
+            "of its residuals (sub-cell blocks) and the cell-wide error that the agreement of "
+            "neighbouring cells shows",
             "Formal sigmas only",
             default=False,
             advanced=True,
@@ -367,6 +368,7 @@ def core_kwargs(opts: Mapping[str, Any]) -> Dict[str, Any]:
     regions = int(opts.get("sigma_regions") or 1)
     if opts.get("formal_sigma"):
         kw["sigma_scaling"] = "formal"
+        kw["sigma_model"] = "independent"
     elif regions > 1:
         kw["sigma_scaling"] = "region"
         kw["sigma_regions"] = regions

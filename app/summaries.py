@@ -118,6 +118,15 @@ def icp_summary(res) -> Dict[str, Any]:
             # one factor per region with sigma_scaling="region" (lowest class first)
             "regions": [float(v) for v in res.sigma_region_factors],
         },
+        # issue #29: the cells' covariances with the residuals' correlation (blocks) and
+        # the cell-wide error from neighbour agreement (sigmas x sqrt(a + n / n_cap))
+        "sigma_model": {
+            "model": res.sigma_model,
+            "block_m": res.sigma_block_m,
+            "block_ratio": res.sigma_block_ratio,
+            "floor_factor": res.sigma_floor_factor,
+            "n_cap": res.sigma_n_cap,
+        },
         "rmse_m": finite_stats(res.rmse),
         "prealignment": None
         if pre is None

@@ -746,7 +746,7 @@ def icp_tiled(
     WindowedICPResult
         All cells of the whole run's lattice, in its order (row, then column).
     """
-    from ..core.icp import WindowedICPResult, _apply_sigma_scaling
+    from ..core.icp import WindowedICPResult, _apply_sigma_scaling, reblock
 
     if icp_kw.get("prealign"):
         raise InvalidParameterError("prealign is not available on tiled inputs")
@@ -845,7 +845,10 @@ def icp_tiled(
         seconds=0.0,
         cell_model=icp_kw.get("cell_model", "rigid"),
         deform_passes=int(icp_kw.get("deform_passes", 0)),
+        # the tiles' block covariances (each tile's block size); the floor comes here
+        sigma_model=icp_kw.get("sigma_model", "blocks"),
     )
+    res = reblock(res)  # the block size over the whole field, as one run chooses it
     sigma_kw = dict(
         sigma_scaling=sigma_scaling,
         sigma_regions=icp_kw.get("sigma_regions", 3),
@@ -1151,6 +1154,7 @@ def _icp_spline_tiled(
         _deformation_field,
         _near_pairs,
         _options,
+        _spline_blocks,
         finish_cells,
         spline_cells,
     )
@@ -1244,6 +1248,10 @@ def _icp_spline_tiled(
     iterations[at] = cells_res.iterations
     converged = np.zeros(k, dtype=bool)
     converged[at] = np.asarray(cells_res.converged, dtype=bool)
+    flagged_c = np.zeros(k, dtype=bool)
+    flagged_c[at] = np.asarray(cells_res.flagged, dtype=bool)
+    blocks_model = kw.pop("sigma_model", "blocks")
+    block_m = cells_res.sigma_block_m if blocks_model == "blocks" else math.nan
     usable = ok & np.all(np.isfinite(d), axis=1)
     start, _ = _deformation_field(cells, d, usable, n_rows, n_cols, x0, y0, cell)
     near = _near_pairs(cells.row, cells.col, reach=2)
@@ -1282,9 +1290,22 @@ def _icp_spline_tiled(
             run, frame=frame, initial=start, report_xy=cells.centres[:, :2], report_pairs=near,
             smoothing=spline_kw["smoothing"], gate_m=gate, opts=opts,
             progress=scaled(outer if progress is not None else None, 0.55, 1.0),
+            block_m=float(block_m) if math.isfinite(block_m) else None,
         )  # fmt: skip
     finally:
         _drop_chunks(token)
+    # the block covariances and the cells' floor share, as the one-file run (core.icp)
+    c_ok = np.asarray(cells_res.converged, dtype=bool) & ~np.asarray(cells_res.flagged, bool)
+    c_all = np.ones(len(cells_res.x), dtype=bool)
+    sfit, blocks_kw = _spline_blocks(
+        sfit, ok & converged & ~flagged_c & (sfit.n >= minp), near,
+        dict(sigma_model=blocks_model, sigma_block_m=cells_res.sigma_block_m,
+             sigma_block_ratio=math.nan),
+        sigma_scaling=sigma_kw["sigma_scaling"],
+        cells=(cells_res.row, cells_res.col,
+               np.column_stack([cells_res.dx, cells_res.dy, cells_res.dz]), cells_res.cov_d,
+               cells_res.n, c_all, c_ok),
+    )  # fmt: skip
     sp = spline_cells(sfit, cells, ok, min_points=minp, median_threshold=med_thr,
                       median_eps_m=med_eps, n_rows=n_rows, n_cols=n_cols)  # fmt: skip
     return finish_cells(
@@ -1295,5 +1316,5 @@ def _icp_spline_tiled(
         origin_xy=(float(x0), float(y0)), cell_m=cell, n_rows=n_rows, n_cols=n_cols,
         prealignment=None, t_start=0.0, cell_model=cells_res.cell_model,
         deform_passes=cells_res.deform_passes, field_model="spline", near=near,
-        pair_cov=sfit.pair_cov, **sigma_kw,
+        pair_cov=sfit.pair_cov, **sigma_kw, **blocks_kw,
     )  # fmt: skip

@@ -56,6 +56,7 @@ PREALIGN_MAX_POINTS = 200_000  # source points sampled for the global pre-alignm
 ROBUST_CHOICES = (None, "tukey", "huber")
 SIGMA_SCALING_CHOICES = ("field", "region", "formal")
 SIGMA_REGION_BY = ("roughness", "density", "sigma")
+SIGMA_MODELS = ("blocks", "independent")
 
 
 # --------------------------------------------------------------------------- rotations
@@ -996,6 +997,30 @@ class WindowedICPResult:
         The lines the spline field was allowed to jump across (given or detected).
     breaklines_source : str
         ``"given"``, ``"detected"`` or ``"none"``.
+    sigma_model : str
+        ``"blocks"`` (the covariances count the residuals' spatial correlation, block sums
+        of the scores: :mod:`slipmap.core.icp_blocks`) or ``"independent"`` (formal).
+    sigma_block_m : float
+        The block side chosen from the data, metres (NaN: none, formal covariances).
+    sigma_block_ratio : float
+        The field's pooled ratio of block to formal variances at that size (the shrinkage
+        target of cells with few blocks; NaN: none).
+    sigma_n_cap : float
+        With ``sigma_model="blocks"`` and neighbour scaling: the most independent
+        observations a cell counts as (the cell-wide correlated error,
+        :func:`~slipmap.core.icp_blocks.cell_floor`; inf: none needed, NaN: not estimated).
+    sigma_floor_factor : float
+        With it, the multiplier of every cell's block sigmas (``sqrt(a)``, >= 1).
+    sigma_formal : (K, 3) float64 or None
+        The formal 1-sigma of ``dx, dy, dz`` (independent residuals, no factor), metres.
+    cov_d_formal : (K, 3, 3) float64 or None
+        The formal covariance of ``dx, dy, dz`` (rigid and affine cells), m².
+    cov_d_blocks : (K, L, 3, 3) float64 or None
+        With ``sigma_model="blocks"`` (cells): the unshrunk block covariances per block size
+        of :data:`~slipmap.core.icp_blocks.BLOCK_LADDER_M`, so that a tiled run chooses the
+        block size over the whole field (:func:`reblock`).
+    n_blocks : (K, L) int64 or None
+        Their block counts.
     """
 
     x: np.ndarray
@@ -1045,6 +1070,15 @@ class WindowedICPResult:
     sigma_region: Optional[np.ndarray] = None
     breaklines: object = None
     breaklines_source: str = "none"
+    sigma_model: str = "independent"
+    sigma_block_m: float = math.nan
+    sigma_block_ratio: float = math.nan
+    sigma_formal: Optional[np.ndarray] = None
+    sigma_n_cap: float = math.nan
+    sigma_floor_factor: float = math.nan
+    cov_d_formal: Optional[np.ndarray] = None
+    cov_d_blocks: Optional[np.ndarray] = None
+    n_blocks: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -1264,6 +1298,8 @@ class _PassFits:
     n: np.ndarray
     iterations: np.ndarray
     converged: np.ndarray
+    cov_d_blocks: np.ndarray  # (K, L, 3, 3) block covariances of d (icp_blocks)
+    n_blocks: np.ndarray  # (K, L)
 
 
 def _fit_pass(
@@ -1286,6 +1322,7 @@ def _fit_pass(
     """Fit every cell once. ``pts`` (P, 3) are the cells' after-points (pre-moved by the
     field in a deformation pass), ``moved_by`` (K, 3) how far each cell's centre was moved
     back, ``d_start`` (K, 3) the starting ground motion (the target box moves with it)."""
+    from .icp_blocks import BLOCK_LADDER_M
     from .icp_cells import fit_cells, ground_rotation
 
     centres = cells.centres - moved_by
@@ -1304,6 +1341,11 @@ def _fit_pass(
             src, cells.seg, centres, model=model, t_init=t_init, progress=progress, **kw
         )
     cov = fits.covariance[:, -3:, -3:]
+    k, n_lad = len(cov), len(BLOCK_LADDER_M)
+    if fits.block_covariance is None:
+        bcov, nblk = np.full((k, n_lad, 3, 3), np.nan), np.zeros((k, n_lad), dtype=np.int64)
+    else:
+        bcov, nblk = fits.block_covariance[:, :, -3:, -3:], fits.n_blocks
     rot, sig_rot = ground_rotation(fits, model)
     return _PassFits(
         ok=fits.ok,
@@ -1318,6 +1360,8 @@ def _fit_pass(
         n=fits.n,
         iterations=fits.iterations,
         converged=fits.converged,
+        cov_d_blocks=bcov,
+        n_blocks=nblk,
     )
 
 
@@ -1373,10 +1417,12 @@ def _fit_cells_per_cell(src, seg, centres, *, before, tree, normals, boxes, gate
     """Slow obvious reference of :func:`slipmap.core.icp_cells.fit_cells`: one cell at a time
     (rigid: :func:`_icp_engine` with its own matcher, the pre-issue-#18 loop; affine:
     ``fit_cells`` on one cell, so that the batching itself is what is compared)."""
+    from .icp_blocks import BLOCK_LADDER_M, block_meats_reference, sandwich
     from .icp_cells import CellFits, fit_cells, n_params
 
     k = len(centres)
     p = n_params(model)
+    n_lad = len(BLOCK_LADDER_M)
     out = {
         "ok": np.zeros(k, dtype=bool),
         "linear": np.repeat(np.eye(3)[None], k, axis=0),
@@ -1388,6 +1434,8 @@ def _fit_cells_per_cell(src, seg, centres, *, before, tree, normals, boxes, gate
         "n": np.zeros(k, dtype=np.int64),
         "iterations": np.zeros(k, dtype=np.int64),
         "converged": np.zeros(k, dtype=bool),
+        "block_covariance": np.full((k, n_lad, p, p), np.nan),
+        "n_blocks": np.zeros((k, n_lad), dtype=np.int64),
     }
     bounds = np.concatenate([[0], np.cumsum(np.bincount(seg, minlength=k))])
     M = len(before)
@@ -1437,7 +1485,120 @@ def _fit_cells_per_cell(src, seg, centres, *, before, tree, normals, boxes, gate
         out["n"][ci] = fit.n_correspondences
         out["iterations"][ci] = fit.iterations
         out["converged"][ci] = fit.converged
+        # block covariances at the final transform, as _final_fit forms its residuals
+        a = s @ fit.rotation.T
+        t = fit.params[3:]
+        okm, m, nrm, _ = match(a + t)
+        good = np.all(np.isfinite(nrm), axis=1)
+        a, m, nrm, xy = a[okm][good], m[good], nrm[good], (s[okm][good] + centre)[:, :2]
+        v = np.einsum("ij,ij->i", nrm, a + t - m)
+        keep, w, dpsi = _weights(v, opts)
+        A = np.concatenate([np.cross(a, nrm) @ _left_jacobian(fit.params[:3]), nrm], axis=1)
+        psi = np.where(keep, w * v, 0.0)
+        _, Ninv, _, _ = _solve_scaled(A[keep].T @ A[keep], np.zeros(6), _rms_radius(a))
+        nk = int(keep.sum())
+        scale = nk / max(nk - 6, 1) / (float(dpsi[keep].sum()) / nk) ** 2
+        meats, nb = block_meats_reference(A, psi, np.zeros(len(v), np.int64), xy, 1)
+        out["block_covariance"][ci] = sandwich(Ninv[None], meats, nb, np.array([scale]))[0]
+        out["n_blocks"][ci] = nb[0]
     return CellFits(**out)
+
+
+def _block_covariances(fits: _PassFits, cov_d: np.ndarray, flagged: np.ndarray):
+    """:func:`_choose_and_shrink` of a pass's cells (fitted, converged, not flagged)."""
+    return _choose_and_shrink(
+        cov_d, fits.cov_d_blocks, fits.n_blocks, fits.ok & fits.converged & ~flagged
+    )
+
+
+def _choose_and_shrink(cov_d, cov_blocks, n_blocks, usable):
+    """The cells' covariances of ``d`` with the residuals' spatial correlation: the block
+    size chosen over the ``usable`` cells, each cell's block covariance shrunk towards its
+    formal one ``cov_d`` times the field's ratio (:mod:`slipmap.core.icp_blocks`).
+    Returns the :class:`~slipmap.core.icp_blocks.BlockChoice` and the (K, 3, 3) covariances
+    (the formal ones where no block size is eligible)."""
+    from .icp_blocks import choose_block_level, shrink_covariance
+
+    fvar = np.diagonal(cov_d, axis1=1, axis2=2)
+    bvar = np.diagonal(cov_blocks, axis1=2, axis2=3)
+    usable = usable & np.all(np.isfinite(fvar) & (fvar > 0), axis=1)
+    choice = choose_block_level(fvar, bvar, n_blocks, usable)
+    if choice.level < 0:
+        return choice, cov_d
+    lev = choice.level
+    return choice, shrink_covariance(cov_d, cov_blocks[:, lev], n_blocks[:, lev], choice.kappa)
+
+
+def _rotation_scale(cov_d: np.ndarray, sigma_formal: np.ndarray) -> np.ndarray:
+    """(K,) multiplier of the rotations' formal sigmas: the root mean ratio of the
+    translation's variances to the formal ones (1 where undefined)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.sqrt(np.nanmean(np.diagonal(cov_d, axis1=1, axis2=2) / sigma_formal**2, axis=1))
+    return np.where(np.isfinite(r), r, 1.0)
+
+
+def reblock(res: WindowedICPResult) -> WindowedICPResult:
+    """``res`` (rigid or affine cells with ``sigma_model="blocks"``, e.g. assembled from
+    tiles that each chose their own block size) with the block size chosen and the cells
+    shrunk over the whole field, as one run over all cells does; unchanged otherwise."""
+    if res.sigma_model != "blocks" or res.cov_d_blocks is None or res.field_model != "cells":
+        return res
+    usable = np.asarray(res.converged, dtype=bool) & ~np.asarray(res.flagged, dtype=bool)
+    choice, cov = _choose_and_shrink(res.cov_d_formal, res.cov_d_blocks, res.n_blocks, usable)
+    old = _rotation_scale(res.cov_d, res.sigma_formal)
+    new = _rotation_scale(cov, res.sigma_formal)
+    sd = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))
+    rot = {k: getattr(res, k) / old * new for k in ("sigma_rx", "sigma_ry", "sigma_rz")}
+    return replace(
+        res,
+        **rot,
+        cov_d=cov,
+        sigma_dx=sd[:, 0],
+        sigma_dy=sd[:, 1],
+        sigma_dz=sd[:, 2],
+        sigma_block_m=choice.block_m,
+        sigma_block_ratio=math.nan if choice.level < 0 else choice.kappa,
+    )
+
+
+def _spline_blocks(sfit, usable: np.ndarray, near, blocks_kw, *, sigma_scaling, cells):
+    """A spline field's covariances with the residuals' spatial correlation.
+
+    ``sfit`` with ``cov_blocks`` (else unchanged): each cell's block covariance shrunk towards
+    its formal covariance times the field's pooled ratio (over ``usable``), the pair
+    covariances of ``near`` scaled by ``sqrt(r_i r_j)`` (``r`` the cells' variance ratios per
+    component). ``cells``: ``(row, col, d, cov_d, n, ok, usable)`` of the rigid or affine
+    cell pass (block covariances), whose cell-wide floor
+    (:func:`~slipmap.core.icp_blocks.cell_floor`) the spline's takes a share of unless
+    ``sigma_scaling="formal"``. Returns the new ``sfit`` and ``blocks_kw`` for
+    :func:`finish_cells` (the one-file and the tiled run share this)."""
+    from .icp_blocks import cell_floor, shrink_covariance
+
+    kw = dict(blocks_kw, cov_formal=None, cov_d_blocks=None, n_blocks=None)
+    kw["sigma_formal"] = np.sqrt(np.diagonal(sfit.cov[:, :3, :3], axis1=1, axis2=2))
+    if sfit.cov_blocks is None:
+        return sfit, kw
+    fvar = np.diagonal(sfit.cov[:, :3, :3], axis1=1, axis2=2)
+    bvar = np.diagonal(sfit.cov_blocks[:, :3, :3], axis1=1, axis2=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.mean(bvar / fvar, axis=1)
+    m = usable & np.isfinite(ratio)
+    kappa = max(1.0, float(np.median(ratio[m]))) if m.any() else 1.0
+    c9 = shrink_covariance(sfit.cov, sfit.cov_blocks, sfit.n_blocks, kappa)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(fvar > 0, np.diagonal(c9[:, :3, :3], axis1=1, axis2=2) / fvar, 1.0)
+    pair = sfit.pair_cov
+    if pair is not None:
+        pair = pair * np.sqrt(r[near[:, 0]] * r[near[:, 1]])
+    log.info("spline field: block variance ratio %.2f (blocks of %g m)", kappa, kw["sigma_block_m"])
+    kw["sigma_block_ratio"] = kappa
+    if sigma_scaling != "formal":  # the rigid cells' cell-wide error (icp_blocks)
+        row, col, d, cov_d, n, ok, cu = cells
+        sd_c = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
+        kw["cells_floor"] = cell_floor(
+            row[ok], col[ok], d[ok], sd_c[ok], n[ok], usable=cu[ok]
+        )  # fmt: skip
+    return replace(sfit, cov=c9, pair_cov=pair), kw
 
 
 def _median_flags(cells: _Cells, d, usable, n_rows, n_cols, eps_m, threshold):
@@ -1518,6 +1679,7 @@ def windowed_icp(
     sigma_scaling: str = "field",
     sigma_regions: int = 3,
     sigma_region_by: str = "roughness",
+    sigma_model: str = "blocks",
     deform_passes: int = 0,
     cell_model: str = "rigid",
     field_model: str = "cells",
@@ -1584,6 +1746,15 @@ def windowed_icp(
         ``f(xy (K, 2)) -> (K, 3)`` starting ground motion at cell centres (e.g. from PIV);
         used by the finest pass (or the coarsest, with ``coarse_to_fine``).
     sigma_scaling : {"field", "region", "formal"}
+        What the agreement of neighbouring cells does to the covariances. With
+        ``sigma_model="blocks"`` (the default) and ``"field"`` or ``"region"`` it first
+        supplies the error the cells' residuals cannot show, a factor and a cap on the cells'
+        effective observations (:func:`~slipmap.core.icp_blocks.cell_floor`: covariances
+        times ``a + n / n_cap``; a spline field takes at least
+        :data:`~slipmap.core.icp_blocks.SPLINE_FLOOR_SHARE` of its cells' excess); the
+        field's factor below is then only estimated and recorded as a check
+        (``"field"``), or the region factors are applied on top (``"region"``); ``"formal"``
+        leaves the block covariances. With ``sigma_model="independent"``:
         ``"field"`` (default): the cells' covariances are multiplied by the square of the
         field's a-posteriori variance factor (:func:`~slipmap.core.fields.
         neighbour_variance_factor` of dx, dy, dz over the converged cells, at least 1): each
@@ -1601,6 +1772,13 @@ def windowed_icp(
         misses the error neighbouring cells share; calibrated on lone-star, docs/fields.md);
         with ``field_model="spline"`` they count the pair covariances too.
         ``"formal"``: keep the formal covariances.
+    sigma_model : {"blocks", "independent"}
+        ``"blocks"`` (default): each cell's covariance counts the spatial correlation of its
+        point-to-plane residuals, the cluster-robust (sandwich) covariance with sub-cell
+        blocks as clusters, the block size chosen from the data and cells with few blocks
+        shrunk towards the field's typical ratio (:mod:`slipmap.core.icp_blocks`; rigid,
+        affine and spline fields alike); ``sigma_scaling`` then adds the cell-wide error.
+        ``"independent"``: the formal covariance (independent residuals).
     sigma_regions : int
         Number of regions (quantile classes) of ``sigma_scaling="region"`` (>= 1).
     sigma_region_by : {"roughness", "density", "sigma"}
@@ -1717,6 +1895,10 @@ def windowed_icp(
             f"sigma_scaling must be one of {SIGMA_SCALING_CHOICES}, got {sigma_scaling!r}"
         )
     n_regions = _int_at_least("sigma_regions", sigma_regions, 1)
+    if sigma_model not in SIGMA_MODELS:
+        raise InvalidParameterError(
+            f"sigma_model must be one of {SIGMA_MODELS}, got {sigma_model!r}"
+        )
     if sigma_region_by not in SIGMA_REGION_BY:
         raise InvalidParameterError(
             f"sigma_region_by must be one of {SIGMA_REGION_BY}, got {sigma_region_by!r}"
@@ -1771,6 +1953,7 @@ def windowed_icp(
             coarse_to_fine=levels - 1,
             initial_displacement=initial_displacement,
             sigma_scaling="formal",
+            sigma_model="independent",
             engine=engine,
             backend=backend,
             median_threshold=median_threshold,
@@ -1933,6 +2116,20 @@ def windowed_icp(
     rmse, sigma0, n_used = fits.rmse, fits.sigma0, fits.n
     ok, rot, sig_rot = fits.ok, fits.rotation, fits.sigma_rotation
     near = pair_src = None
+    sigma_formal = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
+    cov_formal = cov_d
+    block, rot_scale = None, np.ones(len(sel))
+    if sigma_model == "blocks":
+        block, cov_d = _block_covariances(fits, cov_d, flagged)
+        rot_scale = _rotation_scale(cov_d, sigma_formal)
+    blocks_kw = dict(
+        sigma_model=sigma_model,
+        sigma_block_m=math.nan if block is None else block.block_m,
+        sigma_block_ratio=math.nan if block is None or block.level < 0 else block.kappa,
+        cov_formal=cov_formal,
+        cov_d_blocks=fits.cov_d_blocks if sigma_model == "blocks" else None,
+        n_blocks=fits.n_blocks if sigma_model == "blocks" else None,
+    )
     if field_model == "spline":
         from .icp_spline import fit_spline_field
 
@@ -1955,7 +2152,10 @@ def windowed_icp(
             grid=grid,
         )
         if lines is None and detect_breaklines:
-            lines = _detect_lines(cells, d, usable & ~flagged, cov_d, n_rows, n_cols, x0, y0, cell)
+            # the formal covariances: the detection's threshold was set with them
+            lines = _detect_lines(
+                cells, d, usable & ~flagged, cov_formal, n_rows, n_cols, x0, y0, cell
+            )
             if lines is not None:
                 from .icp_spline import refine_breaklines
 
@@ -1978,13 +2178,22 @@ def windowed_icp(
             # left out (on lone-star's scarp, 5 m cells: 5.6 cm -> 0.6 cm at cells >= 3 m)
             breakline_gap_m=DETECTED_GAP_CELLS * cell if lines_source == "detected" else 0.0,
             progress=scaled(progress, 0.9, 1.0),
+            block_m=None if block is None or block.level < 0 else block.block_m,
             **spline_kw,
         )
+        cu = fits.ok & fits.converged & ~flagged  # the cell pass's usable cells
+        sfit, blocks_kw = _spline_blocks(
+            sfit, cu & (sfit.n >= minp), near, blocks_kw, sigma_scaling=sigma_scaling,
+            cells=(cells.row, cells.col, d, cov_d, fits.n, fits.ok, cu),
+        )  # fmt: skip
         sp = spline_cells(sfit, cells, fits.ok, min_points=minp, median_threshold=med_thr,
                           median_eps_m=med_eps, n_rows=n_rows, n_cols=n_cols)  # fmt: skip
         d, grad, cov_d, rmse, n_used = sp["d"], sp["grad"], sp["cov_d"], sp["rmse"], sp["n"]
         sigma0, sig_rot, ok, flagged = sp["sigma0"], sp["sig_rot"], sp["ok"], sp["flagged"]
         pair_src = sfit.pair_cov
+    else:  # the blocks' ratio of the translation, for the rotations
+        sig_rot = sig_rot * rot_scale[:, None]
+        blocks_kw["sigma_formal"] = sigma_formal
     if not (passes == 0 and model == "rigid" and field_model == "cells"):
         rot = None  # from the gradient of the total motion
     return finish_cells(
@@ -1995,7 +2204,7 @@ def windowed_icp(
         prealignment=pre, t_start=t_start, cell_model=model, deform_passes=passes,
         field_model=field_model, near=near, pair_cov=pair_src, sigma_scaling=sigma_scaling,
         sigma_regions=n_regions, sigma_region_by=sigma_region_by, lines=lines,
-        lines_source=lines_source,
+        lines_source=lines_source, **blocks_kw,
     )  # fmt: skip
 
 
@@ -2102,12 +2311,17 @@ def finish_cells(
     converged, flagged, skipped, min_points, max_iterations, origin_xy, cell_m, n_rows,
     n_cols, prealignment, t_start, cell_model, deform_passes, field_model, near=None,
     pair_cov=None, sigma_scaling="field", sigma_regions=3, sigma_region_by="roughness",
-    lines=None, lines_source="none",
+    lines=None, lines_source="none", sigma_model="independent", sigma_block_m=math.nan,
+    sigma_block_ratio=math.nan, sigma_formal=None, cov_formal=None, cov_d_blocks=None,
+    n_blocks=None, cells_floor=None,
 ) -> WindowedICPResult:  # fmt: skip
     """The result of a windowed-ICP run from its cells' values (``rot`` None: the
     antisymmetric part of ``grad``), the cells not ``ok`` left out and counted, the sigmas
     scaled as ``sigma_scaling`` says (``near``, ``pair_cov``: the spline field's pairs of
-    cells and their covariances). A tiled spline run finishes here too."""
+    cells and their covariances). A tiled spline run finishes here too. ``sigma_model`` ..
+    ``n_blocks``: the block covariances' record (:class:`WindowedICPResult`; the arrays per
+    cell, ``cov_formal`` the formal covariances of rigid or affine cells), ``cells_floor``
+    the rigid cells' :class:`~slipmap.core.icp_blocks.CellFloor` of a spline field."""
     skipped = dict(skipped)
     skipped["icp_failed"] = int(np.count_nonzero(~ok))
     n_ok = int(np.count_nonzero(ok))
@@ -2173,13 +2387,22 @@ def finish_cells(
         flagged=flagged[ok],
         breaklines=lines if field_model == "spline" else None,
         breaklines_source=lines_source if field_model == "spline" else "none",
+        sigma_model=sigma_model,
+        sigma_block_m=sigma_block_m,
+        sigma_block_ratio=sigma_block_ratio,
+        sigma_formal=None if sigma_formal is None else sigma_formal[ok],
+        cov_d_formal=None if cov_formal is None else cov_formal[ok],
+        cov_d_blocks=None if cov_d_blocks is None else cov_d_blocks[ok],
+        n_blocks=None if n_blocks is None else n_blocks[ok],
     )
     pairs = None
     if pair_cov is not None:  # the cells share one field: their errors are correlated
         new = np.cumsum(ok) - 1
         both = ok[near[:, 0]] & ok[near[:, 1]]
         pairs = (new[near[both]], pair_cov[both])
-    res = _apply_sigma_scaling(res, sigma_scaling, sigma_regions, sigma_region_by, pairs)
+    res = _apply_sigma_scaling(
+        res, sigma_scaling, sigma_regions, sigma_region_by, pairs, cells_floor=cells_floor
+    )
     log.info("windowed ICP: %d cells fitted%s, %.1f s", n_ok, skipped_cells_text(skipped),
              res.seconds)  # fmt: skip
     return res
@@ -2297,21 +2520,71 @@ def _apply_sigma_scaling(
     sigma_regions: int = 3,
     sigma_region_by: str = "roughness",
     pair_cov=None,
+    cells_floor=None,
 ) -> WindowedICPResult:
     """``res`` with its covariances scaled as ``sigma_scaling`` says (see windowed_icp; the
     tiled run assembles its result and scales it here too). ``pair_cov``: the formal
-    covariances between cells of a correlated field (spline), for the field's factor."""
+    covariances between cells of a correlated field (spline), for the field's factor.
+    With ``sigma_model="blocks"`` the cell-wide floor comes first and the field's factor
+    after it is a check only: estimated and recorded (``sigma_factor_estimate``, about 1),
+    not applied (on lone-star it over-covered, docs/fields.md)."""
+    if sigma_scaling != "formal" and res.sigma_model == "blocks":
+        res = _apply_floor(res, pair_cov, cells_floor)
     if sigma_scaling == "field":
-        return _scale_sigmas(res, pair_cov)
+        return _scale_sigmas(res, pair_cov, apply=res.sigma_model != "blocks")
     if sigma_scaling == "region":
         return _scale_sigmas_by_region(res, int(sigma_regions), sigma_region_by, pair_cov)
     return res
 
 
-def _scale_sigmas(res: WindowedICPResult, pair_cov=None) -> WindowedICPResult:
+def _apply_floor(res: WindowedICPResult, pair_cov=None, cells_floor=None) -> WindowedICPResult:
+    """``res`` with each cell's covariance times ``a + n / n_cap`` (the cell-wide error its
+    residuals cannot show, :func:`slipmap.core.icp_blocks.cell_floor`); ``pair_cov`` is
+    kept (the floor is uncorrelated between cells). ``cells_floor``: the rigid cells' floor
+    of the same run (a spline field): the multiplier is at least
+    ``1 + SPLINE_FLOOR_SHARE (g_cells - 1)`` (:data:`~slipmap.core.icp_blocks.
+    SPLINE_FLOOR_SHARE`)."""
+    from .icp_blocks import cell_floor
+
+    usable = np.asarray(res.converged, dtype=bool).copy()
+    if np.size(res.flagged) == usable.size:
+        usable &= ~np.asarray(res.flagged, dtype=bool)
+    fl = cell_floor(
+        res.row,
+        res.col,
+        np.column_stack([res.dx, res.dy, res.dz]),
+        np.column_stack([res.sigma_dx, res.sigma_dy, res.sigma_dz]),
+        res.n,
+        usable=usable,
+        pair_covariance=pair_cov,
+    )
+    res = replace(res, sigma_n_cap=fl.n_cap, sigma_floor_factor=fl.factor)
+    if not math.isfinite(fl.factor):
+        log.warning(
+            "only %d cells have 5 usable neighbours: the cell-wide error cannot be estimated "
+            "and the sigmas count only the residuals' correlation within each cell (likely "
+            "too small on real surfaces); use smaller cells or a larger area",
+            fl.n_cells,
+        )
+        return res
+    g = fl.scale(res.n)
+    if cells_floor is not None and math.isfinite(cells_floor.factor):
+        from .icp_blocks import SPLINE_FLOOR_SHARE
+
+        g = np.maximum(g, 1.0 + SPLINE_FLOOR_SHARE * (cells_floor.scale(res.n) - 1.0))
+    f = np.sqrt(g)
+    scaled_cols = {
+        k: getattr(res, k) * f
+        for k in ("sigma_dx", "sigma_dy", "sigma_dz", "sigma_rx", "sigma_ry", "sigma_rz")
+    }
+    return replace(res, **scaled_cols, cov_d=res.cov_d * g[:, None, None])
+
+
+def _scale_sigmas(res: WindowedICPResult, pair_cov=None, apply: bool = True) -> WindowedICPResult:
     """``res`` with covariances scaled by the field's variance factor (see windowed_icp).
     ``pair_cov`` ((Q, 2) cell pairs, (Q, 3) covariances): the cells' formal errors are
-    correlated (one spline field); neighbour agreement must know it."""
+    correlated (one spline field); neighbour agreement must know it. ``apply=False``: the
+    factor is estimated and recorded only (a check of honest sigmas)."""
     from .fields import neighbour_variance_factor
 
     est = neighbour_variance_factor(
@@ -2332,6 +2605,14 @@ def _scale_sigmas(res: WindowedICPResult, pair_cov=None) -> WindowedICPResult:
         )
         return res
     f = max(1.0, est.factor)
+    if not apply:
+        log.info(
+            "check of the sigmas: the field's neighbour variance factor is %.2f from %d cells "
+            "(1: honest; not applied)",
+            est.factor,
+            est.n_cells,
+        )
+        return res
     log.info(
         "field variance factor %.2f from %d cells: sigmas multiplied by %.2f",
         est.factor,

@@ -32,6 +32,7 @@ from typing import Optional
 
 import numpy as np
 
+from .icp_blocks import block_meats, sandwich
 from .icp_options import (
     EIG_RTOL,
     MAD_TO_SIGMA,
@@ -70,6 +71,13 @@ class CellFits:
         Correspondences used.
     iterations : (K,) int64
     converged : (K,) bool
+    block_covariance : (K, L, P, P) float64 or None
+        Cluster-robust covariance with sub-cell blocks of each size of
+        :data:`slipmap.core.icp_blocks.BLOCK_LADDER_M` as clusters (the residuals' spatial
+        correlation; NaN where a cell has fewer than 2 blocks), see
+        :mod:`slipmap.core.icp_blocks`.
+    n_blocks : (K, L) int64 or None
+        Blocks with used points per cell and block size.
     """
 
     ok: np.ndarray
@@ -82,6 +90,8 @@ class CellFits:
     n: np.ndarray
     iterations: np.ndarray
     converged: np.ndarray
+    block_covariance: Optional[np.ndarray] = None
+    n_blocks: Optional[np.ndarray] = None
 
     @property
     def gradient(self) -> np.ndarray:
@@ -560,9 +570,15 @@ def _final(src, seg, centres, lin, t, match, opts, model, failed, iters, converg
     N, _ = _normal_matrices(A, kf, np.zeros(len(v)), sg, k)
     gi = np.flatnonzero(good)
     cov = np.full((k, p, p), np.nan)
+    ninv = np.full((k, p, p), np.nan)
     if gi.size:
         _, Ninv, _, undet = _solve_scaled_batch(N[gi], np.zeros((gi.size, p)), radius[gi], n_lin)
         cov[gi] = mark_undetermined(s0sq[gi, None, None] * Ninv, undet)
+        ninv[gi] = Ninv
+    # the residuals' spatial correlation: block sums of the scores (icp_blocks)
+    meats, n_blocks = block_meats(A, psi, sg, s[:, :2] + centres[sg, :2], k)
+    scale = nk / dof / np.where(mean_dpsi > 0, mean_dpsi, 1.0) ** 2
+    bcov = sandwich(ninv, meats, n_blocks, scale)
     vv = np.bincount(sg, weights=np.where(used_mask, v * v, 0.0), minlength=k)
     rmse = np.sqrt(vv / np.maximum(used, 1))
     return CellFits(
@@ -576,6 +592,8 @@ def _final(src, seg, centres, lin, t, match, opts, model, failed, iters, converg
         n=np.where(good, used, 0).astype(np.int64),
         iterations=iters,
         converged=converged & good,
+        block_covariance=bcov,
+        n_blocks=n_blocks,
     )
 
 

@@ -378,6 +378,12 @@ class SplineFit:
         Covariances between the displacements at the ``report_pairs`` positions, per
         component (x with x, y with y, z with z), m²: the field is one estimate, so nearby
         positions' errors are correlated. ``None`` without ``report_pairs``.
+    cov_blocks : (K, 9, 9) float64 or None
+        With ``block_m``: the covariance of the same rows with the residuals' spatial
+        correlation (block sums of the scores, :func:`slipmap.core.icp_blocks.
+        spline_block_covariance`), m² and m²/m.
+    n_blocks : (K,) int64 or None
+        With ``block_m``: blocks with used points in each cell (``report_seg``).
     """
 
     field: SplineField
@@ -391,6 +397,8 @@ class SplineFit:
     converged: bool
     n_coefficients: int
     pair_cov: Optional[np.ndarray] = None
+    cov_blocks: Optional[np.ndarray] = None
+    n_blocks: Optional[np.ndarray] = None
 
 
 def _second_differences(kx: int, ky: int):
@@ -690,6 +698,11 @@ class ChunkReport:
         Used points per cell.
     cell_ss : (C,) float64
         ``sum v²`` per cell, m².
+    sum_w : float
+        ``sum w`` of the robust weights of the paired points (0 where not kept).
+    block_scores : BlockScores or None
+        With a block side: the chunk's summed scores per block and 16-knot group
+        (:func:`slipmap.core.icp_blocks.spline_block_scores`).
     """
 
     ss_psi: float
@@ -702,6 +715,8 @@ class ChunkReport:
     cells: np.ndarray
     cell_n: np.ndarray
     cell_ss: np.ndarray
+    sum_w: float = 0.0
+    block_scores: object = None
 
 
 class SplineChunk:
@@ -729,6 +744,7 @@ class SplineChunk:
         n_grid = kx * (frame.n_y + 3)
         lines = frame.lines
         copy_index = None if lines is None else frame.copy_index
+        self.origin_xy = (float(frame.origin_xy[0]), float(frame.origin_xy[1]))
         self.n_k = n_grid + (0 if copy_index is None else int(np.count_nonzero(copy_index >= 0)))
         idx16, w16 = frame._basis(a[:, :2], copy_index=copy_index)
         # the points sorted by their 16 knots (the knot interval, and with breaklines the
@@ -827,9 +843,12 @@ class SplineChunk:
             int(np.count_nonzero(ok)),
         )  # fmt: skip
 
-    def report(self, c: np.ndarray, weighting: Weighting) -> ChunkReport:
-        """The chunk's share of the final sums at coefficients ``c``."""
-        ok, _, v, tid = self.pairs(c)
+    def report(
+        self, c: np.ndarray, weighting: Weighting, block_m: Optional[float] = None
+    ) -> ChunkReport:
+        """The chunk's share of the final sums at coefficients ``c``; with ``block_m``
+        (metres) its block sums of the scores too (:mod:`slipmap.core.icp_blocks`)."""
+        ok, nrm, v, tid = self.pairs(c)
         keep, wv, dpsi = weighting.apply(v[ok])
         psi = np.where(keep, wv * v[ok], 0.0)
         tk = tid[ok][keep]
@@ -847,6 +866,18 @@ class SplineChunk:
             ci = ci.reshape(-1)
             cell_n = np.bincount(ci, minlength=cells.size).astype(np.int64)
             cell_ss = np.bincount(ci, weights=vs[inside] ** 2, minlength=cells.size)
+        scores = None
+        if block_m is not None:
+            from .icp_blocks import spline_block_scores
+
+            psi_all = np.zeros(len(v))
+            psi_all[ok] = psi
+            psi_all[self.gap] = 0.0  # no weight in the fit: no score
+            scores = spline_block_scores(
+                xy=self.a[:, :2], psi=psi_all, nrm=nrm, idx16=self.idx16, w16=self.w16,
+                block_m=block_m, origin_xy=self.origin_xy, seg=self.seg,
+                group=np.repeat(np.arange(len(self.bounds) - 1), np.diff(self.bounds)),
+            )  # fmt: skip
         return ChunkReport(
             ss_psi=float(np.sum(psi * psi)),
             used=int(np.count_nonzero(keep & (wv > 0))),
@@ -858,6 +889,8 @@ class SplineChunk:
             cells=cells,
             cell_n=cell_n,
             cell_ss=cell_ss,
+            sum_w=float(np.sum(np.where(keep, wv, 0.0))),
+            block_scores=scores,
         )
 
 
@@ -884,6 +917,7 @@ def fit_spline_field(
     grid=None,
     breaklines=None,
     breakline_gap_m: float = 0.0,
+    block_m: Optional[float] = None,
 ) -> SplineFit:
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
 
@@ -944,6 +978,9 @@ def fit_spline_field(
         Points closer than this to a breakline are left out (a line placed from the data is
         known to this much only: the points between it and the scarp would pull the wrong
         side's field).
+    block_m : float, optional
+        Block side (metres) of the block covariance ``SplineFit.cov_blocks``
+        (:mod:`slipmap.core.icp_blocks`); None: not computed.
 
     Returns
     -------
@@ -971,7 +1008,7 @@ def fit_spline_field(
 
     return fit_spline_chunks(
         run, frame=frame, initial=initial, report_xy=report_xy, report_pairs=report_pairs,
-        smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress,
+        smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress, block_m=block_m,
     )  # fmt: skip
 
 
@@ -1002,6 +1039,7 @@ def fit_spline_chunks(
     gate_m: float = np.inf,
     opts: _Options,
     progress: Optional[ProgressCallback] = None,
+    block_m: Optional[float] = None,
 ) -> SplineFit:
     """:func:`fit_spline_field` over chunks of points: the Gauss-Newton normal equations,
     the weights' scale and the final sums are sums (or quantiles) over the after-points, so
@@ -1016,8 +1054,9 @@ def fit_spline_chunks(
         after-point in exactly one chunk, each chunk's ``seg`` indexing ``report_xy``.
     frame : SplineField
         The knot lattice (:func:`knot_frame` of all chunks' points).
-    initial, report_xy, report_pairs, smoothing, gate_m, opts, progress
-        As :func:`fit_spline_field`.
+    initial, report_xy, report_pairs, smoothing, gate_m, opts, progress, block_m
+        As :func:`fit_spline_field` (with ``block_m`` every chunk's ``report`` gives its
+        block sums, :class:`~slipmap.core.icp_blocks.BlockScores`, added here).
 
     Returns
     -------
@@ -1109,7 +1148,7 @@ def fit_spline_chunks(
             break
     # final residuals, sigma0 and the report
     wgt = weighting_at(c)
-    parts = run("report", c, wgt)
+    parts = run("report", c, wgt) if block_m is None else run("report", c, wgt, float(block_m))
     ss = float(sum(p.ss_psi for p in parts))
     used = int(sum(p.used for p in parts))
     n_ok = int(sum(p.n_ok for p in parts))
@@ -1161,6 +1200,18 @@ def fit_spline_chunks(
                 column = (pairs[sel, 0] - part.start) * 9 + comp
                 vals = sol[comp * n_k + ridx[pj], column[:, None]]  # (S, 16)
                 pair_cov[sel, comp] = s0sq * np.sum(vals * rw[pj], axis=1)
+    cov_blocks = n_blocks = None
+    if block_m is not None:  # the residuals' spatial correlation (issue #29, icp_blocks)
+        from .icp_blocks import spline_block_covariance
+
+        c_scale = (
+            float(sum(p.sum_w for p in parts)) / max(n_ok, 1) / max(mean_dpsi, 1e-12) ** 2
+            * used / dof
+        )  # fmt: skip
+        cov_blocks, n_blocks = spline_block_covariance(
+            [p.block_scores for p in parts], rows=g.reshape(k, 9, 48), cols=cols,
+            factor=factor, penalty=penalty, s0sq=s0sq, scale=c_scale,
+        )  # fmt: skip
     n_used = np.zeros(k, dtype=np.int64)
     ss_cell = np.zeros(k)
     for p in parts:
@@ -1184,6 +1235,8 @@ def fit_spline_chunks(
         converged=converged,
         n_coefficients=3 * data_knots,
         pair_cov=pair_cov,
+        cov_blocks=cov_blocks,
+        n_blocks=n_blocks,
     )
 
 

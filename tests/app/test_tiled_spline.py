@@ -58,6 +58,10 @@ def _equal(got, want, where=""):
         b = np.asarray(getattr(want, key), float)
         assert np.max(np.abs(a - b)) <= TOL, (where, key, np.max(np.abs(a - b)))
     assert got.sigma_factor == pytest.approx(want.sigma_factor, abs=TOL)
+    # the block covariances (the cells' block size, the spline's ratio) and the floor
+    for key in ("sigma_block_m", "sigma_block_ratio", "sigma_floor_factor", "sigma_n_cap"):
+        a, b = float(getattr(got, key)), float(getattr(want, key))
+        assert a == pytest.approx(b, rel=1e-6, nan_ok=True), (where, key, a, b)
 
 
 def test_spline_on_blocks_equals_the_one_file_run_without_a_seam(scene):
@@ -69,6 +73,7 @@ def test_spline_on_blocks_equals_the_one_file_run_without_a_seam(scene):
     tiled = tf.icp_tiled(before, after, tile_size_m=15.0, **kw)
     _equal(tiled, whole, "in process")
     assert tiled.field_model == "spline"
+    assert whole.sigma_model == "blocks" and np.isfinite(whole.sigma_block_ratio)
     # no seam: the cells beside a block boundary are as close to the lobe as the others
     x = tiled.x - ORIGIN[0]
     err = np.linalg.norm(np.c_[tiled.dx, tiled.dy, tiled.dz] - _truth(tiled.x, tiled.y), axis=1)

@@ -296,13 +296,15 @@ def test_lone_star_split_halves_recover_a_known_shift():
     err = np.c_[res.dx, res.dy, res.dz][big] - shift
     rmse = np.sqrt(np.mean(np.sum(err**2, axis=1)))
     assert rmse <= 0.01, rmse  # measured 8.7 mm (3-D), 4.0 / 7.1 / 3.0 mm per axis
-    # honest sigmas: the formal ones (independent residuals) cover only 59 % of the errors
-    # within 2 sigma on this real surface; scaled by the field's variance factor (3.0 here,
-    # from neighbour agreement, no truth used) 96 %
+    # honest sigmas (issue #29): the formal ones (independent residuals) cover only 59 % of
+    # the errors within 2 sigma on this real surface; with the block covariances and the
+    # cell-wide floor from neighbour agreement (no truth used) 88 % on this seed (0.93-0.98
+    # pooled over seeds, docs/fields.md); the field's factor is a check, not applied
     z = np.abs(err) / np.c_[res.sigma_dx, res.sigma_dy, res.sigma_dz][big]
-    assert 2.0 <= res.sigma_factor <= 4.5 and res.sigma_factor_cells >= 20
-    assert np.mean(z < 2) >= 0.9, np.mean(z < 2)
-    assert np.mean(z * res.sigma_factor < 2) <= 0.75
+    assert res.sigma_model == "blocks" and res.sigma_factor == 1.0
+    assert res.sigma_floor_factor >= 1.0 and res.sigma_factor_cells >= 20
+    assert np.mean(z < 2) >= 0.85, np.mean(z < 2)
+    assert np.mean(np.abs(err) / res.sigma_formal[big] < 2) <= 0.75
     # without step damping 21 % of the cells cycled between two transforms until the
     # iteration limit
     assert res.converged.mean() >= 0.95, res.converged.mean()

@@ -164,7 +164,7 @@ def test_windowed_icp_region_scaling_by_roughness():
 
     shift = np.array([0.03, -0.02, 0.01])
     before, after = epoch(), epoch() + shift
-    kw = dict(cell_m=2.0, median_threshold=2.0)
+    kw = dict(cell_m=2.0, median_threshold=2.0, sigma_model="independent")  # formal sigmas
     formal = windowed_icp(before, after, sigma_scaling="formal", **kw)
     res = windowed_icp(before, after, sigma_scaling="region", sigma_regions=2, **kw)
     np.testing.assert_array_equal(res.dx, formal.dx)

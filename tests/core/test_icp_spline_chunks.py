@@ -60,7 +60,7 @@ def test_a_fit_over_three_chunks_equals_the_one_chunk_fit():
     )  # fmt: skip
     one = fit_spline_field(
         after, before=before, tree=tree, normals=_NormalCache(before, tree, 12),
-        report_seg=seg, spacing_m=4.0, **kw,
+        report_seg=seg, spacing_m=4.0, block_m=0.5, **kw,
     )  # fmt: skip
     frame = knot_frame(after[:, :2].min(axis=0), after[:, :2].max(axis=0), rxy, 4.0)
     normals = _NormalCache(before, tree, 12)
@@ -81,7 +81,7 @@ def test_a_fit_over_three_chunks_equals_the_one_chunk_fit():
     def run(stage, *args):
         return [getattr(c, stage)(*args) for c in chunks]
 
-    three = fit_spline_chunks(run, frame=frame, **kw)
+    three = fit_spline_chunks(run, frame=frame, block_m=0.5, **kw)
     assert three.iterations == one.iterations and three.converged == one.converged
     assert np.array_equal(three.n, one.n) and one.n.min() > 200
     assert three.n_coefficients == one.n_coefficients
@@ -90,6 +90,81 @@ def test_a_fit_over_three_chunks_equals_the_one_chunk_fit():
     np.testing.assert_allclose(three.cov, one.cov, rtol=1e-7, atol=1e-16)
     np.testing.assert_allclose(three.pair_cov, one.pair_cov, rtol=1e-7, atol=1e-16)
     assert three.sigma0_m == pytest.approx(one.sigma0_m, rel=1e-9)
+    # the block covariance: blocks cut by the chunks' edges (x 5.3, 17.9) add up
+    assert np.array_equal(three.n_blocks, one.n_blocks) and one.n_blocks.min() >= 40
+    np.testing.assert_allclose(three.cov_blocks, one.cov_blocks, rtol=1e-7, atol=1e-16)
+    # independent noise: the block variances are the formal ones (to the estimate's noise)
+    ratio = np.diagonal(one.cov_blocks, axis1=1, axis2=2) / np.diagonal(one.cov, axis1=1, axis2=2)
+    assert 0.6 < np.median(ratio[:, :3]) < 1.6
     # and the field is the lobe's (the fit works, not only agrees with itself)
     err = np.linalg.norm(one.d - lobe(rxy), axis=1)
     assert np.sqrt(np.mean(err**2)) < 0.03
+
+
+def test_block_scores_equal_the_per_point_sums():
+    """Points grouped by their full 16-knot row (rows that share the first knot but differ
+    after it, as with breakline copies, stay apart): the scattered block scores equal the
+    per-point sums into (block, coefficient)."""
+    import scipy.sparse as sp
+
+    from slipmap.core.icp_blocks import spline_block_scores
+
+    rng = np.random.default_rng(3)
+    n, n_k, bm = 400, 40, 0.7
+    xy = rng.uniform(-3.0, 5.0, (n, 2))
+    base = rng.integers(0, 20, n)
+    idx16 = base[:, None] + np.arange(16)[None, :]
+    copy = rng.random(n) < 0.3  # a copy replaces a later knot: same first knot, other row
+    idx16[copy, 5] = 36 + base[copy] % 4
+    w16 = rng.random((n, 16))
+    psi = np.where(rng.random(n) < 0.1, 0.0, rng.normal(0.0, 0.01, n))
+    nrm = rng.normal(size=(n, 3))
+    seg = rng.integers(-1, 5, n)
+    parts = np.split(np.arange(n), [130, 260])
+    scores = [
+        spline_block_scores(
+            xy=xy[i],
+            psi=psi[i],
+            nrm=nrm[i],
+            idx16=idx16[i],
+            w16=w16[i],
+            block_m=bm,
+            origin_xy=(-3.2, -2.9),
+            seg=seg[i],
+        )  # fmt: skip
+        for i in parts
+    ]
+    blocks = {}
+    ref = {}
+    for p in range(n):
+        if psi[p] == 0:
+            continue
+        key = (int(np.floor((xy[p, 0] + 3.2) / bm)), int(np.floor((xy[p, 1] + 2.9) / bm)))
+        b = blocks.setdefault(key, len(blocks))
+        for c in range(3):
+            for j in range(16):
+                col = c * n_k + idx16[p, j]
+                ref[b, col] = ref.get((b, col), 0.0) + psi[p] * nrm[p, c] * w16[p, j]
+    dense_ref = np.zeros((len(blocks), 3 * n_k))
+    for (b, col), val in ref.items():
+        dense_ref[b, col] = val
+    got = np.zeros_like(dense_ref)
+    for sc in scores:
+        for key, kn, vals in zip(sc.keys, sc.knots, sc.vals):
+            b = blocks[(int(key[0]), int(key[1]))]
+            for c in range(3):
+                np.add.at(got[b], c * n_k + kn, vals[16 * c : 16 * c + 16])
+    np.testing.assert_allclose(got, dense_ref, rtol=1e-12, atol=1e-15)
+    assert sp.csr_matrix(got).nnz == sp.csr_matrix(dense_ref).nnz
+    # the rows given as numbers (as a chunk has them) group the same
+    rid = np.unique(idx16, axis=0, return_inverse=True)[1].reshape(-1)
+    again = spline_block_scores(xy=xy, psi=psi, nrm=nrm, idx16=idx16, w16=w16, block_m=bm,
+                                origin_xy=(-3.2, -2.9), group=rid * 7 + 3)  # fmt: skip
+    whole = spline_block_scores(xy=xy, psi=psi, nrm=nrm, idx16=idx16, w16=w16, block_m=bm,
+                                origin_xy=(-3.2, -2.9))  # fmt: skip
+    for key in ("keys", "knots", "vals"):
+        np.testing.assert_array_equal(getattr(again, key), getattr(whole, key))
+    cb = np.unique(np.concatenate([sc.cell_blocks for sc in scores]), axis=0)
+    want = {(int(seg[p]), *(int(np.floor((xy[p, k] - o) / bm)) for k, o in ((0, -3.2), (1, -2.9))))
+            for p in range(n) if psi[p] != 0 and seg[p] >= 0}  # fmt: skip
+    assert {tuple(r) for r in cb.tolist()} == want

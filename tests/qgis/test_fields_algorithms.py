@@ -461,7 +461,7 @@ def test_windowedicp_equals_core(provider, epochs, tmp_path):
     assert summary["prealignment"] is None
     assert summary["sigma_factor"]["applied"] == pytest.approx(ref.sigma_factor, rel=1e-12)
     assert summary["sigma_factor"]["cells"] == ref.sigma_factor_cells
-    # formal sigmas on request: the field's sigmas divided by the factor
+    # formal sigmas on request: the core's formal sigmas (independent residuals)
     formal = _run(
         "windowedicp",
         _icp_params(
@@ -470,9 +470,7 @@ def test_windowedicp_equals_core(provider, epochs, tmp_path):
         ),
     )  # fmt: skip
     _, names, rows = _features(formal["VECTORS"])
-    np.testing.assert_allclose(
-        _col(names, rows, "sigma_dx"), ref.sigma_dx / ref.sigma_factor, rtol=1e-12
-    )
+    np.testing.assert_allclose(_col(names, rows, "sigma_dx"), ref.sigma_formal[:, 0], rtol=1e-12)
     assert json.loads((tmp_path / "formal.json").read_text())["sigma_factor"]["applied"] == 1.0
 
 
