@@ -240,3 +240,19 @@ def test_a_port_where_nothing_listens_is_refused(tiles, tmp_path):
     line = err.strip().splitlines()[-1]
     assert "--scheduler" in line and "cannot reach" in line and "scheduler is running" in line
     assert not out.exists()
+
+
+def test_a_local_cluster_leaves_no_gc_callback_for_a_ctrl_c_to_break():
+    """Dask's GC diagnosis (a gc callback the in-process scheduler turns on) is off: a Ctrl-C
+    inside it left its timer half-started and later collections printed tracebacks (CI)."""
+    pytest.importorskip("distributed", reason="dask.distributed is not installed")
+    import gc
+
+    from distributed import gc as dgc
+
+    from slipmap.app.engine import make_engine
+
+    with make_engine(workers=1) as eng:
+        assert eng.n_workers == 1
+        assert not dgc._gc_diagnosis.enabled
+        assert not any("GCDiagnosis" in repr(cb) for cb in gc.callbacks)
