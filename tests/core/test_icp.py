@@ -299,9 +299,11 @@ def test_lone_star_split_halves_recover_a_known_shift():
     # honest sigmas (issue #29): the formal ones (independent residuals) cover only 59 % of
     # the errors within 2 sigma on this real surface; with the block covariances and the
     # cell-wide floor from neighbour agreement (no truth used) 88 % on this seed (0.93-0.98
-    # pooled over seeds, docs/fields.md); the field's factor is a check, not applied
+    # pooled over seeds, docs/fields.md); the field's neighbour factor is applied where it
+    # exceeds 1 (sparse airborne cells need it; here it widens the sigmas, the safe side)
     z = np.abs(err) / np.c_[res.sigma_dx, res.sigma_dy, res.sigma_dz][big]
-    assert res.sigma_model == "blocks" and res.sigma_factor == 1.0
+    assert res.sigma_model == "blocks"
+    assert res.sigma_factor == pytest.approx(max(1.0, res.sigma_factor_estimate))
     assert res.sigma_floor_factor >= 1.0 and res.sigma_factor_cells >= 20
     assert np.mean(z < 2) >= 0.85, np.mean(z < 2)
     assert np.mean(np.abs(err) / res.sigma_formal[big] < 2) <= 0.75
