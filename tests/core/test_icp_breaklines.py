@@ -182,7 +182,9 @@ def test_a_line_ending_inside_keeps_a_smooth_field_continuous_around_its_tip():
     pxy = np.linalg.solve(np.eye(2) + J[:2], (c - d0[:2] + 10.0 * J[:2].sum(axis=1)).T).T
     truth = d0 + (pxy - 10.0) @ J.T
     full = res.n_after >= 0.9 * res.n_after.max()
-    assert np.abs(np.c_[res.dx, res.dy, res.dz][full] - truth[full]).max() < 1e-5
+    # exact up to the iteration's stop: 0.5-1.5e-5 m depending on numpy/SciPy and the
+    # matcher's backend; a jump at the tip would be millimetres
+    assert np.abs(np.c_[res.dx, res.dy, res.dz][full] - truth[full]).max() < 5e-5
 
 
 def _grid(field, n=10, cell=4.0, noise=0.002, seed=0):
