@@ -13,6 +13,7 @@ import _thread
 import argparse
 import importlib
 import logging
+import signal
 import sys
 import threading
 import time
@@ -99,7 +100,30 @@ def _keep_interrupts() -> None:
         sys.unraisablehook = _unraisable
 
 
-def main(argv: Optional[List[str]] = None) -> int:
+def _interrupted(exiting: bool) -> int:
+    """Say the run was interrupted; in the ``slipmap`` process, ignore any further Ctrl-C.
+
+    An impatient second Ctrl-C would otherwise land while Dask and Python shut down, after
+    this line: Python would then end the process by SIGINT (status -2 to a parent, 130 to a
+    shell) or print a traceback from an ``atexit`` callback. The process is exiting anyway.
+    """
+    if exiting and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    log.error("slipmap: interrupted")
+    return 130
+
+
+def main(argv: Optional[List[str]] = None, *, exiting: bool = False) -> int:
+    """Run one ``slipmap`` command; return its exit status (0, 1, 2 or 130).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The arguments; ``sys.argv[1:]`` when None.
+    exiting : bool
+        True in the ``slipmap`` program (:func:`entry`), whose process exits once this
+        returns: after a Ctrl-C, further ones are ignored so the status stays 130.
+    """
     parser = build_parser()
     args = parser.parse_args(argv)
     _configure_logging(args.debug, args.quiet)
@@ -107,15 +131,19 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         _RUNNING.set()
         try:
-            return _run(args)
+            return _run(args, exiting)
         finally:
             _RUNNING.clear()
     except KeyboardInterrupt:  # a second Ctrl-C while the first one was being handled
-        log.error("slipmap: interrupted")
-        return 130
+        return _interrupted(exiting)
 
 
-def _run(args: argparse.Namespace) -> int:
+def entry() -> None:
+    """The ``slipmap`` program (console script and ``python -m slipmap.cli``)."""
+    sys.exit(main(exiting=True))
+
+
+def _run(args: argparse.Namespace, exiting: bool) -> int:
     try:
         return int(args._run(args) or 0)
     except CancelledError:
@@ -131,8 +159,7 @@ def _run(args: argparse.Namespace) -> int:
             log.error("slipmap %s: error: %s", args.command, text)
         return 2
     except KeyboardInterrupt:
-        log.error("slipmap: interrupted")
-        return 130
+        return _interrupted(exiting)
     except Exception as exc:  # noqa: BLE001 - last resort: one line unless --debug
         if args.debug:
             log.exception("slipmap %s: unexpected error", args.command)
@@ -147,4 +174,4 @@ def _run(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()

@@ -1,6 +1,7 @@
 """A Ctrl-C that lands in a callback Python cannot raise from is neither lost nor printed."""
 
 import gc
+import subprocess
 import sys
 import time
 
@@ -70,3 +71,41 @@ def test_other_unraisable_errors_still_reach_the_previous_hook():
         assert [type(a.exc_value) for a in seen] == [ValueError]
     finally:
         sys.unraisablehook, cli._previous_unraisablehook = saved
+
+
+_SLOW_EXIT = """
+import os, signal, sys, time
+from slipmap import cli
+cli.build_parser()  # registers the commands
+
+
+def interrupted_run(args):
+    os.kill(os.getpid(), signal.SIGINT)  # the first Ctrl-C, mid-run
+    time.sleep(5)
+
+
+help_text, add_arguments, _, spec = cli.COMMANDS["planes"]
+cli.COMMANDS["planes"] = (help_text, add_arguments, interrupted_run, spec)
+sys.argv = ["slipmap", "planes", "in.laz", "--out", "out"]
+status = cli.main(exiting=True)
+# the impatient second Ctrl-C lands after the command returned, while the process shuts
+# down (Dask's cluster, then Python's finalisation, which restores SIGINT's default action)
+os.kill(os.getpid(), signal.SIGINT)
+time.sleep(0.2)
+sys.exit(status)
+"""
+
+
+def test_a_second_ctrl_c_while_the_program_exits_keeps_status_130(tmp_path):
+    """CI saw status -2 (killed by SIGINT) after 'slipmap: interrupted': the second Ctrl-C
+    arrived while Dask and Python shut down. The program's status stays 130, one line."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _SLOW_EXIT],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=60,
+    )
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.count("interrupted") == 1, proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr, proc.stderr
