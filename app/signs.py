@@ -173,3 +173,48 @@ def relative(components: Mapping[str, Any]) -> Dict[str, Any]:
     for key in ("dx", "dy", "sigma_dx", "sigma_dy", "horizontal", "sigma_horizontal"):
         out[key] = c[key]
     return out
+
+
+#: the fault-frame components of :mod:`slipmap.core.determination` by their names here
+COMPONENT_NAMES = {"fault_parallel": "right_lateral", "fault_normal": "opening", "dz": "dz"}
+_COMPONENT_WORDS = {
+    "right_lateral": "right-lateral slip",
+    "opening": "opening",
+    "dz": "vertical motion (dz)",
+}
+_AXIS_WORDS = {
+    "right_lateral": "the trace's strike",
+    "opening": "the direction across the trace",
+    "dz": "the vertical",
+}
+
+
+def weak_components(weak, names: Mapping[str, str]) -> list:
+    """The weak components of :func:`slipmap.core.determination.weak_components` in the
+    convention: one dict per component (``component`` by its name here, ``side`` and its
+    label, σ in metres) with ``text``, the sentence the faces show beside the headline."""
+    rows = []
+    for w in weak:
+        name = COMPONENT_NAMES[w.component]
+        label = side_label(w.side, names)
+        text = (
+            f"the {_COMPONENT_WORDS[name]} is barely determined by the {label}'s planes: ± "
+            f"{1e3 * w.sigma_m:.1f} mm there, {w.ratio:.0f}× its best direction's ± "
+            f"{1e3 * w.best_sigma_m:.1f} mm: the normals of its {w.n_planes} adjusted planes "
+            f"give {_AXIS_WORDS[name]} {100 * w.share:.1f} % of their weight (a set facing every "
+            f"way gives 33 %); the relative {name}'s σ is what these data hold, and the other "
+            "components keep their own σ"
+        )
+        rows.append(
+            {
+                "component": name,
+                "side": w.side,
+                "side_label": label,
+                "sigma_m": w.sigma_m,
+                "best_sigma_m": w.best_sigma_m,
+                "share": w.share,
+                "n_planes": w.n_planes,
+                "text": text,
+            }
+        )
+    return rows

@@ -668,6 +668,24 @@ def window_bands(windows) -> np.ndarray:
     return np.stack([np.asarray(b, dtype=np.float64) for b in bands])
 
 
+def weak_components_of(result):
+    """:func:`slipmap.core.determination.weak_components` of a slip result: each side's
+    displacement covariance and the normals of its adjusted (not rejected) planes."""
+    from ..core.determination import weak_components
+    from ..core.displacement import SIDES, strike_axes
+
+    covariances, normals = [], []
+    for name in SIDES:
+        side = getattr(result, name)
+        rigid = side.rigid
+        n = np.array(rigid.plane_params[:, :3], dtype=np.float64)
+        rejected = [int(j) for j, _ in rigid.rejected_planes if 0 <= int(j) < len(n)]
+        n[rejected] = np.nan
+        covariances.append(side.displacement_covariance)
+        normals.append(n)
+    return weak_components(covariances, normals, strike_axes(result.strike_rad), sides=SIDES)
+
+
 def summary_payload(result) -> Dict[str, Any]:
     """``SlipResult.to_dict()`` in the sign convention of :mod:`.signs` (the summary every
     face writes: ``displacement.json``, QGIS's outputs, PDAL's metadata).
@@ -704,6 +722,9 @@ def summary_payload(result) -> Dict[str, Any]:
                 row[k] = None if m is None else m[k]
             rows.append(row)
         p["tiles"] = rows
+    p["weak_components"] = signs.weak_components(weak_components_of(result), names)
+    for row in p["weak_components"]:
+        log.warning("%s", row["text"])
     p["note"] = (
         "displacements in metres, rotations in radians; each side's displacement is the motion "
         "of the material at that side's centroid (first to second epoch); signs: "
@@ -1225,6 +1246,9 @@ def report_tables(payload: Mapping[str, Any], crs=None) -> Tuple[str, Dict[str, 
         if white is not None and model != "white":
             lead += f"; white noise alone would claim ± {1e3 * white:.2f} mm"
         lead += "."
+    for row in payload.get("weak_components") or ():
+        text = row["text"]
+        lead += f" Weakly determined: {text[0].upper()}{text[1:]}."
     lead += (
         f" Signs: + right-lateral = dextral; + opening = the sides move apart; relative dz "
         f"{signs.dz_meaning(names)} (the {signs.side_label('right', names)} of the trace as "

@@ -254,6 +254,8 @@ def slip_summary_lines(payload: Dict[str, Any]) -> List[str]:
         line = side_component_line(side, payload.get(side) or {})
         if line is not None:
             lines.append("  " + line)
+    for row in payload.get("weak_components") or ():
+        lines.append(f"  weakly determined: {row['text']}")
     return lines
 
 
