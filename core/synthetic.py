@@ -62,7 +62,9 @@ __all__ = [
     "Surface",
     "SurveyError",
     "SurveyErrorDraw",
+    "TrueSurfaceFit",
     "apply_survey_error",
+    "fit_true_surfaces",
     "make_lobe_pair",
     "make_scene",
     "make_scene_n_points",
@@ -1247,7 +1249,7 @@ def _solve_increasing(func: Any, target: float, lo: float) -> float:
 
 # --------------------------------------------------------------------------- survey error
 
-SURVEY_ERROR_KINDS = ("none", "mls", "als", "tls")
+SURVEY_ERROR_KINDS = ("none", "mls", "als", "tls", "field")
 """Kinds of correlated survey error accepted by :class:`SurveyError`."""
 
 # SeedSequence spawn keys: (_KEY_SURVEY, purpose) from the error seed, (_KEY_NONFLAT, building
@@ -1259,6 +1261,9 @@ _SUB_MLS_DRIFT = 2  # random Fourier features of the trajectory drift
 _SUB_ALS_LAYOUT = 3  # flight heading
 _SUB_ALS_ASSIGN = 4  # strip of each point in an overlap
 _SUB_UNIT_ERROR = 5  # rigid error of each strip / setup
+_SUB_LEVER_ARM = 6  # MLS lever-arm error in the vehicle's frame
+_SUB_BORESIGHT = 7  # ALS boresight roll
+_SUB_FIELD = 8  # plane waves of the smooth error field
 
 _MLS_LINE_SPACING_M = 22.0  # nominal spacing of the parallel streets of the drive path
 _MLS_SPEED_M_S = 5.0  # vehicle speed
@@ -1268,6 +1273,11 @@ _N_FOURIER = 64  # random Fourier features per axis of the MLS drift
 _ALS_OVERLAP = 0.30  # side overlap of neighbouring strips (share of the strip width)
 _ALS_SPEED_M_S = 60.0  # aircraft ground speed
 _ALS_TURN_S = 120.0  # time between two strips
+_ALS_HALF_FOV_RAD = math.radians(30.0)  # half scan angle: flying height = half width / tan
+_ALS_MIN_DEPTH_M = 1.0  # smallest height of the aircraft above a point (boresight geometry)
+_N_FIELD_WAVES = 64  # plane waves per axis of the "field" kind
+_DEFAULT_PATH_AZIMUTH_DEG = 90.0  # MLS drive lines along x (east-west)
+_DEFAULT_WAVELENGTHS_M = (37.0, 53.0)
 _TLS_HEIGHT_M = 1.7  # instrument height above the ground (rotation centre of a setup)
 _TLS_SCAN_S = 300.0  # duration of one scan (the head turns once)
 _TLS_MOVE_S = 600.0  # time between the end of a scan and the start of the next
@@ -1291,8 +1301,10 @@ class SurveyError:
     ----------
     kind : str
         "none" (no correlated error, ``level_m`` must be 0), "mls" (trajectory drift along
-        a serpentine drive path), "als" (a rigid error per flight strip) or "tls" (a rigid
-        registration error per setup); see :data:`SURVEY_ERROR_KINDS`.
+        a serpentine drive path), "als" (a rigid error per flight strip), "tls" (a rigid
+        registration error per setup) or "field" (a smooth error field of the horizontal
+        position, of short wavelength, seen by a mobile mapper); see
+        :data:`SURVEY_ERROR_KINDS`.
     level_m : float
         Standard deviation of the correlated error on each axis (metres, >= 0): typically
         0-5 mm of MLS drift, up to 3 cm of ALS strip offset, a few mm of TLS registration.
@@ -1306,18 +1318,48 @@ class SurveyError:
     rotation_rad : float
         ALS / TLS: standard deviation of a small random rotation (about each axis) of each
         strip about its centre on the ground, or of each setup about the instrument
-        (radians, >= 0); 0 (default) gives pure translations. Must be 0 for "none" and "mls".
+        (radians, >= 0); 0 (default) gives pure translations. Must be 0 for the other kinds.
     nonflat_m : float
         Standard deviation (metres, >= 0) of the smooth non-flatness of every planar
         surface: the true surface is a plane plus a random bump field (sinusoids of 3-15 m
         wavelength in the surface's own coordinates) applied along its normal. It belongs to
         the surfaces, so two epochs of the same buildings get the same bumps.
+    lever_arm_m : float
+        MLS: standard deviation (metres, >= 0) of each component of the lever-arm error, a
+        constant vector in the vehicle's frame (forward, left, up) drawn once per survey.
+        In map coordinates its horizontal part turns with the vehicle's heading: it flips
+        sign between two passes driven in opposite directions and turns by 90° between
+        crossing streets (``path_azimuth_deg``); its vertical part is a constant offset.
+        Must be 0 for the other kinds.
+    path_azimuth_deg : float
+        MLS / field: azimuth of the parallel streets of the drive path (degrees clockwise
+        from north, finite): 90 (default) drives along x, 0 along y (streets crossing the
+        default's). Must be 90 for the other kinds.
+    boresight_roll_rad : float
+        ALS: standard deviation (radians, >= 0) of the boresight roll error, a rotation of
+        the scanner about the flight direction drawn once per survey (a calibration error
+        of the system, the same in every strip). A point at cross-track distance ``c`` from
+        its strip's nadir line and ``h`` below the aircraft is measured at scan angle
+        ``atan2(c, h) + roll`` with its true range: it moves up by about ``roll * c`` and
+        cross-track by about ``roll * h``. Strips are flown alternately in the two
+        directions, so the tilt alternates from strip to strip in map coordinates. The
+        flying height is ``strip_width_m / 2 / tan(30°)`` (a ±30° scan). Must be 0 for the
+        other kinds.
+    n_setups : int
+        TLS: number of setups (>= 0); 0 (default) puts them on a grid of spacing about
+        ``strip_width_m``, ``n`` > 0 on an ``nx`` × ``ny`` grid with ``nx * ny == n`` of
+        the aspect closest to the area's (6 on a square: 2 × 3). Must be 0 for the other
+        kinds.
+    wavelength_range_m : (2,) tuple of float
+        Field: the smallest and largest wavelength of the plane waves of the error field
+        (metres, ``0 < lo <= hi``); default (37, 53).
 
     Raises
     ------
     InvalidParameterError
-        For an unknown kind, a negative or non-finite level, rotation or non-flatness, a
-        non-positive length, or a level / rotation the kind does not use.
+        For an unknown kind, a negative or non-finite level, rotation, non-flatness, lever
+        arm or boresight roll, a non-positive length, a bad wavelength range or setup
+        count, or an option the kind does not use.
     """
 
     kind: str = "none"
@@ -1326,6 +1368,11 @@ class SurveyError:
     strip_width_m: float = 40.0
     rotation_rad: float = 0.0
     nonflat_m: float = 0.0
+    lever_arm_m: float = 0.0
+    path_azimuth_deg: float = _DEFAULT_PATH_AZIMUTH_DEG
+    boresight_roll_rad: float = 0.0
+    n_setups: int = 0
+    wavelength_range_m: tuple[float, float] = _DEFAULT_WAVELENGTHS_M
 
     def __post_init__(self) -> None:
         kind = self.kind
@@ -1334,8 +1381,13 @@ class SurveyError:
             raise InvalidParameterError(f"kind={kind!r} is unknown; use one of {allowed}")
         kind = kind.lower()
         object.__setattr__(self, "kind", kind)
-        for name in ("level_m", "rotation_rad", "nonflat_m"):
+        for name in ("level_m", "rotation_rad", "nonflat_m", "lever_arm_m", "boresight_roll_rad"):
             object.__setattr__(self, name, _check_non_negative(name, getattr(self, name)))
+        object.__setattr__(
+            self, "path_azimuth_deg", _check_float("path_azimuth_deg", self.path_azimuth_deg)
+        )
+        object.__setattr__(self, "n_setups", _check_int("n_setups", self.n_setups, minimum=0))
+        object.__setattr__(self, "wavelength_range_m", _check_wavelengths(self.wavelength_range_m))
         for name in ("correlation_length_m", "strip_width_m"):
             object.__setattr__(self, name, _check_positive(name, getattr(self, name)))
         if kind == "none" and self.level_m > 0.0:
@@ -1343,11 +1395,46 @@ class SurveyError:
                 f"level_m={self.level_m!r} needs a correlated error kind; set kind to 'mls', "
                 "'als' or 'tls', or level_m=0"
             )
-        if kind in ("none", "mls") and self.rotation_rad > 0.0:
+        if kind in ("none", "mls", "field") and self.rotation_rad > 0.0:
             raise InvalidParameterError(
                 f"rotation_rad={self.rotation_rad!r} applies to ALS strips and TLS setups "
                 f"only; set rotation_rad=0 for kind={kind!r}"
             )
+        if kind != "mls" and self.lever_arm_m > 0.0:
+            raise InvalidParameterError(
+                f"lever_arm_m={self.lever_arm_m!r} applies to MLS trajectories only; set "
+                f"lever_arm_m=0 for kind={kind!r}, or kind='mls'"
+            )
+        if kind not in ("mls", "field") and self.path_azimuth_deg != _DEFAULT_PATH_AZIMUTH_DEG:
+            raise InvalidParameterError(
+                f"path_azimuth_deg={self.path_azimuth_deg!r} sets the MLS drive path; leave it "
+                f"at {_DEFAULT_PATH_AZIMUTH_DEG} for kind={kind!r}, or kind='mls' / 'field'"
+            )
+        if kind != "als" and self.boresight_roll_rad > 0.0:
+            raise InvalidParameterError(
+                f"boresight_roll_rad={self.boresight_roll_rad!r} applies to ALS strips only; "
+                f"set boresight_roll_rad=0 for kind={kind!r}, or kind='als'"
+            )
+        if kind != "tls" and self.n_setups > 0:
+            raise InvalidParameterError(
+                f"n_setups={self.n_setups!r} applies to TLS only; set n_setups=0 for "
+                f"kind={kind!r}, or kind='tls'"
+            )
+
+
+def _check_wavelengths(value: Any) -> tuple[float, float]:
+    """``wavelength_range_m`` as two floats ``0 < lo <= hi`` (metres)."""
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise InvalidParameterError(
+            f"wavelength_range_m={value!r} must be two numbers (lo, hi) in metres"
+        ) from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo <= hi):
+        raise InvalidParameterError(
+            f"wavelength_range_m={value!r} must be two finite wavelengths 0 < lo <= hi (metres)"
+        )
+    return (lo, hi)
 
 
 @dataclass(frozen=True, eq=False)
@@ -1394,17 +1481,32 @@ def apply_survey_error(
       axis, of standard deviation ``level_m`` and squared-exponential correlation of length
       ``correlation_length_m`` (64 random Fourier features per axis: every point's error is
       exactly Gaussian of variance ``level_m**2``). A wall between two streets is seen from
-      both, with different errors.
+      both, with different errors. ``path_azimuth_deg`` turns the streets (0: along y).
+      With ``lever_arm_m > 0`` a lever-arm error ``b`` (forward, left, up; drawn once from
+      ``N(0, lever_arm_m**2 I3)``) is added in the vehicle's frame at the heading of the
+      path where the point was seen: ``b_f h + b_l (z × h) + b_u z`` for the unit heading
+      ``h``; passes driven in opposite directions get opposite horizontal errors.
     - "als": parallel flight strips at a random heading, ``strip_width_m`` wide, 30 % side
       overlap, covering the scene; a point in an overlap belongs to either strip at random
       (real returns come from both). Each strip moves rigidly: a translation drawn from
       ``N(0, level_m**2 I3)`` and a rotation (rotation vector from ``N(0, rotation_rad**2
       I3)``) about the strip's centre on the ground. Strips are flown alternately in the
-      two directions at 60 m/s.
+      two directions at 60 m/s. With ``boresight_roll_rad > 0`` one roll error of the
+      scanner (drawn from ``N(0, boresight_roll_rad**2)``) turns every beam about the flight
+      line (flying height ``strip_width_m / 2 / tan 30°`` above the ground): each point is
+      placed at its true range and its scan angle plus the roll, exactly (no small-angle
+      approximation).
     - "tls": setups on a grid of spacing about ``strip_width_m`` through the scene, 1.7 m
       above the ground, numbered along a serpentine; each point belongs to the nearest setup
       (horizontally), which moves rigidly as an ALS strip does (rotation about the
-      instrument).
+      instrument). ``n_setups > 0`` sets their count instead (an ``nx`` × ``ny`` grid).
+    - "field": a smooth error field of the horizontal position (the same for all points
+      above one spot, not along a path), independent on each axis: per axis a sum of 64
+      plane waves of random direction and phase and wavelength uniform in
+      ``wavelength_range_m``, scaled to the standard deviation ``level_m``; the covariance
+      of two points a horizontal distance ``r`` apart is ``level_m**2`` times the mean of
+      ``J0(2 pi r / wavelength)`` over the wavelengths (0 near ``r = 0.38 wavelength``).
+      Pass ids and times come from the MLS drive path (the sensor is a mobile mapper).
     - any kind with ``nonflat_m > 0``: every planar surface gets a smooth bump along its
       normal, a sum of 8 sinusoids of random direction, phase and wavelength (3-15 m) in the
       surface's own 2-D coordinates, with amplitudes giving a standard deviation of
@@ -1462,12 +1564,14 @@ def apply_survey_error(
         local = pts - origin
         lo, hi = _survey_area(scene, local)
         t0 = float(_rng(seed, _KEY_SURVEY, _SUB_GPS).uniform(0.0, _GPS_START_MAX_S))
-        if model.kind == "mls":
+        if model.kind in ("mls", "field"):
             error, unit, gps = _mls_error(local, lo, hi, model, seed)
         else:
             layout = _als_layout if model.kind == "als" else _tls_layout
             unit, centres, gps = layout(local, lo, hi, model, seed)
             error = _rigid_unit_errors(local, unit, centres, model, seed)
+            if model.kind == "als" and model.boresight_roll_rad > 0.0:
+                error = error + _boresight_roll_error(local, unit, centres, model, seed)
         ids = (unit + 1).astype(np.uint16)
         gps = gps + t0
     if n and model.nonflat_m > 0.0:
@@ -1517,13 +1621,24 @@ def _serpentine(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return np.array(verts, dtype=np.float64), line_of_segment
 
 
-def _mls_error(
-    local: np.ndarray, lo: np.ndarray, hi: np.ndarray, model: SurveyError, seed: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Drift (N, 3), pass index (N,) from 0 and time since the start (N,) of MLS points."""
+def _mls_path(
+    local: np.ndarray, lo: np.ndarray, hi: np.ndarray, model: SurveyError
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """Where the vehicle saw each point from: path length ``s`` (N,), pass (N,) from 0, unit
+    heading (N, 2) in map coordinates, the path's total length and its sampling step."""
     from scipy.spatial import cKDTree
 
     ell = model.correlation_length_m
+    xy = local[:, :2]
+    frame = None
+    if model.path_azimuth_deg != _DEFAULT_PATH_AZIMUTH_DEG:
+        # path frame: rows (along the streets, across them); the default is the identity
+        az = math.radians(model.path_azimuth_deg)
+        frame = np.array([[math.sin(az), math.cos(az)], [-math.cos(az), math.sin(az)]])
+        corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+        corners = corners @ frame.T
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        xy = xy @ frame.T
     verts, line_of_segment = _serpentine(lo, hi)
     start, end = verts[:-1], verts[1:]
     lengths = np.linalg.norm(end - start, axis=1)
@@ -1540,11 +1655,26 @@ def _mls_error(
     s_samples = s_start[seg] + frac * lengths[seg]
     half = 0.5 * lengths[seg] / counts[seg]
 
-    _, idx = cKDTree(samples).query(local[:, :2])
-    along = np.einsum("ij,ij->i", local[:, :2] - samples[idx], tangent[seg[idx]])
+    _, idx = cKDTree(samples).query(xy)
+    heading = tangent[seg[idx]]
+    along = np.einsum("ij,ij->i", xy - samples[idx], heading)
     s = s_samples[idx] + np.clip(along, -half[idx], half[idx])
+    if frame is not None:
+        heading = heading @ frame  # back to map coordinates
+    return s, line_of_segment[seg[idx]], heading, total, step
+
+
+def _mls_error(
+    local: np.ndarray, lo: np.ndarray, hi: np.ndarray, model: SurveyError, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Error (N, 3), pass index (N,) from 0 and time since the start (N,) of MLS points:
+    the trajectory drift plus the lever-arm error ("mls") or the smooth field ("field")."""
+    s, line, heading, total, step = _mls_path(local, lo, hi, model)
+    if model.kind == "field":
+        return _field_error(local, model, seed), line, s / _MLS_SPEED_M_S
 
     # stationary Gaussian drift: random Fourier features of the squared-exponential kernel
+    ell = model.correlation_length_m
     rng = _rng(seed, _KEY_SURVEY, _SUB_MLS_DRIFT)
     omega = rng.normal(0.0, 1.0 / ell, size=_N_FOURIER)
     a = rng.normal(size=(_N_FOURIER, 3))
@@ -1553,14 +1683,78 @@ def _mls_error(
     phase = np.outer(grid, omega)
     drift = (np.cos(phase) @ a + np.sin(phase) @ b) * (model.level_m / math.sqrt(_N_FOURIER))
     error = np.column_stack([np.interp(s, grid, drift[:, axis]) for axis in range(3)])
-    return error, line_of_segment[seg[idx]], s / _MLS_SPEED_M_S
+    if model.lever_arm_m > 0.0:
+        error = error + _lever_arm_error(heading, model, seed)
+    return error, line, s / _MLS_SPEED_M_S
+
+
+def _lever_arm_error(heading: np.ndarray, model: SurveyError, seed: int) -> np.ndarray:
+    """(N, 3) lever-arm error of points seen at unit headings (N, 2): a constant vector
+    (forward, left, up) in the vehicle's frame, turned into map coordinates."""
+    fwd, left, up = _rng(seed, _KEY_SURVEY, _SUB_LEVER_ARM).normal(size=3) * model.lever_arm_m
+    out = np.empty((heading.shape[0], 3))
+    out[:, 0] = fwd * heading[:, 0] - left * heading[:, 1]
+    out[:, 1] = fwd * heading[:, 1] + left * heading[:, 0]
+    out[:, 2] = up
+    return out
+
+
+def _field_error(local: np.ndarray, model: SurveyError, seed: int) -> np.ndarray:
+    """(N, 3) smooth error field of the horizontal position: per axis a sum of plane waves
+    of random direction, phase and wavelength (uniform in ``wavelength_range_m``), of
+    standard deviation ``level_m`` (random Fourier features of an isotropic field)."""
+    rng = _rng(seed, _KEY_SURVEY, _SUB_FIELD)
+    lo_w, hi_w = model.wavelength_range_m
+    scale = model.level_m * math.sqrt(2.0 / _N_FIELD_WAVES)
+    out = np.zeros((local.shape[0], 3))
+    x, y = local[:, 0], local[:, 1]
+    for axis in range(3):
+        wavenumber = 2.0 * math.pi / rng.uniform(lo_w, hi_w, _N_FIELD_WAVES)
+        direction = rng.uniform(0.0, 2.0 * math.pi, _N_FIELD_WAVES)
+        phase = rng.uniform(0.0, 2.0 * math.pi, _N_FIELD_WAVES)
+        kx, ky = wavenumber * np.cos(direction), wavenumber * np.sin(direction)
+        for j in range(_N_FIELD_WAVES):  # wave by wave: no (N, waves) temporary
+            out[:, axis] += np.cos(kx[j] * x + ky[j] * y + phase[j])
+    return out * scale
+
+
+def _als_heading(seed: int) -> float:
+    """Heading of the flight lines (radians counter-clockwise from +x, in [0, pi))."""
+    return float(_rng(seed, _KEY_SURVEY, _SUB_ALS_LAYOUT).uniform(0.0, math.pi))
+
+
+def _boresight_roll_error(
+    local: np.ndarray, strip: np.ndarray, centres: np.ndarray, model: SurveyError, seed: int
+) -> np.ndarray:
+    """(N, 3) error of ALS points from one boresight roll of the scanner (exact geometry).
+
+    Strip ``j``'s nadir line runs through ``centres[j]`` along the flight heading; even
+    strips are flown along it, odd ones against it. A point ``c`` to the right of the
+    aircraft and ``h`` below it is seen at scan angle ``atan2(c, h)``; with the roll it is
+    placed at that angle plus the roll, at its true range.
+    """
+    roll = float(_rng(seed, _KEY_SURVEY, _SUB_BORESIGHT).normal()) * model.boresight_roll_rad
+    heading = _als_heading(seed)
+    along = np.array([math.cos(heading), math.sin(heading)])
+    right_of_even = np.array([along[1], -along[0]])  # right of an aircraft flying along +along
+    sign = np.where(strip % 2 == 0, 1.0, -1.0)
+    right = sign[:, None] * right_of_even
+    c = np.einsum("ij,ij->i", local[:, :2] - centres[strip, :2], right)
+    height = 0.5 * model.strip_width_m / math.tan(_ALS_HALF_FOV_RAD)
+    h = np.maximum(height - local[:, 2], _ALS_MIN_DEPTH_M)
+    rng_m = np.hypot(c, h)
+    angle = np.arctan2(c, h) + roll
+    out = np.empty((local.shape[0], 3))
+    out[:, :2] = (rng_m * np.sin(angle) - c)[:, None] * right
+    out[:, 2] = h - rng_m * np.cos(angle)
+    return out
 
 
 def _als_layout(
     local: np.ndarray, lo: np.ndarray, hi: np.ndarray, model: SurveyError, seed: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Strip index (N,) from 0, strip centres (S, 3) and time since the start (N,)."""
-    heading = float(_rng(seed, _KEY_SURVEY, _SUB_ALS_LAYOUT).uniform(0.0, math.pi))
+    heading = _als_heading(seed)
     along_dir = np.array([math.cos(heading), math.sin(heading)])
     across_dir = np.array([-math.sin(heading), math.cos(heading)])
     corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
@@ -1593,7 +1787,10 @@ def _tls_layout(
     from scipy.spatial import cKDTree
 
     size = hi - lo
-    nx, ny = (max(1, int(round(float(v) / model.strip_width_m))) for v in size)
+    if model.n_setups > 0:
+        nx, ny = _grid_shape(model.n_setups, float(size[0]), float(size[1]))
+    else:
+        nx, ny = (max(1, int(round(float(v) / model.strip_width_m))) for v in size)
     _check_units(nx * ny, "setups", "strip_width_m")
     xs = lo[0] + (np.arange(nx) + 0.5) * size[0] / nx
     ys = lo[1] + (np.arange(ny) + 0.5) * size[1] / ny
@@ -1606,6 +1803,19 @@ def _tls_layout(
     azimuth = np.mod(np.arctan2(rel[:, 1], rel[:, 0]), 2.0 * math.pi)
     time = setup * (_TLS_SCAN_S + _TLS_MOVE_S) + azimuth / (2.0 * math.pi) * _TLS_SCAN_S
     return setup.astype(np.int64), setups, time
+
+
+def _grid_shape(count: int, width: float, height: float) -> tuple[int, int]:
+    """``(nx, ny)`` with ``nx * ny == count`` whose aspect ``nx / ny`` is closest (in log)
+    to ``width / height``; the first (smaller ``nx``) on a tie."""
+    aspect = math.log(width / height) if width > 0 and height > 0 else 0.0
+    best, best_cost = (count, 1), math.inf
+    for nx in range(1, count + 1):
+        if count % nx == 0:
+            cost = abs(math.log(nx / (count // nx)) - aspect)
+            if cost < best_cost - 1e-12:
+                best, best_cost = (nx, count // nx), cost
+    return best
 
 
 def _rotation_minus_identity(rotvec: np.ndarray) -> np.ndarray:
@@ -1900,6 +2110,102 @@ def make_fault_pair(
         error_before=None if draw_b is None else draw_b.error,
         error_after=None if draw_a is None else draw_a.error,
     )
+
+
+@dataclass(frozen=True)
+class TrueSurfaceFit:
+    """Rigid motion of points relative to their true surfaces (see :func:`fit_true_surfaces`).
+
+    Attributes
+    ----------
+    translation_m : (3,) float64
+        Displacement of the material at ``centre`` (metres).
+    rotation_rad : (3,) float64
+        Rotation vector about ``centre`` (radians).
+    n_points : int
+        Points used (those on a true surface).
+    rms_m : float
+        RMS distance of the points to their true surfaces after the motion is removed
+        (metres).
+    """
+
+    translation_m: np.ndarray
+    rotation_rad: np.ndarray
+    n_points: int
+    rms_m: float
+
+
+def fit_true_surfaces(
+    points: np.ndarray,
+    labels: np.ndarray,
+    surfaces: Sequence[Surface],
+    *,
+    centre: Sequence[float],
+    iterations: int = 8,
+) -> TrueSurfaceFit:
+    """Least-squares rigid motion that best moves the true surfaces onto the points.
+
+    The reference that knows the truth: each point ``p`` lies on its true plane
+    (``normal @ x + d == 0``) moved by a rigid motion ``p = R (x - centre) + centre + t``
+    plus error; ``(R, t)`` minimise the sum of squared distances of ``R^T (p - centre - t) +
+    centre`` to the points' own planes. Gauss-Newton on the rotation vector (the
+    point-to-plane step of an ICP with known correspondences), from the identity: exact,
+    not small-angle, so noise-free points of a rigidly moved scene give the motion back to
+    rounding. What is left is what the survey error (and the point noise) permits.
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+        Observed points (metres), e.g. one side of an epoch of a :class:`FaultPair`.
+    labels : (N,) int
+        True surface id of each point (:attr:`Scene.labels`); points with a label < 0
+        (clutter) are left out.
+    surfaces : sequence of Surface
+        The true surfaces, ``surfaces[i].id == i`` (:attr:`Scene.surfaces`), in the points'
+        coordinates.
+    centre : (3,) array-like
+        Where the translation is reported and the rotation is about (metres).
+    iterations : int
+        Gauss-Newton steps (>= 1); it stops earlier once a step is below 1e-12.
+
+    Returns
+    -------
+    TrueSurfaceFit
+        NaN motion when the points do not fix all six parameters (fewer than six points or
+        too few surface orientations).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    lab = np.asarray(labels)
+    keep = lab >= 0
+    pts, lab = pts[keep], lab[keep].astype(np.int64)
+    c = np.asarray(centre, dtype=np.float64).reshape(3)
+    normals = np.array([np.asarray(sf.normal, dtype=np.float64) for sf in surfaces]).reshape(-1, 3)
+    offsets = np.array([float(sf.d) for sf in surfaces])
+    nan = TrueSurfaceFit(np.full(3, np.nan), np.full(3, np.nan), int(pts.shape[0]), math.nan)
+    if pts.shape[0] < 6:
+        return nan
+    n, d = normals[lab], offsets[lab]
+    from .rotation import rotation_matrix, rotation_vector
+
+    rot, t = np.eye(3), np.zeros(3)
+    x = pts
+    for _ in range(max(1, int(iterations))):
+        x = (pts - c - t) @ rot + c  # R^T (p - c - t) + c, row-wise
+        r = np.einsum("ij,ij->i", n, x) + d
+        # x moved by dt + w x (x - c): distance grows by n.dt + w.((x - c) x n)
+        a = np.hstack([n, np.cross(x - c, n)])
+        step, _, rank, _ = np.linalg.lstsq(a, -r, rcond=None)
+        if rank < 6:
+            return nan
+        # the step moves x (the unmoved estimate) by S (x - c) + c + dt onto its planes:
+        # R^T becomes S R^T and t becomes t - R S^T dt
+        rot = rot @ rotation_matrix(step[3:]).T
+        t = t - rot @ step[:3]
+        if float(np.abs(step).max()) < 1e-12:
+            break
+    x = (pts - c - t) @ rot + c
+    rms = float(np.sqrt(np.mean((np.einsum("ij,ij->i", n, x) + d) ** 2)))
+    return TrueSurfaceFit(t, rotation_vector(rot), int(pts.shape[0]), rms)
 
 
 # --------------------------------------------------------------------------- landslide lobe

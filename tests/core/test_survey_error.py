@@ -56,7 +56,7 @@ def test_none_leaves_points_unchanged(mls_scene):
     assert draw.point_source_id.dtype == np.uint16 and np.all(draw.point_source_id == 1)
     assert draw.gps_time.dtype == np.float64 and not np.any(draw.gps_time)
     assert draw.model == SurveyError(kind="none")
-    assert SURVEY_ERROR_KINDS == ("none", "mls", "als", "tls")
+    assert SURVEY_ERROR_KINDS == ("none", "mls", "als", "tls", "field")
 
 
 @pytest.mark.parametrize("kind", ["mls", "als", "tls"])
