@@ -90,6 +90,8 @@ __all__ = [
     "VarianceComponents",
     "check_components",
     "check_stochastic_model",
+    "cross_covariance",
+    "PlaneGain",
     "spherical_correlation",
 ]
 
@@ -164,6 +166,143 @@ def spherical_correlation(h: np.ndarray, range_m: float) -> np.ndarray:
     """Spherical correlation ``1 − 1.5 h/a + 0.5 (h/a)³`` for ``h < a``, else 0 (any shape)."""
     r = np.minimum(np.asarray(h, dtype=np.float64) / range_m, 1.0)
     return 1.0 - 1.5 * r + 0.5 * r**3
+
+
+def ball_cross_correlation(h: np.ndarray, range_a: float, range_b: float) -> np.ndarray:
+    """Cross-correlation of two spherical-model fields made from one white noise.
+
+    A spherical correlation of range ``a`` is the overlap volume of two balls of radius
+    ``a/2`` at distance ``h``, divided by the ball's volume: the field is white noise averaged
+    over a ball of radius ``a/2``. Two fields averaged from the SAME noise over balls of radii
+    ``r_a = a/2`` and ``r_b = b/2`` have the cross-correlation ``|B(r_a) ∩ B(r_b, h)| /
+    √(|B(r_a)| |B(r_b)|)``, with ``|B(r_a) ∩ B(r_b, h)| = π (r_a + r_b − h)² (h² + 2h(r_a +
+    r_b) − 3(r_a − r_b)²) / (12 h)`` for ``|r_a − r_b| < h < r_a + r_b``, the smaller ball's
+    volume below and 0 beyond (zero past ``(a + b)/2``). For ``a = b`` it is
+    :func:`spherical_correlation`; at ``h = 0`` it is ``(min/max)^(3/2)`` of the radii. Each
+    field keeps its own spherical correlation, so the pair is a valid (positive
+    semi-definite) bivariate model whatever the two ranges (any shape of ``h``, metres).
+    """
+    h = np.asarray(h, dtype=np.float64)
+    ra, rb = 0.5 * float(range_a), 0.5 * float(range_b)
+    small = min(ra, rb)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lens = (
+            math.pi
+            * (ra + rb - h) ** 2
+            * (h * h + 2.0 * h * (ra + rb) - 3.0 * (ra - rb) ** 2)
+            / (12.0 * h)
+        )
+    vol = np.where(h <= abs(ra - rb), 4.0 / 3.0 * math.pi * small**3, lens)
+    vol = np.where(h >= ra + rb, 0.0, vol)
+    return vol / (4.0 / 3.0 * math.pi * math.sqrt(ra**3 * rb**3))
+
+
+@dataclass(frozen=True)
+class PlaneGain:
+    """What one side's stochastic adjustment gives the covariance with another side.
+
+    The motion estimate of a stochastic adjustment is the plane-level GLS ``x̂ = Q (T/σ0² r
+    + Hᵀ V⁻¹ y)``: linear in the plane observations ``y``, whose plane-level random part is
+    ``δ`` (module docstring). ``gain = ∂x̂/∂δ = Q Hᵀ V⁻¹`` with the ``V`` the estimate used
+    (down-weighting included), so the covariance of two adjustments whose ``δ`` are
+    correlated is ``gain_a Cov(δ_a, δ_b) gain_bᵀ`` (:func:`cross_covariance`).
+
+    Attributes
+    ----------
+    gain : (6, k) float64
+        ``∂ params / ∂ δ`` of the ``k`` active planes (rad/m for the rotation rows, 1 for the
+        translation rows: the displacement at the adjustment's centre).
+    centroids : (k, 3) float64
+        Plane centroids in the input frame (both epochs' points), metres.
+    normals : (k, 3) float64
+        Unit plane normals.
+    shares_before, shares_after : (k, U) float64 or None
+        Share of each plane's points of that epoch per acquisition unit.
+    units_before, units_after : (U,) int64 or None
+        The unit ids of the shares' columns (None: not known, no cross term through units).
+    theta : dict
+        The plane-level components in force (variances, m²; estimated, prior or fixed).
+    range_m : float
+        Range of the spatial component, metres (NaN when off).
+    small_sample_factor : float
+        The factor the adjustment's covariance was scaled by (see
+        :class:`VarianceComponents`).
+    """
+
+    gain: np.ndarray
+    centroids: np.ndarray
+    normals: np.ndarray
+    shares_before: Optional[np.ndarray]
+    shares_after: Optional[np.ndarray]
+    units_before: Optional[np.ndarray]
+    units_after: Optional[np.ndarray]
+    theta: Dict[str, float]
+    range_m: float
+    small_sample_factor: float = 1.0
+
+
+def cross_covariance(a: PlaneGain, b: PlaneGain) -> np.ndarray:
+    """(6, 6) covariance ``Cov(x̂_a, x̂_b)`` of the motions of two adjustments on disjoint
+    planes of the same survey (the two sides of a fault), rad/m/m² as ``params``.
+
+    The survey error that the plane-level model describes is a property of the SURVEY, not of
+    a side: a trajectory drift or an ALS strip that crosses the trace moves the planes of
+    both sides alike. The joint model of ``δ_a, δ_b`` keeps each side's own model and
+    components (its estimate and its covariance stay what that side's adjustment gives) and
+    shares the random effects:
+
+    * spatial: both sides' fields are averages of ONE white noise over balls of radius half
+      their range, scaled by each side's ``σ_c``: ``Cov(δ_a,j, δ_b,k) = σ_c,a σ_c,b
+      ρ_ab(|c_j − c_k|) n_jᵀ n_k`` with ``ρ_ab`` = :func:`ball_cross_correlation` (the
+      spherical correlation when the ranges agree);
+    * acquisition units: a unit present on both sides (the same id in the same epoch) has one
+      rigid translation ``ξ_u ~ N(0, I₃)``, seen scaled by each side's ``σ_e``:
+      ``σ_e,a σ_e,b Z_a,u Z_b,uᵀ``;
+    * the plane component (nugget) and the point noise: independent, no cross term.
+
+    Why combine the two sides' estimates rather than estimate one set on both sides: each
+    side's components are estimated where its planes are (REML with that side's robust
+    tests), and its σ is unchanged; the joint model above is a valid one for any two sets of
+    components (each marginal is the side's own model, and both are built from one noise,
+    so the joint covariance of the two motions is positive semi-definite and the variance of
+    their difference is never negative), it is exactly "one field and one set of units"
+    when the two sides' estimates agree, and where they differ (estimation noise) the part
+    ``(σ_a − σ_b)²`` of a shared error, and the part a range mismatch decorrelates, stays in
+    the σ of the difference: the error of the estimated components makes the σ wider, never
+    narrower.
+
+    Both adjustments' small-sample factors ``s`` scale the result by ``√(s_a s_b)`` (the
+    joint covariance scaled by ``diag(√s_a, √s_b)`` on both sides stays positive
+    semi-definite). Cost: pairs of planes within the spatial support (a k-d tree) and the
+    shared units, linear in planes.
+    """
+    out = np.zeros((a.gain.shape[0], b.gain.shape[0]))
+    ta, tb = float(a.theta.get("spatial", 0.0)), float(b.theta.get("spatial", 0.0))
+    if ta > 0 and tb > 0 and a.range_m == a.range_m and b.range_m == b.range_m:
+        support = 0.5 * (a.range_m + b.range_m)
+        pairs = cKDTree(a.centroids).sparse_distance_matrix(
+            cKDTree(b.centroids), support, output_type="ndarray"
+        )
+        if pairs.size:
+            i, j, h = pairs["i"], pairs["j"], pairs["v"]
+            val = math.sqrt(ta * tb) * ball_cross_correlation(h, a.range_m, b.range_m)
+            val = val * np.einsum("ij,ij->i", a.normals[i], b.normals[j])
+            out += (a.gain[:, i] * val) @ b.gain[:, j].T
+    for name in ("unit_before", "unit_after"):
+        epoch = name.split("_")[1]
+        ta, tb = float(a.theta.get(name, 0.0)), float(b.theta.get(name, 0.0))
+        ua, ub = getattr(a, "units_" + epoch), getattr(b, "units_" + epoch)
+        sa, sb = getattr(a, "shares_" + epoch), getattr(b, "shares_" + epoch)
+        if ta <= 0 or tb <= 0 or ua is None or ub is None or sa is None or sb is None:
+            continue
+        common, ia, ib = np.intersect1d(ua, ub, return_indices=True)
+        if common.size == 0:
+            continue
+        # gain Z of each side for the shared units: (6, units, 3)
+        ga = np.einsum("pk,km,kd->pmd", a.gain, sa[:, ia], a.normals)
+        gb = np.einsum("pk,km,kd->pmd", b.gain, sb[:, ib], b.normals)
+        out += math.sqrt(ta * tb) * np.einsum("pmd,qmd->pq", ga, gb)
+    return math.sqrt(a.small_sample_factor * b.small_sample_factor) * out
 
 
 @dataclass(frozen=True)
