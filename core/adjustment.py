@@ -582,6 +582,7 @@ class _StochasticConfig:
         self.gain = np.zeros((6, 0))  # Q Hᵀ V⁻¹ of the final solution (see _stochastic)
         self.gain_idx = np.zeros(0, dtype=np.int64)
         self.small = 1.0
+        self.gain_extra: dict = {}
 
     def v_matrix(self, active: np.ndarray, p: np.ndarray) -> np.ndarray:
         idx = np.flatnonzero(active)
@@ -967,6 +968,7 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         theta={n: float(v) for n, v in cfg.theta.items()},
         range_m=float(cfg.range_m),
         small_sample_factor=float(cfg.small),
+        **cfg.gain_extra,
     )
 
 
@@ -1185,8 +1187,14 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     # covariance with another adjustment of the same survey (stochastic.cross_covariance)
     vih = vop.solve(pl.h)
     n_fin = pl.t / cfg.s0sq + pl.h.T @ vih
-    cfg.gain = np.linalg.solve(0.5 * (n_fin + n_fin.T), vih.T)
+    q_fin = np.linalg.inv(0.5 * (n_fin + n_fin.T))
+    cfg.gain = q_fin @ vih.T
     cfg.gain_idx = idx
+    cfg.gain_extra = dict(
+        model=model, fixed=dict(fixed), e=pl.y.copy(), p=cfg.s0sq * pl.p, h=pl.h.copy(),
+        inflation=cfg.inflation[idx].copy(), t=pl.t / cfg.s0sq, rt=pl.rt / cfg.s0sq,
+        q=0.5 * (q_fin + q_fin.T), prior_plane_var=PRIOR_PLANE_SHARE**2 * apri,
+    )  # fmt: skip
     # estimated components make the GLS covariance optimistic (Kackar & Harville 1984): the
     # slip then follows about a t distribution with the plane-level residual degrees of
     # freedom nu = planes - 6, whose variance is nu / (nu - 2) times the normal one

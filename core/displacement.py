@@ -28,10 +28,12 @@ from .planes import PlaneSet, segment_planes
 from .progress import ProgressCallback, report, scaled
 from .stochastic import (
     DEFAULT_STOCHASTIC_MODEL,
+    JointComponents,
     check_components,
     check_stochastic_model,
     check_units,
     cross_covariance,
+    joint_covariance,
 )
 
 log = logging.getLogger(__name__)
@@ -273,6 +275,7 @@ class SlipResult:
     parameters: Dict[str, object] = field(default_factory=dict)
     tiles: Tuple[TileResult, ...] = ()
     side_cross_covariance: Optional[np.ndarray] = None
+    joint_components: Optional[JointComponents] = None
 
     @property
     def horizontal(self) -> float:
@@ -1061,13 +1064,14 @@ def estimate_slip(
         )
     left, right = results["left"], results["right"]
     rel = right.displacement - left.displacement
-    cov, cross = relative_covariance(left, right)
+    cov, cross, joint = _relative_covariance(left, right)
     return SlipResult(
         left=left,
         right=right,
         relative=rel,
         relative_covariance=cov,
         side_cross_covariance=cross,
+        joint_components=joint,
         strike_rad=mean_strike_rad(trace),
         buffer_m=float(buffer_m),
         parameters={
@@ -1115,16 +1119,29 @@ def relative_covariance(
     cross : (3, 3) float64 or None
         ``C_RL = Cov(d_right, d_left)``, m², or None when not modelled.
     """
+    cov, cross, _ = _relative_covariance(left, right)
+    return cov, cross
+
+
+def _relative_covariance(left: SideResult, right: SideResult):
+    """:func:`relative_covariance` and the joint components (or None)."""
     total = right.displacement_covariance + left.displacement_covariance
     gr, gl = right.rigid.plane_gain, left.rigid.plane_gain
     tiled = right.combined_covariance is not None or left.combined_covariance is not None
     if gr is None or gl is None or tiled:
-        return total, None
-    cross = cross_covariance(gr, gl)[3:, 3:]
-    cov = total - cross - cross.T
-    # positive semi-definite by construction (stochastic.cross_covariance); the floor guards
-    # against rounding only
-    return _positive_part(cov), cross
+        return total, None, None
+    joint = joint_covariance(gr, gl)
+    if joint is not None:
+        j, comps = joint
+        c_r, c_l, cross = j[3:6, 3:6], j[9:12, 9:12], j[3:6, 9:12]
+        cov = c_r + c_l - cross - cross.T
+    else:
+        comps = None
+        cross = cross_covariance(gr, gl)[3:, 3:]
+        cov = total - cross - cross.T
+    # positive semi-definite by construction (stochastic.joint_covariance and
+    # cross_covariance); the floor guards against rounding only
+    return _positive_part(cov), cross, comps
 
 
 def _stochastic_options(before, after, model, unit_before, unit_after, components) -> dict:

@@ -91,6 +91,8 @@ __all__ = [
     "check_components",
     "check_stochastic_model",
     "cross_covariance",
+    "joint_covariance",
+    "JointComponents",
     "PlaneGain",
     "spherical_correlation",
 ]
@@ -227,6 +229,21 @@ class PlaneGain:
     small_sample_factor : float
         The factor the adjustment's covariance was scaled by (see
         :class:`VarianceComponents`).
+    model : str
+        The stochastic model ("plane" or "full").
+    fixed : dict
+        The components the caller held fixed (``components=``: sigmas, metres).
+    e, p, inflation : (k,) float64
+        Plane misclosures at the solution, their white variance and the down-weighting
+        inflation, m² (scaled by the point-level factor; see :func:`estimate_components`).
+    h : (k, 6) float64
+        Their design rows.
+    t, rt : (6, 6), (6,) float64
+        The tilt information and its right-hand side (scaled).
+    q : (6, 6) float64
+        ``(T + Hᵀ V⁻¹ H)⁻¹``, the adjustment's covariance before the small-sample factor.
+    prior_plane_var : float
+        The adjustment's floor of a plane component that cannot be estimated, m².
     """
 
     gain: np.ndarray
@@ -239,6 +256,140 @@ class PlaneGain:
     theta: Dict[str, float]
     range_m: float
     small_sample_factor: float = 1.0
+    model: str = "full"
+    fixed: Dict[str, float] = field(default_factory=dict)
+    e: Optional[np.ndarray] = None
+    p: Optional[np.ndarray] = None
+    inflation: Optional[np.ndarray] = None
+    h: Optional[np.ndarray] = None
+    t: Optional[np.ndarray] = None
+    rt: Optional[np.ndarray] = None
+    q: Optional[np.ndarray] = None
+    prior_plane_var: float = 0.0
+
+
+def _union_shares(a: PlaneGain, b: PlaneGain, epoch: str) -> Optional[np.ndarray]:
+    """(ka + kb, U) shares of both adjustments' planes over the union of their unit ids."""
+    ua, ub = getattr(a, "units_" + epoch), getattr(b, "units_" + epoch)
+    sa, sb = getattr(a, "shares_" + epoch), getattr(b, "shares_" + epoch)
+    if ua is None or ub is None or sa is None or sb is None:
+        return None
+    codes = np.union1d(ua, ub)
+    out = np.zeros((sa.shape[0] + sb.shape[0], codes.size))
+    out[: sa.shape[0], np.searchsorted(codes, ua)] = sa
+    out[sa.shape[0] :, np.searchsorted(codes, ub)] = sb
+    return out
+
+
+@dataclass(frozen=True)
+class JointComponents:
+    """The plane-level components estimated on two adjustments' planes together
+    (:func:`joint_covariance`).
+
+    Attributes
+    ----------
+    theta : dict
+        Variances (m²) of :data:`COMPONENT_NAMES`.
+    source : dict
+        "estimated", "fixed", "prior" or "off" per component.
+    range_m : float
+        Spatial range, metres (NaN when off).
+    n_planes : int
+        Planes of both adjustments.
+    small_sample_factor : float
+        ``ν/(ν − 2)``, ``ν = max(planes − 12, 3)`` (1 when every component was fixed).
+    """
+
+    theta: Dict[str, float]
+    source: Dict[str, str]
+    range_m: float
+    n_planes: int
+    small_sample_factor: float
+
+    def to_dict(self) -> Dict[str, object]:
+        return {
+            "components": {
+                n: {
+                    "sigma_m": math.sqrt(max(self.theta.get(n, 0.0), 0.0)),
+                    "source": self.source.get(n, "off"),
+                }
+                for n in COMPONENT_NAMES
+            },  # fmt: skip
+            "spatial_range_m": _num(self.range_m),
+            "n_planes": int(self.n_planes),
+            "small_sample_factor": _num(self.small_sample_factor),
+        }
+
+
+def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
+    """(12, 6 + 6) covariance of the motions of two adjustments of one survey, under ONE set
+    of plane-level components estimated on both adjustments' planes together.
+
+    The components of one side are estimated from its own planes: a dozen planes cannot
+    split a survey error between a spatial field, the units of each epoch and the nugget,
+    and two sides of the same survey then split the same error differently (one side a
+    unit component, the other a spatial one) or take a conservative prior; the cross term
+    of :func:`cross_covariance` is then lost and each side's σ is wide. Here REML
+    (:func:`estimate_components`) runs on the misclosures of both sides' planes with a
+    block-diagonal motion design (each side keeps its own 6 motion parameters and its tilt
+    information, so nothing of the motion leaks between the sides), one spatial field over
+    both (centroid distances across the trace included) and the acquisition units by id
+    over both. The motions themselves stay each side's own estimates (each side's GLS
+    with its own components and robust weights); their joint covariance is the sandwich
+    ``Q_s (T_s + H_sᵀ V_s⁻¹ V_J V_s⁻¹ H_s) Q_s`` within a side and ``K_a V_J(a, b) K_bᵀ``
+    across (``K = Q Hᵀ V⁻¹``, ``V_J`` the joint model), which is the exact covariance of
+    the estimates actually made if the joint model holds, and is positive semi-definite.
+    The small-sample factor ``ν/(ν − 2)`` uses ``ν = planes − 12``.
+
+    Returns None when the joint estimate is not made: a "plane" model (no shared term), fewer
+    than :data:`MIN_PLANES_VCE` or more than :data:`DENSE_MAX_PLANES` planes together, or
+    missing pieces (the caller then uses :func:`cross_covariance`). Else ``(cov, joint)``
+    with ``cov`` (12, 12) over ``(params_a, params_b)`` and ``joint`` a
+    :class:`JointComponents`.
+    """
+    if a.model != "full" or b.model != "full":
+        return None
+    if any(getattr(g, n) is None for g in (a, b) for n in ("e", "p", "h", "t", "q")):
+        return None
+    ka, kb = a.e.size, b.e.size
+    k = ka + kb
+    if k < MIN_PLANES_VCE or k > DENSE_MAX_PLANES:
+        return None
+    model = PlaneModel(
+        np.concatenate([a.centroids, b.centroids]),
+        np.concatenate([a.normals, b.normals]),
+        _union_shares(a, b, "before"),
+        _union_shares(a, b, "after"),
+    )
+    idx = np.arange(k)
+    x = np.zeros((k, 12))
+    x[:ka, :6], x[ka:, 6:] = a.h, b.h
+    t = np.zeros((12, 12))
+    t[:6, :6], t[6:, 6:] = a.t, b.t
+    rt = np.concatenate([a.rt, b.rt])
+    e = np.concatenate([a.e, b.e])
+    p = np.concatenate([a.p, b.p])
+    infl = np.concatenate([a.inflation, b.inflation])
+    fixed = dict(a.fixed)
+    est = estimate_components(
+        model, idx, e, x, t, p, which=COMPONENT_NAMES, fixed=fixed, inflation=infl,
+        seed=seed, prior_plane_var=max(a.prior_plane_var, b.prior_plane_var), rt=rt,
+    )  # fmt: skip
+    theta = {n: v for n, v in est.theta.items() if v > 0}
+    v = covariance(model, idx, p, theta, est.range_m, infl)
+    kj = np.zeros((12, k))
+    kj[:6, :ka], kj[6:, ka:] = a.gain, b.gain
+    cov = kj @ v @ kj.T
+    cov[:6, :6] += a.q @ a.t @ a.q
+    cov[6:, 6:] += b.q @ b.t @ b.q
+    estimated = any(src == "estimated" for src in est.source.values())
+    nu = max(k - 12.0, 3.0)
+    small = nu / (nu - 2.0) if estimated else 1.0
+    joint = JointComponents(
+        theta=dict(est.theta), source=dict(est.source), range_m=float(est.range_m),
+        n_planes=int(k), small_sample_factor=float(small),
+    )  # fmt: skip
+    return small * 0.5 * (cov + cov.T), joint
 
 
 def cross_covariance(a: PlaneGain, b: PlaneGain) -> np.ndarray:
