@@ -264,6 +264,9 @@ class SlipResult:
     ----------
     side_cross_covariance : (3, 3) float64 or None
         ``C_RL = Cov(d_right, d_left)``, m², when it was modelled (else None: independent).
+    joint_components : JointComponents or None
+        The plane-level components estimated on both sides' planes together, which the
+        relative covariance is under (None: each side's own; see :func:`relative_covariance`).
     """
 
     left: SideResult
@@ -413,6 +416,11 @@ class SlipResult:
             **(
                 {"tiles": [_tile_dict(t, self.strike_rad) for t in self.tiles]}
                 if self.tiles
+                else {}
+            ),
+            **(
+                {"joint_components": self.joint_components.to_dict()}
+                if self.joint_components is not None
                 else {}
             ),
             "note": "displacements in metres, rotations in radians; each side's displacement "
@@ -1104,8 +1112,14 @@ def relative_covariance(
     holds the survey error shared across the trace: the spatial field between planes on
     opposite sides by centroid distance, and the acquisition units present on both sides
     (the same PointSourceId in the same epoch); the nugget has no cross term
-    (:func:`.stochastic.cross_covariance` says how the two sides' components are combined).
     Then ``C_rel = C_R + C_L − C_RL − C_RLᵀ``.
+
+    One set of components for the cross term: they are estimated once more on both sides'
+    planes together (:func:`.stochastic.joint_covariance`: a dozen planes a side cannot split
+    a survey error between field, units and nugget, and two sides of one survey split it
+    differently), and ``C_R``, ``C_L``, ``C_RL`` are the covariances of the sides' own
+    estimates under that joint model; with too few or too many planes together, each side's
+    own components are combined instead (:func:`.stochastic.cross_covariance`).
 
     With the white model, or when either side's displacement is not its joint adjustment's
     (``combine="tiles"``: an information-weighted mean of tiles, not the GLS whose gain is
@@ -1138,6 +1152,8 @@ def _relative_covariance(left: SideResult, right: SideResult):
     else:
         comps = None
         cross = cross_covariance(gr, gl)[3:, 3:]
+        if not np.any(cross):  # nothing shared (the "plane" model): the sum, exactly
+            return total, cross, None
         cov = total - cross - cross.T
     # positive semi-definite by construction (stochastic.joint_covariance and
     # cross_covariance); the floor guards against rounding only

@@ -228,3 +228,16 @@ def test_estimated_components_joint_over_both_sides():
     rms = float(np.sqrt(np.mean(np.square(z))))
     assert 0.65 <= rms <= 1.4, rms
     assert 0.002 <= float(np.median(unit_sd)) <= 0.008, np.median(unit_sd)
+
+
+def test_plane_model_sides_independent_exactly():
+    """The "plane" model has only the nugget, which no two planes share: the relative
+    covariance is the sum of the sides' covariances, exactly."""
+    geom = _geometry()
+    data = _draw(geom, np.random.default_rng(8), unit_sigma=0.0, plane_sigma=0.002)
+    sides = _sides(data, None, model="plane")
+    cov, cross = relative_covariance(sides["left"], sides["right"])
+    np.testing.assert_array_equal(cross, 0.0)
+    np.testing.assert_array_equal(
+        cov, sides["right"].displacement_covariance + sides["left"].displacement_covariance
+    )
