@@ -382,14 +382,46 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
     cov = kj @ v @ kj.T
     cov[:6, :6] += a.q @ a.t @ a.q
     cov[6:, 6:] += b.q @ b.t @ b.q
-    estimated = any(src == "estimated" for src in est.source.values())
     nu = max(k - 12.0, 3.0)
-    small = nu / (nu - 2.0) if estimated else 1.0
+    if any(src == "estimated" for src in est.source.values()):
+        nu = min(nu, _satterthwaite_dof(model, idx, est, kj, cov))
+        small = nu / (nu - 2.0)
+    else:
+        small = 1.0
     joint = JointComponents(
         theta=dict(est.theta), source=dict(est.source), range_m=float(est.range_m),
         n_planes=int(k), small_sample_factor=float(small),
     )  # fmt: skip
     return small * 0.5 * (cov + cov.T), joint
+
+
+def _satterthwaite_dof(model, idx, est, kj, cov) -> float:
+    """Satterthwaite's degrees of freedom of the variance of ``params_a − params_b``'s
+    translation (the slip), the fewest over its principal directions, at least 3.
+
+    Along a direction ``u`` the variance ``s² = uᵀ C u`` is a sum of the estimated components
+    times their weights ``w_i = (uᵀ K_d) V_i (K_dᵀ u)`` (``K_d`` the difference of the two
+    gains) plus terms taken as known (point noise, tilts); with the REML variances of the
+    components ``sd_i²`` (the diagonal of ``F⁻¹``: their negative correlation left out, which
+    makes this conservative), ``ν = 2 s⁴ / Σ w_i² sd_i²`` (Satterthwaite 1946; Giesbrecht &
+    Burns 1985). A few planes can pin a component down poorly, and the σ of a slip carried
+    by it then follows a t distribution of few degrees of freedom, whose variance is
+    ``ν/(ν − 2)`` times the normal one."""
+    kd = kj[3:6] - kj[9:12]
+    rel = cov[3:6, 3:6] + cov[9:12, 9:12] - cov[3:6, 9:12] - cov[9:12, 3:6]
+    free = [n for n, sd in est.sd.items() if sd == sd and est.theta.get(n, 0.0) > 0]
+    if not free:
+        return float("inf")
+    bases = model.bases(idx, est.range_m)
+    _, evec = np.linalg.eigh(0.5 * (rel + rel.T))
+    nu = float("inf")
+    for u in evec.T:
+        g = u @ kd
+        s2 = float(u @ rel @ u)
+        var = sum((float(g @ bases[n] @ g) * est.sd[n]) ** 2 for n in free if n in bases)
+        if var > 0 and s2 > 0:
+            nu = min(nu, 2.0 * s2 * s2 / var)
+    return max(nu, 3.0)
 
 
 def cross_covariance(a: PlaneGain, b: PlaneGain) -> np.ndarray:
