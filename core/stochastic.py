@@ -297,7 +297,8 @@ class JointComponents:
     n_planes : int
         Planes of both adjustments.
     small_sample_factor : float
-        ``ν/(ν − 2)``, ``ν = max(planes − 12, 3)`` (1 when every component was fixed).
+        ``ν/(ν − 2)`` with ``ν`` the fewer of ``planes − 12`` and the Satterthwaite degrees
+        of freedom of the slip's variance, at least 3 (1 when every component was fixed).
     """
 
     theta: Dict[str, float]
@@ -339,7 +340,10 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
     ``Q_s (T_s + H_sᵀ V_s⁻¹ V_J V_s⁻¹ H_s) Q_s`` within a side and ``K_a V_J(a, b) K_bᵀ``
     across (``K = Q Hᵀ V⁻¹``, ``V_J`` the joint model), which is the exact covariance of
     the estimates actually made if the joint model holds, and is positive semi-definite.
-    The small-sample factor ``ν/(ν − 2)`` uses ``ν = planes − 12``.
+    The small-sample factor ``ν/(ν − 2)`` uses the fewer of ``planes − 12`` and the
+    Satterthwaite degrees of freedom of the slip's variance (:func:`_satterthwaite_dof`):
+    two dozen planes estimate four components poorly, and where the slip's σ rests on a
+    poorly determined component the factor grows (up to 3).
 
     Returns None when the joint estimate is not made: a "plane" model (no shared term), fewer
     than :data:`MIN_PLANES_VCE` or more than :data:`DENSE_MAX_PLANES` planes together, or
