@@ -405,24 +405,26 @@ def _satterthwaite_dof(model, idx, est, kj, cov) -> float:
 
     Along a direction ``u`` the variance ``s² = uᵀ C u`` is a sum of the estimated components
     times their weights ``w_i = (uᵀ K_d) V_i (K_dᵀ u)`` (``K_d`` the difference of the two
-    gains) plus terms taken as known (point noise, tilts); with the REML variances of the
-    components ``sd_i²`` (the diagonal of ``F⁻¹``: their negative correlation left out, which
-    makes this conservative), ``ν = 2 s⁴ / Σ w_i² sd_i²`` (Satterthwaite 1946; Giesbrecht &
-    Burns 1985). A few planes can pin a component down poorly, and the σ of a slip carried
-    by it then follows a t distribution of few degrees of freedom, whose variance is
-    ``ν/(ν − 2)`` times the normal one."""
+    gains) plus terms taken as known (point noise, tilts); with the REML covariance of the
+    components ``F⁻¹`` (components set to zero by the non-negative fixed point left out),
+    ``ν = 2 s⁴ / wᵀ F⁻¹ w`` (Satterthwaite 1946; Giesbrecht & Burns 1985). A few planes can
+    pin a component down poorly, and the σ of a slip carried by it then follows a t
+    distribution of few degrees of freedom, whose variance is ``ν/(ν − 2)`` times the
+    normal one."""
     kd = kj[3:6] - kj[9:12]
     rel = cov[3:6, 3:6] + cov[9:12, 9:12] - cov[3:6, 9:12] - cov[9:12, 3:6]
-    free = [n for n, sd in est.sd.items() if sd == sd and est.theta.get(n, 0.0) > 0]
+    bases = model.bases(idx, est.range_m)
+    free = [n for n in COMPONENT_NAMES if (n, n) in est.cov and n in bases]
     if not free:
         return float("inf")
-    bases = model.bases(idx, est.range_m)
+    fcov = np.array([[est.cov.get((a, b), 0.0) for b in free] for a in free])
     _, evec = np.linalg.eigh(0.5 * (rel + rel.T))
     nu = float("inf")
     for u in evec.T:
         g = u @ kd
         s2 = float(u @ rel @ u)
-        var = sum((float(g @ bases[n] @ g) * est.sd[n]) ** 2 for n in free if n in bases)
+        w = np.array([float(g @ bases[n] @ g) for n in free])
+        var = float(w @ fcov @ w)
         if var > 0 and s2 > 0:
             nu = min(nu, 2.0 * s2 * s2 / var)
     return max(nu, 3.0)
@@ -816,15 +818,17 @@ class Estimate:
     range_m: float
     iterations: int
     converged: bool
+    cov: Dict[Tuple[str, str], float] = field(default_factory=dict)
 
 
 def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
     """Iterated MINQUE / Fisher scoring of REML for the free components; returns (theta, sd,
-    iterations, converged, -2 log L)."""
+    iterations, converged, -2 log L, covariances of the estimated variances by name pair)."""
     names = [n for n in bases if n not in fixed]
     theta = dict(theta0)
     converged = False
     sd = {n: float("nan") for n in names}
+    pair_cov: Dict[Tuple[str, str], float] = {}
     v0 = np.diag(p + (0.0 if inflation is None else inflation))
     for n, t_fixed in fixed.items():
         if n in bases and t_fixed > 0:
@@ -872,6 +876,8 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
             cov = np.linalg.inv(f)
             for a, n in enumerate(free):
                 sd[n] = float(math.sqrt(max(cov[a, a], 0.0)))
+            pair_cov = {(na, nc): float(cov[i, j]) for i, na in enumerate(free)
+                        for j, nc in enumerate(free)}  # fmt: skip
         except np.linalg.LinAlgError:
             pass
         scale = max(float(np.max(np.abs(new))), float(np.median(p)) if p.size else 0.0, _FLOOR)
@@ -879,7 +885,8 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
             converged = True
             break
     # final likelihood at the estimate
-    return theta, sd, it, converged, gls_at().reml(e)
+    pair_cov = {k: v for k, v in pair_cov.items() if k[0] in free and k[1] in free}
+    return theta, sd, it, converged, gls_at().reml(e), pair_cov
 
 
 def _candidate_ranges(c: np.ndarray, subset: bool = False) -> np.ndarray:
@@ -999,11 +1006,13 @@ def estimate_components(
         bases = model.bases(ids, rng_m)
         bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
         fx = {n: fixed_var[n] for n in fixed_var if n in bases}
-        th, sd, it, conv, m2ll = _reml_fixed_point(es, xs, ts, ps, bases, theta0, fx, inf_s, rts)
+        th, sd, it, conv, m2ll, pc = _reml_fixed_point(
+            es, xs, ts, ps, bases, theta0, fx, inf_s, rts
+        )
         log.debug("REML range %.3g m: %s, -2logL %.6g", rng_m, th, m2ll)
         if best is None or m2ll < best[4]:
-            best = (th, sd, it, conv, m2ll, rng_m)
-    th, sd, it, conv, _, rng_m = best
+            best = (th, sd, it, conv, m2ll, rng_m, pc)
+    th, sd, it, conv, _, rng_m, pc = best
     sds = {}
     for n in free:
         theta[n] = float(th.get(n, 0.0))
@@ -1028,7 +1037,8 @@ def estimate_components(
         source.setdefault(n, "off")
     if theta.get("spatial", 0.0) <= 0:
         rng_m = float("nan") if "spatial_range_m" not in fixed else rng_m
-    return Estimate(theta, sds, source, notes, float(rng_m), int(it), bool(conv))
+    pc = {k: v for k, v in pc.items() if source.get(k[0]) == source.get(k[1]) == "estimated"}
+    return Estimate(theta, sds, source, notes, float(rng_m), int(it), bool(conv), pc)
 
 
 # --------------------------------------------------------------------------- robustness
