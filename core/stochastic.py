@@ -346,8 +346,9 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
     poorly determined component the factor grows (up to 3).
 
     Returns None when the joint estimate is not made: a "plane" model (no shared term), fewer
-    than :data:`MIN_PLANES_VCE` or more than :data:`DENSE_MAX_PLANES` planes together, or
-    missing pieces (the caller then uses :func:`cross_covariance`). Else ``(cov, joint)``
+    than :data:`MIN_PLANES_VCE` or more than :data:`DENSE_MAX_PLANES` planes together, unit
+    shares without unit ids, or missing pieces (the caller then uses
+    :func:`cross_covariance`). Else ``(cov, joint)``
     with ``cov`` (12, 12) over ``(params_a, params_b)`` and ``joint`` a
     :class:`JointComponents`.
     """
@@ -355,6 +356,10 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
         return None
     if any(getattr(g, n) is None for g in (a, b) for n in ("e", "p", "h", "t", "q")):
         return None
+    for g in (a, b):  # unit shares whose ids are not known cannot be matched across sides
+        for ep in ("before", "after"):
+            if getattr(g, "shares_" + ep) is not None and getattr(g, "units_" + ep) is None:
+                return None
     ka, kb = a.e.size, b.e.size
     k = ka + kb
     if k < MIN_PLANES_VCE or k > DENSE_MAX_PLANES:
