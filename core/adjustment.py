@@ -143,6 +143,10 @@ class RigidResult:
         After-minus-before mean misclosure of each plane along its normal, metres.
     downweighted_planes : tuple of (int, float)
         Planes kept with a weight below 1, and the weight.
+    plane_gain : PlaneGain or None
+        Stochastic models: the motion's linear dependence on the plane-level random effects
+        and the components in force, for the covariance with another adjustment of the same
+        survey (:func:`.stochastic.cross_covariance`; the two sides of a fault).
     """
 
     params: np.ndarray
@@ -170,6 +174,7 @@ class RigidResult:
     plane_offset_m: Optional[np.ndarray] = None
     plane_misclosure_m: Optional[np.ndarray] = None
     downweighted_planes: Tuple[Tuple[int, float], ...] = ()
+    plane_gain: Optional[_stoch.PlaneGain] = None
 
     @property
     def displacement(self) -> np.ndarray:
@@ -574,6 +579,10 @@ class _StochasticConfig:
         self.range_m = float("nan")
         self.s0sq = 1.0
         self.inflation = np.zeros(b)
+        self.gain = np.zeros((6, 0))  # Q Hᵀ V⁻¹ of the final solution (see _stochastic)
+        self.gain_idx = np.zeros(0, dtype=np.int64)
+        self.small = 1.0
+        self.gain_extra: dict = {}
 
     def v_matrix(self, active: np.ndarray, p: np.ndarray) -> np.ndarray:
         idx = np.flatnonzero(active)
@@ -856,23 +865,27 @@ def _run(
         _Epoch(before, before_plane, sigma_before, b, centre, "before"),
         _Epoch(after, after_plane, sigma_after, b, centre, "after"),
     )
-    shares = None
+    shares = codes = None
     if model != "white":
-        shares = [_unit_shares(ep, u, b) for ep, u in zip(epochs, units)]
+        pairs = [_unit_shares(ep, u, b) for ep, u in zip(epochs, units)]
+        shares = [p_[0] for p_ in pairs]
+        codes = [p_[1] for p_ in pairs]
     return _solve(
         epochs, b, centre, shares, dense=dense, model=model, fixed=fixed,
         max_iterations=max_iterations, tolerance=tolerance, alpha=alpha, min_planes=min_planes,
         reject_outlier_planes=reject_outlier_planes, progress=progress,
-        labels=(before_plane, after_plane),
+        labels=(before_plane, after_plane), unit_codes=codes,
     )  # fmt: skip
 
 
 def _solve(
     epochs, b, centre, shares, *, dense, model, fixed, max_iterations, tolerance, alpha,
-    min_planes, reject_outlier_planes, progress, labels,
+    min_planes, reject_outlier_planes, progress, labels, unit_codes=None,
 ):  # fmt: skip
     """The adjustment of two epochs (:class:`_Epoch` or :class:`_MomentEpoch`); ``shares``:
-    each epoch's (b, U) acquisition-unit shares or None (stochastic models only)."""
+    each epoch's (b, U) acquisition-unit shares or None (stochastic models only);
+    ``unit_codes``: each epoch's (U,) unit ids of the shares' columns, or None (unknown:
+    the result's :class:`.stochastic.PlaneGain` then has no units to share)."""
     before_plane, after_plane = labels
     if dense and 6 + 5 * b > DENSE_MAX_UNKNOWNS:
         raise InvalidParameterError(
@@ -912,6 +925,7 @@ def _solve(
         cfg = _StochasticConfig(PlaneModel(gc, n0.copy(), shares[0], shares[1]), b)
         out, stoch = _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit,
                                  rejected, reject_outlier_planes, min_planes, opts)  # fmt: skip
+        stoch = stoch + (_plane_gain(cfg, centre, unit_codes or (None, None)),)
     state, active, it, converged, nred, qxx, s0, redundancy, n_cond, cov = out
     report(progress, 0.97, "residuals")
     return _finish(
@@ -921,16 +935,41 @@ def _solve(
 
 
 def _unit_shares(ep: _Epoch, unit, b: int):
-    """(b, U) share of each plane's points of this epoch per acquisition unit, or None."""
+    """(b, U) share of each plane's points of this epoch per acquisition unit and the (U,)
+    unit ids of its columns, or (None, None)."""
     if unit is None:
-        return None
+        return None, None
     u = unit if ep.all_valid else unit[ep.valid]
     codes, inv = np.unique(u, return_inverse=True)
     nu = codes.size
     if nu == 0:
-        return None
+        return None, None
     cnt = np.bincount(ep.idx * nu + inv.ravel(), minlength=b * nu).reshape(b, nu)
-    return cnt / np.maximum(ep.count, 1.0)[:, None]
+    return cnt / np.maximum(ep.count, 1.0)[:, None], codes
+
+
+def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
+    """The :class:`.stochastic.PlaneGain` of a finished stochastic adjustment (``cfg.gain``
+    and ``cfg.gain_idx`` set by :func:`_stochastic`)."""
+    idx = cfg.gain_idx
+    m = cfg.model
+
+    def sub(shares):
+        return None if shares is None else shares[idx]
+
+    return _stoch.PlaneGain(
+        gain=cfg.gain,
+        centroids=m.centroids[idx] + np.asarray(centre, dtype=np.float64),
+        normals=m.normals[idx].copy(),
+        shares_before=sub(m.shares_before),
+        shares_after=sub(m.shares_after),
+        units_before=None if m.shares_before is None else codes[0],
+        units_after=None if m.shares_after is None else codes[1],
+        theta={n: float(v) for n, v in cfg.theta.items()},
+        range_m=float(cfg.range_m),
+        small_sample_factor=float(cfg.small),
+        **cfg.gain_extra,
+    )
 
 
 def _white(state, epochs, active, b, step, z_crit, rejected, reject, min_planes, opts):
@@ -1142,7 +1181,20 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     g_mat, g_vec, _ = _reduce(state, epochs, active, b)
     pl = _PlaneLevel(g_mat, g_vec)
     idx = np.flatnonzero(active)
-    n_eff = _stoch.effective_planes(cfg.v_operator(active, pl.p), pl.h)
+    vop = cfg.v_operator(active, pl.p)
+    n_eff = _stoch.effective_planes(vop, pl.h)
+    # the motion's gain on the plane-level random effects, Q Hᵀ V⁻¹ (6, k), for the
+    # covariance with another adjustment of the same survey (stochastic.cross_covariance)
+    vih = vop.solve(pl.h)
+    n_fin = pl.t / cfg.s0sq + pl.h.T @ vih
+    q_fin = np.linalg.inv(0.5 * (n_fin + n_fin.T))
+    cfg.gain = q_fin @ vih.T
+    cfg.gain_idx = idx
+    cfg.gain_extra = dict(
+        model=model, fixed=dict(fixed), e=pl.y.copy(), p=cfg.s0sq * pl.p, h=pl.h.copy(),
+        inflation=cfg.inflation[idx].copy(), t=pl.t / cfg.s0sq, rt=pl.rt / cfg.s0sq,
+        q=0.5 * (q_fin + q_fin.T), prior_plane_var=PRIOR_PLANE_SHARE**2 * apri,
+    )  # fmt: skip
     # estimated components make the GLS covariance optimistic (Kackar & Harville 1984): the
     # slip then follows about a t distribution with the plane-level residual degrees of
     # freedom nu = planes - 6, whose variance is nu / (nu - 2) times the normal one
@@ -1150,6 +1202,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     nu = max(idx.size - 6.0, 3.0)
     small = nu / (nu - 2.0) if estimated else 1.0
     qxx = qxx * small
+    cfg.small = small
     qw = np.linalg.inv(0.5 * (pl.n_white + pl.n_white.T))
     sig_white = (s0w if s0w == s0w else 1.0) * qw[3:, 3:]
     stoch = _components_result(model, est, epochs, active, cfg, idx.size, n_eff, sig_white,
@@ -1282,7 +1335,7 @@ def _plane_diagnostics(stoch, b, active):
     """RigidResult's per-plane fields of a stochastic adjustment (defaults for "white")."""
     if stoch is None:
         return {}
-    vc, weights, wstat, delta, mis = stoch
+    vc, weights, wstat, delta, mis, gain = stoch
     down = tuple(
         (int(j), float(weights[j]))
         for j in np.flatnonzero(active & (weights < 1.0) & (weights > 0.0))
@@ -1294,6 +1347,7 @@ def _plane_diagnostics(stoch, b, active):
         "plane_offset_m": delta,
         "plane_misclosure_m": np.where(np.isfinite(weights), mis, np.nan),
         "downweighted_planes": down,
+        "plane_gain": gain,
     }
 
 

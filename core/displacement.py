@@ -28,9 +28,12 @@ from .planes import PlaneSet, segment_planes
 from .progress import ProgressCallback, report, scaled
 from .stochastic import (
     DEFAULT_STOCHASTIC_MODEL,
+    JointComponents,
     check_components,
     check_stochastic_model,
     check_units,
+    cross_covariance,
+    joint_covariance,
 )
 
 log = logging.getLogger(__name__)
@@ -249,8 +252,21 @@ class SlipResult:
     ``fault_parallel`` is the component along the trace's digitised direction (unit vector
     ``(sin strike, cos strike)``), ``fault_normal`` along the direction 90° clockwise from it
     (towards the right side); ``right_lateral_slip = -fault_parallel`` is positive for dextral
-    motion. Sigmas are 1σ from the adjustments' a-posteriori covariances (sides independent).
-    ``tiles`` holds the per-tile registrations when ``tile_size_m`` was given (else empty).
+    motion. Sigmas are 1σ of :attr:`relative_covariance`, ``C_R + C_L − C_RL − C_RLᵀ`` from
+    the two sides' a-posteriori covariances and their cross-covariance ``C_RL`` (see
+    :func:`relative_covariance`): under the "full" model the survey error that crosses the
+    trace (a spatial drift, acquisition units of both sides) is shared and cancels in the
+    difference; under the "white" and "plane" models, and for ``combine="tiles"``, the sides
+    are independent (``C_RL = 0``). ``tiles`` holds the per-tile registrations when
+    ``tile_size_m`` was given (else empty).
+
+    Attributes
+    ----------
+    side_cross_covariance : (3, 3) float64 or None
+        ``C_RL = Cov(d_right, d_left)``, m², when it was modelled (else None: independent).
+    joint_components : JointComponents or None
+        The plane-level components estimated on both sides' planes together, which the
+        relative covariance is under (None: each side's own; see :func:`relative_covariance`).
     """
 
     left: SideResult
@@ -261,6 +277,8 @@ class SlipResult:
     buffer_m: float
     parameters: Dict[str, object] = field(default_factory=dict)
     tiles: Tuple[TileResult, ...] = ()
+    side_cross_covariance: Optional[np.ndarray] = None
+    joint_components: Optional[JointComponents] = None
 
     @property
     def horizontal(self) -> float:
@@ -398,6 +416,11 @@ class SlipResult:
             **(
                 {"tiles": [_tile_dict(t, self.strike_rad) for t in self.tiles]}
                 if self.tiles
+                else {}
+            ),
+            **(
+                {"joint_components": self.joint_components.to_dict()}
+                if self.joint_components is not None
                 else {}
             ),
             "note": "displacements in metres, rotations in radians; each side's displacement "
@@ -1049,12 +1072,14 @@ def estimate_slip(
         )
     left, right = results["left"], results["right"]
     rel = right.displacement - left.displacement
-    cov = right.displacement_covariance + left.displacement_covariance
+    cov, cross, joint = _relative_covariance(left, right)
     return SlipResult(
         left=left,
         right=right,
         relative=rel,
         relative_covariance=cov,
+        side_cross_covariance=cross,
+        joint_components=joint,
         strike_rad=mean_strike_rad(trace),
         buffer_m=float(buffer_m),
         parameters={
@@ -1073,6 +1098,66 @@ def estimate_slip(
         },
         tiles=tuple(tiles),
     )
+
+
+def relative_covariance(
+    left: SideResult, right: SideResult
+) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+    """Covariance of ``right.displacement − left.displacement`` and the sides' cross term.
+
+    Each side's displacement (at its centroid) is linear in its plane misclosures (the
+    plane-level GLS of :mod:`.stochastic`, after the robust weights have settled), so with
+    the gains ``K = ∂x̂/∂δ`` of both sides' adjustments (:class:`.stochastic.PlaneGain`) the
+    cross-covariance is ``C_RL = K_R Σ_δ(R, L) K_Lᵀ`` (translation rows), where ``Σ_δ(R, L)``
+    holds the survey error shared across the trace: the spatial field between planes on
+    opposite sides by centroid distance, and the acquisition units present on both sides
+    (the same PointSourceId in the same epoch); the nugget has no cross term
+    Then ``C_rel = C_R + C_L − C_RL − C_RLᵀ``.
+
+    One set of components for the cross term: they are estimated once more on both sides'
+    planes together (:func:`.stochastic.joint_covariance`: a dozen planes a side cannot split
+    a survey error between field, units and nugget, and two sides of one survey split it
+    differently), and ``C_R``, ``C_L``, ``C_RL`` are the covariances of the sides' own
+    estimates under that joint model; with too few or too many planes together, each side's
+    own components are combined instead (:func:`.stochastic.cross_covariance`).
+
+    With the white model, or when either side's displacement is not its joint adjustment's
+    (``combine="tiles"``: an information-weighted mean of tiles, not the GLS whose gain is
+    known), the sides are taken as independent: ``C_rel = C_R + C_L`` and the cross term is
+    None.
+
+    Returns
+    -------
+    covariance : (3, 3) float64
+        ``C_rel``, m².
+    cross : (3, 3) float64 or None
+        ``C_RL = Cov(d_right, d_left)``, m², or None when not modelled.
+    """
+    cov, cross, _ = _relative_covariance(left, right)
+    return cov, cross
+
+
+def _relative_covariance(left: SideResult, right: SideResult):
+    """:func:`relative_covariance` and the joint components (or None)."""
+    total = right.displacement_covariance + left.displacement_covariance
+    gr, gl = right.rigid.plane_gain, left.rigid.plane_gain
+    tiled = right.combined_covariance is not None or left.combined_covariance is not None
+    if gr is None or gl is None or tiled:
+        return total, None, None
+    joint = joint_covariance(gr, gl)
+    if joint is not None:
+        j, comps = joint
+        c_r, c_l, cross = j[3:6, 3:6], j[9:12, 9:12], j[3:6, 9:12]
+        cov = c_r + c_l - cross - cross.T
+    else:
+        comps = None
+        cross = cross_covariance(gr, gl)[3:, 3:]
+        if not np.any(cross):  # nothing shared (the "plane" model): the sum, exactly
+            return total, cross, None
+        cov = total - cross - cross.T
+    # positive semi-definite by construction (stochastic.joint_covariance and
+    # cross_covariance); the floor guards against rounding only
+    return _positive_part(cov), cross, comps
 
 
 def _stochastic_options(before, after, model, unit_before, unit_after, components) -> dict:

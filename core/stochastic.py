@@ -90,6 +90,10 @@ __all__ = [
     "VarianceComponents",
     "check_components",
     "check_stochastic_model",
+    "cross_covariance",
+    "joint_covariance",
+    "JointComponents",
+    "PlaneGain",
     "spherical_correlation",
 ]
 
@@ -164,6 +168,335 @@ def spherical_correlation(h: np.ndarray, range_m: float) -> np.ndarray:
     """Spherical correlation ``1 − 1.5 h/a + 0.5 (h/a)³`` for ``h < a``, else 0 (any shape)."""
     r = np.minimum(np.asarray(h, dtype=np.float64) / range_m, 1.0)
     return 1.0 - 1.5 * r + 0.5 * r**3
+
+
+def ball_cross_correlation(h: np.ndarray, range_a: float, range_b: float) -> np.ndarray:
+    """Cross-correlation of two spherical-model fields made from one white noise.
+
+    A spherical correlation of range ``a`` is the overlap volume of two balls of radius
+    ``a/2`` at distance ``h``, divided by the ball's volume: the field is white noise averaged
+    over a ball of radius ``a/2``. Two fields averaged from the SAME noise over balls of radii
+    ``r_a = a/2`` and ``r_b = b/2`` have the cross-correlation ``|B(r_a) ∩ B(r_b, h)| /
+    √(|B(r_a)| |B(r_b)|)``, with ``|B(r_a) ∩ B(r_b, h)| = π (r_a + r_b − h)² (h² + 2h(r_a +
+    r_b) − 3(r_a − r_b)²) / (12 h)`` for ``|r_a − r_b| < h < r_a + r_b``, the smaller ball's
+    volume below and 0 beyond (zero past ``(a + b)/2``). For ``a = b`` it is
+    :func:`spherical_correlation`; at ``h = 0`` it is ``(min/max)^(3/2)`` of the radii. Each
+    field keeps its own spherical correlation, so the pair is a valid (positive
+    semi-definite) bivariate model whatever the two ranges (any shape of ``h``, metres).
+    """
+    h = np.asarray(h, dtype=np.float64)
+    ra, rb = 0.5 * float(range_a), 0.5 * float(range_b)
+    small = min(ra, rb)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lens = (
+            math.pi
+            * (ra + rb - h) ** 2
+            * (h * h + 2.0 * h * (ra + rb) - 3.0 * (ra - rb) ** 2)
+            / (12.0 * h)
+        )
+    vol = np.where(h <= abs(ra - rb), 4.0 / 3.0 * math.pi * small**3, lens)
+    vol = np.where(h >= ra + rb, 0.0, vol)
+    return vol / (4.0 / 3.0 * math.pi * math.sqrt(ra**3 * rb**3))
+
+
+@dataclass(frozen=True)
+class PlaneGain:
+    """What one side's stochastic adjustment gives the covariance with another side.
+
+    The motion estimate of a stochastic adjustment is the plane-level GLS ``x̂ = Q (T/σ0² r
+    + Hᵀ V⁻¹ y)``: linear in the plane observations ``y``, whose plane-level random part is
+    ``δ`` (module docstring). ``gain = ∂x̂/∂δ = Q Hᵀ V⁻¹`` with the ``V`` the estimate used
+    (down-weighting included), so the covariance of two adjustments whose ``δ`` are
+    correlated is ``gain_a Cov(δ_a, δ_b) gain_bᵀ`` (:func:`cross_covariance`).
+
+    Attributes
+    ----------
+    gain : (6, k) float64
+        ``∂ params / ∂ δ`` of the ``k`` active planes (rad/m for the rotation rows, 1 for the
+        translation rows: the displacement at the adjustment's centre).
+    centroids : (k, 3) float64
+        Plane centroids in the input frame (both epochs' points), metres.
+    normals : (k, 3) float64
+        Unit plane normals.
+    shares_before, shares_after : (k, U) float64 or None
+        Share of each plane's points of that epoch per acquisition unit.
+    units_before, units_after : (U,) int64 or None
+        The unit ids of the shares' columns (None: not known, no cross term through units).
+    theta : dict
+        The plane-level components in force (variances, m²; estimated, prior or fixed).
+    range_m : float
+        Range of the spatial component, metres (NaN when off).
+    small_sample_factor : float
+        The factor the adjustment's covariance was scaled by (see
+        :class:`VarianceComponents`).
+    model : str
+        The stochastic model ("plane" or "full").
+    fixed : dict
+        The components the caller held fixed (``components=``: sigmas, metres).
+    e, p, inflation : (k,) float64
+        Plane misclosures at the solution, their white variance and the down-weighting
+        inflation, m² (scaled by the point-level factor; see :func:`estimate_components`).
+    h : (k, 6) float64
+        Their design rows.
+    t, rt : (6, 6), (6,) float64
+        The tilt information and its right-hand side (scaled).
+    q : (6, 6) float64
+        ``(T + Hᵀ V⁻¹ H)⁻¹``, the adjustment's covariance before the small-sample factor.
+    prior_plane_var : float
+        The adjustment's floor of a plane component that cannot be estimated, m².
+    """
+
+    gain: np.ndarray
+    centroids: np.ndarray
+    normals: np.ndarray
+    shares_before: Optional[np.ndarray]
+    shares_after: Optional[np.ndarray]
+    units_before: Optional[np.ndarray]
+    units_after: Optional[np.ndarray]
+    theta: Dict[str, float]
+    range_m: float
+    small_sample_factor: float = 1.0
+    model: str = "full"
+    fixed: Dict[str, float] = field(default_factory=dict)
+    e: Optional[np.ndarray] = None
+    p: Optional[np.ndarray] = None
+    inflation: Optional[np.ndarray] = None
+    h: Optional[np.ndarray] = None
+    t: Optional[np.ndarray] = None
+    rt: Optional[np.ndarray] = None
+    q: Optional[np.ndarray] = None
+    prior_plane_var: float = 0.0
+
+
+def _union_shares(a: PlaneGain, b: PlaneGain, epoch: str) -> Optional[np.ndarray]:
+    """(ka + kb, U) shares of both adjustments' planes over the union of their unit ids."""
+    ua, ub = getattr(a, "units_" + epoch), getattr(b, "units_" + epoch)
+    sa, sb = getattr(a, "shares_" + epoch), getattr(b, "shares_" + epoch)
+    if ua is None or ub is None or sa is None or sb is None:
+        return None
+    codes = np.union1d(ua, ub)
+    out = np.zeros((sa.shape[0] + sb.shape[0], codes.size))
+    out[: sa.shape[0], np.searchsorted(codes, ua)] = sa
+    out[sa.shape[0] :, np.searchsorted(codes, ub)] = sb
+    return out
+
+
+@dataclass(frozen=True)
+class JointComponents:
+    """The plane-level components estimated on two adjustments' planes together
+    (:func:`joint_covariance`).
+
+    Attributes
+    ----------
+    theta : dict
+        Variances (m²) of :data:`COMPONENT_NAMES`.
+    source : dict
+        "estimated", "fixed", "prior" or "off" per component.
+    range_m : float
+        Spatial range, metres (NaN when off).
+    n_planes : int
+        Planes of both adjustments.
+    small_sample_factor : float
+        ``ν/(ν − 2)`` with ``ν`` the fewer of ``planes − 12`` and the Satterthwaite degrees
+        of freedom of the slip's variance, at least 3 (1 when every component was fixed).
+    """
+
+    theta: Dict[str, float]
+    source: Dict[str, str]
+    range_m: float
+    n_planes: int
+    small_sample_factor: float
+
+    def to_dict(self) -> Dict[str, object]:
+        return {
+            "components": {
+                n: {
+                    "sigma_m": math.sqrt(max(self.theta.get(n, 0.0), 0.0)),
+                    "source": self.source.get(n, "off"),
+                }
+                for n in COMPONENT_NAMES
+            },  # fmt: skip
+            "spatial_range_m": _num(self.range_m),
+            "n_planes": int(self.n_planes),
+            "small_sample_factor": _num(self.small_sample_factor),
+        }
+
+
+def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
+    """(12, 6 + 6) covariance of the motions of two adjustments of one survey, under ONE set
+    of plane-level components estimated on both adjustments' planes together.
+
+    The components of one side are estimated from its own planes: a dozen planes cannot
+    split a survey error between a spatial field, the units of each epoch and the nugget,
+    and two sides of the same survey then split the same error differently (one side a
+    unit component, the other a spatial one) or take a conservative prior; the cross term
+    of :func:`cross_covariance` is then lost and each side's σ is wide. Here REML
+    (:func:`estimate_components`) runs on the misclosures of both sides' planes with a
+    block-diagonal motion design (each side keeps its own 6 motion parameters and its tilt
+    information, so nothing of the motion leaks between the sides), one spatial field over
+    both (centroid distances across the trace included) and the acquisition units by id
+    over both. The motions themselves stay each side's own estimates (each side's GLS
+    with its own components and robust weights); their joint covariance is the sandwich
+    ``Q_s (T_s + H_sᵀ V_s⁻¹ V_J V_s⁻¹ H_s) Q_s`` within a side and ``K_a V_J(a, b) K_bᵀ``
+    across (``K = Q Hᵀ V⁻¹``, ``V_J`` the joint model), which is the exact covariance of
+    the estimates actually made if the joint model holds, and is positive semi-definite.
+    The small-sample factor ``ν/(ν − 2)`` uses the fewer of ``planes − 12`` and the
+    Satterthwaite degrees of freedom of the slip's variance (:func:`_satterthwaite_dof`):
+    two dozen planes estimate four components poorly, and where the slip's σ rests on a
+    poorly determined component the factor grows (up to 3).
+
+    Returns None when the joint estimate is not made: a "plane" model (no shared term), fewer
+    than :data:`MIN_PLANES_VCE` or more than :data:`DENSE_MAX_PLANES` planes together, unit
+    shares without unit ids, or missing pieces (the caller then uses
+    :func:`cross_covariance`). Else ``(cov, joint)``
+    with ``cov`` (12, 12) over ``(params_a, params_b)`` and ``joint`` a
+    :class:`JointComponents`.
+    """
+    if a.model != "full" or b.model != "full":
+        return None
+    if any(getattr(g, n) is None for g in (a, b) for n in ("e", "p", "h", "t", "q")):
+        return None
+    for g in (a, b):  # unit shares whose ids are not known cannot be matched across sides
+        for ep in ("before", "after"):
+            if getattr(g, "shares_" + ep) is not None and getattr(g, "units_" + ep) is None:
+                return None
+    ka, kb = a.e.size, b.e.size
+    k = ka + kb
+    if k < MIN_PLANES_VCE or k > DENSE_MAX_PLANES:
+        return None
+    model = PlaneModel(
+        np.concatenate([a.centroids, b.centroids]),
+        np.concatenate([a.normals, b.normals]),
+        _union_shares(a, b, "before"),
+        _union_shares(a, b, "after"),
+    )
+    idx = np.arange(k)
+    x = np.zeros((k, 12))
+    x[:ka, :6], x[ka:, 6:] = a.h, b.h
+    t = np.zeros((12, 12))
+    t[:6, :6], t[6:, 6:] = a.t, b.t
+    rt = np.concatenate([a.rt, b.rt])
+    e = np.concatenate([a.e, b.e])
+    p = np.concatenate([a.p, b.p])
+    infl = np.concatenate([a.inflation, b.inflation])
+    fixed = dict(a.fixed)
+    est = estimate_components(
+        model, idx, e, x, t, p, which=COMPONENT_NAMES, fixed=fixed, inflation=infl,
+        seed=seed, prior_plane_var=max(a.prior_plane_var, b.prior_plane_var), rt=rt,
+    )  # fmt: skip
+    theta = {n: v for n, v in est.theta.items() if v > 0}
+    v = covariance(model, idx, p, theta, est.range_m, infl)
+    kj = np.zeros((12, k))
+    kj[:6, :ka], kj[6:, ka:] = a.gain, b.gain
+    cov = kj @ v @ kj.T
+    cov[:6, :6] += a.q @ a.t @ a.q
+    cov[6:, 6:] += b.q @ b.t @ b.q
+    nu = max(k - 12.0, 3.0)
+    if any(src == "estimated" for src in est.source.values()):
+        nu = min(nu, _satterthwaite_dof(model, idx, est, kj, cov))
+        small = nu / (nu - 2.0)
+    else:
+        small = 1.0
+    joint = JointComponents(
+        theta=dict(est.theta), source=dict(est.source), range_m=float(est.range_m),
+        n_planes=int(k), small_sample_factor=float(small),
+    )  # fmt: skip
+    return small * 0.5 * (cov + cov.T), joint
+
+
+def _satterthwaite_dof(model, idx, est, kj, cov) -> float:
+    """Satterthwaite's degrees of freedom of the variance of ``params_a − params_b``'s
+    translation (the slip), the fewest over its principal directions, at least 3.
+
+    Along a direction ``u`` the variance ``s² = uᵀ C u`` is a sum of the estimated components
+    times their weights ``w_i = (uᵀ K_d) V_i (K_dᵀ u)`` (``K_d`` the difference of the two
+    gains) plus terms taken as known (point noise, tilts); with the REML covariance of the
+    components ``F⁻¹`` (components set to zero by the non-negative fixed point left out),
+    ``ν = 2 s⁴ / wᵀ F⁻¹ w`` (Satterthwaite 1946; Giesbrecht & Burns 1985). A few planes can
+    pin a component down poorly, and the σ of a slip carried by it then follows a t
+    distribution of few degrees of freedom, whose variance is ``ν/(ν − 2)`` times the
+    normal one."""
+    kd = kj[3:6] - kj[9:12]
+    rel = cov[3:6, 3:6] + cov[9:12, 9:12] - cov[3:6, 9:12] - cov[9:12, 3:6]
+    bases = model.bases(idx, est.range_m)
+    free = [n for n in COMPONENT_NAMES if (n, n) in est.cov and n in bases]
+    if not free:
+        return float("inf")
+    fcov = np.array([[est.cov.get((a, b), 0.0) for b in free] for a in free])
+    _, evec = np.linalg.eigh(0.5 * (rel + rel.T))
+    nu = float("inf")
+    for u in evec.T:
+        g = u @ kd
+        s2 = float(u @ rel @ u)
+        w = np.array([float(g @ bases[n] @ g) for n in free])
+        var = float(w @ fcov @ w)
+        if var > 0 and s2 > 0:
+            nu = min(nu, 2.0 * s2 * s2 / var)
+    return max(nu, 3.0)
+
+
+def cross_covariance(a: PlaneGain, b: PlaneGain) -> np.ndarray:
+    """(6, 6) covariance ``Cov(x̂_a, x̂_b)`` of the motions of two adjustments on disjoint
+    planes of the same survey (the two sides of a fault), rad/m/m² as ``params``.
+
+    The survey error that the plane-level model describes is a property of the SURVEY, not of
+    a side: a trajectory drift or an ALS strip that crosses the trace moves the planes of
+    both sides alike. The joint model of ``δ_a, δ_b`` keeps each side's own model and
+    components (its estimate and its covariance stay what that side's adjustment gives) and
+    shares the random effects:
+
+    * spatial: both sides' fields are averages of ONE white noise over balls of radius half
+      their range, scaled by each side's ``σ_c``: ``Cov(δ_a,j, δ_b,k) = σ_c,a σ_c,b
+      ρ_ab(|c_j − c_k|) n_jᵀ n_k`` with ``ρ_ab`` = :func:`ball_cross_correlation` (the
+      spherical correlation when the ranges agree);
+    * acquisition units: a unit present on both sides (the same id in the same epoch) has one
+      rigid translation ``ξ_u ~ N(0, I₃)``, seen scaled by each side's ``σ_e``:
+      ``σ_e,a σ_e,b Z_a,u Z_b,uᵀ``;
+    * the plane component (nugget) and the point noise: independent, no cross term.
+
+    Why combine the two sides' estimates rather than estimate one set on both sides: each
+    side's components are estimated where its planes are (REML with that side's robust
+    tests), and its σ is unchanged; the joint model above is a valid one for any two sets of
+    components (each marginal is the side's own model, and both are built from one noise,
+    so the joint covariance of the two motions is positive semi-definite and the variance of
+    their difference is never negative), it is exactly "one field and one set of units"
+    when the two sides' estimates agree, and where they differ (estimation noise) the part
+    ``(σ_a − σ_b)²`` of a shared error, and the part a range mismatch decorrelates, stays in
+    the σ of the difference: the error of the estimated components makes the σ wider, never
+    narrower.
+
+    Both adjustments' small-sample factors ``s`` scale the result by ``√(s_a s_b)`` (the
+    joint covariance scaled by ``diag(√s_a, √s_b)`` on both sides stays positive
+    semi-definite). Cost: pairs of planes within the spatial support (a k-d tree) and the
+    shared units, linear in planes.
+    """
+    out = np.zeros((a.gain.shape[0], b.gain.shape[0]))
+    ta, tb = float(a.theta.get("spatial", 0.0)), float(b.theta.get("spatial", 0.0))
+    if ta > 0 and tb > 0 and a.range_m == a.range_m and b.range_m == b.range_m:
+        support = 0.5 * (a.range_m + b.range_m)
+        pairs = cKDTree(a.centroids).sparse_distance_matrix(
+            cKDTree(b.centroids), support, output_type="ndarray"
+        )
+        if pairs.size:
+            i, j, h = pairs["i"], pairs["j"], pairs["v"]
+            val = math.sqrt(ta * tb) * ball_cross_correlation(h, a.range_m, b.range_m)
+            val = val * np.einsum("ij,ij->i", a.normals[i], b.normals[j])
+            out += (a.gain[:, i] * val) @ b.gain[:, j].T
+    for name in ("unit_before", "unit_after"):
+        epoch = name.split("_")[1]
+        ta, tb = float(a.theta.get(name, 0.0)), float(b.theta.get(name, 0.0))
+        ua, ub = getattr(a, "units_" + epoch), getattr(b, "units_" + epoch)
+        sa, sb = getattr(a, "shares_" + epoch), getattr(b, "shares_" + epoch)
+        if ta <= 0 or tb <= 0 or ua is None or ub is None or sa is None or sb is None:
+            continue
+        common, ia, ib = np.intersect1d(ua, ub, return_indices=True)
+        if common.size == 0:
+            continue
+        # gain Z of each side for the shared units: (6, units, 3)
+        ga = np.einsum("pk,km,kd->pmd", a.gain, sa[:, ia], a.normals)
+        gb = np.einsum("pk,km,kd->pmd", b.gain, sb[:, ib], b.normals)
+        out += math.sqrt(ta * tb) * np.einsum("pmd,qmd->pq", ga, gb)
+    return math.sqrt(a.small_sample_factor * b.small_sample_factor) * out
 
 
 @dataclass(frozen=True)
@@ -490,15 +823,17 @@ class Estimate:
     range_m: float
     iterations: int
     converged: bool
+    cov: Dict[Tuple[str, str], float] = field(default_factory=dict)
 
 
 def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
     """Iterated MINQUE / Fisher scoring of REML for the free components; returns (theta, sd,
-    iterations, converged, -2 log L)."""
+    iterations, converged, -2 log L, covariances of the estimated variances by name pair)."""
     names = [n for n in bases if n not in fixed]
     theta = dict(theta0)
     converged = False
     sd = {n: float("nan") for n in names}
+    pair_cov: Dict[Tuple[str, str], float] = {}
     v0 = np.diag(p + (0.0 if inflation is None else inflation))
     for n, t_fixed in fixed.items():
         if n in bases and t_fixed > 0:
@@ -546,6 +881,8 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
             cov = np.linalg.inv(f)
             for a, n in enumerate(free):
                 sd[n] = float(math.sqrt(max(cov[a, a], 0.0)))
+            pair_cov = {(na, nc): float(cov[i, j]) for i, na in enumerate(free)
+                        for j, nc in enumerate(free)}  # fmt: skip
         except np.linalg.LinAlgError:
             pass
         scale = max(float(np.max(np.abs(new))), float(np.median(p)) if p.size else 0.0, _FLOOR)
@@ -553,7 +890,8 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
             converged = True
             break
     # final likelihood at the estimate
-    return theta, sd, it, converged, gls_at().reml(e)
+    pair_cov = {k: v for k, v in pair_cov.items() if k[0] in free and k[1] in free}
+    return theta, sd, it, converged, gls_at().reml(e), pair_cov
 
 
 def _candidate_ranges(c: np.ndarray, subset: bool = False) -> np.ndarray:
@@ -673,11 +1011,13 @@ def estimate_components(
         bases = model.bases(ids, rng_m)
         bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
         fx = {n: fixed_var[n] for n in fixed_var if n in bases}
-        th, sd, it, conv, m2ll = _reml_fixed_point(es, xs, ts, ps, bases, theta0, fx, inf_s, rts)
+        th, sd, it, conv, m2ll, pc = _reml_fixed_point(
+            es, xs, ts, ps, bases, theta0, fx, inf_s, rts
+        )
         log.debug("REML range %.3g m: %s, -2logL %.6g", rng_m, th, m2ll)
         if best is None or m2ll < best[4]:
-            best = (th, sd, it, conv, m2ll, rng_m)
-    th, sd, it, conv, _, rng_m = best
+            best = (th, sd, it, conv, m2ll, rng_m, pc)
+    th, sd, it, conv, _, rng_m, pc = best
     sds = {}
     for n in free:
         theta[n] = float(th.get(n, 0.0))
@@ -702,7 +1042,8 @@ def estimate_components(
         source.setdefault(n, "off")
     if theta.get("spatial", 0.0) <= 0:
         rng_m = float("nan") if "spatial_range_m" not in fixed else rng_m
-    return Estimate(theta, sds, source, notes, float(rng_m), int(it), bool(conv))
+    pc = {k: v for k, v in pc.items() if source.get(k[0]) == source.get(k[1]) == "estimated"}
+    return Estimate(theta, sds, source, notes, float(rng_m), int(it), bool(conv), pc)
 
 
 # --------------------------------------------------------------------------- robustness
