@@ -631,6 +631,7 @@ def slip_tiled(
         SideResult,
         SlipResult,
         _merge_planesets,
+        relative_covariance,
         side_summary,
         tile_adjustments,
     )
@@ -769,7 +770,9 @@ def slip_tiled(
         left=left,
         right=right,
         relative=right.displacement - left.displacement,
-        relative_covariance=right.displacement_covariance + left.displacement_covariance,
+        # the survey error shared across the trace cancels in the slip (issue #30 item 1):
+        # the spatial field here, as plane moments carry no acquisition units
+        relative_covariance=relative_covariance(left, right)[0],
         strike_rad=mean_strike_rad(trace),
         buffer_m=float(buffer_m),
         parameters={
