@@ -1300,6 +1300,8 @@ class _PassFits:
     converged: np.ndarray
     cov_d_blocks: np.ndarray  # (K, L, 3, 3) block covariances of d (icp_blocks)
     n_blocks: np.ndarray  # (K, L)
+    linear: np.ndarray  # (K, 3, 3) the fitted transform's linear part (icp_cells.CellFits)
+    t: np.ndarray  # (K, 3) its translation about the (moved) centre
 
 
 def _fit_pass(
@@ -1362,7 +1364,44 @@ def _fit_pass(
         converged=fits.converged,
         cov_d_blocks=bcov,
         n_blocks=nblk,
+        linear=fits.linear,
+        t=fits.t,
     )
+
+
+def _zero_starts(cells: _Cells, pts, d0, fits: _PassFits, model: str, fit_kw) -> _PassFits:
+    """The seeded pass ``fits`` with each cell whose start ``d0`` (K, 3) is away from zero
+    also fitted from zero, and the better fit kept (:mod:`slipmap.core.icp_starts`: a coarse
+    cell that straddles a discontinuity must not trap a fine cell in a wrong minimum).
+    ``pts`` (P, 3) are the cells' after-points (unmoved)."""
+    from .icp_starts import START_EPS_M, choose_zero_start, point_residuals, transformed
+    from .icp_starts import truncated_costs
+
+    idx = np.flatnonzero(np.linalg.norm(d0, axis=1) > START_EPS_M)
+    if idx.size == 0:
+        return fits
+    sub = _cells_subset(cells, idx)
+    zero = np.zeros((idx.size, 3))
+    sub_pts = pts[np.isin(cells.seg, idx)]  # grouped as sub.points (_cells_subset)
+    zfit = _fit_pass(sub, sub_pts, zero, zero, model, **fit_kw)
+    src = sub_pts - sub.centres[sub.seg]
+    res_kw = dict(
+        tree=fit_kw["tree"], normals=fit_kw["normals"], gate=fit_kw["gate"],
+        n_targets=len(fit_kw["before"]),
+    )  # fmt: skip
+    world_s = transformed(src, sub.seg, sub.centres, fits.linear[idx], fits.t[idx])
+    world_z = transformed(src, sub.seg, sub.centres, zfit.linear, zfit.t)
+    cost_s, cost_z, se = truncated_costs(
+        point_residuals(world_s, **res_kw), point_residuals(world_z, **res_kw), sub.seg, idx.size
+    )
+    take = choose_zero_start(cost_s, cost_z, se, fits.ok[idx], zfit.ok)
+    log.info(
+        "seeded cells: %d of %d also fitted from zero, %d fit better from zero",
+        idx.size,
+        len(d0),
+        int(take.sum()),
+    )
+    return _merge_fits(fits, zfit, idx, take) if take.any() else fits
 
 
 def _target_grid(before: np.ndarray, backend: str):
@@ -2050,6 +2089,8 @@ def windowed_icp(
         progress=scaled(pass_progress, 0.0, 1.0 / n_pass),
         **fit_kw,
     )
+    if initial_displacement is not None:
+        fits = _zero_starts(cells, a[cells.points], d0, fits, model, fit_kw)
     report(pass_progress, 1.0 / n_pass, f"ICP pass 1 of {n_pass}")
     d, cov_d, grad = fits.d, fits.cov_d, fits.gradient
     for k in range(passes):
@@ -2134,7 +2175,12 @@ def windowed_icp(
         from .icp_spline import fit_spline_field
 
         usable = fits.ok & np.all(np.isfinite(d), axis=1)
-        start, _ = _deformation_field(cells, d, usable, n_rows, n_cols, x0, y0, cell)
+        # the flagged cells (likely wrong minima) are filled from their neighbours: a cell
+        # that straddles the slump's edge reported 0.9 m where its neighbours had 0.4 m, and
+        # the field started from it stopped 9 cm off 9 m away (docs/fields.md)
+        start, _ = _deformation_field(
+            cells, d, usable & ~flagged, n_rows, n_cols, x0, y0, cell
+        )
         report(progress, 0.9, "fitting one spline field to all cells")
         near = _near_pairs(cells.row, cells.col, reach=2)
         spline_kw = dict(
