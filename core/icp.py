@@ -1374,8 +1374,13 @@ def _zero_starts(cells: _Cells, pts, d0, fits: _PassFits, model: str, fit_kw) ->
     also fitted from zero, and the better fit kept (:mod:`slipmap.core.icp_starts`: a coarse
     cell that straddles a discontinuity must not trap a fine cell in a wrong minimum).
     ``pts`` (P, 3) are the cells' after-points (unmoved)."""
-    from .icp_starts import START_EPS_M, choose_zero_start, point_residuals, transformed
-    from .icp_starts import truncated_costs
+    from .icp_starts import (
+        START_EPS_M,
+        choose_zero_start,
+        point_residuals,
+        transformed,
+        truncated_costs,
+    )
 
     idx = np.flatnonzero(np.linalg.norm(d0, axis=1) > START_EPS_M)
     if idx.size == 0:
@@ -2178,9 +2183,7 @@ def windowed_icp(
         # the flagged cells (likely wrong minima) are filled from their neighbours: a cell
         # that straddles the slump's edge reported 0.9 m where its neighbours had 0.4 m, and
         # the field started from it stopped 9 cm off 9 m away (docs/fields.md)
-        start, _ = _deformation_field(
-            cells, d, usable & ~flagged, n_rows, n_cols, x0, y0, cell
-        )
+        start, _ = _deformation_field(cells, d, usable & ~flagged, n_rows, n_cols, x0, y0, cell)
         report(progress, 0.9, "fitting one spline field to all cells")
         near = _near_pairs(cells.row, cells.col, reach=2)
         spline_kw = dict(
