@@ -1645,6 +1645,34 @@ def _spline_blocks(sfit, usable: np.ndarray, near, blocks_kw, *, sigma_scaling, 
     return replace(sfit, cov=c9, pair_cov=pair), kw
 
 
+#: a flagged cell whose RMS point-to-plane residual or formal 3-D sigma exceeds this many
+#: times the fitted cells' median does not start the spline field (:func:`_misfits`)
+MISFIT_RATIO = 3.0
+
+
+def _misfits(fits: _PassFits, flagged: np.ndarray) -> np.ndarray:
+    """(K,) bool: cells the median test ``flagged`` whose own fit is no evidence either: it
+    does not explain their points (RMS point-to-plane residual above :data:`MISFIT_RATIO`
+    times the fitted cells' median: a wrong minimum, a cell straddling a discontinuity) or
+    leaves their motion poorly determined (formal 3-D sigma above that ratio times the
+    median: a sparse or flat cell sliding along its surface). Their values are left out of
+    the spline field's start (filled from their neighbours). A flagged cell whose fit is
+    good and well determined is kept: the true peak of a lobe is flagged too (on the
+    harness's TLS round lobe, seed 0, leaving its peak out of the start cost the field
+    1.5 -> 4.2 cm). On the TLS slump (seed 0) a cell straddling the block's toe reported
+    0.9 m against its neighbours' 0.4 m with a 16 cm RMS (median 1.3 cm), and a sparse
+    stable cell 0.25 m with a 9 cm sigma (median 0.3 cm); the field started from them
+    ended 9-11 cm off 9-12 m away (docs/fields.md)."""
+    rm = np.where(fits.ok, fits.rmse, np.nan)
+    sg = np.sqrt(np.trace(fits.cov_d, axis1=1, axis2=2))
+    sg = np.where(fits.ok & np.isfinite(sg), sg, np.nan)
+    if not (np.isfinite(rm).any() and np.isfinite(sg).any()):
+        return np.zeros(len(flagged), dtype=bool)
+    with np.errstate(invalid="ignore"):
+        good = (rm <= MISFIT_RATIO * np.nanmedian(rm)) & (sg <= MISFIT_RATIO * np.nanmedian(sg))
+    return flagged & ~good
+
+
 def _median_flags(cells: _Cells, d, usable, n_rows, n_cols, eps_m, threshold):
     """:func:`slipmap.core.icp_cells.median_test` of a pass's cell motions."""
     from .icp_cells import median_test
@@ -1785,10 +1813,15 @@ def windowed_icp(
         each pass starts every cell from the motion of the coarser pass interpolated at the
         cell centre, and moves the cell's target box by it. Needed when the motion is not small
         against the cell (e.g. 1 m of motion in 2 m cells): ICP from zero then stops in a
-        local minimum. 0 (default) starts every cell from zero motion.
+        local minimum. Every cell whose start is away from zero is also fitted from zero and
+        the fit that matches epoch 1 better is kept (:mod:`slipmap.core.icp_starts`): a
+        coarse cell that straddles a discontinuity predicts a blend of its two sides, which
+        trapped stable cells beside a slump block metres off (docs/fields.md). 0 (default)
+        starts every cell from zero motion.
     initial_displacement : callable, optional
         ``f(xy (K, 2)) -> (K, 3)`` starting ground motion at cell centres (e.g. from PIV);
-        used by the finest pass (or the coarsest, with ``coarse_to_fine``).
+        used by the finest pass (or the coarsest, with ``coarse_to_fine``); cells also
+        fitted from zero as above.
     sigma_scaling : {"field", "region", "formal"}
         What the agreement of neighbouring cells does to the covariances. With
         ``sigma_model="blocks"`` (the default) and ``"field"`` or ``"region"`` it first
@@ -2180,10 +2213,9 @@ def windowed_icp(
         from .icp_spline import fit_spline_field
 
         usable = fits.ok & np.all(np.isfinite(d), axis=1)
-        # the flagged cells (likely wrong minima) are filled from their neighbours: a cell
-        # that straddles the slump's edge reported 0.9 m where its neighbours had 0.4 m, and
-        # the field started from it stopped 9 cm off 9 m away (docs/fields.md)
-        start, _ = _deformation_field(cells, d, usable & ~flagged, n_rows, n_cols, x0, y0, cell)
+        start, _ = _deformation_field(
+            cells, d, usable & ~_misfits(fits, flagged), n_rows, n_cols, x0, y0, cell
+        )
         report(progress, 0.9, "fitting one spline field to all cells")
         near = _near_pairs(cells.row, cells.col, reach=2)
         spline_kw = dict(
