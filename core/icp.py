@@ -1645,34 +1645,6 @@ def _spline_blocks(sfit, usable: np.ndarray, near, blocks_kw, *, sigma_scaling, 
     return replace(sfit, cov=c9, pair_cov=pair), kw
 
 
-#: a flagged cell whose RMS point-to-plane residual or formal 3-D sigma exceeds this many
-#: times the fitted cells' median does not start the spline field (:func:`_misfits`)
-MISFIT_RATIO = 3.0
-
-
-def _misfits(fits: _PassFits, flagged: np.ndarray) -> np.ndarray:
-    """(K,) bool: cells the median test ``flagged`` whose own fit is no evidence either: it
-    does not explain their points (RMS point-to-plane residual above :data:`MISFIT_RATIO`
-    times the fitted cells' median: a wrong minimum, a cell straddling a discontinuity) or
-    leaves their motion poorly determined (formal 3-D sigma above that ratio times the
-    median: a sparse or flat cell sliding along its surface). Their values are left out of
-    the spline field's start (filled from their neighbours). A flagged cell whose fit is
-    good and well determined is kept: the true peak of a lobe is flagged too (on the
-    harness's TLS round lobe, seed 0, leaving its peak out of the start cost the field
-    1.5 -> 4.2 cm). On the TLS slump (seed 0) a cell straddling the block's toe reported
-    0.9 m against its neighbours' 0.4 m with a 16 cm RMS (median 1.3 cm), and a sparse
-    stable cell 0.25 m with a 9 cm sigma (median 0.3 cm); the field started from them
-    ended 9-11 cm off 9-12 m away (docs/fields.md)."""
-    rm = np.where(fits.ok, fits.rmse, np.nan)
-    sg = np.sqrt(np.trace(fits.cov_d, axis1=1, axis2=2))
-    sg = np.where(fits.ok & np.isfinite(sg), sg, np.nan)
-    if not (np.isfinite(rm).any() and np.isfinite(sg).any()):
-        return np.zeros(len(flagged), dtype=bool)
-    with np.errstate(invalid="ignore"):
-        good = (rm <= MISFIT_RATIO * np.nanmedian(rm)) & (sg <= MISFIT_RATIO * np.nanmedian(sg))
-    return flagged & ~good
-
-
 def _median_flags(cells: _Cells, d, usable, n_rows, n_cols, eps_m, threshold):
     """:func:`slipmap.core.icp_cells.median_test` of a pass's cell motions."""
     from .icp_cells import median_test
@@ -2213,9 +2185,7 @@ def windowed_icp(
         from .icp_spline import fit_spline_field
 
         usable = fits.ok & np.all(np.isfinite(d), axis=1)
-        start, _ = _deformation_field(
-            cells, d, usable & ~_misfits(fits, flagged), n_rows, n_cols, x0, y0, cell
-        )
+        start, _ = _deformation_field(cells, d, usable, n_rows, n_cols, x0, y0, cell)
         report(progress, 0.9, "fitting one spline field to all cells")
         near = _near_pairs(cells.row, cells.col, reach=2)
         spline_kw = dict(
