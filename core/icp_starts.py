@@ -50,6 +50,7 @@ __all__ = [
     "choose_zero_start",
     "point_residuals",
     "transformed",
+    "tree_points",
     "truncated_costs",
     "truncated_costs_reference",
 ]
