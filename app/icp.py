@@ -130,8 +130,9 @@ SPEC = JobSpec(
         _opt(
             "coarse_to_fine",
             "int",
-            "coarser passes (cells 2x, 4x, ...) that start each cell from the coarser motion; "
-            "needed when the motion is not small against the cell (0: off)",
+            "coarser passes (cells 2x, 4x, ...) that start each cell from the coarser motion "
+            "(and from zero, keeping the better fit); needed when the motion is not small "
+            "against the cell (0: off)",
             "Coarse-to-fine levels",
             default=1,
             minimum=0,

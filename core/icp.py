@@ -1300,6 +1300,8 @@ class _PassFits:
     converged: np.ndarray
     cov_d_blocks: np.ndarray  # (K, L, 3, 3) block covariances of d (icp_blocks)
     n_blocks: np.ndarray  # (K, L)
+    linear: np.ndarray  # (K, 3, 3) the fitted transform's linear part (icp_cells.CellFits)
+    t: np.ndarray  # (K, 3) its translation about the (moved) centre
 
 
 def _fit_pass(
@@ -1362,7 +1364,49 @@ def _fit_pass(
         converged=fits.converged,
         cov_d_blocks=bcov,
         n_blocks=nblk,
+        linear=fits.linear,
+        t=fits.t,
     )
+
+
+def _zero_starts(cells: _Cells, pts, d0, fits: _PassFits, model: str, fit_kw) -> _PassFits:
+    """The seeded pass ``fits`` with each cell whose start ``d0`` (K, 3) is away from zero
+    also fitted from zero, and the better fit kept (:mod:`slipmap.core.icp_starts`: a coarse
+    cell that straddles a discontinuity must not trap a fine cell in a wrong minimum).
+    ``pts`` (P, 3) are the cells' after-points (unmoved)."""
+    from .icp_starts import (
+        START_EPS_M,
+        choose_zero_start,
+        point_residuals,
+        transformed,
+        truncated_costs,
+    )
+
+    idx = np.flatnonzero(np.linalg.norm(d0, axis=1) > START_EPS_M)
+    if idx.size == 0:
+        return fits
+    sub = _cells_subset(cells, idx)
+    zero = np.zeros((idx.size, 3))
+    sub_pts = pts[np.isin(cells.seg, idx)]  # grouped as sub.points (_cells_subset)
+    zfit = _fit_pass(sub, sub_pts, zero, zero, model, **fit_kw)
+    src = sub_pts - sub.centres[sub.seg]
+    res_kw = dict(
+        tree=fit_kw["tree"], normals=fit_kw["normals"], gate=fit_kw["gate"],
+        n_targets=len(fit_kw["before"]),
+    )  # fmt: skip
+    world_s = transformed(src, sub.seg, sub.centres, fits.linear[idx], fits.t[idx])
+    world_z = transformed(src, sub.seg, sub.centres, zfit.linear, zfit.t)
+    cost_s, cost_z, se = truncated_costs(
+        point_residuals(world_s, **res_kw), point_residuals(world_z, **res_kw), sub.seg, idx.size
+    )
+    take = choose_zero_start(cost_s, cost_z, se, fits.ok[idx], zfit.ok)
+    log.info(
+        "seeded cells: %d of %d also fitted from zero, %d fit better from zero",
+        idx.size,
+        len(d0),
+        int(take.sum()),
+    )
+    return _merge_fits(fits, zfit, idx, take) if take.any() else fits
 
 
 def _target_grid(before: np.ndarray, backend: str):
@@ -1741,10 +1785,15 @@ def windowed_icp(
         each pass starts every cell from the motion of the coarser pass interpolated at the
         cell centre, and moves the cell's target box by it. Needed when the motion is not small
         against the cell (e.g. 1 m of motion in 2 m cells): ICP from zero then stops in a
-        local minimum. 0 (default) starts every cell from zero motion.
+        local minimum. Every cell whose start is away from zero is also fitted from zero and
+        the fit that matches epoch 1 better is kept (:mod:`slipmap.core.icp_starts`): a
+        coarse cell that straddles a discontinuity predicts a blend of its two sides, which
+        trapped stable cells beside a slump block metres off (docs/fields.md). 0 (default)
+        starts every cell from zero motion.
     initial_displacement : callable, optional
         ``f(xy (K, 2)) -> (K, 3)`` starting ground motion at cell centres (e.g. from PIV);
-        used by the finest pass (or the coarsest, with ``coarse_to_fine``).
+        used by the finest pass (or the coarsest, with ``coarse_to_fine``); cells also
+        fitted from zero as above.
     sigma_scaling : {"field", "region", "formal"}
         What the agreement of neighbouring cells does to the covariances. With
         ``sigma_model="blocks"`` (the default) and ``"field"`` or ``"region"`` it first
@@ -2050,6 +2099,8 @@ def windowed_icp(
         progress=scaled(pass_progress, 0.0, 1.0 / n_pass),
         **fit_kw,
     )
+    if initial_displacement is not None:
+        fits = _zero_starts(cells, a[cells.points], d0, fits, model, fit_kw)
     report(pass_progress, 1.0 / n_pass, f"ICP pass 1 of {n_pass}")
     d, cov_d, grad = fits.d, fits.cov_d, fits.gradient
     for k in range(passes):
