@@ -198,6 +198,15 @@ class PlaneMoments:
             None if self.unit_counts is None else self.unit_counts[idx],
         )
 
+    def unit_ids(self) -> Optional[np.ndarray]:
+        """(U',) ids of the units :meth:`shares` has columns for (None without units)."""
+        if self.unit_counts is None:
+            return None
+        cols = self.unit_counts.sum(axis=0) > 0
+        if not np.any(cols):
+            return None
+        return np.asarray(self.unit_codes, dtype=np.int64)[cols]
+
     def shares(self) -> Optional[np.ndarray]:
         """(b, U') share of each plane's points per unit present (None without units)."""
         if self.unit_counts is None:
@@ -276,11 +285,14 @@ def adjust_rigid_moments(
         )
         for m, sig, name in ((before, sigma_before, "before"), (after, sigma_after, "after"))
     )
-    shares = None
+    shares = codes = None
     if model != "white":
         shares = [m.shares() if use_units else None for m in (before, after)]
+        # the ids of the shares' columns: the cross-side covariance matches units by id
+        codes = [m.unit_ids() if use_units else None for m in (before, after)]
     return _adj._solve(
         epochs, b, centre, shares, dense=False, model=model, fixed=fixed,
         max_iterations=max_iterations, tolerance=tolerance, alpha=alpha, min_planes=min_planes,
         reject_outlier_planes=reject_outlier_planes, progress=progress, labels=(None, None),
+        unit_codes=codes,
     )  # fmt: skip

@@ -72,3 +72,28 @@ def provider(qgis_app):
     plugin.initProcessing()
     yield
     plugin.unload()
+
+
+def _write_line(path, xy, crs, *, driver="GPKG", layer="fault"):
+    """A one-line vector file (a fault trace, a breakline) through OGR, as users make them."""
+    from osgeo import ogr, osr
+
+    ds = ogr.GetDriverByName(driver).CreateDataSource(str(path))
+    srs = osr.SpatialReference()
+    srs.ImportFromWkt(crs.to_wkt())
+    out = ds.CreateLayer(layer, srs, ogr.wkbLineString)
+    line = ogr.Geometry(ogr.wkbLineString)
+    for x, y in xy:
+        line.AddPoint_2D(float(x), float(y))
+    f = ogr.Feature(out.GetLayerDefn())
+    f.SetGeometry(line)
+    out.CreateFeature(f)
+    ds = None
+
+
+@pytest.fixture(scope="session")
+def line_file():
+    """``line_file(path, xy, crs, driver="GPKG", layer="fault")`` writes a one-line vector
+    file through OGR (skips without GDAL)."""
+    pytest.importorskip("osgeo.ogr", reason="GDAL/OGR (python3-gdal) missing")
+    return _write_line

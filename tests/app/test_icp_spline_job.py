@@ -76,24 +76,7 @@ def test_cli_run_reports_the_spline_field_at_the_cell_centres(tmp_path, capsys):
     assert summary["model"]["field"] == "spline" and summary["n_cells"] == len(rows)
 
 
-def _line_geojson(path, xy, crs):
-    """A one-line GeoJSON (through OGR, as users make them)."""
-    from osgeo import ogr, osr
-
-    ds = ogr.GetDriverByName("GeoJSON").CreateDataSource(str(path))
-    srs = osr.SpatialReference()
-    srs.ImportFromWkt(crs.to_wkt())
-    layer = ds.CreateLayer("scarp", srs, ogr.wkbLineString)
-    line = ogr.Geometry(ogr.wkbLineString)
-    for x, y in xy:
-        line.AddPoint_2D(float(x), float(y))
-    f = ogr.Feature(layer.GetLayerDefn())
-    f.SetGeometry(line)
-    layer.CreateFeature(f)
-    ds = None
-
-
-def test_cli_breaklines_file_gives_a_field_that_jumps_across_it(tmp_path, capsys):
+def test_cli_breaklines_file_gives_a_field_that_jumps_across_it(tmp_path, capsys, line_file):
     """A slab moved 0.3 m beyond a straight scarp; ``--breaklines`` a GeoJSON line: the
     default field (the spline) recovers both sides, the line goes to icp.gpkg (styled) and
     icp.json."""
@@ -114,7 +97,7 @@ def test_cli_breaklines_file_gives_a_field_that_jumps_across_it(tmp_path, capsys
     b, a, lines = tmp_path / "b.las", tmp_path / "a.las", tmp_path / "scarp.geojson"
     write_las(b, PointCloud(xyz=_rough(40000, 1), crs=crs))
     write_las(a, PointCloud(xyz=after, crs=crs))
-    _line_geojson(lines, [a0, a1], crs)
+    line_file(lines, [a0, a1], crs, driver="GeoJSON", layer="scarp")
     out = tmp_path / "out"
     argv = ["icp", str(b), str(a), "--cell", "5", "--breaklines", str(lines), "--out", str(out)]
     try:

@@ -21,26 +21,8 @@ ORIGIN = (498000.0, 4234000.0, 20.0)
 UTM10 = pyproj.CRS.from_epsg(32610)
 
 
-def _trace_gpkg(path, xy, crs=UTM10):
-    """A one-line GeoPackage fault trace (through OGR, as users make them)."""
-    from osgeo import ogr, osr
-
-    drv = ogr.GetDriverByName("GPKG")
-    ds = drv.CreateDataSource(str(path))
-    srs = osr.SpatialReference()
-    srs.ImportFromWkt(crs.to_wkt())
-    layer = ds.CreateLayer("fault", srs, ogr.wkbLineString)
-    line = ogr.Geometry(ogr.wkbLineString)
-    for x, y in xy:
-        line.AddPoint_2D(float(x), float(y))
-    f = ogr.Feature(layer.GetLayerDefn())
-    f.SetGeometry(line)
-    layer.CreateFeature(f)
-    ds = None
-
-
 @pytest.fixture(scope="module")
-def pair(tmp_path_factory):
+def pair(tmp_path_factory, line_file):
     d = tmp_path_factory.mktemp("slip_safety")
     fp = make_fault_pair(
         "mls", seed=7, origin=ORIGIN, right_offset_m=(0.0, -0.0181, 0.0), density_pts_m2=20.0
@@ -52,7 +34,7 @@ def pair(tmp_path_factory):
         write_las(p, PointCloud(xyz=sc.points, attributes=attrs, crs=UTM10))
         paths[name] = p
     fault = d / "fault.gpkg"
-    _trace_gpkg(fault, fp.trace_xy)
+    line_file(fault, fp.trace_xy, UTM10)
     return fp, paths, fault
 
 
@@ -133,13 +115,13 @@ def test_geographic_crs_on_metre_coordinates(pair, tmp_path, capsys):
 
 
 def test_failure_after_reading_leaves_the_output_folder_as_it_was(pair, tmp_path, capsys,
-                                                                  snapshot):  # fmt: skip
+                                                                  snapshot, line_file):  # fmt: skip
     """A fault trace away from the data is found only after both epochs are read: the run
     ends with exit 2 naming the fault, and an output folder holding a user's file keeps
     exactly that file (no partial outputs, no staging folder left)."""
     fp, paths, fault = pair
     far = tmp_path / "far.gpkg"
-    _trace_gpkg(far, np.asarray(fp.trace_xy) + [5000.0, 5000.0])
+    line_file(far, np.asarray(fp.trace_xy) + [5000.0, 5000.0], UTM10)
     out = tmp_path / "out"
     out.mkdir()
     (out / "notes.txt").write_text("mine")

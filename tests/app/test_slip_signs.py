@@ -47,21 +47,6 @@ SIGMA_SCALE = 4.0  # |estimate - truth| within 4 σ (plus 1 mm for the scene's o
 SLACK = 0.001
 
 
-def _trace_gpkg(path, xy):
-    drv = ogr.GetDriverByName("GPKG")
-    ds = drv.CreateDataSource(str(path))
-    srs = ogr.osr.SpatialReference()
-    srs.ImportFromWkt(UTM10.to_wkt())
-    layer = ds.CreateLayer("fault", srs, ogr.wkbLineString)
-    line = ogr.Geometry(ogr.wkbLineString)
-    for x, y in xy:
-        line.AddPoint_2D(float(x), float(y))
-    f = ogr.Feature(layer.GetLayerDefn())
-    f.SetGeometry(line)
-    layer.CreateFeature(f)
-    ds = None
-
-
 def _run(paths, fault, out):
     """The CLI run; its console (stderr: the summary lines) as lines."""
     argv = ["displacement", str(paths["before"]), str(paths["after"]), "--fault", str(fault)]
@@ -76,7 +61,7 @@ def _run(paths, fault, out):
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, line_file):
     """Both epochs, the trace digitised north and south, and the two runs' folders and
     console lines."""
     d = tmp_path_factory.mktemp("signs")
@@ -96,8 +81,8 @@ def runs(tmp_path_factory):
         write_las(p, PointCloud(sc.points, {"Classification": sc.classification}, crs=UTM10))
         paths[name] = p
     north, south = d / "north.gpkg", d / "south.gpkg"
-    _trace_gpkg(north, fp.trace_xy)
-    _trace_gpkg(south, fp.trace_xy[::-1])
+    line_file(north, fp.trace_xy, UTM10)
+    line_file(south, fp.trace_xy[::-1], UTM10)
     out = {}
     for name, fault in (("north", north), ("south", south)):
         out[name] = {"folder": d / name, "lines": _run(paths, fault, d / name)}

@@ -19,27 +19,13 @@ from slipmap.cli import main
 from slipmap.core.io.las import PointCloud, write_las
 from slipmap.core.synthetic import Building, make_fault_pair
 
-ogr = pytest.importorskip("osgeo.ogr", reason="GDAL/OGR (python3-gdal) missing")
+pytest.importorskip("osgeo.ogr", reason="GDAL/OGR (python3-gdal) missing")
 
 ORIGIN = (498000.0, 4234000.0, 20.0)
 UTM10 = pyproj.CRS.from_epsg(32610)
 
 
-def _trace_gpkg(path, xy):
-    ds = ogr.GetDriverByName("GPKG").CreateDataSource(str(path))
-    srs = ogr.osr.SpatialReference()
-    srs.ImportFromWkt(UTM10.to_wkt())
-    layer = ds.CreateLayer("fault", srs, ogr.wkbLineString)
-    line = ogr.Geometry(ogr.wkbLineString)
-    for x, y in xy:
-        line.AddPoint_2D(float(x), float(y))
-    f = ogr.Feature(layer.GetLayerDefn())
-    f.SetGeometry(line)
-    layer.CreateFeature(f)
-    ds = None
-
-
-def _run(tmp_path, fp, name):
+def _run(tmp_path, fp, name, line_file):
     d = tmp_path / name
     d.mkdir()
     paths = []
@@ -47,7 +33,7 @@ def _run(tmp_path, fp, name):
         p = d / f"{epoch}.laz"
         write_las(p, PointCloud(sc.points, {"Classification": sc.classification}, crs=UTM10))
         paths.append(str(p))
-    _trace_gpkg(d / "fault.gpkg", fp.trace_xy)
+    line_file(d / "fault.gpkg", fp.trace_xy, UTM10)
     out = d / "out"
     argv = ["displacement", *paths, "--fault", str(d / "fault.gpkg"), "--out", str(out)]
     console = io.StringIO()
@@ -57,7 +43,7 @@ def _run(tmp_path, fp, name):
     return console.getvalue(), json.loads((out / "displacement.json").read_text()), out
 
 
-def test_an_airborne_pair_with_low_roofs_names_the_weak_components(tmp_path):
+def test_an_airborne_pair_with_low_roofs_names_the_weak_components(tmp_path, line_file):
     pitch = math.radians(4.0)
     blds = [
         Building((x, y), 16.0, 10.0, 6.0, rotation_rad=r, roof="gable", roof_pitch_rad=pitch)
@@ -67,7 +53,7 @@ def test_an_airborne_pair_with_low_roofs_names_the_weak_components(tmp_path):
         "als", seed=3, origin=ORIGIN, right_offset_m=(0.0, -0.02, 0.0), buildings=blds,
         extent_m=80.0, vegetation=False, density_pts_m2=10.0,
     )  # fmt: skip
-    console, payload, out = _run(tmp_path, fp, "weak")
+    console, payload, out = _run(tmp_path, fp, "weak", line_file)
     weak = payload["weak_components"]
     # both sides see roofs and ground only: both horizontal components, never dz
     assert {(w["component"], w["side"]) for w in weak} == {
@@ -90,12 +76,12 @@ def test_an_airborne_pair_with_low_roofs_names_the_weak_components(tmp_path):
     assert "Weakly determined: The right-lateral slip is barely determined" in html
 
 
-def test_a_pair_with_planes_facing_every_way_has_no_weak_component(tmp_path):
+def test_a_pair_with_planes_facing_every_way_has_no_weak_component(tmp_path, line_file):
     fp = make_fault_pair(
         "mls", seed=7, origin=ORIGIN, right_offset_m=(0.0, -0.018, 0.0),
         density_pts_m2=25.0, vegetation=False,
     )  # fmt: skip
-    console, payload, out = _run(tmp_path, fp, "strong")
+    console, payload, out = _run(tmp_path, fp, "strong", line_file)
     assert payload["weak_components"] == []
     assert "weakly determined" not in console
     assert "Weakly determined" not in (out / "report.html").read_text()

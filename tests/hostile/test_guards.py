@@ -48,24 +48,8 @@ def _write_tiles(folder, xyz, *, split=2, side=40.0, stray=False):
     return folder
 
 
-def _trace_gpkg(path, xy):
-    from osgeo import ogr, osr
-
-    ds = ogr.GetDriverByName("GPKG").CreateDataSource(str(path))
-    srs = osr.SpatialReference()
-    srs.ImportFromWkt(CRS.to_wkt())
-    layer = ds.CreateLayer("fault", srs, ogr.wkbLineString)
-    line = ogr.Geometry(ogr.wkbLineString)
-    for x, y in xy:
-        line.AddPoint_2D(float(x), float(y))
-    f = ogr.Feature(layer.GetLayerDefn())
-    f.SetGeometry(line)
-    layer.CreateFeature(f)
-    ds = None
-
-
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def data(tmp_path_factory, line_file):
     """Small epochs: one file each (with and without a stray point), tile sets of them, a
     fault pair and its tiles, a fault trace."""
     from slipmap.core.synthetic import make_fault_pair
@@ -97,7 +81,7 @@ def data(tmp_path_factory):
             write_las(f, PointCloud(xyz=c.xyz + [lo[0] - X0, lo[1] - Y0, 0.0], crs=CRS))
         out[name + "_tiles"] = tiles
     out["fault"] = d / "fault.gpkg"
-    _trace_gpkg(out["fault"], fp.trace_xy)
+    line_file(out["fault"], fp.trace_xy, CRS)
     out["trace_xy"] = fp.trace_xy
     out["pair"] = fp
     out["root"] = d
