@@ -242,6 +242,10 @@ def step_edges(
     ratio: float = DETECT_RATIO,
     n_sigma: float = DETECT_SIGMAS,
     floor_m: float = DETECT_FLOOR_M,
+    gradient: np.ndarray | None = None,
+    spacing_m: tuple | None = None,
+    z: np.ndarray | None = None,
+    sigma_gradient: np.ndarray | None = None,
 ):
     """Edges of a regular grid of vectors across which the field steps.
 
@@ -258,6 +262,32 @@ def step_edges(
     over its two edges: the same test on the pair of edges (``J_i + J_(i+1)``, in the same
     direction, against ``J_(i-1)`` and ``J_(i+2)``) marks the pair's larger edge.
 
+    **A block that moves rigidly** (translation and rotation: a rotational slump) breaks the
+    second test: a rotation ``w`` changes the motion by ``w x Δp`` from one cell to the next
+    (3° over 5 m cells: 0.26 m), as much as the jump across the block's outline, so no edge
+    stands out. Where the vectors come with their own ``gradient`` (ICP cells estimate it
+    from their points: a rigid cell's rotation, an affine cell's full gradient), the same two
+    tests are also run on the part of each difference that the two cells' gradients do not
+    explain,
+
+        ``E_i = J_i - (G_i + G_(i+1)) / 2 · Δp_i``
+
+    (``Δp_i``: the step between the two cells' centres, their mean heights ``z`` included;
+    the mean of the two gradients makes ``E`` vanish for any field whose gradient changes
+    linearly, a quadratic field included). Inside a rigid block, and anywhere the cells'
+    gradients describe the field, ``E`` is the cells' noise; across the block's outline it
+    is the jump less half the block's rotation over one cell. An edge is a step when either
+    difference passes (``J``: a translating slab, the steps of cells whose gradients are
+    poorly determined; ``E``: a rotating block). What the cells' gradients do not hold
+    (a rigid cell's strain on a lobe) stays in ``E`` and changes slowly there, so the ratio
+    test still keeps smooth fields whole. The sigma of ``E`` adds the gradients' own,
+    ``|Δp| sigma_gradient / 2`` per cell. The pair test on ``E`` takes the two outer cells'
+    gradients over the two cells, so it also runs where the middle cell is missing (a
+    straddling cell that the median test or the point count removed; the step is then put
+    on the pair's first edge). This uses the cells' rotations rather than a plane fitted to
+    each side's neighbours: around a small block (18 m on 5 m cells) a side holds two or
+    three usable cells, too few for a local affine fit, while every cell carries its own.
+
     Parameters
     ----------
     d : (R, C, K) float64
@@ -266,6 +296,15 @@ def step_edges(
         Usable vectors (default: all finite).
     sigma : (R, C) or (R, C, K) float64, optional
         1-sigma of the vectors (per component or one value), metres; default 0.
+    gradient : (R, C, K, 3) float64, optional
+        Each vector's gradient ``∂d_k / ∂(x, y, z)`` (dimensionless); NaN where unknown
+        (that cell's edges get the step test on ``J`` only).
+    spacing_m : (float, float), optional
+        ``(x[c + 1] - x[c], y[r + 1] - y[r])``, metres (signed); required with ``gradient``.
+    z : (R, C) float64, optional
+        The vectors' heights (an ICP cell's mean z), metres; default: level (0).
+    sigma_gradient : (R, C) float64, optional
+        1-sigma of each gradient (its rotation vector's norm, radians); default 0.
 
     Returns
     -------
@@ -287,49 +326,104 @@ def step_edges(
         s2 = np.sum(sg**2, axis=2) if sg.ndim == 3 else sg**2
         s2 = np.where(np.isfinite(s2), s2, np.inf)
     d = np.where(ok[:, :, None], d, np.nan)
+    rows = _steps_along(d, s2, ratio, n_sigma, floor_m)
+    cols = _steps_along(np.transpose(d, (1, 0, 2)), s2.T, ratio, n_sigma, floor_m).T
+    if gradient is None:
+        return rows, cols
+    if spacing_m is None:
+        raise InvalidParameterError("step_edges: spacing_m is required with gradient")
+    g = np.asarray(gradient, dtype=np.float64)
+    if g.shape != d.shape + (3,):
+        raise InvalidParameterError(f"gradient must be {d.shape + (3,)}, got {g.shape}")
+    g = np.where(ok[:, :, None, None], g, np.nan)
+    zz = np.zeros(ok.shape) if z is None else np.asarray(z, dtype=np.float64)
+    zz = np.where(np.isfinite(zz), zz, np.nan)
+    if sigma_gradient is None:
+        sgg = np.zeros(ok.shape)
+    else:
+        sgg = np.asarray(sigma_gradient, dtype=np.float64) ** 2
+        sgg = np.where(np.isfinite(sgg), sgg, np.inf)
+    sx, sy = float(spacing_m[0]), float(spacing_m[1])
+    t = (1, 0, 2)
+    rows |= _steps_along(d, s2, ratio, n_sigma, floor_m, grad=(g, zz, sgg, sx, 0.0))
+    cols |= _steps_along(
+        np.transpose(d, t), s2.T, ratio, n_sigma, floor_m,
+        grad=(np.transpose(g, (1, 0, 2, 3)), zz.T, sgg.T, 0.0, sy),
+    ).T  # fmt: skip
+    return rows, cols
 
-    def along(dd, ss):  # steps between neighbours along axis 1
-        j = dd[:, 1:] - dd[:, :-1]  # (R, C-1, K)
-        js = ss[:, 1:] + ss[:, :-1]
-        pad = np.full_like(j[:, :1], np.nan)
-        prev = np.concatenate([pad, j[:, :-1]], axis=1)
-        nxt = np.concatenate([j[:, 1:], pad], axis=1)
-        both = np.stack([prev, nxt])
-        have = np.all(np.isfinite(both), axis=3)  # (2, R, C-1)
-        n_have = have.sum(axis=0)
-        bg = np.where(
-            n_have[..., None] > 0,
-            np.nansum(both, axis=0) / np.maximum(n_have, 1)[..., None],
-            np.nan,
-        )
-        dev = np.linalg.norm(j - bg, axis=2)
-        # variance of J - mean(J_prev, J_next): the edge's two vectors enter with weight
-        # 1.5, the outer ones with 0.5 (both neighbours), roughly 1.25 x var(J)
-        sd = np.sqrt(1.25 * js)
-        mag = np.linalg.norm(j, axis=2)
-        other = np.nanmax(np.where(have, np.linalg.norm(both, axis=3), -np.inf), axis=0)
+
+def _differences(dd, ss, k, grad):
+    """Differences over ``k`` cells along axis 1 and their variances: ``J`` (no ``grad``)
+    or ``E`` (``grad = (G, z, sigma_G², step_x, step_y)``, see :func:`step_edges`)."""
+    j = dd[:, k:] - dd[:, :-k]
+    js = ss[:, k:] + ss[:, :-k]
+    if grad is None:
+        return j, js
+    g, zz, sgg, step_x, step_y = grad
+    dz = zz[:, k:] - zz[:, :-k]
+    dp = np.stack(
+        [np.full(dz.shape, k * step_x), np.full(dz.shape, k * step_y), np.nan_to_num(dz)],
+        axis=-1,
+    )
+    gm = 0.5 * (g[:, k:] + g[:, :-k])
+    e = j - np.einsum("...ij,...j->...i", gm, dp)
+    es = js + 0.25 * np.sum(dp**2, axis=-1) * (sgg[:, k:] + sgg[:, :-k])
+    return e, es
+
+
+def _steps_along(dd, ss, ratio, n_sigma, floor_m, grad=None):
+    """The step test of :func:`step_edges` between neighbours along axis 1: ``(R, C - 1)``
+    bool, on ``J`` (``grad`` None) or on ``E``."""
+    j, js = _differences(dd, ss, 1, grad)  # (R, C-1, K)
+    pad = np.full_like(j[:, :1], np.nan)
+    prev = np.concatenate([pad, j[:, :-1]], axis=1)
+    nxt = np.concatenate([j[:, 1:], pad], axis=1)
+    both = np.stack([prev, nxt])
+    have = np.all(np.isfinite(both), axis=3)  # (2, R, C-1)
+    n_have = have.sum(axis=0)
+    bg = np.where(
+        n_have[..., None] > 0,
+        np.nansum(both, axis=0) / np.maximum(n_have, 1)[..., None],
+        np.nan,
+    )
+    dev = np.linalg.norm(j - bg, axis=2)
+    # variance of J - mean(J_prev, J_next): the edge's two vectors enter with weight
+    # 1.5, the outer ones with 0.5 (both neighbours), roughly 1.25 x var(J)
+    sd = np.sqrt(1.25 * js)
+    mag = np.linalg.norm(j, axis=2)
+    other = np.nanmax(np.where(have, np.linalg.norm(both, axis=3), -np.inf), axis=0)
+    with np.errstate(invalid="ignore"):
         step = (
             (n_have > 0)
             & np.isfinite(mag)
             & (dev > np.maximum(n_sigma * sd, floor_m))
             & (mag > ratio * other)
         )
-        # a cell that straddles the step takes a motion between the sides' and splits the
-        # jump over its two edges: the same test on the pair (J_i + J_(i+1) against J_(i-1)
-        # and J_(i+2)), the step put on the pair's larger edge
+    if j.shape[1] < 2:
+        return step
+    # a cell that straddles the step takes a motion between the sides' and splits the
+    # jump over its two edges: the same test on the pair (J_i + J_(i+1) against J_(i-1)
+    # and J_(i+2)), the step put on the pair's larger edge
+    if grad is None:
         j2 = j[:, :-1] + j[:, 1:]  # (R, C-2, K)
         js2 = js[:, :-1] + js[:, 1:]
-        prev2, next2 = prev[:, :-1], nxt[:, 1:]
-        both2 = np.stack([prev2, next2])
-        have2 = np.all(np.isfinite(both2), axis=3)
-        n2 = have2.sum(axis=0)
-        bg2 = np.where(
-            n2[..., None] > 0, np.nansum(both2, axis=0) / np.maximum(n2, 1)[..., None], np.nan
-        )
-        dev2 = np.linalg.norm(j2 - 2.0 * bg2, axis=2)
-        mag2 = np.linalg.norm(j2, axis=2)
-        other2 = np.nanmax(np.where(have2, np.linalg.norm(both2, axis=3), -np.inf), axis=0)
         same_way = np.sum(j[:, :-1] * j[:, 1:], axis=2) > 0
+    else:  # over the two cells with the outer cells' gradients: the middle may be missing
+        j2, js2 = _differences(dd, ss, 2, grad)
+        dot = np.sum(j[:, :-1] * j[:, 1:], axis=2)
+        same_way = ~np.isfinite(dot) | (dot > 0)
+    prev2, next2 = prev[:, :-1], nxt[:, 1:]
+    both2 = np.stack([prev2, next2])
+    have2 = np.all(np.isfinite(both2), axis=3)
+    n2 = have2.sum(axis=0)
+    bg2 = np.where(
+        n2[..., None] > 0, np.nansum(both2, axis=0) / np.maximum(n2, 1)[..., None], np.nan
+    )
+    dev2 = np.linalg.norm(j2 - 2.0 * bg2, axis=2)
+    mag2 = np.linalg.norm(j2, axis=2)
+    other2 = np.nanmax(np.where(have2, np.linalg.norm(both2, axis=3), -np.inf), axis=0)
+    with np.errstate(invalid="ignore"):
         pair = (
             (n2 > 0)
             & np.isfinite(mag2)
@@ -337,14 +431,11 @@ def step_edges(
             & (dev2 > np.maximum(n_sigma * np.sqrt(1.25 * js2), floor_m))
             & (mag2 > 2.0 * ratio * other2)
         )
-        r_i, c_i = np.nonzero(pair)
-        first = mag[r_i, c_i] >= mag[r_i, c_i + 1]
-        step[r_i, np.where(first, c_i, c_i + 1)] = True
-        return step
-
-    rows = along(d, s2)
-    cols = along(np.transpose(d, (1, 0, 2)), s2.T).T
-    return rows, cols
+    r_i, c_i = np.nonzero(pair)
+    with np.errstate(invalid="ignore"):
+        second = mag[r_i, c_i + 1] > mag[r_i, c_i]
+    step[r_i, np.where(second, c_i + 1, c_i)] = True
+    return step
 
 
 def detect_breaklines(
@@ -358,6 +449,10 @@ def detect_breaklines(
     n_sigma: float = DETECT_SIGMAS,
     floor_m: float = DETECT_FLOOR_M,
     min_cells: float = DETECT_MIN_CELLS,
+    gradient: np.ndarray | None = None,
+    z: np.ndarray | None = None,
+    sigma_gradient: np.ndarray | None = None,
+    bridge_cells: float = 0.0,
 ) -> Breaklines | None:
     """Breaklines of a regular grid of displacement vectors (ICP cells, PIV vectors).
 
@@ -383,6 +478,16 @@ def detect_breaklines(
         As in :func:`step_edges`.
     min_cells : float
         Smallest extent of a line, in cells.
+    gradient, z, sigma_gradient : optional
+        The vectors' own gradients ``(R, C, K, 3)``, heights ``(R, C)`` (metres) and the
+        gradients' 1-sigma ``(R, C)`` (radians), as in :func:`step_edges`: the edge of a
+        block that moves rigidly (translation and rotation) is found too.
+    bridge_cells : float
+        Step edges whose corners lie at most this many cells apart are chained as if they
+        touched (default 0: only edges that share a corner). The cells that straddle a
+        block's outline misfit their neighbours and are removed before the detection
+        (the median test), so the outline's steps come in pieces a cell apart; the ICP
+        cells pass 1. A lone wrong cell still boxes itself in (1.4 cells) and is dropped.
 
     Returns
     -------
@@ -405,8 +510,9 @@ def detect_breaklines(
     sx = float(x[1] - x[0]) if n_c > 1 else float(abs(y[1] - y[0]))
     sy = float(y[1] - y[0]) if n_r > 1 else float(abs(sx))
     rows, cols = step_edges(
-        d, valid=valid, sigma=sigma, ratio=ratio, n_sigma=n_sigma, floor_m=floor_m
-    )
+        d, valid=valid, sigma=sigma, ratio=ratio, n_sigma=n_sigma, floor_m=floor_m,
+        gradient=gradient, spacing_m=(sx, sy), z=z, sigma_gradient=sigma_gradient,
+    )  # fmt: skip
     # corners (i, j), i = 0..R, j = 0..C, at x[0] + (j - 0.5) sx, y[0] + (i - 0.5) sy
     n_cc = n_c + 1
     r, c = np.nonzero(rows)  # edge between (r, c), (r, c+1): corners (r, c+1)-(r+1, c+1)
@@ -419,6 +525,8 @@ def detect_breaklines(
     if a.size == 0:
         return None
     n_nodes = (n_r + 1) * n_cc
+    if bridge_cells > 0:  # join step edges whose corners are this close (across a gap)
+        a, b = _bridged(a, b, n_cc, bridge_cells)
     g = coo_matrix((np.ones(a.size), (a, b)), shape=(n_nodes, n_nodes)).tocsr()
     g = g + g.T
     _, label = connected_components(g, directed=False)
@@ -467,6 +575,17 @@ def detect_breaklines(
             line[end] = line[end] + reach * t
         parts.append(line)
     return from_sequence(parts) if parts else None
+
+
+def _bridged(a, b, n_cc, reach):
+    """The corner graph's edges ``a - b`` (corner indices on a grid ``n_cc`` corners
+    wide) plus an edge between every two corners of distinct step edges at most ``reach``
+    corner spacings apart."""
+    used = np.unique(np.concatenate([a, b]))
+    i, j = np.divmod(used, n_cc)
+    dist = np.hypot(i[:, None] - i[None, :], j[:, None] - j[None, :])
+    p, q = np.nonzero(np.triu(dist <= reach + 1e-9, k=1))
+    return np.concatenate([a, used[p]]), np.concatenate([b, used[q]])
 
 
 def _exit_distance(p, t, lo, hi) -> float:
