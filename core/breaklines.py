@@ -225,6 +225,11 @@ DETECT_RATIO = 3.0
 DETECT_SIGMAS = 5.0
 #: ... and this many metres (the noise floor of a "jump")
 DETECT_FLOOR_M = 0.05
+#: with the vectors' gradients (a rotating block), the neighbouring differences that a step
+#: must exceed ``ratio`` times are at least this share of the raw ones: the cells' gradients
+#: are trusted to explain no more than 70 % of them (rigid 5 m cells on the harness's slump
+#: report 3.6-4.3° for its 3°; a rigid cell reports a lobe's rotation, not its strain)
+DETECT_GRADIENT_SHARE = 0.3
 #: a line is kept when its cell edges span this many cells at least (a single wrong cell
 #: is boxed by 4 jumping edges over 1.4 cells)
 DETECT_MIN_CELLS = 3.0
@@ -372,6 +377,11 @@ def _differences(dd, ss, k, grad):
     return e, es
 
 
+def _both_finite(a, b):
+    """Both of two (2-stacked) neighbour differences finite: (2, R, C')."""
+    return np.all(np.isfinite(np.stack([a, b])), axis=3)
+
+
 def _steps_along(dd, ss, ratio, n_sigma, floor_m, grad=None):
     """The step test of :func:`step_edges` between neighbours along axis 1: ``(R, C - 1)``
     bool, on ``J`` (``grad`` None) or on ``E``."""
@@ -381,6 +391,15 @@ def _steps_along(dd, ss, ratio, n_sigma, floor_m, grad=None):
     nxt = np.concatenate([j[:, 1:], pad], axis=1)
     both = np.stack([prev, nxt])
     have = np.all(np.isfinite(both), axis=3)  # (2, R, C-1)
+    # with gradients: the neighbours' E, but at least a share of their J (the cells'
+    # gradients are trusted to explain no more than 1 - DETECT_GRADIENT_SHARE of it)
+    floor_other = np.zeros(j.shape[:2])
+    if grad is not None:
+        jr, _ = _differences(dd, ss, 1, None)
+        prev_r = np.concatenate([pad, jr[:, :-1]], axis=1)
+        next_r = np.concatenate([jr[:, 1:], pad], axis=1)
+        raw = np.linalg.norm(np.stack([prev_r, next_r]), axis=3)
+        floor_other = DETECT_GRADIENT_SHARE * np.max(np.where(have, raw, 0.0), axis=0)
     n_have = have.sum(axis=0)
     bg = np.where(
         n_have[..., None] > 0,
@@ -393,6 +412,7 @@ def _steps_along(dd, ss, ratio, n_sigma, floor_m, grad=None):
     sd = np.sqrt(1.25 * js)
     mag = np.linalg.norm(j, axis=2)
     other = np.nanmax(np.where(have, np.linalg.norm(both, axis=3), -np.inf), axis=0)
+    other = np.maximum(other, floor_other)
     with np.errstate(invalid="ignore"):
         step = (
             (n_have > 0)
@@ -411,6 +431,11 @@ def _steps_along(dd, ss, ratio, n_sigma, floor_m, grad=None):
         same_way = np.sum(j[:, :-1] * j[:, 1:], axis=2) > 0
     else:  # over the two cells with the outer cells' gradients: the middle may be missing
         j2, js2 = _differences(dd, ss, 2, grad)
+        raw2 = np.stack([prev_r[:, :-1], next_r[:, 1:]])
+        floor2 = DETECT_GRADIENT_SHARE * np.max(
+            np.where(_both_finite(prev[:, :-1], nxt[:, 1:]), np.linalg.norm(raw2, axis=3), 0.0),
+            axis=0,
+        )
         dot = np.sum(j[:, :-1] * j[:, 1:], axis=2)
         same_way = ~np.isfinite(dot) | (dot > 0)
     prev2, next2 = prev[:, :-1], nxt[:, 1:]
@@ -423,6 +448,7 @@ def _steps_along(dd, ss, ratio, n_sigma, floor_m, grad=None):
     dev2 = np.linalg.norm(j2 - 2.0 * bg2, axis=2)
     mag2 = np.linalg.norm(j2, axis=2)
     other2 = np.nanmax(np.where(have2, np.linalg.norm(both2, axis=3), -np.inf), axis=0)
+    other2 = np.maximum(other2, floor_other[:, :-1] if grad is None else floor2)
     with np.errstate(invalid="ignore"):
         pair = (
             (n2 > 0)
@@ -623,3 +649,106 @@ def _douglas_peucker(line: np.ndarray, tol: float) -> np.ndarray:
     left = _douglas_peucker(line[: k + 1], tol)
     right = _douglas_peucker(line[k:], tol)
     return np.vstack([left[:-1], right])
+
+
+def _step_edges_reference(
+    d, *, valid=None, sigma=None, ratio=DETECT_RATIO, n_sigma=DETECT_SIGMAS,
+    floor_m=DETECT_FLOOR_M, gradient=None, spacing_m=None, z=None, sigma_gradient=None,
+):  # fmt: skip
+    """Slow, obvious reference of :func:`step_edges`: one edge at a time, in loops."""
+    d = np.asarray(d, dtype=np.float64)
+    if d.ndim == 2:
+        d = d[:, :, None]
+    n_r, n_c, n_k = d.shape
+    ok = np.all(np.isfinite(d), axis=2)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool)
+    s2 = np.zeros((n_r, n_c))
+    if sigma is not None:
+        sg = np.asarray(sigma, dtype=np.float64)
+        s2 = np.sum(sg**2, axis=2) if sg.ndim == 3 else sg**2
+        s2 = np.where(np.isfinite(s2), s2, np.inf)
+    sgg = np.zeros((n_r, n_c))
+    if sigma_gradient is not None:
+        sgg = np.where(np.isfinite(sigma_gradient), np.asarray(sigma_gradient) ** 2, np.inf)
+    zz = np.zeros((n_r, n_c)) if z is None else np.asarray(z, dtype=np.float64)
+
+    def diff(a, b, step, use_grad):  # cells a -> b (r, c), ``step`` (dx, dy) between them
+        if not (ok[a] and ok[b]):
+            return None, None
+        j = d[b] - d[a]
+        var = s2[a] + s2[b]
+        if use_grad:
+            dz = zz[b] - zz[a]
+            dp = np.array([step[0], step[1], dz if np.isfinite(dz) else 0.0])
+            gm = 0.5 * (gradient[a] + gradient[b])
+            j = j - gm @ dp
+            var = var + 0.25 * float(dp @ dp) * (sgg[a] + sgg[b])
+        if not np.all(np.isfinite(j)):
+            return None, None
+        return j, var
+
+    def test(jd, js, others, scale, raw=()):
+        if jd is None or not others:
+            return False
+        bg = np.mean(others, axis=0)
+        dev = np.linalg.norm(jd - scale * bg)
+        mag = np.linalg.norm(jd)
+        other = max(np.linalg.norm(o) for o in others)
+        if raw:  # the share of the raw differences the gradients may leave unexplained
+            other = max(other, DETECT_GRADIENT_SHARE * max(np.linalg.norm(o) for o in raw))
+        return bool(
+            dev > max(n_sigma * np.sqrt(1.25 * js), floor_m) and mag > scale * ratio * other
+        )
+
+    out = []
+    for axis, (n_line, n_along) in enumerate(((n_r, n_c), (n_c, n_r))):
+        steps = np.zeros((n_line, n_along - 1), dtype=bool)
+        passes = [False] if gradient is None else [False, True]
+        for use_grad in passes:
+            for line in range(n_line):
+
+                def cell(i, line=line, axis=axis):
+                    return (line, i) if axis == 0 else (i, line)
+
+                unit = (spacing_m[0], 0.0) if axis == 0 else (0.0, spacing_m[1])
+                if spacing_m is None:
+                    unit = (0.0, 0.0)
+
+                def one(i, use_grad=use_grad, cell=cell, unit=unit, n_along=n_along):
+                    if i < 0 or i >= n_along - 1:
+                        return None, None
+                    return diff(cell(i), cell(i + 1), unit, use_grad)
+
+                def raw(idx, use_grad=use_grad, one=one, cell=cell):
+                    if not use_grad:
+                        return ()
+                    out = []
+                    for i in idx:
+                        if one(i)[0] is not None:
+                            out.append(diff(cell(i), cell(i + 1), (0.0, 0.0), False)[0])
+                    return tuple(out)
+
+                for i in range(n_along - 1):
+                    jd, js = one(i)
+                    others = [o for o in (one(i - 1)[0], one(i + 1)[0]) if o is not None]
+                    if test(jd, js, others, 1.0, raw((i - 1, i + 1))):
+                        steps[line, i] = True
+                for i in range(n_along - 2):
+                    a, b = one(i)[0], one(i + 1)[0]
+                    if use_grad:
+                        step2 = (2 * unit[0], 2 * unit[1])
+                        j2, js2 = diff(cell(i), cell(i + 2), step2, True)
+                        if a is not None and b is not None and float(a @ b) <= 0:
+                            continue
+                    else:
+                        if a is None or b is None or float(a @ b) <= 0:
+                            continue
+                        j2, js2 = a + b, one(i)[1] + one(i + 1)[1]
+                    others = [o for o in (one(i - 1)[0], one(i + 2)[0]) if o is not None]
+                    if test(j2, js2, others, 2.0, raw((i - 1, i + 2))):
+                        second = a is not None and b is not None
+                        second = second and np.linalg.norm(b) > np.linalg.norm(a)
+                        steps[line, i + 1 if second else i] = True
+        out.append(steps if axis == 0 else steps.T)
+    return out[0], out[1]
