@@ -478,7 +478,6 @@ def detect_breaklines(
     gradient: np.ndarray | None = None,
     z: np.ndarray | None = None,
     sigma_gradient: np.ndarray | None = None,
-    bridge_cells: float = 0.0,
 ) -> Breaklines | None:
     """Breaklines of a regular grid of displacement vectors (ICP cells, PIV vectors).
 
@@ -508,12 +507,6 @@ def detect_breaklines(
         The vectors' own gradients ``(R, C, K, 3)``, heights ``(R, C)`` (metres) and the
         gradients' 1-sigma ``(R, C)`` (radians), as in :func:`step_edges`: the edge of a
         block that moves rigidly (translation and rotation) is found too.
-    bridge_cells : float
-        Step edges whose corners lie at most this many cells apart are chained as if they
-        touched (default 0: only edges that share a corner). The cells that straddle a
-        block's outline misfit their neighbours and are removed before the detection
-        (the median test), so the outline's steps come in pieces a cell apart; the ICP
-        cells pass 1. A lone wrong cell still boxes itself in (1.4 cells) and is dropped.
 
     Returns
     -------
@@ -551,8 +544,6 @@ def detect_breaklines(
     if a.size == 0:
         return None
     n_nodes = (n_r + 1) * n_cc
-    if bridge_cells > 0:  # join step edges whose corners are this close (across a gap)
-        a, b = _bridged(a, b, n_cc, bridge_cells)
     g = coo_matrix((np.ones(a.size), (a, b)), shape=(n_nodes, n_nodes)).tocsr()
     g = g + g.T
     _, label = connected_components(g, directed=False)
@@ -601,17 +592,6 @@ def detect_breaklines(
             line[end] = line[end] + reach * t
         parts.append(line)
     return from_sequence(parts) if parts else None
-
-
-def _bridged(a, b, n_cc, reach):
-    """The corner graph's edges ``a - b`` (corner indices on a grid ``n_cc`` corners
-    wide) plus an edge between every two corners of distinct step edges at most ``reach``
-    corner spacings apart."""
-    used = np.unique(np.concatenate([a, b]))
-    i, j = np.divmod(used, n_cc)
-    dist = np.hypot(i[:, None] - i[None, :], j[:, None] - j[None, :])
-    p, q = np.nonzero(np.triu(dist <= reach + 1e-9, k=1))
-    return np.concatenate([a, used[p]]), np.concatenate([b, used[q]])
 
 
 def _exit_distance(p, t, lo, hi) -> float:
