@@ -227,8 +227,9 @@ DETECT_SIGMAS = 5.0
 DETECT_FLOOR_M = 0.05
 #: with the vectors' gradients (a rotating block), the neighbouring differences that a step
 #: must exceed ``ratio`` times are at least this share of the raw ones: the cells' gradients
-#: are trusted to explain no more than 70 % of them (rigid 5 m cells on the harness's slump
-#: report 3.6-4.3° for its 3°; a rigid cell reports a lobe's rotation, not its strain)
+#: are trusted to explain no more than 70 % of them (on the harness's slump, 5 m rigid cells
+#: inside the 3° block report 2.5-3.1°, those at its edge 0.05-0.4°; a rigid cell reports a
+#: lobe's rotation, not its strain)
 DETECT_GRADIENT_SHARE = 0.3
 #: a line is kept when its cell edges span this many cells at least (a single wrong cell
 #: is boxed by 4 jumping edges over 1.4 cells)
@@ -285,7 +286,13 @@ def step_edges(
     difference passes (``J``: a translating slab, the steps of cells whose gradients are
     poorly determined; ``E``: a rotating block). What the cells' gradients do not hold
     (a rigid cell's strain on a lobe) stays in ``E`` and changes slowly there, so the ratio
-    test still keeps smooth fields whole. The sigma of ``E`` adds the gradients' own,
+    test still keeps smooth fields whole; and as a cell's gradient is less certain than its
+    motion (one that straddles an edge reports a blend), the neighbours' ``|E|`` that the
+    ratio test compares with is taken as at least :data:`DETECT_GRADIENT_SHARE` of their
+    ``|J|``. On the lobes that the step test leaves alone, with their exact gradients or
+    only their rotations, ``E`` adds no line (tests/core/test_breaklines_rigid.py); where
+    the step test already cuts a lobe 2-3 cells in radius, so does ``E``, and the points
+    drop the line (``refine_breaklines``). The sigma of ``E`` adds the gradients' own,
     ``|Δp| sigma_gradient / 2`` per cell. The pair test on ``E`` takes the two outer cells'
     gradients over the two cells, so it also runs where the middle cell is missing (a
     straddling cell that the median test or the point count removed; the step is then put
