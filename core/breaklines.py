@@ -225,6 +225,12 @@ DETECT_RATIO = 3.0
 DETECT_SIGMAS = 5.0
 #: ... and this many metres (the noise floor of a "jump")
 DETECT_FLOOR_M = 0.05
+#: with the vectors' gradients (a rotating block), the neighbouring differences that a step
+#: must exceed ``ratio`` times are at least this share of the raw ones: the cells' gradients
+#: are trusted to explain no more than 70 % of them (on the harness's slump, 5 m rigid cells
+#: inside the 3° block report 2.5-3.1°, those at its edge 0.05-0.4°; a rigid cell reports a
+#: lobe's rotation, not its strain)
+DETECT_GRADIENT_SHARE = 0.3
 #: a line is kept when its cell edges span this many cells at least (a single wrong cell
 #: is boxed by 4 jumping edges over 1.4 cells)
 DETECT_MIN_CELLS = 3.0
@@ -242,6 +248,10 @@ def step_edges(
     ratio: float = DETECT_RATIO,
     n_sigma: float = DETECT_SIGMAS,
     floor_m: float = DETECT_FLOOR_M,
+    gradient: np.ndarray | None = None,
+    spacing_m: tuple | None = None,
+    z: np.ndarray | None = None,
+    sigma_gradient: np.ndarray | None = None,
 ):
     """Edges of a regular grid of vectors across which the field steps.
 
@@ -258,6 +268,38 @@ def step_edges(
     over its two edges: the same test on the pair of edges (``J_i + J_(i+1)``, in the same
     direction, against ``J_(i-1)`` and ``J_(i+2)``) marks the pair's larger edge.
 
+    **A block that moves rigidly** (translation and rotation: a rotational slump) breaks the
+    second test: a rotation ``w`` changes the motion by ``w x Δp`` from one cell to the next
+    (3° over 5 m cells: 0.26 m), as much as the jump across the block's outline, so no edge
+    stands out. Where the vectors come with their own ``gradient`` (ICP cells estimate it
+    from their points: a rigid cell's rotation, an affine cell's full gradient), the same two
+    tests are also run on the part of each difference that the two cells' gradients do not
+    explain,
+
+        ``E_i = J_i - (G_i + G_(i+1)) / 2 · Δp_i``
+
+    (``Δp_i``: the step between the two cells' centres, their mean heights ``z`` included;
+    the mean of the two gradients makes ``E`` vanish for any field whose gradient changes
+    linearly, a quadratic field included). Inside a rigid block, and anywhere the cells'
+    gradients describe the field, ``E`` is the cells' noise; across the block's outline it
+    is the jump less half the block's rotation over one cell. An edge is a step when either
+    difference passes (``J``: a translating slab, the steps of cells whose gradients are
+    poorly determined; ``E``: a rotating block). What the cells' gradients do not hold
+    (a rigid cell's strain on a lobe) stays in ``E`` and changes slowly there, so the ratio
+    test still keeps smooth fields whole; and as a cell's gradient is less certain than its
+    motion (one that straddles an edge reports a blend), the neighbours' ``|E|`` that the
+    ratio test compares with is taken as at least :data:`DETECT_GRADIENT_SHARE` of their
+    ``|J|``. On the lobes that the step test leaves alone, with their exact gradients or
+    only their rotations, ``E`` adds no line (tests/core/test_breaklines_rigid.py); where
+    the step test already cuts a lobe 2-3 cells in radius, so does ``E``, and the points
+    drop the line (``refine_breaklines``). The sigma of ``E`` adds the gradients' own,
+    ``|Δp| sigma_gradient / 2`` per cell. The pair test on ``E`` takes the two outer cells'
+    gradients over the two cells, so it also runs where the middle cell is missing (a
+    straddling cell that the median test or the point count removed; the step is then put
+    on the pair's first edge). This uses the cells' rotations rather than a plane fitted to
+    each side's neighbours: around a small block (18 m on 5 m cells) a side holds two or
+    three usable cells, too few for a local affine fit, while every cell carries its own.
+
     Parameters
     ----------
     d : (R, C, K) float64
@@ -266,6 +308,15 @@ def step_edges(
         Usable vectors (default: all finite).
     sigma : (R, C) or (R, C, K) float64, optional
         1-sigma of the vectors (per component or one value), metres; default 0.
+    gradient : (R, C, K, 3) float64, optional
+        Each vector's gradient ``∂d_k / ∂(x, y, z)`` (dimensionless); NaN where unknown
+        (that cell's edges get the step test on ``J`` only).
+    spacing_m : (float, float), optional
+        ``(x[c + 1] - x[c], y[r + 1] - y[r])``, metres (signed); required with ``gradient``.
+    z : (R, C) float64, optional
+        The vectors' heights (an ICP cell's mean z), metres; default: level (0).
+    sigma_gradient : (R, C) float64, optional
+        1-sigma of each gradient (its rotation vector's norm, radians); default 0.
 
     Returns
     -------
@@ -287,49 +338,125 @@ def step_edges(
         s2 = np.sum(sg**2, axis=2) if sg.ndim == 3 else sg**2
         s2 = np.where(np.isfinite(s2), s2, np.inf)
     d = np.where(ok[:, :, None], d, np.nan)
+    rows = _steps_along(d, s2, ratio, n_sigma, floor_m)
+    cols = _steps_along(np.transpose(d, (1, 0, 2)), s2.T, ratio, n_sigma, floor_m).T
+    if gradient is None:
+        return rows, cols
+    if spacing_m is None:
+        raise InvalidParameterError("step_edges: spacing_m is required with gradient")
+    g = np.asarray(gradient, dtype=np.float64)
+    if g.shape != d.shape + (3,):
+        raise InvalidParameterError(f"gradient must be {d.shape + (3,)}, got {g.shape}")
+    g = np.where(ok[:, :, None, None], g, np.nan)
+    zz = np.zeros(ok.shape) if z is None else np.asarray(z, dtype=np.float64)
+    zz = np.where(np.isfinite(zz), zz, np.nan)
+    if sigma_gradient is None:
+        sgg = np.zeros(ok.shape)
+    else:
+        sgg = np.asarray(sigma_gradient, dtype=np.float64) ** 2
+        sgg = np.where(np.isfinite(sgg), sgg, np.inf)
+    sx, sy = float(spacing_m[0]), float(spacing_m[1])
+    t = (1, 0, 2)
+    rows |= _steps_along(d, s2, ratio, n_sigma, floor_m, grad=(g, zz, sgg, sx, 0.0))
+    cols |= _steps_along(
+        np.transpose(d, t), s2.T, ratio, n_sigma, floor_m,
+        grad=(np.transpose(g, (1, 0, 2, 3)), zz.T, sgg.T, 0.0, sy),
+    ).T  # fmt: skip
+    return rows, cols
 
-    def along(dd, ss):  # steps between neighbours along axis 1
-        j = dd[:, 1:] - dd[:, :-1]  # (R, C-1, K)
-        js = ss[:, 1:] + ss[:, :-1]
-        pad = np.full_like(j[:, :1], np.nan)
-        prev = np.concatenate([pad, j[:, :-1]], axis=1)
-        nxt = np.concatenate([j[:, 1:], pad], axis=1)
-        both = np.stack([prev, nxt])
-        have = np.all(np.isfinite(both), axis=3)  # (2, R, C-1)
-        n_have = have.sum(axis=0)
-        bg = np.where(
-            n_have[..., None] > 0,
-            np.nansum(both, axis=0) / np.maximum(n_have, 1)[..., None],
-            np.nan,
-        )
-        dev = np.linalg.norm(j - bg, axis=2)
-        # variance of J - mean(J_prev, J_next): the edge's two vectors enter with weight
-        # 1.5, the outer ones with 0.5 (both neighbours), roughly 1.25 x var(J)
-        sd = np.sqrt(1.25 * js)
-        mag = np.linalg.norm(j, axis=2)
-        other = np.nanmax(np.where(have, np.linalg.norm(both, axis=3), -np.inf), axis=0)
+
+def _differences(dd, ss, k, grad):
+    """Differences over ``k`` cells along axis 1 and their variances: ``J`` (no ``grad``)
+    or ``E`` (``grad = (G, z, sigma_G², step_x, step_y)``, see :func:`step_edges`)."""
+    j = dd[:, k:] - dd[:, :-k]
+    js = ss[:, k:] + ss[:, :-k]
+    if grad is None:
+        return j, js
+    g, zz, sgg, step_x, step_y = grad
+    dz = zz[:, k:] - zz[:, :-k]
+    dp = np.stack(
+        [np.full(dz.shape, k * step_x), np.full(dz.shape, k * step_y), np.nan_to_num(dz)],
+        axis=-1,
+    )
+    gm = 0.5 * (g[:, k:] + g[:, :-k])
+    e = j - np.einsum("...ij,...j->...i", gm, dp)
+    es = js + 0.25 * np.sum(dp**2, axis=-1) * (sgg[:, k:] + sgg[:, :-k])
+    return e, es
+
+
+def _both_finite(a, b):
+    """Both of two (2-stacked) neighbour differences finite: (2, R, C')."""
+    return np.all(np.isfinite(np.stack([a, b])), axis=3)
+
+
+def _steps_along(dd, ss, ratio, n_sigma, floor_m, grad=None):
+    """The step test of :func:`step_edges` between neighbours along axis 1: ``(R, C - 1)``
+    bool, on ``J`` (``grad`` None) or on ``E``."""
+    j, js = _differences(dd, ss, 1, grad)  # (R, C-1, K)
+    pad = np.full_like(j[:, :1], np.nan)
+    prev = np.concatenate([pad, j[:, :-1]], axis=1)
+    nxt = np.concatenate([j[:, 1:], pad], axis=1)
+    both = np.stack([prev, nxt])
+    have = np.all(np.isfinite(both), axis=3)  # (2, R, C-1)
+    # with gradients: the neighbours' E, but at least a share of their J (the cells'
+    # gradients are trusted to explain no more than 1 - DETECT_GRADIENT_SHARE of it)
+    floor_other = np.zeros(j.shape[:2])
+    if grad is not None:
+        jr, _ = _differences(dd, ss, 1, None)
+        prev_r = np.concatenate([pad, jr[:, :-1]], axis=1)
+        next_r = np.concatenate([jr[:, 1:], pad], axis=1)
+        raw = np.linalg.norm(np.stack([prev_r, next_r]), axis=3)
+        floor_other = DETECT_GRADIENT_SHARE * np.max(np.where(have, raw, 0.0), axis=0)
+    n_have = have.sum(axis=0)
+    bg = np.where(
+        n_have[..., None] > 0,
+        np.nansum(both, axis=0) / np.maximum(n_have, 1)[..., None],
+        np.nan,
+    )
+    dev = np.linalg.norm(j - bg, axis=2)
+    # variance of J - mean(J_prev, J_next): the edge's two vectors enter with weight
+    # 1.5, the outer ones with 0.5 (both neighbours), roughly 1.25 x var(J)
+    sd = np.sqrt(1.25 * js)
+    mag = np.linalg.norm(j, axis=2)
+    other = np.nanmax(np.where(have, np.linalg.norm(both, axis=3), -np.inf), axis=0)
+    other = np.maximum(other, floor_other)
+    with np.errstate(invalid="ignore"):
         step = (
             (n_have > 0)
             & np.isfinite(mag)
             & (dev > np.maximum(n_sigma * sd, floor_m))
             & (mag > ratio * other)
         )
-        # a cell that straddles the step takes a motion between the sides' and splits the
-        # jump over its two edges: the same test on the pair (J_i + J_(i+1) against J_(i-1)
-        # and J_(i+2)), the step put on the pair's larger edge
+    if j.shape[1] < 2:
+        return step
+    # a cell that straddles the step takes a motion between the sides' and splits the
+    # jump over its two edges: the same test on the pair (J_i + J_(i+1) against J_(i-1)
+    # and J_(i+2)), the step put on the pair's larger edge
+    if grad is None:
         j2 = j[:, :-1] + j[:, 1:]  # (R, C-2, K)
         js2 = js[:, :-1] + js[:, 1:]
-        prev2, next2 = prev[:, :-1], nxt[:, 1:]
-        both2 = np.stack([prev2, next2])
-        have2 = np.all(np.isfinite(both2), axis=3)
-        n2 = have2.sum(axis=0)
-        bg2 = np.where(
-            n2[..., None] > 0, np.nansum(both2, axis=0) / np.maximum(n2, 1)[..., None], np.nan
-        )
-        dev2 = np.linalg.norm(j2 - 2.0 * bg2, axis=2)
-        mag2 = np.linalg.norm(j2, axis=2)
-        other2 = np.nanmax(np.where(have2, np.linalg.norm(both2, axis=3), -np.inf), axis=0)
         same_way = np.sum(j[:, :-1] * j[:, 1:], axis=2) > 0
+    else:  # over the two cells with the outer cells' gradients: the middle may be missing
+        j2, js2 = _differences(dd, ss, 2, grad)
+        raw2 = np.stack([prev_r[:, :-1], next_r[:, 1:]])
+        floor2 = DETECT_GRADIENT_SHARE * np.max(
+            np.where(_both_finite(prev[:, :-1], nxt[:, 1:]), np.linalg.norm(raw2, axis=3), 0.0),
+            axis=0,
+        )
+        dot = np.sum(j[:, :-1] * j[:, 1:], axis=2)
+        same_way = ~np.isfinite(dot) | (dot > 0)
+    prev2, next2 = prev[:, :-1], nxt[:, 1:]
+    both2 = np.stack([prev2, next2])
+    have2 = np.all(np.isfinite(both2), axis=3)
+    n2 = have2.sum(axis=0)
+    bg2 = np.where(
+        n2[..., None] > 0, np.nansum(both2, axis=0) / np.maximum(n2, 1)[..., None], np.nan
+    )
+    dev2 = np.linalg.norm(j2 - 2.0 * bg2, axis=2)
+    mag2 = np.linalg.norm(j2, axis=2)
+    other2 = np.nanmax(np.where(have2, np.linalg.norm(both2, axis=3), -np.inf), axis=0)
+    other2 = np.maximum(other2, floor_other[:, :-1] if grad is None else floor2)
+    with np.errstate(invalid="ignore"):
         pair = (
             (n2 > 0)
             & np.isfinite(mag2)
@@ -337,14 +464,11 @@ def step_edges(
             & (dev2 > np.maximum(n_sigma * np.sqrt(1.25 * js2), floor_m))
             & (mag2 > 2.0 * ratio * other2)
         )
-        r_i, c_i = np.nonzero(pair)
-        first = mag[r_i, c_i] >= mag[r_i, c_i + 1]
-        step[r_i, np.where(first, c_i, c_i + 1)] = True
-        return step
-
-    rows = along(d, s2)
-    cols = along(np.transpose(d, (1, 0, 2)), s2.T).T
-    return rows, cols
+    r_i, c_i = np.nonzero(pair)
+    with np.errstate(invalid="ignore"):
+        second = mag[r_i, c_i + 1] > mag[r_i, c_i]
+    step[r_i, np.where(second, c_i + 1, c_i)] = True
+    return step
 
 
 def detect_breaklines(
@@ -358,6 +482,9 @@ def detect_breaklines(
     n_sigma: float = DETECT_SIGMAS,
     floor_m: float = DETECT_FLOOR_M,
     min_cells: float = DETECT_MIN_CELLS,
+    gradient: np.ndarray | None = None,
+    z: np.ndarray | None = None,
+    sigma_gradient: np.ndarray | None = None,
 ) -> Breaklines | None:
     """Breaklines of a regular grid of displacement vectors (ICP cells, PIV vectors).
 
@@ -383,6 +510,10 @@ def detect_breaklines(
         As in :func:`step_edges`.
     min_cells : float
         Smallest extent of a line, in cells.
+    gradient, z, sigma_gradient : optional
+        The vectors' own gradients ``(R, C, K, 3)``, heights ``(R, C)`` (metres) and the
+        gradients' 1-sigma ``(R, C)`` (radians), as in :func:`step_edges`: the edge of a
+        block that moves rigidly (translation and rotation) is found too.
 
     Returns
     -------
@@ -405,8 +536,9 @@ def detect_breaklines(
     sx = float(x[1] - x[0]) if n_c > 1 else float(abs(y[1] - y[0]))
     sy = float(y[1] - y[0]) if n_r > 1 else float(abs(sx))
     rows, cols = step_edges(
-        d, valid=valid, sigma=sigma, ratio=ratio, n_sigma=n_sigma, floor_m=floor_m
-    )
+        d, valid=valid, sigma=sigma, ratio=ratio, n_sigma=n_sigma, floor_m=floor_m,
+        gradient=gradient, spacing_m=(sx, sy), z=z, sigma_gradient=sigma_gradient,
+    )  # fmt: skip
     # corners (i, j), i = 0..R, j = 0..C, at x[0] + (j - 0.5) sx, y[0] + (i - 0.5) sy
     n_cc = n_c + 1
     r, c = np.nonzero(rows)  # edge between (r, c), (r, c+1): corners (r, c+1)-(r+1, c+1)
@@ -504,3 +636,106 @@ def _douglas_peucker(line: np.ndarray, tol: float) -> np.ndarray:
     left = _douglas_peucker(line[: k + 1], tol)
     right = _douglas_peucker(line[k:], tol)
     return np.vstack([left[:-1], right])
+
+
+def _step_edges_reference(
+    d, *, valid=None, sigma=None, ratio=DETECT_RATIO, n_sigma=DETECT_SIGMAS,
+    floor_m=DETECT_FLOOR_M, gradient=None, spacing_m=None, z=None, sigma_gradient=None,
+):  # fmt: skip
+    """Slow, obvious reference of :func:`step_edges`: one edge at a time, in loops."""
+    d = np.asarray(d, dtype=np.float64)
+    if d.ndim == 2:
+        d = d[:, :, None]
+    n_r, n_c, n_k = d.shape
+    ok = np.all(np.isfinite(d), axis=2)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool)
+    s2 = np.zeros((n_r, n_c))
+    if sigma is not None:
+        sg = np.asarray(sigma, dtype=np.float64)
+        s2 = np.sum(sg**2, axis=2) if sg.ndim == 3 else sg**2
+        s2 = np.where(np.isfinite(s2), s2, np.inf)
+    sgg = np.zeros((n_r, n_c))
+    if sigma_gradient is not None:
+        sgg = np.where(np.isfinite(sigma_gradient), np.asarray(sigma_gradient) ** 2, np.inf)
+    zz = np.zeros((n_r, n_c)) if z is None else np.asarray(z, dtype=np.float64)
+
+    def diff(a, b, step, use_grad):  # cells a -> b (r, c), ``step`` (dx, dy) between them
+        if not (ok[a] and ok[b]):
+            return None, None
+        j = d[b] - d[a]
+        var = s2[a] + s2[b]
+        if use_grad:
+            dz = zz[b] - zz[a]
+            dp = np.array([step[0], step[1], dz if np.isfinite(dz) else 0.0])
+            gm = 0.5 * (gradient[a] + gradient[b])
+            j = j - gm @ dp
+            var = var + 0.25 * float(dp @ dp) * (sgg[a] + sgg[b])
+        if not np.all(np.isfinite(j)):
+            return None, None
+        return j, var
+
+    def test(jd, js, others, scale, raw=()):
+        if jd is None or not others:
+            return False
+        bg = np.mean(others, axis=0)
+        dev = np.linalg.norm(jd - scale * bg)
+        mag = np.linalg.norm(jd)
+        other = max(np.linalg.norm(o) for o in others)
+        if raw:  # the share of the raw differences the gradients may leave unexplained
+            other = max(other, DETECT_GRADIENT_SHARE * max(np.linalg.norm(o) for o in raw))
+        return bool(
+            dev > max(n_sigma * np.sqrt(1.25 * js), floor_m) and mag > scale * ratio * other
+        )
+
+    out = []
+    for axis, (n_line, n_along) in enumerate(((n_r, n_c), (n_c, n_r))):
+        steps = np.zeros((n_line, n_along - 1), dtype=bool)
+        passes = [False] if gradient is None else [False, True]
+        for use_grad in passes:
+            for line in range(n_line):
+
+                def cell(i, line=line, axis=axis):
+                    return (line, i) if axis == 0 else (i, line)
+
+                unit = (spacing_m[0], 0.0) if axis == 0 else (0.0, spacing_m[1])
+                if spacing_m is None:
+                    unit = (0.0, 0.0)
+
+                def one(i, use_grad=use_grad, cell=cell, unit=unit, n_along=n_along):
+                    if i < 0 or i >= n_along - 1:
+                        return None, None
+                    return diff(cell(i), cell(i + 1), unit, use_grad)
+
+                def raw(idx, use_grad=use_grad, one=one, cell=cell):
+                    if not use_grad:
+                        return ()
+                    out = []
+                    for i in idx:
+                        if one(i)[0] is not None:
+                            out.append(diff(cell(i), cell(i + 1), (0.0, 0.0), False)[0])
+                    return tuple(out)
+
+                for i in range(n_along - 1):
+                    jd, js = one(i)
+                    others = [o for o in (one(i - 1)[0], one(i + 1)[0]) if o is not None]
+                    if test(jd, js, others, 1.0, raw((i - 1, i + 1))):
+                        steps[line, i] = True
+                for i in range(n_along - 2):
+                    a, b = one(i)[0], one(i + 1)[0]
+                    if use_grad:
+                        step2 = (2 * unit[0], 2 * unit[1])
+                        j2, js2 = diff(cell(i), cell(i + 2), step2, True)
+                        if a is not None and b is not None and float(a @ b) <= 0:
+                            continue
+                    else:
+                        if a is None or b is None or float(a @ b) <= 0:
+                            continue
+                        j2, js2 = a + b, one(i)[1] + one(i + 1)[1]
+                    others = [o for o in (one(i - 1)[0], one(i + 2)[0]) if o is not None]
+                    if test(j2, js2, others, 2.0, raw((i - 1, i + 2))):
+                        second = a is not None and b is not None
+                        second = second and np.linalg.norm(b) > np.linalg.norm(a)
+                        steps[line, i + 1 if second else i] = True
+        out.append(steps if axis == 0 else steps.T)
+    return out[0], out[1]

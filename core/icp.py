@@ -2205,8 +2205,9 @@ def windowed_icp(
         if lines is None and detect_breaklines:
             # the formal covariances: the detection's threshold was set with them
             lines = _detect_lines(
-                cells, d, usable & ~flagged, cov_formal, n_rows, n_cols, x0, y0, cell
-            )
+                cells, d, usable & ~flagged, cov_formal, n_rows, n_cols, x0, y0, cell,
+                grad=grad, sig_grad=sig_rot,
+            )  # fmt: skip
             if lines is not None:
                 from .icp_spline import refine_breaklines
 
@@ -2463,9 +2464,17 @@ def finish_cells(
 DETECTED_GAP_CELLS = 0.3
 
 
-def _detect_lines(cells, d, usable, cov_d, n_rows, n_cols, x0, y0, cell):
+def _detect_lines(
+    cells, d, usable, cov_d, n_rows, n_cols, x0, y0, cell, *, grad=None, sig_grad=None
+):
     """Breaklines of the cells' motions (:func:`slipmap.core.breaklines.detect_breaklines`)
-    on the cell grid; None when none is found."""
+    on the cell grid; None when none is found.
+
+    ``grad`` (K, 3, 3): each cell's own gradient of its motion (a rigid cell's rotation,
+    an affine cell's full gradient), so that the detector sees the edge of a block that
+    rotates as a whole (its cells differ by the rotation, which their gradients explain);
+    ``sig_grad`` (K, 3): the 1-sigma of the cells' rotation vectors (radians), the
+    gradients' uncertainty. Both None: the step test alone."""
     from .breaklines import detect_breaklines
 
     gd = np.full((n_rows, n_cols, 3), np.nan)
@@ -2476,7 +2485,18 @@ def _detect_lines(cells, d, usable, cov_d, n_rows, n_cols, x0, y0, cell):
     gs[cells.row, cells.col] = np.sqrt(np.maximum(np.trace(cov_d, axis1=1, axis2=2), 0.0))
     xs = x0 + (np.arange(n_cols) + 0.5) * cell
     ys = y0 - (np.arange(n_rows) + 0.5) * cell
-    found = detect_breaklines(gd, x=xs, y=ys, valid=gv, sigma=gs)
+    kw = {}
+    if grad is not None:
+        gg = np.full((n_rows, n_cols, 3, 3), np.nan)
+        gg[cells.row, cells.col] = grad
+        gz = np.full((n_rows, n_cols), np.nan)
+        gz[cells.row, cells.col] = cells.centres[:, 2]
+        kw = dict(gradient=gg, z=gz)
+        if sig_grad is not None:
+            sg = np.full((n_rows, n_cols), np.nan)
+            sg[cells.row, cells.col] = np.linalg.norm(sig_grad, axis=1)
+            kw["sigma_gradient"] = sg
+    found = detect_breaklines(gd, x=xs, y=ys, valid=gv, sigma=gs, **kw)
     if found is None:
         log.info("breaklines: none found in the cells' motions")
     else:
