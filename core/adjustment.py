@@ -751,6 +751,96 @@ def _both_epochs_centroids(epochs) -> np.ndarray:
     return (e0.g * e0.count[:, None] + e1.g * e1.count[:, None]) / tot
 
 
+#: sample points per side of a plane's grid for the change of support of the spatial term
+#: (``SUPPORT_GRID²`` samples per plane; see :func:`_plane_samples`)
+SUPPORT_GRID = 8
+
+
+def _plane_samples(epochs, gc: np.ndarray, b: int, m: int = SUPPORT_GRID):
+    """(b, m², 3) sample points spread over each plane's extent and (b, m²) their weights
+    (shares of the plane's points of both epochs), centred frame, for the block covariance
+    of the spatial term (:class:`.stochastic.PlaneModel`).
+
+    With points: a quantile grid in the plane's two principal directions (its points of both
+    epochs split into ``m`` equal-count strips along the first, each strip into ``m``
+    equal-count cells along the second; the sample is a cell's mean, its weight the cell's
+    share of the points): it follows the plane's shape (holes, L-shapes, uneven density)
+    at the cost of two sorts of the points. Planes given by their moments only
+    (:class:`_MomentEpoch`): an ``m × m`` grid of equal weights on the rectangle whose
+    in-plane second moments are the plane's (half-widths ``√3 σ`` along the principal
+    directions). Hand-written: a k-means of every plane's points would cost an iteration
+    over the points per step for the same purpose.
+    """
+    e0, e1 = epochs
+    if e0.idx is None or e1.idx is None:
+        return _moment_samples(epochs, gc, b, m)
+    idx = np.concatenate([e0.idx, e1.idx])
+    x = np.concatenate([e0.g[e0.idx] + e0.u, e1.g[e1.idx] + e1.u])
+    d = x - gc[idx]
+    cnt = np.bincount(idx, minlength=b)
+    _, scat = _moments(idx, d, None, b)
+    _, vec = np.linalg.eigh(scat)
+    # the principal directions oriented by the points' third moment (an eigenvector's sign is
+    # arbitrary; this keeps the grid equivariant under rigid transforms), the coordinates
+    # rounded to a micrometre: points tied along a direction (a regular grid) stay tied and
+    # keep their input order whatever rigid transform the coordinates went through
+    keys = []
+    for axis in (2, 1):
+        t = np.einsum("ij,ij->i", d, vec[idx, :, axis])
+        sign = np.where(np.bincount(idx, t**3, b) < 0, -1.0, 1.0)
+        keys.append(np.round(t * sign[idx], 6))
+    s1, s2 = keys
+    n = idx.size
+    safe = np.maximum(cnt, 1)
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    order = np.lexsort((s1, idx))
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n) - start[idx[order]]
+    g1 = idx * m + np.minimum(rank * m // safe[idx], m - 1)
+    cnt1 = np.bincount(g1, minlength=b * m)
+    start1 = np.concatenate([[0], np.cumsum(cnt1)[:-1]])
+    order = np.lexsort((s2, g1))
+    rank[order] = np.arange(n) - start1[g1[order]]
+    key = g1 * m + np.minimum(rank * m // np.maximum(cnt1, 1)[g1], m - 1)
+    ck = np.bincount(key, minlength=b * m * m).astype(np.float64)
+    samples = np.stack([np.bincount(key, x[:, k], b * m * m) for k in range(3)], axis=1)
+    samples = samples / np.maximum(ck, 1.0)[:, None]
+    samples = samples.reshape(b, m * m, 3)
+    ck = ck.reshape(b, m * m)
+    empty = ck <= 0
+    samples[empty] = np.repeat(gc[:, None, :], m * m, axis=1)[empty]
+    weights = ck / safe[:, None]
+    none = cnt == 0
+    weights[none, 0] = 1.0  # planes without points (not in the problem): the centroid
+    return samples, weights
+
+
+def _moment_samples(epochs, gc: np.ndarray, b: int, m: int):
+    """:func:`_plane_samples` from the planes' moments: a grid on the equivalent rectangle."""
+    tot = np.zeros(b)
+    scat = np.zeros((b, 3, 3))
+    for ep in epochs:
+        dg = ep.g - gc
+        u1 = np.zeros_like(ep.g) if ep.U1 is None else ep.U1
+        scat += (
+            ep.U2
+            + u1[:, :, None] * dg[:, None, :]
+            + dg[:, :, None] * u1[:, None, :]
+            + ep.count[:, None, None] * dg[:, :, None] * dg[:, None, :]
+        )
+        tot += ep.count
+    lam, vec = np.linalg.eigh(scat / np.maximum(tot, 1.0)[:, None, None])
+    half = np.sqrt(3.0 * np.clip(lam[:, 1:], 0.0, None))  # (b, 2): second, first axis
+    f = (np.arange(m) + 0.5) / m * 2.0 - 1.0
+    fa, fb = np.meshgrid(f, f, indexing="ij")
+    off = (
+        (fa.ravel()[None, :, None] * half[:, 1, None, None]) * vec[:, None, :, 2]
+        + (fb.ravel()[None, :, None] * half[:, 0, None, None]) * vec[:, None, :, 1]
+    )
+    samples = gc[:, None, :] + off
+    return samples, np.full((b, m * m), 1.0 / (m * m))
+
+
 def _initial_planes(epochs, b):
     """Plane (n, d) per plane (centred frame) from the before points (both epochs if fewer
     than 3 before points), smallest-eigenvalue normal of the scatter."""
@@ -922,7 +1012,9 @@ def _solve(
         stoch = None
     else:
         gc = _both_epochs_centroids(epochs)
-        cfg = _StochasticConfig(PlaneModel(gc, n0.copy(), shares[0], shares[1]), b)
+        samples, weights = _plane_samples(epochs, gc, b)
+        plane_model = PlaneModel(gc, n0.copy(), shares[0], shares[1], samples, weights)
+        cfg = _StochasticConfig(plane_model, b)
         out, stoch = _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit,
                                  rejected, reject_outlier_planes, min_planes, opts)  # fmt: skip
         stoch = stoch + (_plane_gain(cfg, centre, unit_codes or (None, None)),)
@@ -961,6 +1053,8 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         gain=cfg.gain,
         centroids=m.centroids[idx] + np.asarray(centre, dtype=np.float64),
         normals=m.normals[idx].copy(),
+        samples=None if m.samples is None else m.samples[idx] + np.asarray(centre, dtype=float),
+        sample_weights=None if m.sample_weights is None else m.sample_weights[idx].copy(),
         shares_before=sub(m.shares_before),
         shares_after=sub(m.shares_after),
         units_before=None if m.shares_before is None else codes[0],
