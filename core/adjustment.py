@@ -833,10 +833,9 @@ def _moment_samples(epochs, gc: np.ndarray, b: int, m: int):
     half = np.sqrt(3.0 * np.clip(lam[:, 1:], 0.0, None))  # (b, 2): second, first axis
     f = (np.arange(m) + 0.5) / m * 2.0 - 1.0
     fa, fb = np.meshgrid(f, f, indexing="ij")
-    off = (
-        (fa.ravel()[None, :, None] * half[:, 1, None, None]) * vec[:, None, :, 2]
-        + (fb.ravel()[None, :, None] * half[:, 0, None, None]) * vec[:, None, :, 1]
-    )
+    off = (fa.ravel()[None, :, None] * half[:, 1, None, None]) * vec[:, None, :, 2] + (
+        fb.ravel()[None, :, None] * half[:, 0, None, None]
+    ) * vec[:, None, :, 1]
     samples = gc[:, None, :] + off
     return samples, np.full((b, m * m), 1.0 / (m * m))
 

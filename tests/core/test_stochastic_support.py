@@ -210,7 +210,6 @@ def test_gls_vertical_follows_the_large_ground_not_the_small_roofs():
     The plane-level GLS of the vertical with the block covariance weights the ground, whose
     mean error is small, and its RMS error over 300 draws is within 1.5x that of the ground's
     mean alone; the centroid model weights the six planes alike and is several times worse."""
-    rng = np.random.default_rng(30)
     ground = np.stack(np.meshgrid(np.arange(-75, 75, 1.5), np.arange(-37.5, 37.5, 1.5)), -1)
     ground = np.column_stack([ground.reshape(-1, 2), np.zeros(ground.size // 2)])
     roof_c = np.array([[-50, -20, 8.0], [-10, 25, 9.0], [20, -15, 7.0], [45, 20, 10.0],
