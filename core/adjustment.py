@@ -757,73 +757,28 @@ SUPPORT_GRID = 8
 
 
 def _plane_samples(epochs, gc: np.ndarray, b: int, m: int = SUPPORT_GRID):
-    """(b, m², 3) sample points spread over each plane's extent and (b, m²) their weights
-    (shares of the plane's points of both epochs), centred frame, for the block covariance
-    of the spatial term (:class:`.stochastic.PlaneModel`).
+    """(b, m², 3) sample points spread over each plane's extent and (b, m²) their weights,
+    centred frame, for the block covariance of the spatial term
+    (:class:`.stochastic.PlaneModel`): an ``m × m`` grid of equal weights (row-major) on
+    the rectangle whose in-plane second moments are those of the plane's points of both
+    epochs (half-widths ``√3 σ`` along its principal directions).
 
-    With points: a quantile grid in the plane's two principal directions (its points of both
-    epochs split into ``m`` equal-count strips along the first, each strip into ``m``
-    equal-count cells along the second; the sample is a cell's mean, its weight the cell's
-    share of the points): it follows the plane's shape (holes, L-shapes, uneven density)
-    at the cost of two sorts of the points. Planes given by their moments only
-    (:class:`_MomentEpoch`): an ``m × m`` grid of equal weights on the rectangle whose
-    in-plane second moments are the plane's (half-widths ``√3 σ`` along the principal
-    directions). Hand-written: a k-means of every plane's points would cost an iteration
-    over the points per step for the same purpose.
+    From the moments alone, so the points' adjustment and the one from per-plane moments
+    (:mod:`.planemoments`, tiled inputs) build the same model; the grid is symmetric under
+    a sign change of either principal direction, so it is equivariant under rigid
+    transforms. A ground piece with holes is represented by the rectangle of the same
+    spread, which is what the variance of its mean depends on first.
     """
-    e0, e1 = epochs
-    if e0.idx is None or e1.idx is None:
-        return _moment_samples(epochs, gc, b, m)
-    idx = np.concatenate([e0.idx, e1.idx])
-    x = np.concatenate([e0.g[e0.idx] + e0.u, e1.g[e1.idx] + e1.u])
-    d = x - gc[idx]
-    cnt = np.bincount(idx, minlength=b)
-    _, scat = _moments(idx, d, None, b)
-    _, vec = np.linalg.eigh(scat)
-    # the principal directions oriented by the points' third moment (an eigenvector's sign is
-    # arbitrary; this keeps the grid equivariant under rigid transforms), the coordinates
-    # rounded to a micrometre: points tied along a direction (a regular grid) stay tied and
-    # keep their input order whatever rigid transform the coordinates went through
-    keys = []
-    for axis in (2, 1):
-        t = np.einsum("ij,ij->i", d, vec[idx, :, axis])
-        sign = np.where(np.bincount(idx, t**3, b) < 0, -1.0, 1.0)
-        keys.append(np.round(t * sign[idx], 6))
-    s1, s2 = keys
-    n = idx.size
-    safe = np.maximum(cnt, 1)
-    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-    order = np.lexsort((s1, idx))
-    rank = np.empty(n, dtype=np.int64)
-    rank[order] = np.arange(n) - start[idx[order]]
-    g1 = idx * m + np.minimum(rank * m // safe[idx], m - 1)
-    cnt1 = np.bincount(g1, minlength=b * m)
-    start1 = np.concatenate([[0], np.cumsum(cnt1)[:-1]])
-    order = np.lexsort((s2, g1))
-    rank[order] = np.arange(n) - start1[g1[order]]
-    key = g1 * m + np.minimum(rank * m // np.maximum(cnt1, 1)[g1], m - 1)
-    ck = np.bincount(key, minlength=b * m * m).astype(np.float64)
-    samples = np.stack([np.bincount(key, x[:, k], b * m * m) for k in range(3)], axis=1)
-    samples = samples / np.maximum(ck, 1.0)[:, None]
-    samples = samples.reshape(b, m * m, 3)
-    ck = ck.reshape(b, m * m)
-    empty = ck <= 0
-    samples[empty] = np.repeat(gc[:, None, :], m * m, axis=1)[empty]
-    weights = ck / safe[:, None]
-    none = cnt == 0
-    weights[none, 0] = 1.0  # planes without points (not in the problem): the centroid
-    return samples, weights
-
-
-def _moment_samples(epochs, gc: np.ndarray, b: int, m: int):
-    """:func:`_plane_samples` from the planes' moments: a grid on the equivalent rectangle."""
     tot = np.zeros(b)
     scat = np.zeros((b, 3, 3))
     for ep in epochs:
         dg = ep.g - gc
         u1 = np.zeros_like(ep.g) if ep.U1 is None else ep.U1
+        u2 = ep.U2
+        if u2 is None:  # per-point covariances: the unweighted scatter from the points
+            u1, u2 = _moments(ep.idx, ep.u, None, b)
         scat += (
-            ep.U2
+            u2
             + u1[:, :, None] * dg[:, None, :]
             + dg[:, :, None] * u1[:, None, :]
             + ep.count[:, None, None] * dg[:, :, None] * dg[:, None, :]
@@ -836,8 +791,7 @@ def _moment_samples(epochs, gc: np.ndarray, b: int, m: int):
     off = (fa.ravel()[None, :, None] * half[:, 1, None, None]) * vec[:, None, :, 2] + (
         fb.ravel()[None, :, None] * half[:, 0, None, None]
     ) * vec[:, None, :, 1]
-    samples = gc[:, None, :] + off
-    return samples, np.full((b, m * m), 1.0 / (m * m))
+    return gc[:, None, :] + off, np.full((b, m * m), 1.0 / (m * m))
 
 
 def _initial_planes(epochs, b):

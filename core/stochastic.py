@@ -13,14 +13,22 @@ epoch's common error is absorbed by the plane's free offset ``d_j``, so ``δ_j``
 difference of the two epochs' common errors along the plane normal)::
 
     Cov(δ) = σ_p² I                                     plane component (nugget)
-           + σ_c² ρ(|c_j − c_k|; a) n_jᵀ n_k              spatial (spherical, range a)
+           + σ_c² ρ̄_jk(a) n_jᵀ n_k                       spatial (spherical, range a)
            + σ_b² Z_b Z_bᵀ + σ_a² Z_a Z_aᵀ               acquisition units, before / after
 
 ``ρ`` is the spherical correlation (compact support: zero beyond the range ``a``; positive
-definite in 3-D) of the distance between plane centroids. The spatial part is a smooth 3-D
-error FIELD ``s(c)`` (trajectory drift: each axis a stationary process of variance ``σ_c²``)
-seen along each plane's normal, ``δ_j = n_jᵀ s(c_j)``: hence the factor ``n_jᵀ n_k`` (a
-Schur product of two positive semi-definite matrices, so positive semi-definite). A scalar
+definite in 3-D). The spatial part is a smooth 3-D error FIELD ``s(p)`` (trajectory drift:
+each axis a stationary process of variance ``σ_c²``) seen along each plane's normal and
+AVERAGED over the plane, ``δ_j = n_jᵀ mean_{p ∈ j} s(p)``: hence the factor ``n_jᵀ n_k`` (a
+Schur product of two positive semi-definite matrices, so positive semi-definite) and the
+change of support (block-to-block covariance, Journel & Huijbregts 1978 §II.E) ``ρ̄_jk =
+Σ_s Σ_t w_js w_kt ρ(|p_js − p_kt|; a)`` over sample points ``p`` of each plane with weights
+``w`` (:class:`PlaneModel` ``samples``; :func:`effective_samples` picks per plane and range
+the coarsest grid whose cells are at most ``a/4`` across, so a plane less than ``a/2`` across
+is its centroid and this is the centroid model ``ρ(|c_j − c_k|)``). A ground piece of 150 m
+under a field of 20 m range averages the field over many correlation lengths: the centroid
+model gave it the variance of a 10 m roof, the GLS then weighted the few horizontal planes
+alike and the vertical followed the roofs' errors (issue #30 item 3). A scalar
 field along the normals would not be physical: the sign of a normal is a convention.
 ``Z_e`` (planes × 3·units) holds,
 for plane ``j`` and unit ``u`` of epoch ``e``, the share of the plane's epoch-``e`` points from
@@ -64,7 +72,8 @@ Cost. Dense ``V`` (planes × planes) with one Cholesky per Gauss–Helmert itera
 REML on at most :data:`VCE_MAX_PLANES` planes (beyond, the spatially contiguous block of
 planes nearest to a seeded random plane: the components are global scalars, which a few
 hundred planes pin down well, and a contiguous block keeps the close plane pairs that the
-spatial component is seen in).
+spatial component is seen in). The spatial term's pairs are pairs of plane samples within
+the range (a k-d tree over the samples), so large planes add samples, not planes².
 """
 
 from __future__ import annotations
