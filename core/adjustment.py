@@ -751,6 +751,49 @@ def _both_epochs_centroids(epochs) -> np.ndarray:
     return (e0.g * e0.count[:, None] + e1.g * e1.count[:, None]) / tot
 
 
+#: sample points per side of a plane's grid for the change of support of the spatial term
+#: (``SUPPORT_GRID²`` samples per plane; see :func:`_plane_samples`)
+SUPPORT_GRID = 8
+
+
+def _plane_samples(epochs, gc: np.ndarray, b: int, m: int = SUPPORT_GRID):
+    """(b, m², 3) sample points spread over each plane's extent and (b, m²) their weights,
+    centred frame, for the block covariance of the spatial term
+    (:class:`.stochastic.PlaneModel`): an ``m × m`` grid of equal weights (row-major) on
+    the rectangle whose in-plane second moments are those of the plane's points of both
+    epochs (half-widths ``√3 σ`` along its principal directions).
+
+    From the moments alone, so the points' adjustment and the one from per-plane moments
+    (:mod:`.planemoments`, tiled inputs) build the same model; the grid is symmetric under
+    a sign change of either principal direction, so it is equivariant under rigid
+    transforms. A ground piece with holes is represented by the rectangle of the same
+    spread, which is what the variance of its mean depends on first.
+    """
+    tot = np.zeros(b)
+    scat = np.zeros((b, 3, 3))
+    for ep in epochs:
+        dg = ep.g - gc
+        u1 = np.zeros_like(ep.g) if ep.U1 is None else ep.U1
+        u2 = ep.U2
+        if u2 is None:  # per-point covariances: the unweighted scatter from the points
+            u1, u2 = _moments(ep.idx, ep.u, None, b)
+        scat += (
+            u2
+            + u1[:, :, None] * dg[:, None, :]
+            + dg[:, :, None] * u1[:, None, :]
+            + ep.count[:, None, None] * dg[:, :, None] * dg[:, None, :]
+        )
+        tot += ep.count
+    lam, vec = np.linalg.eigh(scat / np.maximum(tot, 1.0)[:, None, None])
+    half = np.sqrt(3.0 * np.clip(lam[:, 1:], 0.0, None))  # (b, 2): second, first axis
+    f = (np.arange(m) + 0.5) / m * 2.0 - 1.0
+    fa, fb = np.meshgrid(f, f, indexing="ij")
+    off = (fa.ravel()[None, :, None] * half[:, 1, None, None]) * vec[:, None, :, 2] + (
+        fb.ravel()[None, :, None] * half[:, 0, None, None]
+    ) * vec[:, None, :, 1]
+    return gc[:, None, :] + off, np.full((b, m * m), 1.0 / (m * m))
+
+
 def _initial_planes(epochs, b):
     """Plane (n, d) per plane (centred frame) from the before points (both epochs if fewer
     than 3 before points), smallest-eigenvalue normal of the scatter."""
@@ -922,7 +965,9 @@ def _solve(
         stoch = None
     else:
         gc = _both_epochs_centroids(epochs)
-        cfg = _StochasticConfig(PlaneModel(gc, n0.copy(), shares[0], shares[1]), b)
+        samples, weights = _plane_samples(epochs, gc, b)
+        plane_model = PlaneModel(gc, n0.copy(), shares[0], shares[1], samples, weights)
+        cfg = _StochasticConfig(plane_model, b)
         out, stoch = _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit,
                                  rejected, reject_outlier_planes, min_planes, opts)  # fmt: skip
         stoch = stoch + (_plane_gain(cfg, centre, unit_codes or (None, None)),)
@@ -961,6 +1006,8 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         gain=cfg.gain,
         centroids=m.centroids[idx] + np.asarray(centre, dtype=np.float64),
         normals=m.normals[idx].copy(),
+        samples=None if m.samples is None else m.samples[idx] + np.asarray(centre, dtype=float),
+        sample_weights=None if m.sample_weights is None else m.sample_weights[idx].copy(),
         shares_before=sub(m.shares_before),
         shares_after=sub(m.shares_after),
         units_before=None if m.shares_before is None else codes[0],

@@ -13,14 +13,22 @@ epoch's common error is absorbed by the plane's free offset ``d_j``, so ``δ_j``
 difference of the two epochs' common errors along the plane normal)::
 
     Cov(δ) = σ_p² I                                     plane component (nugget)
-           + σ_c² ρ(|c_j − c_k|; a) n_jᵀ n_k              spatial (spherical, range a)
+           + σ_c² ρ̄_jk(a) n_jᵀ n_k                       spatial (spherical, range a)
            + σ_b² Z_b Z_bᵀ + σ_a² Z_a Z_aᵀ               acquisition units, before / after
 
 ``ρ`` is the spherical correlation (compact support: zero beyond the range ``a``; positive
-definite in 3-D) of the distance between plane centroids. The spatial part is a smooth 3-D
-error FIELD ``s(c)`` (trajectory drift: each axis a stationary process of variance ``σ_c²``)
-seen along each plane's normal, ``δ_j = n_jᵀ s(c_j)``: hence the factor ``n_jᵀ n_k`` (a
-Schur product of two positive semi-definite matrices, so positive semi-definite). A scalar
+definite in 3-D). The spatial part is a smooth 3-D error FIELD ``s(p)`` (trajectory drift:
+each axis a stationary process of variance ``σ_c²``) seen along each plane's normal and
+AVERAGED over the plane, ``δ_j = n_jᵀ mean_{p ∈ j} s(p)``: hence the factor ``n_jᵀ n_k`` (a
+Schur product of two positive semi-definite matrices, so positive semi-definite) and the
+change of support (block-to-block covariance, Journel & Huijbregts 1978 §II.E) ``ρ̄_jk =
+Σ_s Σ_t w_js w_kt ρ(|p_js − p_kt|; a)`` over sample points ``p`` of each plane with weights
+``w`` (:class:`PlaneModel` ``samples``; :func:`effective_samples` picks per plane and range
+the coarsest grid whose cells are at most ``a/4`` across, so a plane less than ``a/2`` across
+is its centroid and this is the centroid model ``ρ(|c_j − c_k|)``). A ground piece of 150 m
+under a field of 20 m range averages the field over many correlation lengths: the centroid
+model gave it the variance of a 10 m roof, the GLS then weighted the few horizontal planes
+alike and the vertical followed the roofs' errors (issue #30 item 3). A scalar
 field along the normals would not be physical: the sign of a normal is a convention.
 ``Z_e`` (planes × 3·units) holds,
 for plane ``j`` and unit ``u`` of epoch ``e``, the share of the plane's epoch-``e`` points from
@@ -64,7 +72,8 @@ Cost. Dense ``V`` (planes × planes) with one Cholesky per Gauss–Helmert itera
 REML on at most :data:`VCE_MAX_PLANES` planes (beyond, the spatially contiguous block of
 planes nearest to a seeded random plane: the components are global scalars, which a few
 hundred planes pin down well, and a contiguous block keeps the close plane pairs that the
-spatial component is seen in).
+spatial component is seen in). The spatial term's pairs are pairs of plane samples within
+the range (a k-d tree over the samples), so large planes add samples, not planes².
 """
 
 from __future__ import annotations
@@ -199,6 +208,135 @@ def ball_cross_correlation(h: np.ndarray, range_a: float, range_b: float) -> np.
     return vol / (4.0 / 3.0 * math.pi * math.sqrt(ra**3 * rb**3))
 
 
+def block_correlation_reference(corr, sa, wa, sb, wb) -> np.ndarray:
+    """Mean correlation between the supports of plane pairs (change of support): the slow,
+    obvious reference of :func:`support_correlation` (a double loop over sample pairs).
+
+    ``ρ̄_m = Σ_s Σ_t wa[m, s] wb[m, t] corr(|sa[m, s] − sb[m, t]|)``.
+
+    Parameters
+    ----------
+    corr : callable
+        Correlation of a distance (metres).
+    sa, sb : (m, S, 3) float64
+        Sample points of the first and second plane of each pair, metres.
+    wa, wb : (m, S) float64
+        Their weights (rows sum to 1; zero for padding).
+
+    Returns
+    -------
+    (m,) float64
+    """
+    out = np.zeros(sa.shape[0])
+    for m in range(sa.shape[0]):
+        tot = 0.0
+        for s in range(sa.shape[1]):
+            for t in range(sb.shape[1]):
+                h = math.sqrt(float(((sa[m, s] - sb[m, t]) ** 2).sum()))
+                tot += float(wa[m, s]) * float(wb[m, t]) * float(corr(np.array(h)))
+        out[m] = tot
+    return out
+
+
+def _support_of(centroids, samples, weights):
+    """(k, S, 3) samples, (k, S) weights and (k,) radius (largest distance of a weighted
+    sample from the centroid) of planes; no samples: the centroid alone (radius 0)."""
+    if samples is None:
+        k = centroids.shape[0]
+        return centroids[:, None, :], np.ones((k, 1)), np.zeros(k)
+    smp = np.asarray(samples, dtype=np.float64)
+    w = (
+        np.full(smp.shape[:2], 1.0 / smp.shape[1])
+        if weights is None
+        else np.asarray(weights, dtype=np.float64)
+    )
+    r = np.sqrt(((smp - centroids[:, None, :]) ** 2).sum(-1))
+    r = np.where(w > 0, r, 0.0).max(axis=1)
+    return smp, w, r
+
+
+def _coarsen(smp, w, m_from, m_to):
+    """Merge the ``m_from × m_from`` grid of samples (row-major) into ``m_to × m_to`` cells:
+    weights summed, positions their weighted means."""
+    k, f = smp.shape[0], m_from // m_to
+    s6 = smp.reshape(k, m_to, f, m_to, f, 3)
+    w5 = w.reshape(k, m_to, f, m_to, f)
+    ws = w5.sum(axis=(2, 4))
+    ps = (s6 * w5[..., None]).sum(axis=(2, 4)) / np.maximum(ws, 1e-300)[..., None]
+    return ps.reshape(k, m_to * m_to, 3), ws.reshape(k, m_to * m_to)
+
+
+def effective_samples(centroids, samples, weights, range_m: float):
+    """The sample points a spatial term of range ``range_m`` uses for each plane, flattened.
+
+    Samples laid out as an ``m × m`` grid (``S = m²``, ``m`` a power of two, row-major, as
+    :func:`.adjustment._plane_samples` makes them) are merged per plane to the coarsest grid
+    whose cells are at most a quarter of the range across (``m_j`` the least power of two
+    ``≥ 4 r_j / a``, ``r_j`` the plane's radius): a plane less than half the range across is
+    its centroid, as in the centroid model, and a large plane is sampled finely enough for
+    the field's correlation to be resolved; the cost stays with the pairs of samples within
+    the range. Other layouts are used as given. Each plane's field value is then a weighted
+    mean of the field at its samples, so the block covariance is positive semi-definite
+    whatever the mix of levels.
+
+    Returns
+    -------
+    pts : (N, 3) float64, owner : (N,) int64 (plane of each sample, 0..k-1), wt : (N,) float64
+    """
+    k = centroids.shape[0]
+    smp, w, r = _support_of(centroids, samples, weights)
+    ns = smp.shape[1]
+    m = int(round(math.sqrt(ns)))
+    if ns > 1 and m * m == ns and (m & (m - 1)) == 0:
+        need = 4.0 * r / max(float(range_m), 1e-300)
+        level = np.ones(k, dtype=np.int64)
+        while True:
+            more = (level < m) & (level < need)
+            if not np.any(more):
+                break
+            level[more] *= 2
+        parts = []
+        for lv in np.unique(level):
+            sel = np.flatnonzero(level == lv)
+            if lv == 1:
+                ps, ws = centroids[sel][:, None, :], np.ones((sel.size, 1))
+            elif lv == m:
+                ps, ws = smp[sel], w[sel]
+            else:
+                ps, ws = _coarsen(smp[sel], w[sel], m, int(lv))
+            own = np.repeat(sel, ps.shape[1])
+            parts.append((ps.reshape(-1, 3), own, ws.ravel()))
+        pts = np.concatenate([q[0] for q in parts])
+        owner = np.concatenate([q[1] for q in parts])
+        wt = np.concatenate([q[2] for q in parts])
+    else:
+        pts, owner, wt = smp.reshape(-1, 3), np.repeat(np.arange(k), ns), w.ravel()
+    keep = wt > 0
+    return pts[keep], owner[keep], wt[keep]
+
+
+def support_correlation(corr, base_m, a, b=None):
+    """Block correlations of plane pairs whose supports come within ``base_m``.
+
+    ``a`` and ``b`` are :func:`effective_samples` triples (``b`` None: ``a`` with itself);
+    returns (i, j, ρ̄) over the plane pairs with a sample pair within ``base_m`` (the
+    correlation's support), ``ρ̄_ij = Σ w_s w_t corr(|p_s − q_t|)`` summed over those sample
+    pairs (a k-d tree of the samples: linear in samples for a fixed density within range).
+    """
+    pa, oa, wa = a
+    pb, ob, wb = a if b is None else b
+    ta = cKDTree(pa)
+    tb = ta if b is None else cKDTree(pb)
+    pairs = ta.sparse_distance_matrix(tb, base_m, output_type="ndarray")
+    i, j, h = pairs["i"], pairs["j"], pairs["v"]
+    val = wa[i] * wb[j] * corr(h)
+    kb = int(ob.max(initial=-1)) + 1
+    key = oa[i].astype(np.int64) * kb + ob[j]
+    uk, inv = np.unique(key, return_inverse=True)
+    rho = np.bincount(inv.ravel(), val, uk.size)
+    return uk // kb, uk % kb, rho
+
+
 @dataclass(frozen=True)
 class PlaneGain:
     """What one side's stochastic adjustment gives the covariance with another side.
@@ -244,6 +382,11 @@ class PlaneGain:
         ``(T + Hᵀ V⁻¹ H)⁻¹``, the adjustment's covariance before the small-sample factor.
     prior_plane_var : float
         The adjustment's floor of a plane component that cannot be estimated, m².
+    samples : (k, S, 3) float64, optional
+        Sample points spread over each plane's extent (input frame, metres), for the change
+        of support of the spatial term (:class:`PlaneModel`); None: the centroids.
+    sample_weights : (k, S) float64, optional
+        Their weights (shares of the plane's points; rows sum to 1).
     """
 
     gain: np.ndarray
@@ -266,6 +409,12 @@ class PlaneGain:
     rt: Optional[np.ndarray] = None
     q: Optional[np.ndarray] = None
     prior_plane_var: float = 0.0
+    samples: Optional[np.ndarray] = None
+    sample_weights: Optional[np.ndarray] = None
+
+    def support(self):
+        """(k, S, 3) samples, (k, S) weights and (k,) radii (see :class:`PlaneModel`)."""
+        return _support_of(self.centroids, self.samples, self.sample_weights)
 
 
 def _union_shares(a: PlaneGain, b: PlaneGain, epoch: str) -> Optional[np.ndarray]:
@@ -364,11 +513,19 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
     k = ka + kb
     if k < MIN_PLANES_VCE or k > DENSE_MAX_PLANES:
         return None
+    samples = weights = None
+    if a.samples is not None or b.samples is not None:
+        (sa, wa, _), (sb, wb, _) = a.support(), b.support()
+        ns = max(sa.shape[1], sb.shape[1])
+        samples = np.concatenate([_pad(sa, ns, a.centroids), _pad(sb, ns, b.centroids)])
+        weights = np.concatenate([_pad(wa, ns), _pad(wb, ns)])
     model = PlaneModel(
         np.concatenate([a.centroids, b.centroids]),
         np.concatenate([a.normals, b.normals]),
         _union_shares(a, b, "before"),
         _union_shares(a, b, "after"),
+        samples=samples,
+        sample_weights=weights,
     )
     idx = np.arange(k)
     x = np.zeros((k, 12))
@@ -402,6 +559,18 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
         n_planes=int(k), small_sample_factor=float(small),
     )  # fmt: skip
     return small * 0.5 * (cov + cov.T), joint
+
+
+def _pad(arr, ns, centroids=None):
+    """Pad samples (k, S, 3) with the centroid or weights (k, S) with 0 to ``ns`` columns."""
+    k, s0 = arr.shape[0], arr.shape[1]
+    if s0 == ns:
+        return arr
+    if arr.ndim == 3:
+        fill = np.repeat(centroids[:, None, :], ns - s0, axis=1)
+    else:
+        fill = np.zeros((k, ns - s0))
+    return np.concatenate([arr, fill], axis=1)
 
 
 def _satterthwaite_dof(model, idx, est, kj, cov) -> float:
@@ -474,12 +643,13 @@ def cross_covariance(a: PlaneGain, b: PlaneGain) -> np.ndarray:
     ta, tb = float(a.theta.get("spatial", 0.0)), float(b.theta.get("spatial", 0.0))
     if ta > 0 and tb > 0 and a.range_m == a.range_m and b.range_m == b.range_m:
         support = 0.5 * (a.range_m + b.range_m)
-        pairs = cKDTree(a.centroids).sparse_distance_matrix(
-            cKDTree(b.centroids), support, output_type="ndarray"
+        fa = effective_samples(a.centroids, a.samples, a.sample_weights, a.range_m)
+        fb = effective_samples(b.centroids, b.samples, b.sample_weights, b.range_m)
+        i, j, rho = support_correlation(
+            lambda d: ball_cross_correlation(d, a.range_m, b.range_m), support, fa, fb
         )
-        if pairs.size:
-            i, j, h = pairs["i"], pairs["j"], pairs["v"]
-            val = math.sqrt(ta * tb) * ball_cross_correlation(h, a.range_m, b.range_m)
+        if i.size:
+            val = math.sqrt(ta * tb) * rho
             val = val * np.einsum("ij,ij->i", a.normals[i], b.normals[j])
             out += (a.gain[:, i] * val) @ b.gain[:, j].T
     for name in ("unit_before", "unit_after"):
@@ -630,13 +800,59 @@ class PlaneModel:
     """Structure of ``Σ_δ`` for a set of planes (everything but the component values).
 
     centroids : (b, 3) plane centroids (centred frame, metres); normals : (b, 3) unit normals;
-    shares_before, shares_after : (b, U) shares of each plane's points per unit, or None.
+    shares_before, shares_after : (b, U) shares of each plane's points per unit, or None;
+    samples : (b, S, 3) points spread over each plane's extent (centred frame, metres) and
+    sample_weights : (b, S) their shares of the plane's points (rows sum to 1; None: equal),
+    for the change of support of the spatial term (module docstring); samples None: each
+    plane is its centroid.
     """
 
     centroids: np.ndarray
     normals: np.ndarray
     shares_before: Optional[np.ndarray] = None
     shares_after: Optional[np.ndarray] = None
+    samples: Optional[np.ndarray] = None
+    sample_weights: Optional[np.ndarray] = None
+
+    def support(self, idx: np.ndarray):
+        """(k, S, 3) samples, (k, S) weights and (k,) radii of the planes ``idx``."""
+        return _support_of(
+            self.centroids[idx],
+            None if self.samples is None else self.samples[idx],
+            None if self.samples is None or self.sample_weights is None
+            else self.sample_weights[idx],
+        )  # fmt: skip
+
+    def effective(self, idx: np.ndarray, range_m: float):
+        """:func:`effective_samples` of the planes ``idx`` (owners 0..k-1)."""
+        s_, w_ = self.samples, self.sample_weights
+        return effective_samples(
+            self.centroids[idx],
+            None if s_ is None else s_[idx],
+            None if s_ is None or w_ is None else w_[idx],
+            range_m,
+        )
+
+    def spatial_pairs(self, idx: np.ndarray, range_m: float):
+        """(i, j, ρ̄ n_iᵀ n_j) of the plane pairs of ``idx`` (both orders, diagonal included)
+        whose supports come within the range."""
+        i, j, rho = support_correlation(
+            lambda d: spherical_correlation(d, range_m), range_m, self.effective(idx, range_m)
+        )
+        nrm = self.normals[idx]
+        return i, j, rho * np.einsum("ij,ij->i", nrm[i], nrm[j])
+
+    def spatial_correlation(self, idx: np.ndarray, range_m: float) -> np.ndarray:
+        """Dense (k, k) ``ρ̄`` of the planes ``idx``: the spherical correlation averaged over
+        each pair's samples (:func:`effective_samples`; the centroids' correlation where
+        both planes are points)."""
+        k = idx.size
+        i, j, rho = support_correlation(
+            lambda d: spherical_correlation(d, range_m), range_m, self.effective(idx, range_m)
+        )
+        out = np.zeros((k, k))
+        out[i, j] = rho
+        return 0.5 * (out + out.T)
 
     def unit_basis(self, which: str, idx: np.ndarray) -> Optional[np.ndarray]:
         """(k, 3U) ``Z`` of the planes ``idx`` for unit component ``which``."""
@@ -660,10 +876,8 @@ class PlaneModel:
         k = idx.size
         out = {"plane": np.eye(k)}
         if range_m == range_m and range_m > 0:
-            c = self.centroids[idx]
-            h = np.sqrt(((c[:, None, :] - c[None, :, :]) ** 2).sum(-1))
             nrm = self.normals[idx]
-            out["spatial"] = spherical_correlation(h, range_m) * (nrm @ nrm.T)
+            out["spatial"] = self.spatial_correlation(idx, range_m) * (nrm @ nrm.T)
         for name in ("unit_before", "unit_after"):
             z = self.unit_basis(name, idx)
             if z is not None:
@@ -717,16 +931,11 @@ class CovarianceOperator:
         a = diags(diag).tocsc()
         tc = float(theta.get("spatial", 0.0))
         if tc > 0 and range_m == range_m:
-            c = model.centroids[idx]
-            tree = cKDTree(c)
-            pairs = tree.sparse_distance_matrix(tree, range_m, output_type="coo_matrix")
-            off = pairs.row != pairs.col  # the diagonal is added once, below
-            i, j, h = pairs.row[off], pairs.col[off], pairs.data[off]
-            nrm = model.normals[idx]
-            val = tc * spherical_correlation(h, range_m) * np.einsum("ij,ij->i", nrm[i], nrm[j])
-            a = a + coo_matrix((val, (i, j)), shape=(self.k, self.k)).tocsc()
-            a = a + diags(np.full(self.k, tc)).tocsc()
-            self._diag_v += tc
+            i, j, val = model.spatial_pairs(idx, range_m)
+            sp = coo_matrix((tc * val, (i, j)), shape=(self.k, self.k)).tocsc()
+            sp = 0.5 * (sp + sp.T)
+            a = a + sp
+            self._diag_v += sp.diagonal()
         self.lu = splu(a.tocsc(), permc_spec="MMD_AT_PLUS_A")
         zs, lam = [], []
         for name in ("unit_before", "unit_after"):
