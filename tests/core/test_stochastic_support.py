@@ -230,7 +230,7 @@ def test_gls_vertical_follows_the_large_ground_not_the_small_roofs():
                         ("centroid", sto.PlaneModel(cents, n))):  # fmt: skip
         v = model.bases(idx, a)["spatial"] + nug
         vi = np.linalg.solve(v, x)
-        errs[name] = (vi / float(x.T @ vi)).ravel()  # GLS weights of the six planes
+        errs[name] = (vi / (x.T @ vi).item()).ravel()  # GLS weights of the six planes
     draws = np.array([[float(_wave_field(np.random.default_rng(1000 + d), p).mean())
                        for p in planes] for d in range(300)])  # fmt: skip
     rms = {k: float(np.sqrt(np.mean((draws @ w) ** 2))) for k, w in errs.items()}
