@@ -202,8 +202,11 @@ done < <(env -0)
 
 inside() {  # $1 = shell command line, run in the tree inside the root
   # in its own process group, waited for in the background, so a signal to this script runs
-  # the trap at once and the trap can stop everything inside
-  setsid chroot "$ROOT" /usr/bin/env -i "${ENV[@]}" /bin/bash -c "cd $DEST && $1" &
+  # the trap at once and the trap can stop everything inside; a background job of a script
+  # starts with SIGINT and SIGQUIT ignored, which the tests of Ctrl-C would inherit: env puts
+  # their default action back
+  setsid chroot "$ROOT" /usr/bin/env -i --default-signal=INT,QUIT "${ENV[@]}" \
+    /bin/bash -c "cd $DEST && $1" &
   CHILD=$!
   local rc=0
   wait "$CHILD" || rc=$?

@@ -116,6 +116,12 @@ def _listener(kind):
     return srv, held
 
 
+def _default_sigint():
+    """In the child: SIGINT's default action, as in a terminal (a parent started as a
+    background job of a script passes SIGINT on ignored, and Python then keeps it ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _slipmap(argv, **kw):
     env = dict(os.environ, DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT="3s")
     return subprocess.Popen(
@@ -124,6 +130,7 @@ def _slipmap(argv, **kw):
         stderr=subprocess.PIPE,
         text=True,
         env=env,
+        preexec_fn=_default_sigint,
         **kw,
     )
 

@@ -1,6 +1,7 @@
 """A Ctrl-C that lands in a callback Python cannot raise from is neither lost nor printed."""
 
 import gc
+import signal
 import subprocess
 import sys
 import time
@@ -31,7 +32,20 @@ def _wait_for_interrupt():
     pytest.fail("the swallowed Ctrl-C was not delivered again")
 
 
-def test_swallowed_ctrl_c_during_a_run_reaches_the_main_thread(capsys):
+@pytest.fixture
+def python_sigint():
+    """Python's own SIGINT handler for the test (a test run started as a background job of
+    a script inherits SIGINT ignored, and ``_thread.interrupt_main`` then does nothing)."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+def _default_sigint():
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def test_swallowed_ctrl_c_during_a_run_reaches_the_main_thread(capsys, python_sigint):
     cli._keep_interrupts()
     assert sys.unraisablehook is cli._unraisable
     cli._RUNNING.set()
@@ -105,6 +119,7 @@ def test_a_second_ctrl_c_while_the_program_exits_keeps_status_130(tmp_path):
         text=True,
         cwd=tmp_path,
         timeout=60,
+        preexec_fn=_default_sigint,  # as in a terminal, whatever this test run inherited
     )
     assert proc.returncode == 130, proc.stderr
     assert proc.stderr.count("interrupted") == 1, proc.stderr
