@@ -198,21 +198,22 @@ class PlaneMoments:
             None if self.unit_counts is None else self.unit_counts[idx],
         )
 
-    def unit_ids(self) -> Optional[np.ndarray]:
-        """(U',) ids of the units :meth:`shares` has columns for (None without units)."""
+    def _present_units(self) -> Optional[np.ndarray]:
+        """(U,) bool: the units with points in some plane (None without units or none)."""
         if self.unit_counts is None:
             return None
         cols = self.unit_counts.sum(axis=0) > 0
-        if not np.any(cols):
-            return None
-        return np.asarray(self.unit_codes, dtype=np.int64)[cols]
+        return cols if np.any(cols) else None
+
+    def unit_ids(self) -> Optional[np.ndarray]:
+        """(U',) ids of the units :meth:`shares` has columns for (None without units)."""
+        cols = self._present_units()
+        return None if cols is None else np.asarray(self.unit_codes, dtype=np.int64)[cols]
 
     def shares(self) -> Optional[np.ndarray]:
         """(b, U') share of each plane's points per unit present (None without units)."""
-        if self.unit_counts is None:
-            return None
-        cols = self.unit_counts.sum(axis=0) > 0
-        if not np.any(cols):
+        cols = self._present_units()
+        if cols is None:
             return None
         return self.unit_counts[:, cols] / np.maximum(self.count, 1.0)[:, None]
 
