@@ -124,6 +124,8 @@ def fields(lo: np.ndarray, hi: np.ndarray) -> dict:
     s0 = c + np.array([0.0, 4.0])
     return {
         "lobe-round": LobeField(c, side / 3, side / 3, 0.0, (0.0, -0.6, -0.25)),
+        # a (near-)uniform shift: the lobe of radius 500 m (0.65 m, curvature < 1e-5 /m)
+        "shift": LobeField(c, 500.0, 500.0, 0.0, (0.0, -0.6, -0.25)),
         "lobe-small": LobeField(c + np.array([-6.0, -9.0]), 6.0, 6.0, 0.0, (0.25, -0.35, -0.15)),
         "lobe-long": LobeField(c, 7.0, 16.0, 30.0, (0.6 * down[0], 0.6 * down[1], -0.25)),
         "slab": SlabField((s0 - 30 * u, s0 + 30 * u), (0.1, -0.5, -0.2)),

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence
+from typing import Callable, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -114,12 +114,14 @@ def check_spline_size(span_xy, spacing_m: float) -> None:
 
 __all__ = [
     "bspline_weights",
+    "cell_data_weights",
     "ChunkNormals",
     "ChunkReport",
     "fit_spline_chunks",
     "fit_spline_field",
     "knot_copies",
     "knot_frame",
+    "rigid_projection",
     "sided_second_differences",
     "spline_basis",
     "SplineChunk",
@@ -828,26 +830,49 @@ class SplineChunk:
         ok, _, v, _ = self.pairs(c)
         return np.abs(v[ok])
 
-    def normal_equations(self, c: np.ndarray, weighting: Weighting) -> ChunkNormals:
-        """The chunk's share of the normal equations at coefficients ``c``."""
+    def data_weight(self, cell_weight: Optional[np.ndarray]) -> np.ndarray:
+        """(P,) each point's data weight: its cell's ``cell_weight`` (K,) (1 for points
+        without a cell, or without weights)."""
+        dw = np.ones(len(self.a))
+        if cell_weight is None or self.seg is None:
+            return dw
+        inside = self.seg >= 0
+        dw[inside] = np.asarray(cell_weight, dtype=np.float64)[self.seg[inside]]
+        return np.where(np.isfinite(dw) & (dw > 0), dw, 1.0)
+
+    def normal_equations(
+        self, c: np.ndarray, weighting: Weighting, cell_weight: Optional[np.ndarray] = None
+    ) -> ChunkNormals:
+        """The chunk's share of the normal equations at coefficients ``c``; with
+        ``cell_weight`` (K,) each point's row weighed by its cell's data weight
+        (:func:`cell_data_weights`), ``wvv`` still the unweighted ``sum w v²`` (the points'
+        own variance, for the variance components)."""
         ok, nrm, v, _ = self.pairs(c)
         keep, wv, _ = weighting.apply(v[ok])
         wt = np.zeros(len(v))
         wt[ok] = np.where(keep, wv, 0.0)
         wt[self.gap] = 0.0
         nmat, rhs, gram = _assemble(
-            None, self.bounds, self.idx16, self.w16, nrm, v, wt, self.n_k, ok=ok
-        )
+            None, self.bounds, self.idx16, self.w16, nrm, v, wt * self.data_weight(cell_weight),
+            self.n_k, ok=ok,
+        )  # fmt: skip
         return ChunkNormals(
             nmat, rhs, gram, float(np.sum(wt * v * v)), int(np.count_nonzero(wt)),
             int(np.count_nonzero(ok)),
         )  # fmt: skip
 
     def report(
-        self, c: np.ndarray, weighting: Weighting, block_m: Optional[float] = None
+        self,
+        c: np.ndarray,
+        weighting: Weighting,
+        block_m: Optional[float] = None,
+        cell_weight: Optional[np.ndarray] = None,
     ) -> ChunkReport:
         """The chunk's share of the final sums at coefficients ``c``; with ``block_m``
-        (metres) its block sums of the scores too (:mod:`slipmap.core.icp_blocks`)."""
+        (metres) its block sums of the scores too (:mod:`slipmap.core.icp_blocks`). With
+        ``cell_weight`` the scores are ``psi sqrt(dw)``: a cell of data weight ``dw = 1/F``
+        enters the normal equations as ``dw`` times its points, whose summed scores vary as
+        ``F`` times independent ones (the model of the weights)."""
         ok, nrm, v, tid = self.pairs(c)
         keep, wv, dpsi = weighting.apply(v[ok])
         psi = np.where(keep, wv * v[ok], 0.0)
@@ -871,7 +896,7 @@ class SplineChunk:
             from .icp_blocks import spline_block_scores
 
             psi_all = np.zeros(len(v))
-            psi_all[ok] = psi
+            psi_all[ok] = psi * np.sqrt(self.data_weight(cell_weight)[ok])
             psi_all[self.gap] = 0.0  # no weight in the fit: no score
             scores = spline_block_scores(
                 xy=self.a[:, :2], psi=psi_all, nrm=nrm, idx16=self.idx16, w16=self.w16,
@@ -892,6 +917,41 @@ class SplineChunk:
             sum_w=float(np.sum(np.where(keep, wv, 0.0))),
             block_scores=scores,
         )
+
+    def rigid_rows(self, c: np.ndarray, weighting: Weighting, report_xy: np.ndarray):
+        """The chunk's share of each cell's rigid fit to the field of coefficients ``c``
+        (:func:`rigid_projection`): per cell with points, the linearised point-to-plane
+        normal matrix ``sum w r rᵀ`` (6, 6) and right-hand side ``sum w r (n . u)`` (6,) of
+        the rows ``r = (n, q x n)``, ``q`` the point's offset from the cell's (x, y) at
+        z = 0, ``u`` the field at the point, ``n`` its target normal, ``w`` its robust
+        weight; and the cell's sum of z and count of those points.
+
+        Returns
+        -------
+        (cells (C,) int64, nm (C, 6, 6), rhs (C, 6), sum_z (C,), count (C,))
+        """
+        ok, nrm, v, _ = self.pairs(c)
+        keep, wv, _ = weighting.apply(v[ok])
+        w = np.zeros(len(v))
+        w[ok] = np.where(keep, wv, 0.0)
+        w[self.gap] = 0.0
+        sel = (w > 0) if self.seg is None else (w > 0) & (self.seg >= 0)
+        if self.seg is None or not np.any(sel):
+            z = np.zeros(0)
+            return np.zeros(0, np.int64), np.zeros((0, 6, 6)), np.zeros((0, 6)), z, z
+        u = self._basis_pts[sel] @ c
+        n, p, s, ws = nrm[sel], self.a[sel], self.seg[sel], w[sel]
+        cells, ci = np.unique(s, return_inverse=True)
+        ci = ci.reshape(-1)
+        q = p - np.c_[np.asarray(report_xy, dtype=np.float64)[s], np.zeros(len(s))]
+        rows = np.c_[n, np.cross(q, n)]
+        nm = np.zeros((cells.size, 6, 6))
+        np.add.at(nm, ci, ws[:, None, None] * rows[:, :, None] * rows[:, None, :])
+        rhs = np.zeros((cells.size, 6))
+        np.add.at(rhs, ci, (ws * np.einsum("ij,ij->i", n, u))[:, None] * rows)
+        sum_z = np.bincount(ci, weights=p[:, 2], minlength=cells.size)
+        count = np.bincount(ci, minlength=cells.size).astype(np.float64)
+        return cells, nm, rhs, sum_z, count
 
 
 #: ``run(stage, *args) -> [result of every chunk]``: the chunks' methods ``residuals``,
@@ -918,6 +978,7 @@ def fit_spline_field(
     breaklines=None,
     breakline_gap_m: float = 0.0,
     block_m: Optional[float] = None,
+    cell_weight: Optional[np.ndarray] = None,
 ) -> SplineFit:
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
 
@@ -1009,6 +1070,7 @@ def fit_spline_field(
     return fit_spline_chunks(
         run, frame=frame, initial=initial, report_xy=report_xy, report_pairs=report_pairs,
         smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress, block_m=block_m,
+        cell_weight=cell_weight,
     )  # fmt: skip
 
 
@@ -1040,6 +1102,7 @@ def fit_spline_chunks(
     opts: _Options,
     progress: Optional[ProgressCallback] = None,
     block_m: Optional[float] = None,
+    cell_weight=None,
 ) -> SplineFit:
     """:func:`fit_spline_field` over chunks of points: the Gauss-Newton normal equations,
     the weights' scale and the final sums are sums (or quantiles) over the after-points, so
@@ -1054,7 +1117,7 @@ def fit_spline_chunks(
         after-point in exactly one chunk, each chunk's ``seg`` indexing ``report_xy``.
     frame : SplineField
         The knot lattice (:func:`knot_frame` of all chunks' points).
-    initial, report_xy, report_pairs, smoothing, gate_m, opts, progress, block_m
+    initial, report_xy, report_pairs, smoothing, gate_m, opts, progress, block_m, cell_weight
         As :func:`fit_spline_field` (with ``block_m`` every chunk's ``report`` gives its
         block sums, :class:`~slipmap.core.icp_blocks.BlockScores`, added here).
 
@@ -1065,6 +1128,17 @@ def fit_spline_chunks(
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
+    if callable(cell_weight):  # weights from the unweighted field (cell_data_weights)
+        first = fit_spline_chunks(
+            run, frame=frame, initial=initial, report_xy=report_xy, smoothing=smoothing,
+            gate_m=gate_m, opts=opts, progress=progress,
+        )  # fmt: skip
+        c1 = first.field.all_coefficients()
+        wgt1 = Weighting.of(np.concatenate([np.asarray(p) for p in run("residuals", c1)]), opts)
+        cell_weight = np.asarray(
+            cell_weight(rigid_projection(run, c1, wgt1, report_xy)), dtype=np.float64
+        )
+        initial = first.field
     auto = smoothing is None
     lam = _check_smoothing(smoothing)
     lam_abs = None  # absolute penalty weight per component, set at the first iteration
@@ -1107,7 +1181,7 @@ def fit_spline_chunks(
     for it in range(1, opts.max_iterations + 1):
         report(progress, (it - 1) / opts.max_iterations, f"spline field: iteration {it}")
         wgt = weighting_at(c)
-        parts = run("normal_equations", c, wgt)
+        parts = run("normal_equations", c, wgt, cell_weight)
         nmat = _sum_sparse([p.nmat for p in parts], 3 * n_k)
         gram = _sum_sparse([p.gram for p in parts], n_k)
         rhs = np.sum([p.rhs for p in parts], axis=0)
@@ -1148,7 +1222,8 @@ def fit_spline_chunks(
             break
     # final residuals, sigma0 and the report
     wgt = weighting_at(c)
-    parts = run("report", c, wgt) if block_m is None else run("report", c, wgt, float(block_m))
+    bm = None if block_m is None else float(block_m)
+    parts = run("report", c, wgt, bm, cell_weight)
     ss = float(sum(p.ss_psi for p in parts))
     used = int(sum(p.used for p in parts))
     n_ok = int(sum(p.n_ok for p in parts))
@@ -1422,3 +1497,137 @@ def refine_breaklines(
         largest,
     )
     return breaklines(out)
+
+
+def rigid_projection(run: ChunkRunner, c: np.ndarray, weighting: Weighting, report_xy):
+    """What each cell would measure as a rigid cell if the ground moved as the field of
+    coefficients ``c``: the translation, at the cell's centre (its x, y and the mean z of
+    its points), of the linearised point-to-plane rigid fit of the field's motion at the
+    cell's paired points (their target normals and robust weights).
+
+    A rigid cell measures a weighted mean of the motion over its points, not the motion at
+    its centre; on a lobe a few cells wide the two differ by centimetres (the rigid cells'
+    model error). The field's own rigid projection has the same model error, so the rigid
+    cells' motions less this projection keep the cells' errors (and the field's misfit)
+    and lose the field's shape (:func:`cell_data_weights`).
+
+    Parameters
+    ----------
+    run : ChunkRunner
+        As :func:`fit_spline_chunks` (every chunk's ``seg`` indexing ``report_xy``).
+    c : (n_k, 3) float64
+        The field's coefficients.
+    weighting : Weighting
+        The robust weights at ``c``.
+    report_xy : (K, 2) float64
+        The cell centres, metres.
+
+    Returns
+    -------
+    (K, 3) float64
+        Metres; NaN for a cell whose rigid fit is singular or has no points.
+    """
+    rxy = np.asarray(report_xy, dtype=np.float64).reshape(-1, 2)
+    k = len(rxy)
+    nm, rhs = np.zeros((k, 6, 6)), np.zeros((k, 6))
+    sz, cnt = np.zeros(k), np.zeros(k)
+    for cells, n6, r6, z, m in run("rigid_rows", c, weighting, rxy):
+        np.add.at(nm, cells, n6)
+        np.add.at(rhs, cells, r6)
+        np.add.at(sz, cells, z)
+        np.add.at(cnt, cells, m)
+    out = np.full((k, 3), np.nan)
+    for i in np.flatnonzero(cnt > 0):
+        try:
+            x = np.linalg.solve(nm[i], rhs[i])
+        except np.linalg.LinAlgError:
+            continue
+        if np.linalg.cond(nm[i]) < 1e12:
+            out[i] = x[:3] + np.cross(x[3:], [0.0, 0.0, sz[i] / cnt[i]])
+    return out
+
+
+def rigid_projection_reference(field, after, seg, report_xy, weights, normals_at):
+    """Slow reference of :func:`rigid_projection`: one least-squares solve per cell with
+    ``numpy.linalg.lstsq`` on the explicit rows (``weights`` (P,) and ``normals_at`` (P, 3):
+    each after-point's robust weight and target normal)."""
+    rxy = np.asarray(report_xy, dtype=np.float64)
+    out = np.full((len(rxy), 3), np.nan)
+    u = field(after[:, :2])
+    for i in range(len(rxy)):
+        m = (seg == i) & (weights > 0)
+        if not m.any():
+            continue
+        p = after[m]
+        zc = float(np.mean(p[:, 2]))
+        q = p - np.r_[rxy[i], zc]
+        n = normals_at[m]
+        rows = np.c_[n, np.cross(q, n)] * np.sqrt(weights[m])[:, None]
+        y = np.einsum("ij,ij->i", n, u[m]) * np.sqrt(weights[m])
+        out[i] = np.linalg.lstsq(rows, y, rcond=None)[0][:3]
+    return out
+
+
+def cell_data_weights(
+    row, col, d, cov_honest, cov_formal, n, *, usable, projection
+) -> Tuple[np.ndarray, object]:
+    """Each cell's data weight ``1 / F`` for the spline field: the share of its points'
+    count that behaves as independent observations, from the honest-σ model of the rigid
+    cells (:mod:`slipmap.core.icp_blocks`).
+
+    A cell's points share part of their error (the point-to-plane bias of a curved, sampled
+    surface, errors correlated over more than a block): the variance of the cell's motion
+    is ``F`` times the formal one, ``F = kappa_c (a + n / n_cap)`` (its shrunk block ratio
+    and the cell-wide floor). Weighed as independent points, the cells' data outweigh the
+    penalty ``F``-fold, the variance components take the shared errors for the field's
+    curvature, and the field follows them (on a uniform 0.65 m shift of lone-star the
+    field's error was twice the rigid cells'). Weighed ``1/F`` a cell counts as ``n / F``
+    points. The floor comes from the agreement of neighbouring rigid cells
+    (:func:`~slipmap.core.icp_blocks.cell_floor`), here of their motions less the rigid
+    projection of the unweighted field (:func:`rigid_projection`): a rigid cell's model
+    error on a straining lobe (its weighted mean motion is not the motion at its centre)
+    would count as noise otherwise.
+
+    Parameters
+    ----------
+    row, col : (K,) int
+        The cells' grid indices.
+    d : (K, 3) float64
+        The rigid cells' motions, metres.
+    cov_honest, cov_formal : (K, 3, 3) float64
+        Their block covariances (shrunk, no floor) and formal covariances, m².
+    n : (K,) int
+        Their correspondences.
+    usable : (K,) bool
+        Cells allowed in the floor's estimate (converged, not flagged).
+    projection : (K, 3) float64
+        :func:`rigid_projection` of the unweighted field, metres (NaN: left out).
+
+    Returns
+    -------
+    weights : (K,) float64
+        ``1 / F`` in (0, 1]; 1 where the cell's F is undefined.
+    floor : CellFloor
+        The floor of the cells' residual motions.
+    """
+    from .icp_blocks import cell_floor
+
+    fh = np.diagonal(np.asarray(cov_honest), axis1=1, axis2=2)
+    ff = np.diagonal(np.asarray(cov_formal), axis1=1, axis2=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.nanmean(np.where(ff > 0, fh / ff, np.nan), axis=1)
+    ratio = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+    resid = np.asarray(d, dtype=np.float64) - np.asarray(projection, dtype=np.float64)
+    sd = np.sqrt(fh)
+    ok = np.all(np.isfinite(resid), axis=1) & np.all(np.isfinite(sd) & (sd > 0), axis=1)
+    fl = cell_floor(
+        np.asarray(row)[ok], np.asarray(col)[ok], resid[ok], sd[ok], np.asarray(n)[ok],
+        usable=np.asarray(usable, dtype=bool)[ok],
+    )  # fmt: skip
+    f = np.maximum(ratio * fl.scale(n), 1.0)
+    log.info(
+        "spline data weights: the rigid cells' floor about the field a %.2f, n_cap %.0f; "
+        "F median %.2f (%.2f-%.2f)", fl.factor**2, fl.n_cap, float(np.median(f)),
+        float(f.min()), float(f.max()),
+    )  # fmt: skip
+    return 1.0 / f, fl
