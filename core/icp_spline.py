@@ -416,7 +416,13 @@ def _second_differences(kx: int, ky: int):
 
 
 def sided_second_differences(
-    origin_xy, spacing_m: float, n_x: int, n_y: int, lines, copy_index: np.ndarray
+    origin_xy,
+    spacing_m: float,
+    n_x: int,
+    n_y: int,
+    lines,
+    copy_index: np.ndarray,
+    rows: bool = False,
 ):
     """Penalty matrix ``RᵀR`` of the second differences of a knot grid with far-side copies,
     sparse ((ky kx + C), (ky kx + C)).
@@ -428,6 +434,9 @@ def sided_second_differences(
     positions) enters by its copy; for the copy, a neighbour across the line enters as itself
     and one on the knot's own side by its copy. A difference whose neighbour version does not
     exist is left out. Without lines this is :func:`_second_differences`.
+
+    With ``rows``: the rows ``R`` themselves (sparse (T, ky kx + C)) and the map position
+    of each row's middle knot (T, 2) instead.
     """
     import scipy.sparse as sp
 
@@ -473,6 +482,11 @@ def sided_second_differences(
         (np.tile([1.0, -2.0, 1.0], n_r), (np.repeat(np.arange(n_r), 3), r_idx.ravel())),
         shape=(n_r, n_tot),
     )
+    if rows:
+        # each row's place: its middle knot's (a copy sits where its knot does)
+        mid = r_idx[:, 1]
+        grid_of = np.r_[np.arange(n_grid), np.flatnonzero(copy_index >= 0)]
+        return r.tocsr(), pos[grid_of[mid]]
     return (r.T @ r).tocsr()
 
 
@@ -558,6 +572,52 @@ def _variance_components(factor, r2, lam_abs, c, wvv: float, n_obs: int) -> np.n
             out[j] = s0sq / (rough / r_j)
     log.debug("spline field: variance components -> weights %s", np.array2string(out))
     return out
+
+
+def _local_variance_components(
+    factor, rmat, kernel, lam_rows, c, wvv: float, n_obs: int, n_nominal: float
+) -> np.ndarray:
+    """Penalty weights per second-difference row and component, ``sigma0² / sigma_j²(x)``:
+    :func:`_variance_components` with the prior variance of the second differences
+    estimated locally, each row's from the rows around it (``kernel`` (T, T) sparse, rows
+    summing to 1 or not: only ratios matter), ``sum_s K_rs (R c_j)_s² / sum_s K_rs e_s``
+    with ``e_s`` each row's redundancy, its share ``n_nominal / T`` of the pseudo-
+    observations less ``lam_s (R A⁻¹_jj Rᵀ)_ss``. A kernel of ones is the global estimate."""
+    n_rows, n_k = rmat.shape
+    diag = np.array([_diag_r_inv_rt(factor, rmat, j, n_k) for j in range(3)])  # (3, T)
+    t_all = np.sum(lam_rows * diag, axis=1)  # redundancy the prior gives away per component
+    r_obs = max(n_obs - (3 * n_k - float(np.sum(t_all))), 1.0)
+    s0sq = wvv / r_obs
+    share = n_nominal / n_rows
+    out = lam_rows.copy()
+    for j in range(3):
+        rc2 = (rmat @ c[:, j]) ** 2
+        red = np.maximum(share - lam_rows[j] * diag[j], 0.0)
+        num = kernel @ rc2
+        den = np.maximum(kernel @ red, 1e-3 * (kernel @ np.full(n_rows, share)))
+        good = num > 0
+        out[j, good] = s0sq / (num[good] / den[good])
+    log.debug(
+        "spline field: local variance components -> weights (median) %s",
+        np.array2string(np.median(out, axis=1)),
+    )
+    return out
+
+
+def _diag_r_inv_rt(factor, rmat, j: int, n_k: int, seed: int = 0) -> np.ndarray:
+    """``diag(R A⁻¹_jj Rᵀ)`` (T,) of component ``j``: exact up to TRACE_EXACT_MAX knots,
+    else Hutchinson's diagonal estimate with TRACE_PROBES Rademacher probes."""
+    if n_k <= TRACE_EXACT_MAX:
+        rhs = np.zeros((3 * n_k, n_k))
+        rhs[j * n_k + np.arange(n_k), np.arange(n_k)] = 1.0
+        x = factor.solve(rhs)[j * n_k : (j + 1) * n_k]
+        return np.asarray(rmat.multiply(rmat @ x).sum(axis=1)).ravel()
+    rng = np.random.default_rng(seed + j)
+    z = rng.choice([-1.0, 1.0], size=(rmat.shape[0], TRACE_PROBES))
+    rhs = np.zeros((3 * n_k, TRACE_PROBES))
+    rhs[j * n_k : (j + 1) * n_k] = rmat.T @ z
+    x = factor.solve(rhs)[j * n_k : (j + 1) * n_k]
+    return np.mean(z * (rmat @ x), axis=1)
 
 
 def knot_frame(
@@ -922,8 +982,8 @@ class SplineChunk:
         """The chunk's share of each cell's rigid fit to the field of coefficients ``c``
         (:func:`rigid_projection`): per cell with points, the linearised point-to-plane
         normal matrix ``sum w r rᵀ`` (6, 6) and right-hand side ``sum w r (n . u)`` (6,) of
-        the rows ``r = (n, q x n)``, ``q`` the point's offset from the cell's (x, y) at
-        z = 0, ``u`` the field at the point, ``n`` its target normal, ``w`` its robust
+        the rows ``r = (n, q x n)``, ``q`` the point's offset from the cell's (x, y) and the
+        mean z of the chunk's points of the cell, ``u`` the field at the point, ``n`` its target normal, ``w`` its robust
         weight; and the cell's sum of z and count of those points.
 
         Returns
@@ -943,14 +1003,14 @@ class SplineChunk:
         n, p, s, ws = nrm[sel], self.a[sel], self.seg[sel], w[sel]
         cells, ci = np.unique(s, return_inverse=True)
         ci = ci.reshape(-1)
-        q = p - np.c_[np.asarray(report_xy, dtype=np.float64)[s], np.zeros(len(s))]
+        sum_z = np.bincount(ci, weights=p[:, 2], minlength=cells.size)
+        count = np.bincount(ci, minlength=cells.size).astype(np.float64)
+        q = p - np.c_[np.asarray(report_xy, dtype=np.float64)[s], (sum_z / count)[ci]]
         rows = np.c_[n, np.cross(q, n)]
         nm = np.zeros((cells.size, 6, 6))
         np.add.at(nm, ci, ws[:, None, None] * rows[:, :, None] * rows[:, None, :])
         rhs = np.zeros((cells.size, 6))
         np.add.at(rhs, ci, (ws * np.einsum("ij,ij->i", n, u))[:, None] * rows)
-        sum_z = np.bincount(ci, weights=p[:, 2], minlength=cells.size)
-        count = np.bincount(ci, minlength=cells.size).astype(np.float64)
         return cells, nm, rhs, sum_z, count
 
 
@@ -1162,7 +1222,25 @@ def fit_spline_chunks(
     )
     f0 = np.asarray(initial(gxy), dtype=np.float64).reshape(-1, 3)
     f0 = np.where(np.isfinite(f0), f0, 0.0)
-    r2 = sided_second_differences(field.origin_xy, h, n_x, n_y, bl, copy_index)
+    rmat, rpos = sided_second_differences(field.origin_xy, h, n_x, n_y, bl, copy_index, rows=True)
+    r2 = (rmat.T @ rmat).tocsr()
+    # with the data weighed by their independent share (cell_weight), the penalty's weights
+    # are estimated locally (_local_variance_components): a lobe keeps its curvature where
+    # the ground around it is held flat. Without weights the points count as independent
+    # and a local estimate would follow their shared errors further: one weight per
+    # component there, as before.
+    local = auto and cell_weight is not None
+    kernel = n_nominal = None
+    if local:  # Gaussian of two knot spacings (a cell by default), cut at three widths
+        from scipy.spatial import cKDTree
+
+        width = 2.0 * h
+        kt = cKDTree(rpos)
+        kd = kt.sparse_distance_matrix(kt, 3.0 * width, output_type="coo_matrix")
+        kernel = sp.csr_matrix(
+            (np.exp(-0.5 * (kd.data / width) ** 2), (kd.row, kd.col)), shape=(len(rpos),) * 2
+        ) + sp.identity(len(rpos), format="csr")
+        n_nominal = float(np.count_nonzero(r2.diagonal() > 0))
     lhs0 = (bmat.T @ bmat + 1e-6 * r2 + 1e-9 * sp.identity(n_k)).tocsc()
     c = splu(lhs0).solve(np.asarray(bmat.T @ f0))  # (K, 3)
 
@@ -1197,13 +1275,28 @@ def fit_spline_chunks(
                 idle = nmat.diagonal().reshape(3, n_k).sum(axis=0) <= 0
                 idle[:n_grid] = False
                 ridge = ridge + sp.diags(np.tile(idle * (1e-6 * scale), 3), format="csr")
-        penalty = sp.block_diag([w * r2 for w in lam_abs], format="csr") + ridge
+        if local:
+            if np.ndim(lam_abs) == 1:
+                lam_abs = np.repeat(np.asarray(lam_abs)[:, None], rmat.shape[0], axis=1)
+            penalty = (
+                sp.block_diag([(rmat.T @ sp.diags(w) @ rmat) for w in lam_abs], format="csr")
+                + ridge
+            )
+        else:
+            penalty = sp.block_diag([w * r2 for w in lam_abs], format="csr") + ridge
         cvec = c.T.reshape(-1)  # component-major
         factor = splu((nmat + penalty).tocsc())
         step = factor.solve(rhs - penalty @ cvec)
         dc = step.reshape(3, n_k).T
         c = c + dc
-        if auto:
+        if auto and local:
+            new = _local_variance_components(
+                factor, rmat, kernel, lam_abs, c, wvv, n_obs, n_nominal
+            )
+            new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
+            auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
+            lam_abs = new
+        elif auto:
             new = _variance_components(factor, r2, lam_abs, c, wvv, n_obs)
             new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
             auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
@@ -1529,21 +1622,27 @@ def rigid_projection(run: ChunkRunner, c: np.ndarray, weighting: Weighting, repo
     """
     rxy = np.asarray(report_xy, dtype=np.float64).reshape(-1, 2)
     k = len(rxy)
-    nm, rhs = np.zeros((k, 6, 6)), np.zeros((k, 6))
+    parts = list(run("rigid_rows", c, weighting, rxy))
     sz, cnt = np.zeros(k), np.zeros(k)
-    for cells, n6, r6, z, m in run("rigid_rows", c, weighting, rxy):
-        np.add.at(nm, cells, n6)
-        np.add.at(rhs, cells, r6)
+    for cells, _, _, z, m in parts:
         np.add.at(sz, cells, z)
         np.add.at(cnt, cells, m)
+    zc = sz / np.maximum(cnt, 1.0)
+    # each chunk's rows are about its own mean z of the cell: moved to the cell's mean z
+    # (rows (n, q x n) about an origin moved by delta become (n, q x n - delta x n))
+    nm, rhs = np.zeros((k, 6, 6)), np.zeros((k, 6))
+    for cells, n6, r6, z, m in parts:
+        dz = zc[cells] - z / np.maximum(m, 1.0)
+        t = np.tile(np.eye(6), (len(cells), 1, 1))
+        # -[delta]x for delta = (0, 0, dz): rows 3..5, columns 0..2
+        t[:, 3, 1] = dz
+        t[:, 4, 0] = -dz
+        np.add.at(nm, cells, t @ n6 @ np.transpose(t, (0, 2, 1)))
+        np.add.at(rhs, cells, np.einsum("cij,cj->ci", t, r6))
     out = np.full((k, 3), np.nan)
     for i in np.flatnonzero(cnt > 0):
-        try:
-            x = np.linalg.solve(nm[i], rhs[i])
-        except np.linalg.LinAlgError:
-            continue
         if np.linalg.cond(nm[i]) < 1e12:
-            out[i] = x[:3] + np.cross(x[3:], [0.0, 0.0, sz[i] / cnt[i]])
+            out[i] = np.linalg.solve(nm[i], rhs[i])[:3]
     return out
 
 
