@@ -2233,15 +2233,9 @@ def windowed_icp(
 
             def weights(projection):
                 return cell_data_weights(
-                    cells.row,
-                    cells.col,
-                    d,
-                    cov_d,
-                    cov_formal,
-                    fits.n,
-                    usable=cu0,
-                    projection=projection,
-                )[0]
+                    cells.row, cells.col, d, cov_d, cov_formal, fits.n, usable=cu0,
+                    projection=projection, fitted=fits.ok,
+                )[0]  # fmt: skip
 
         sfit = fit_spline_field(
             a[cells.points],

@@ -983,8 +983,9 @@ class SplineChunk:
         (:func:`rigid_projection`): per cell with points, the linearised point-to-plane
         normal matrix ``sum w r rᵀ`` (6, 6) and right-hand side ``sum w r (n . u)`` (6,) of
         the rows ``r = (n, q x n)``, ``q`` the point's offset from the cell's (x, y) and the
-        mean z of the chunk's points of the cell, ``u`` the field at the point, ``n`` its target normal, ``w`` its robust
-        weight; and the cell's sum of z and count of those points.
+        mean z of the chunk's points of the cell, ``u`` the field at the point, ``n`` its
+        target normal, ``w`` its robust weight; and the cell's sum of z and count of those
+        points.
 
         Returns
         -------
@@ -1668,7 +1669,7 @@ def rigid_projection_reference(field, after, seg, report_xy, weights, normals_at
 
 
 def cell_data_weights(
-    row, col, d, cov_honest, cov_formal, n, *, usable, projection
+    row, col, d, cov_honest, cov_formal, n, *, usable, projection, fitted=None
 ) -> Tuple[np.ndarray, object]:
     """Each cell's data weight ``1 / F`` for the spline field: the share of its points'
     count that behaves as independent observations, from the honest-σ model of the rigid
@@ -1701,11 +1702,13 @@ def cell_data_weights(
         Cells allowed in the floor's estimate (converged, not flagged).
     projection : (K, 3) float64
         :func:`rigid_projection` of the unweighted field, metres (NaN: left out).
+    fitted : (K,) bool, optional
+        Cells with a rigid fit (default: all); the others take the median ``F`` of these.
 
     Returns
     -------
     weights : (K,) float64
-        ``1 / F`` in (0, 1]; 1 where the cell's F is undefined.
+        ``1 / F`` in (0, 1].
     floor : CellFloor
         The floor of the cells' residual motions.
     """
@@ -1716,7 +1719,9 @@ def cell_data_weights(
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.nanmean(np.where(ff > 0, fh / ff, np.nan), axis=1)
     ratio = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+    fitted = np.ones(len(ratio), dtype=bool) if fitted is None else np.asarray(fitted, bool)
     resid = np.asarray(d, dtype=np.float64) - np.asarray(projection, dtype=np.float64)
+    resid[~fitted] = np.nan
     sd = np.sqrt(fh)
     ok = np.all(np.isfinite(resid), axis=1) & np.all(np.isfinite(sd) & (sd > 0), axis=1)
     fl = cell_floor(
@@ -1724,6 +1729,7 @@ def cell_data_weights(
         usable=np.asarray(usable, dtype=bool)[ok],
     )  # fmt: skip
     f = np.maximum(ratio * fl.scale(n), 1.0)
+    f[~fitted] = float(np.median(f[fitted])) if fitted.any() else 1.0
     log.info(
         "spline data weights: the rigid cells' floor about the field a %.2f, n_cap %.0f; "
         "F median %.2f (%.2f-%.2f)", fl.factor**2, fl.n_cap, float(np.median(f)),

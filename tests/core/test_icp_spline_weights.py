@@ -59,20 +59,22 @@ OPTS = _Options(
 )
 
 
-def _fit(before, after, centres, seg, weight):
+def _fit(before, after, centres, seg, weight, smoothing=None):
     tree = cKDTree(before)
     return fit_spline_field(
         after, before=before, tree=tree, normals=lambda j: _normals(before[j, :2]),
         initial=lambda xy: np.zeros((len(xy), 3)), report_xy=centres, report_seg=seg,
         spacing_m=2.0, gate_m=0.5, opts=OPTS,
-        cell_weight=weight,
+        cell_weight=weight, smoothing=smoothing,
     )  # fmt: skip
 
 
 def test_unit_cell_weights_are_the_unweighted_fit():
+    """With the smoothing given, weights of one change nothing (with it estimated they
+    also switch the penalty's estimate to the local one)."""
     before, after, _, centres, seg, _ = _scene(1, side=16.0)
-    a = _fit(before, after, centres, seg, None)
-    b = _fit(before, after, centres, seg, np.ones(len(centres)))
+    a = _fit(before, after, centres, seg, None, smoothing=0.01)
+    b = _fit(before, after, centres, seg, np.ones(len(centres)), smoothing=0.01)
     np.testing.assert_array_equal(a.d, b.d)
     np.testing.assert_array_equal(a.cov, b.cov)
 
