@@ -17,7 +17,10 @@ with a penalty on the coefficients' second differences (it fixes knots without d
 damps the noise; it also flattens a field's sharpest peaks a little: docs/fields.md). Its
 weight per component is estimated from the data by variance-component estimation (the
 geodetic way to weigh observations against a prior), or given relative to the median
-diagonal of the normal matrix.
+diagonal of the normal matrix. With the honest-σ model (:func:`cell_data_weights`) each
+cell's points are weighed by their share of independent observations and the penalty's
+weight is estimated per second difference, from the rows around it (docs/fields.md, "The
+spline's data weights and a local penalty").
 
 Written here, not taken from a library: the registration libraries at hand (Open3D, py4dgeo,
 scipy) offer rigid or per-point motion only, and the B-spline basis is a few lines of numpy.
@@ -1103,6 +1106,15 @@ def fit_spline_field(
     block_m : float, optional
         Block side (metres) of the block covariance ``SplineFit.cov_blocks``
         (:mod:`slipmap.core.icp_blocks`); None: not computed.
+    cell_weight : (K,) float64 or callable, optional
+        Data weight of each report cell's points, ``1 / F`` with ``F`` the cell's honest over
+        formal variance (its points' share of independent observations), or a callable
+        ``cell_weight(projection (K, 3)) -> (K,) or None`` that makes them from the
+        :func:`rigid_projection` of the unweighted field (:func:`cell_data_weights`; the field
+        is then fitted without weights first and again, from there, with them; None: the
+        unweighted fit). The variance components take the points' own variance and, with
+        the smoothing estimated, a penalty weight per second difference
+        (:func:`_local_variance_components`). None: every point counts as independent.
 
     Returns
     -------
@@ -1191,14 +1203,15 @@ def fit_spline_chunks(
 
     if callable(cell_weight):  # weights from the unweighted field (cell_data_weights)
         first = fit_spline_chunks(
-            run, frame=frame, initial=initial, report_xy=report_xy, smoothing=smoothing,
-            gate_m=gate_m, opts=opts, progress=progress,
+            run, frame=frame, initial=initial, report_xy=report_xy, report_pairs=report_pairs,
+            smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress, block_m=block_m,
         )  # fmt: skip
         c1 = first.field.all_coefficients()
         wgt1 = Weighting.of(np.concatenate([np.asarray(p) for p in run("residuals", c1)]), opts)
-        cell_weight = np.asarray(
-            cell_weight(rigid_projection(run, c1, wgt1, report_xy)), dtype=np.float64
-        )
+        cell_weight = cell_weight(rigid_projection(run, c1, wgt1, report_xy))
+        if cell_weight is None:  # no model of the cells' shared error: the unweighted fit
+            return first
+        cell_weight = np.asarray(cell_weight, dtype=np.float64)
         initial = first.field
     auto = smoothing is None
     lam = _check_smoothing(smoothing)
@@ -1707,8 +1720,9 @@ def cell_data_weights(
 
     Returns
     -------
-    weights : (K,) float64
-        ``1 / F`` in (0, 1].
+    weights : (K,) float64 or None
+        ``1 / F`` in (0, 1]; None where the floor cannot be estimated (too few cells with
+        neighbours, e.g. a sparse airborne survey): no model, no weights.
     floor : CellFloor
         The floor of the cells' residual motions.
     """
@@ -1728,6 +1742,9 @@ def cell_data_weights(
         np.asarray(row)[ok], np.asarray(col)[ok], resid[ok], sd[ok], np.asarray(n)[ok],
         usable=np.asarray(usable, dtype=bool)[ok],
     )  # fmt: skip
+    if not np.isfinite(fl.factor):
+        log.info("spline data weights: no cell-wide floor (%d cells tested): none", fl.n_cells)
+        return None, fl
     f = np.maximum(ratio * fl.scale(n), 1.0)
     f[~fitted] = float(np.median(f[fitted])) if fitted.any() else 1.0
     log.info(
