@@ -5,6 +5,8 @@ two disjoint halves, the second moved by a known field (:mod:`slipmap.core.synth
 
 * ``lobe-round``: the smooth lobe ``d = d_max (1 - r²)²`` on a circle of radius 10.8 m (a third
   of the cloud's smaller side), peak 0.6 m south and 0.25 m down;
+* ``shift``: the same lobe shape with a radius of 500 m, a near-uniform 0.65 m (where a
+  spline field must be as still as rigid cells);
 * ``lobe-small``: a round lobe of radius 6 m off-centre, peak (0.25, -0.35, -0.15) m;
 * ``lobe-long``: an elongated lobe 7 m x 16 m, long axis at azimuth 30°, peak 0.6 m down it;
 * ``slab``: a rigid slab translating (0.1, -0.5, -0.2) m away from a straight scarp at 15° to
