@@ -1285,12 +1285,33 @@ def _icp_spline_tiled(
         "spline field on %d block(s): %d cells, %d x %d knot intervals of %g m (halo %.1f m)",
         len(live), k, frame.n_x, frame.n_y, h, halo,
     )  # fmt: skip
+    weights = None
+    if math.isfinite(block_m) and cells_res.cov_d_blocks is not None:
+        # each cell's data weighed by its independent share, as the one-file run (core.icp)
+        from ..core.icp import _choose_and_shrink
+        from ..core.icp_spline import cell_data_weights
+
+        u_res = np.asarray(cells_res.converged, bool) & ~np.asarray(cells_res.flagged, bool)
+        _, cov_h = _choose_and_shrink(
+            cells_res.cov_d_formal, cells_res.cov_d_blocks, cells_res.n_blocks, u_res
+        )
+        cov_hk, cov_fk = np.full((k, 3, 3), np.nan), np.full((k, 3, 3), np.nan)
+        cov_hk[at], cov_fk[at] = cov_h, cells_res.cov_d_formal
+        n_k = np.zeros(k, dtype=np.int64)
+        n_k[at] = cells_res.n
+
+        def weights(projection):
+            return cell_data_weights(
+                cells.row, cells.col, d, cov_hk, cov_fk, n_k, projection=projection,
+                usable=ok & converged & ~flagged_c, fitted=ok,
+            )[0]  # fmt: skip
+
     try:
         sfit = fit_spline_chunks(
             run, frame=frame, initial=start, report_xy=cells.centres[:, :2], report_pairs=near,
             smoothing=spline_kw["smoothing"], gate_m=gate, opts=opts,
             progress=scaled(outer if progress is not None else None, 0.55, 1.0),
-            block_m=float(block_m) if math.isfinite(block_m) else None,
+            block_m=float(block_m) if math.isfinite(block_m) else None, cell_weight=weights,
         )  # fmt: skip
     finally:
         _drop_chunks(token)

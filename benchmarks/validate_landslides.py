@@ -5,6 +5,8 @@ two disjoint halves, the second moved by a known field (:mod:`slipmap.core.synth
 
 * ``lobe-round``: the smooth lobe ``d = d_max (1 - r²)²`` on a circle of radius 10.8 m (a third
   of the cloud's smaller side), peak 0.6 m south and 0.25 m down;
+* ``shift``: the same lobe shape with a radius of 500 m, a near-uniform 0.65 m (where a
+  spline field must be as still as rigid cells);
 * ``lobe-small``: a round lobe of radius 6 m off-centre, peak (0.25, -0.35, -0.15) m;
 * ``lobe-long``: an elongated lobe 7 m x 16 m, long axis at azimuth 30°, peak 0.6 m down it;
 * ``slab``: a rigid slab translating (0.1, -0.5, -0.2) m away from a straight scarp at 15° to
@@ -124,6 +126,8 @@ def fields(lo: np.ndarray, hi: np.ndarray) -> dict:
     s0 = c + np.array([0.0, 4.0])
     return {
         "lobe-round": LobeField(c, side / 3, side / 3, 0.0, (0.0, -0.6, -0.25)),
+        # a (near-)uniform shift: the lobe of radius 500 m (0.65 m, curvature < 1e-5 /m)
+        "shift": LobeField(c, 500.0, 500.0, 0.0, (0.0, -0.6, -0.25)),
         "lobe-small": LobeField(c + np.array([-6.0, -9.0]), 6.0, 6.0, 0.0, (0.25, -0.35, -0.15)),
         "lobe-long": LobeField(c, 7.0, 16.0, 30.0, (0.6 * down[0], 0.6 * down[1], -0.25)),
         "slab": SlabField((s0 - 30 * u, s0 + 30 * u), (0.1, -0.5, -0.2)),

@@ -2223,8 +2223,23 @@ def windowed_icp(
                 )  # fmt: skip
                 lines_source = "none" if lines is None else "detected"
                 progress = scaled(progress, 0.95, 1.0)
+        weights = None
+        if block is not None and block.level >= 0:
+            # each cell's data weighed by its share of independent observations (the rigid
+            # cells' honest-sigma model, icp_spline.cell_data_weights)
+            from .icp_spline import cell_data_weights
+
+            cu0 = fits.ok & fits.converged & ~flagged
+
+            def weights(projection):
+                return cell_data_weights(
+                    cells.row, cells.col, d, cov_d, cov_formal, fits.n, usable=cu0,
+                    projection=projection, fitted=fits.ok,
+                )[0]  # fmt: skip
+
         sfit = fit_spline_field(
             a[cells.points],
+            cell_weight=weights,
             breaklines=lines,
             # a detected line is placed to about a metre: the points that close to it are
             # left out (on lone-star's scarp, 5 m cells: 5.6 cm -> 0.6 cm at cells >= 3 m)

@@ -17,7 +17,10 @@ with a penalty on the coefficients' second differences (it fixes knots without d
 damps the noise; it also flattens a field's sharpest peaks a little: docs/fields.md). Its
 weight per component is estimated from the data by variance-component estimation (the
 geodetic way to weigh observations against a prior), or given relative to the median
-diagonal of the normal matrix.
+diagonal of the normal matrix. With the honest-σ model (:func:`cell_data_weights`) each
+cell's points are weighed by their share of independent observations and the penalty's
+weight is estimated per second difference, from the rows around it (docs/fields.md, "The
+spline's data weights and a local penalty").
 
 Written here, not taken from a library: the registration libraries at hand (Open3D, py4dgeo,
 scipy) offer rigid or per-point motion only, and the B-spline basis is a few lines of numpy.
@@ -29,7 +32,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence
+from typing import Callable, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -114,12 +117,14 @@ def check_spline_size(span_xy, spacing_m: float) -> None:
 
 __all__ = [
     "bspline_weights",
+    "cell_data_weights",
     "ChunkNormals",
     "ChunkReport",
     "fit_spline_chunks",
     "fit_spline_field",
     "knot_copies",
     "knot_frame",
+    "rigid_projection",
     "sided_second_differences",
     "spline_basis",
     "SplineChunk",
@@ -414,7 +419,13 @@ def _second_differences(kx: int, ky: int):
 
 
 def sided_second_differences(
-    origin_xy, spacing_m: float, n_x: int, n_y: int, lines, copy_index: np.ndarray
+    origin_xy,
+    spacing_m: float,
+    n_x: int,
+    n_y: int,
+    lines,
+    copy_index: np.ndarray,
+    rows: bool = False,
 ):
     """Penalty matrix ``RᵀR`` of the second differences of a knot grid with far-side copies,
     sparse ((ky kx + C), (ky kx + C)).
@@ -426,6 +437,9 @@ def sided_second_differences(
     positions) enters by its copy; for the copy, a neighbour across the line enters as itself
     and one on the knot's own side by its copy. A difference whose neighbour version does not
     exist is left out. Without lines this is :func:`_second_differences`.
+
+    With ``rows``: the rows ``R`` themselves (sparse (T, ky kx + C)) and the map position
+    of each row's middle knot (T, 2) instead.
     """
     import scipy.sparse as sp
 
@@ -471,6 +485,11 @@ def sided_second_differences(
         (np.tile([1.0, -2.0, 1.0], n_r), (np.repeat(np.arange(n_r), 3), r_idx.ravel())),
         shape=(n_r, n_tot),
     )
+    if rows:
+        # each row's place: its middle knot's (a copy sits where its knot does)
+        mid = r_idx[:, 1]
+        grid_of = np.r_[np.arange(n_grid), np.flatnonzero(copy_index >= 0)]
+        return r.tocsr(), pos[grid_of[mid]]
     return (r.T @ r).tocsr()
 
 
@@ -556,6 +575,52 @@ def _variance_components(factor, r2, lam_abs, c, wvv: float, n_obs: int) -> np.n
             out[j] = s0sq / (rough / r_j)
     log.debug("spline field: variance components -> weights %s", np.array2string(out))
     return out
+
+
+def _local_variance_components(
+    factor, rmat, kernel, lam_rows, c, wvv: float, n_obs: int, n_nominal: float
+) -> np.ndarray:
+    """Penalty weights per second-difference row and component, ``sigma0² / sigma_j²(x)``:
+    :func:`_variance_components` with the prior variance of the second differences
+    estimated locally, each row's from the rows around it (``kernel`` (T, T) sparse, rows
+    summing to 1 or not: only ratios matter), ``sum_s K_rs (R c_j)_s² / sum_s K_rs e_s``
+    with ``e_s`` each row's redundancy, its share ``n_nominal / T`` of the pseudo-
+    observations less ``lam_s (R A⁻¹_jj Rᵀ)_ss``. A kernel of ones is the global estimate."""
+    n_rows, n_k = rmat.shape
+    diag = np.array([_diag_r_inv_rt(factor, rmat, j, n_k) for j in range(3)])  # (3, T)
+    t_all = np.sum(lam_rows * diag, axis=1)  # redundancy the prior gives away per component
+    r_obs = max(n_obs - (3 * n_k - float(np.sum(t_all))), 1.0)
+    s0sq = wvv / r_obs
+    share = n_nominal / n_rows
+    out = lam_rows.copy()
+    for j in range(3):
+        rc2 = (rmat @ c[:, j]) ** 2
+        red = np.maximum(share - lam_rows[j] * diag[j], 0.0)
+        num = kernel @ rc2
+        den = np.maximum(kernel @ red, 1e-3 * (kernel @ np.full(n_rows, share)))
+        good = num > 0
+        out[j, good] = s0sq / (num[good] / den[good])
+    log.debug(
+        "spline field: local variance components -> weights (median) %s",
+        np.array2string(np.median(out, axis=1)),
+    )
+    return out
+
+
+def _diag_r_inv_rt(factor, rmat, j: int, n_k: int, seed: int = 0) -> np.ndarray:
+    """``diag(R A⁻¹_jj Rᵀ)`` (T,) of component ``j``: exact up to TRACE_EXACT_MAX knots,
+    else Hutchinson's diagonal estimate with TRACE_PROBES Rademacher probes."""
+    if n_k <= TRACE_EXACT_MAX:
+        rhs = np.zeros((3 * n_k, n_k))
+        rhs[j * n_k + np.arange(n_k), np.arange(n_k)] = 1.0
+        x = factor.solve(rhs)[j * n_k : (j + 1) * n_k]
+        return np.asarray(rmat.multiply(rmat @ x).sum(axis=1)).ravel()
+    rng = np.random.default_rng(seed + j)
+    z = rng.choice([-1.0, 1.0], size=(rmat.shape[0], TRACE_PROBES))
+    rhs = np.zeros((3 * n_k, TRACE_PROBES))
+    rhs[j * n_k : (j + 1) * n_k] = rmat.T @ z
+    x = factor.solve(rhs)[j * n_k : (j + 1) * n_k]
+    return np.mean(z * (rmat @ x), axis=1)
 
 
 def knot_frame(
@@ -828,26 +893,49 @@ class SplineChunk:
         ok, _, v, _ = self.pairs(c)
         return np.abs(v[ok])
 
-    def normal_equations(self, c: np.ndarray, weighting: Weighting) -> ChunkNormals:
-        """The chunk's share of the normal equations at coefficients ``c``."""
+    def data_weight(self, cell_weight: Optional[np.ndarray]) -> np.ndarray:
+        """(P,) each point's data weight: its cell's ``cell_weight`` (K,) (1 for points
+        without a cell, or without weights)."""
+        dw = np.ones(len(self.a))
+        if cell_weight is None or self.seg is None:
+            return dw
+        inside = self.seg >= 0
+        dw[inside] = np.asarray(cell_weight, dtype=np.float64)[self.seg[inside]]
+        return np.where(np.isfinite(dw) & (dw > 0), dw, 1.0)
+
+    def normal_equations(
+        self, c: np.ndarray, weighting: Weighting, cell_weight: Optional[np.ndarray] = None
+    ) -> ChunkNormals:
+        """The chunk's share of the normal equations at coefficients ``c``; with
+        ``cell_weight`` (K,) each point's row weighed by its cell's data weight
+        (:func:`cell_data_weights`), ``wvv`` still the unweighted ``sum w v²`` (the points'
+        own variance, for the variance components)."""
         ok, nrm, v, _ = self.pairs(c)
         keep, wv, _ = weighting.apply(v[ok])
         wt = np.zeros(len(v))
         wt[ok] = np.where(keep, wv, 0.0)
         wt[self.gap] = 0.0
         nmat, rhs, gram = _assemble(
-            None, self.bounds, self.idx16, self.w16, nrm, v, wt, self.n_k, ok=ok
-        )
+            None, self.bounds, self.idx16, self.w16, nrm, v, wt * self.data_weight(cell_weight),
+            self.n_k, ok=ok,
+        )  # fmt: skip
         return ChunkNormals(
             nmat, rhs, gram, float(np.sum(wt * v * v)), int(np.count_nonzero(wt)),
             int(np.count_nonzero(ok)),
         )  # fmt: skip
 
     def report(
-        self, c: np.ndarray, weighting: Weighting, block_m: Optional[float] = None
+        self,
+        c: np.ndarray,
+        weighting: Weighting,
+        block_m: Optional[float] = None,
+        cell_weight: Optional[np.ndarray] = None,
     ) -> ChunkReport:
         """The chunk's share of the final sums at coefficients ``c``; with ``block_m``
-        (metres) its block sums of the scores too (:mod:`slipmap.core.icp_blocks`)."""
+        (metres) its block sums of the scores too (:mod:`slipmap.core.icp_blocks`). With
+        ``cell_weight`` the scores are ``psi sqrt(dw)``: a cell of data weight ``dw = 1/F``
+        enters the normal equations as ``dw`` times its points, whose summed scores vary as
+        ``F`` times independent ones (the model of the weights)."""
         ok, nrm, v, tid = self.pairs(c)
         keep, wv, dpsi = weighting.apply(v[ok])
         psi = np.where(keep, wv * v[ok], 0.0)
@@ -871,7 +959,7 @@ class SplineChunk:
             from .icp_blocks import spline_block_scores
 
             psi_all = np.zeros(len(v))
-            psi_all[ok] = psi
+            psi_all[ok] = psi * np.sqrt(self.data_weight(cell_weight)[ok])
             psi_all[self.gap] = 0.0  # no weight in the fit: no score
             scores = spline_block_scores(
                 xy=self.a[:, :2], psi=psi_all, nrm=nrm, idx16=self.idx16, w16=self.w16,
@@ -892,6 +980,42 @@ class SplineChunk:
             sum_w=float(np.sum(np.where(keep, wv, 0.0))),
             block_scores=scores,
         )
+
+    def rigid_rows(self, c: np.ndarray, weighting: Weighting, report_xy: np.ndarray):
+        """The chunk's share of each cell's rigid fit to the field of coefficients ``c``
+        (:func:`rigid_projection`): per cell with points, the linearised point-to-plane
+        normal matrix ``sum w r rᵀ`` (6, 6) and right-hand side ``sum w r (n . u)`` (6,) of
+        the rows ``r = (n, q x n)``, ``q`` the point's offset from the cell's (x, y) and the
+        mean z of the chunk's points of the cell, ``u`` the field at the point, ``n`` its
+        target normal, ``w`` its robust weight; and the cell's sum of z and count of those
+        points.
+
+        Returns
+        -------
+        (cells (C,) int64, nm (C, 6, 6), rhs (C, 6), sum_z (C,), count (C,))
+        """
+        ok, nrm, v, _ = self.pairs(c)
+        keep, wv, _ = weighting.apply(v[ok])
+        w = np.zeros(len(v))
+        w[ok] = np.where(keep, wv, 0.0)
+        w[self.gap] = 0.0
+        sel = (w > 0) if self.seg is None else (w > 0) & (self.seg >= 0)
+        if self.seg is None or not np.any(sel):
+            z = np.zeros(0)
+            return np.zeros(0, np.int64), np.zeros((0, 6, 6)), np.zeros((0, 6)), z, z
+        u = self._basis_pts[sel] @ c
+        n, p, s, ws = nrm[sel], self.a[sel], self.seg[sel], w[sel]
+        cells, ci = np.unique(s, return_inverse=True)
+        ci = ci.reshape(-1)
+        sum_z = np.bincount(ci, weights=p[:, 2], minlength=cells.size)
+        count = np.bincount(ci, minlength=cells.size).astype(np.float64)
+        q = p - np.c_[np.asarray(report_xy, dtype=np.float64)[s], (sum_z / count)[ci]]
+        rows = np.c_[n, np.cross(q, n)]
+        nm = np.zeros((cells.size, 6, 6))
+        np.add.at(nm, ci, ws[:, None, None] * rows[:, :, None] * rows[:, None, :])
+        rhs = np.zeros((cells.size, 6))
+        np.add.at(rhs, ci, (ws * np.einsum("ij,ij->i", n, u))[:, None] * rows)
+        return cells, nm, rhs, sum_z, count
 
 
 #: ``run(stage, *args) -> [result of every chunk]``: the chunks' methods ``residuals``,
@@ -918,6 +1042,7 @@ def fit_spline_field(
     breaklines=None,
     breakline_gap_m: float = 0.0,
     block_m: Optional[float] = None,
+    cell_weight: Optional[np.ndarray] = None,
 ) -> SplineFit:
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
 
@@ -981,6 +1106,15 @@ def fit_spline_field(
     block_m : float, optional
         Block side (metres) of the block covariance ``SplineFit.cov_blocks``
         (:mod:`slipmap.core.icp_blocks`); None: not computed.
+    cell_weight : (K,) float64 or callable, optional
+        Data weight of each report cell's points, ``1 / F`` with ``F`` the cell's honest over
+        formal variance (its points' share of independent observations), or a callable
+        ``cell_weight(projection (K, 3)) -> (K,) or None`` that makes them from the
+        :func:`rigid_projection` of the unweighted field (:func:`cell_data_weights`; the field
+        is then fitted without weights first and again, from there, with them; None: the
+        unweighted fit). The variance components take the points' own variance and, with
+        the smoothing estimated, a penalty weight per second difference
+        (:func:`_local_variance_components`). None: every point counts as independent.
 
     Returns
     -------
@@ -1009,6 +1143,7 @@ def fit_spline_field(
     return fit_spline_chunks(
         run, frame=frame, initial=initial, report_xy=report_xy, report_pairs=report_pairs,
         smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress, block_m=block_m,
+        cell_weight=cell_weight,
     )  # fmt: skip
 
 
@@ -1040,6 +1175,7 @@ def fit_spline_chunks(
     opts: _Options,
     progress: Optional[ProgressCallback] = None,
     block_m: Optional[float] = None,
+    cell_weight=None,
 ) -> SplineFit:
     """:func:`fit_spline_field` over chunks of points: the Gauss-Newton normal equations,
     the weights' scale and the final sums are sums (or quantiles) over the after-points, so
@@ -1054,7 +1190,7 @@ def fit_spline_chunks(
         after-point in exactly one chunk, each chunk's ``seg`` indexing ``report_xy``.
     frame : SplineField
         The knot lattice (:func:`knot_frame` of all chunks' points).
-    initial, report_xy, report_pairs, smoothing, gate_m, opts, progress, block_m
+    initial, report_xy, report_pairs, smoothing, gate_m, opts, progress, block_m, cell_weight
         As :func:`fit_spline_field` (with ``block_m`` every chunk's ``report`` gives its
         block sums, :class:`~slipmap.core.icp_blocks.BlockScores`, added here).
 
@@ -1065,6 +1201,18 @@ def fit_spline_chunks(
     import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
+    if callable(cell_weight):  # weights from the unweighted field (cell_data_weights)
+        first = fit_spline_chunks(
+            run, frame=frame, initial=initial, report_xy=report_xy, report_pairs=report_pairs,
+            smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress, block_m=block_m,
+        )  # fmt: skip
+        c1 = first.field.all_coefficients()
+        wgt1 = Weighting.of(np.concatenate([np.asarray(p) for p in run("residuals", c1)]), opts)
+        cell_weight = cell_weight(rigid_projection(run, c1, wgt1, report_xy))
+        if cell_weight is None:  # no model of the cells' shared error: the unweighted fit
+            return first
+        cell_weight = np.asarray(cell_weight, dtype=np.float64)
+        initial = first.field
     auto = smoothing is None
     lam = _check_smoothing(smoothing)
     lam_abs = None  # absolute penalty weight per component, set at the first iteration
@@ -1088,7 +1236,25 @@ def fit_spline_chunks(
     )
     f0 = np.asarray(initial(gxy), dtype=np.float64).reshape(-1, 3)
     f0 = np.where(np.isfinite(f0), f0, 0.0)
-    r2 = sided_second_differences(field.origin_xy, h, n_x, n_y, bl, copy_index)
+    rmat, rpos = sided_second_differences(field.origin_xy, h, n_x, n_y, bl, copy_index, rows=True)
+    r2 = (rmat.T @ rmat).tocsr()
+    # with the data weighed by their independent share (cell_weight), the penalty's weights
+    # are estimated locally (_local_variance_components): a lobe keeps its curvature where
+    # the ground around it is held flat. Without weights the points count as independent
+    # and a local estimate would follow their shared errors further: one weight per
+    # component there, as before.
+    local = auto and cell_weight is not None
+    kernel = n_nominal = None
+    if local:  # Gaussian of two knot spacings (a cell by default), cut at three widths
+        from scipy.spatial import cKDTree
+
+        width = 2.0 * h
+        kt = cKDTree(rpos)
+        kd = kt.sparse_distance_matrix(kt, 3.0 * width, output_type="coo_matrix")
+        kernel = sp.csr_matrix(
+            (np.exp(-0.5 * (kd.data / width) ** 2), (kd.row, kd.col)), shape=(len(rpos),) * 2
+        ) + sp.identity(len(rpos), format="csr")
+        n_nominal = float(np.count_nonzero(r2.diagonal() > 0))
     lhs0 = (bmat.T @ bmat + 1e-6 * r2 + 1e-9 * sp.identity(n_k)).tocsc()
     c = splu(lhs0).solve(np.asarray(bmat.T @ f0))  # (K, 3)
 
@@ -1107,7 +1273,7 @@ def fit_spline_chunks(
     for it in range(1, opts.max_iterations + 1):
         report(progress, (it - 1) / opts.max_iterations, f"spline field: iteration {it}")
         wgt = weighting_at(c)
-        parts = run("normal_equations", c, wgt)
+        parts = run("normal_equations", c, wgt, cell_weight)
         nmat = _sum_sparse([p.nmat for p in parts], 3 * n_k)
         gram = _sum_sparse([p.gram for p in parts], n_k)
         rhs = np.sum([p.rhs for p in parts], axis=0)
@@ -1123,13 +1289,28 @@ def fit_spline_chunks(
                 idle = nmat.diagonal().reshape(3, n_k).sum(axis=0) <= 0
                 idle[:n_grid] = False
                 ridge = ridge + sp.diags(np.tile(idle * (1e-6 * scale), 3), format="csr")
-        penalty = sp.block_diag([w * r2 for w in lam_abs], format="csr") + ridge
+        if local:
+            if np.ndim(lam_abs) == 1:
+                lam_abs = np.repeat(np.asarray(lam_abs)[:, None], rmat.shape[0], axis=1)
+            penalty = (
+                sp.block_diag([(rmat.T @ sp.diags(w) @ rmat) for w in lam_abs], format="csr")
+                + ridge
+            )
+        else:
+            penalty = sp.block_diag([w * r2 for w in lam_abs], format="csr") + ridge
         cvec = c.T.reshape(-1)  # component-major
         factor = splu((nmat + penalty).tocsc())
         step = factor.solve(rhs - penalty @ cvec)
         dc = step.reshape(3, n_k).T
         c = c + dc
-        if auto:
+        if auto and local:
+            new = _local_variance_components(
+                factor, rmat, kernel, lam_abs, c, wvv, n_obs, n_nominal
+            )
+            new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
+            auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
+            lam_abs = new
+        elif auto:
             new = _variance_components(factor, r2, lam_abs, c, wvv, n_obs)
             new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
             auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
@@ -1148,7 +1329,8 @@ def fit_spline_chunks(
             break
     # final residuals, sigma0 and the report
     wgt = weighting_at(c)
-    parts = run("report", c, wgt) if block_m is None else run("report", c, wgt, float(block_m))
+    bm = None if block_m is None else float(block_m)
+    parts = run("report", c, wgt, bm, cell_weight)
     ss = float(sum(p.ss_psi for p in parts))
     used = int(sum(p.used for p in parts))
     n_ok = int(sum(p.n_ok for p in parts))
@@ -1422,3 +1604,152 @@ def refine_breaklines(
         largest,
     )
     return breaklines(out)
+
+
+def rigid_projection(run: ChunkRunner, c: np.ndarray, weighting: Weighting, report_xy):
+    """What each cell would measure as a rigid cell if the ground moved as the field of
+    coefficients ``c``: the translation, at the cell's centre (its x, y and the mean z of
+    its points), of the linearised point-to-plane rigid fit of the field's motion at the
+    cell's paired points (their target normals and robust weights).
+
+    A rigid cell measures a weighted mean of the motion over its points, not the motion at
+    its centre; on a lobe a few cells wide the two differ by centimetres (the rigid cells'
+    model error). The field's own rigid projection has the same model error, so the rigid
+    cells' motions less this projection keep the cells' errors (and the field's misfit)
+    and lose the field's shape (:func:`cell_data_weights`).
+
+    Parameters
+    ----------
+    run : ChunkRunner
+        As :func:`fit_spline_chunks` (every chunk's ``seg`` indexing ``report_xy``).
+    c : (n_k, 3) float64
+        The field's coefficients.
+    weighting : Weighting
+        The robust weights at ``c``.
+    report_xy : (K, 2) float64
+        The cell centres, metres.
+
+    Returns
+    -------
+    (K, 3) float64
+        Metres; NaN for a cell whose rigid fit is singular or has no points.
+    """
+    rxy = np.asarray(report_xy, dtype=np.float64).reshape(-1, 2)
+    k = len(rxy)
+    parts = list(run("rigid_rows", c, weighting, rxy))
+    sz, cnt = np.zeros(k), np.zeros(k)
+    for cells, _, _, z, m in parts:
+        np.add.at(sz, cells, z)
+        np.add.at(cnt, cells, m)
+    zc = sz / np.maximum(cnt, 1.0)
+    # each chunk's rows are about its own mean z of the cell: moved to the cell's mean z
+    # (rows (n, q x n) about an origin moved by delta become (n, q x n - delta x n))
+    nm, rhs = np.zeros((k, 6, 6)), np.zeros((k, 6))
+    for cells, n6, r6, z, m in parts:
+        dz = zc[cells] - z / np.maximum(m, 1.0)
+        t = np.tile(np.eye(6), (len(cells), 1, 1))
+        # -[delta]x for delta = (0, 0, dz): rows 3..5, columns 0..2
+        t[:, 3, 1] = dz
+        t[:, 4, 0] = -dz
+        np.add.at(nm, cells, t @ n6 @ np.transpose(t, (0, 2, 1)))
+        np.add.at(rhs, cells, np.einsum("cij,cj->ci", t, r6))
+    out = np.full((k, 3), np.nan)
+    for i in np.flatnonzero(cnt > 0):
+        if np.linalg.cond(nm[i]) < 1e12:
+            out[i] = np.linalg.solve(nm[i], rhs[i])[:3]
+    return out
+
+
+def rigid_projection_reference(field, after, seg, report_xy, weights, normals_at):
+    """Slow reference of :func:`rigid_projection`: one least-squares solve per cell with
+    ``numpy.linalg.lstsq`` on the explicit rows (``weights`` (P,) and ``normals_at`` (P, 3):
+    each after-point's robust weight and target normal)."""
+    rxy = np.asarray(report_xy, dtype=np.float64)
+    out = np.full((len(rxy), 3), np.nan)
+    u = field(after[:, :2])
+    for i in range(len(rxy)):
+        m = (seg == i) & (weights > 0)
+        if not m.any():
+            continue
+        p = after[m]
+        zc = float(np.mean(p[:, 2]))
+        q = p - np.r_[rxy[i], zc]
+        n = normals_at[m]
+        rows = np.c_[n, np.cross(q, n)] * np.sqrt(weights[m])[:, None]
+        y = np.einsum("ij,ij->i", n, u[m]) * np.sqrt(weights[m])
+        out[i] = np.linalg.lstsq(rows, y, rcond=None)[0][:3]
+    return out
+
+
+def cell_data_weights(
+    row, col, d, cov_honest, cov_formal, n, *, usable, projection, fitted=None
+) -> Tuple[np.ndarray, object]:
+    """Each cell's data weight ``1 / F`` for the spline field: the share of its points'
+    count that behaves as independent observations, from the honest-σ model of the rigid
+    cells (:mod:`slipmap.core.icp_blocks`).
+
+    A cell's points share part of their error (the point-to-plane bias of a curved, sampled
+    surface, errors correlated over more than a block): the variance of the cell's motion
+    is ``F`` times the formal one, ``F = kappa_c (a + n / n_cap)`` (its shrunk block ratio
+    and the cell-wide floor). Weighed as independent points, the cells' data outweigh the
+    penalty ``F``-fold, the variance components take the shared errors for the field's
+    curvature, and the field follows them (on a uniform 0.65 m shift of lone-star the
+    field's error was twice the rigid cells'). Weighed ``1/F`` a cell counts as ``n / F``
+    points. The floor comes from the agreement of neighbouring rigid cells
+    (:func:`~slipmap.core.icp_blocks.cell_floor`), here of their motions less the rigid
+    projection of the unweighted field (:func:`rigid_projection`): a rigid cell's model
+    error on a straining lobe (its weighted mean motion is not the motion at its centre)
+    would count as noise otherwise.
+
+    Parameters
+    ----------
+    row, col : (K,) int
+        The cells' grid indices.
+    d : (K, 3) float64
+        The rigid cells' motions, metres.
+    cov_honest, cov_formal : (K, 3, 3) float64
+        Their block covariances (shrunk, no floor) and formal covariances, m².
+    n : (K,) int
+        Their correspondences.
+    usable : (K,) bool
+        Cells allowed in the floor's estimate (converged, not flagged).
+    projection : (K, 3) float64
+        :func:`rigid_projection` of the unweighted field, metres (NaN: left out).
+    fitted : (K,) bool, optional
+        Cells with a rigid fit (default: all); the others take the median ``F`` of these.
+
+    Returns
+    -------
+    weights : (K,) float64 or None
+        ``1 / F`` in (0, 1]; None where the floor cannot be estimated (too few cells with
+        neighbours, e.g. a sparse airborne survey): no model, no weights.
+    floor : CellFloor
+        The floor of the cells' residual motions.
+    """
+    from .icp_blocks import cell_floor
+
+    fh = np.diagonal(np.asarray(cov_honest), axis1=1, axis2=2)
+    ff = np.diagonal(np.asarray(cov_formal), axis1=1, axis2=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.nanmean(np.where(ff > 0, fh / ff, np.nan), axis=1)
+    ratio = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
+    fitted = np.ones(len(ratio), dtype=bool) if fitted is None else np.asarray(fitted, bool)
+    resid = np.asarray(d, dtype=np.float64) - np.asarray(projection, dtype=np.float64)
+    resid[~fitted] = np.nan
+    sd = np.sqrt(fh)
+    ok = np.all(np.isfinite(resid), axis=1) & np.all(np.isfinite(sd) & (sd > 0), axis=1)
+    fl = cell_floor(
+        np.asarray(row)[ok], np.asarray(col)[ok], resid[ok], sd[ok], np.asarray(n)[ok],
+        usable=np.asarray(usable, dtype=bool)[ok],
+    )  # fmt: skip
+    if not np.isfinite(fl.factor):
+        log.info("spline data weights: no cell-wide floor (%d cells tested): none", fl.n_cells)
+        return None, fl
+    f = np.maximum(ratio * fl.scale(n), 1.0)
+    f[~fitted] = float(np.median(f[fitted])) if fitted.any() else 1.0
+    log.info(
+        "spline data weights: the rigid cells' floor about the field a %.2f, n_cap %.0f; "
+        "F median %.2f (%.2f-%.2f)", fl.factor**2, fl.n_cap, float(np.median(f)),
+        float(f.min()), float(f.max()),
+    )  # fmt: skip
+    return 1.0 / f, fl
