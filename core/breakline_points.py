@@ -3,26 +3,29 @@
 :func:`slipmap.core.breaklines.scan_straight_step` proposes the straight line across which
 the cells' motions step most clearly; on the cells alone a fault across a strongly
 deforming lobe and a lobe steep on the cells' scale look alike. The points tell them apart.
-The spline field is fitted once with the candidate, leaving out the points within a cell of
-it (``breakline_gap_m``), so that each side's field near the line is its own data's,
-carried over at most a cell, and not bent by points the candidate puts on the wrong side.
-Then, for every point within that cell of the candidate:
+The spline field is fitted once with the candidate (``windowed_icp``); then, for every point
+within ``reach_m`` (a cell) of it:
 
+* the two sides' fields at the point's foot on the candidate differ by the field's jump
+  there: where the data are continuous, both sides' fields follow them up to the line and
+  meet (on the harness's lobes 1-2 cm), where they step they do not (its fault: 0.1-0.35 m);
 * it is moved back by the field of the line's left side and by that of its right side (the
   knots' copies swapped, as :func:`slipmap.core.icp_spline.refine_breaklines` does), and
   its point-to-plane residual against epoch 1 says which side's motion it follows where the
-  two residuals differ by more than twice their robust spread (a *decisive* point);
-* the two sides' motions at the point differ by the field's jump there.
+  two residuals differ by more than twice their robust spread (a *decisive* point).
 
-The candidate is dropped when the median jump is below ``min_jump_m`` (a lobe's flank: both
-sides' fields carry it smoothly up to the line) or when no straight line puts more than
-``1 - max_wrong_share`` of the decisive points on their side (the points do not see one
-straight step). Otherwise the line is the straight line, turned by up to
-``angle_range_deg`` and shifted by up to ``reach_m``, that puts the fewest decisive points
-on the wrong side. The per-station placement of ``refine_breaklines`` judges each point by
-the field a cell and a half away, which on a lobe whose motion changes by 0.2 m a cell
-differs from the field at the point by as much as a 0.3 m fault: a straight line fitted to
-all the points at once is held by the stretches where the step is clear.
+The candidate is dropped when the median jump is below ``min_jump_m`` or reaches it at fewer
+than ``min_along_share`` of the stations along the line (the scan proposes lines across the
+whole area: a step along part of it is the edge test's to find), when some station's jump
+exceeds ``max_jump_m`` (the two sides' fields carried over ground the line cuts wrongly: a
+straight line through a block that ends inside the area), or when no straight line puts
+more than ``1 - max_wrong_share`` of the decisive points on their side. Otherwise the line
+is the straight line, turned by up to ``angle_range_deg`` and shifted by up to ``reach_m``,
+that puts the fewest decisive points on the wrong side. ``refine_breaklines`` places a line
+station by station, judging each point by the field a cell and a half away, which on a lobe
+whose motion changes by 0.2 m a cell differs from the field at the point by as much as a
+0.3 m fault (on the harness's fault it moved the line's west end 6 m off); a straight line
+fitted to all the decisive points at once is held by the stretches where the step is clear.
 """
 
 from __future__ import annotations
