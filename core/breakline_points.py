@@ -103,6 +103,7 @@ def place_straight_line(
     max_wrong_share: float = PLACE_MAX_WRONG_SHARE,
     min_along_share: float = PLACE_MIN_ALONG_SHARE,
     max_jump_m: Optional[float] = None,
+    station_jump_m: Optional[float] = None,
 ) -> StraightPlacement:
     """Confirm and place a straight candidate line on the points (see the module).
 
@@ -121,6 +122,13 @@ def place_straight_line(
         How far from the candidate points are looked at and the line may move, metres.
     min_jump_m : float
         Smallest median jump across the candidate that keeps it, metres.
+    min_along_share : float
+        Share of the stations along the line (every ``reach_m``) whose median jump must
+        reach ``station_jump_m``.
+    max_jump_m : float, optional
+        Largest jump allowed at any station, metres (none: no limit).
+    station_jump_m : float, optional
+        The jump a station must reach, metres (default ``min_jump_m``).
     angle_range_deg : float
         The line may turn by up to this much from the candidate's direction, degrees.
     max_wrong_share : float
@@ -169,7 +177,8 @@ def place_straight_line(
     st_jump = np.array(
         [np.median(jumps[k_st == k]) for k in np.flatnonzero(n_st >= PLACE_MIN_STATION_POINTS)]
     )
-    along = float(np.mean(st_jump >= min_jump_m)) if st_jump.size else 0.0
+    st_min = min_jump_m if station_jump_m is None else station_jump_m
+    along = float(np.mean(st_jump >= st_min)) if st_jump.size else 0.0
     log.debug("straight breakline: jumps at the stations %s", np.round(st_jump, 3))
     rel = a[:, :2] - e0
     left = (t0[0] * rel[:, 1] - t0[1] * rel[:, 0]) > 0
@@ -201,8 +210,8 @@ def place_straight_line(
     if jump < min_jump_m or n_dec < PLACE_MIN_DECISIVE or along < min_along_share:
         log.info(
             "straight breakline dropped: the field jumps by %.3f m across it (median; "
-            "%.3f m needed) and by that much along %.0f %% of it (%.0f %% needed), %d "
-            "decisive points", jump, min_jump_m, 100.0 * along, 100.0 * min_along_share, n_dec,
+            "%.3f m needed) and by %.3f m along %.0f %% of it (%.0f %% needed), %d decisive "
+            "points", jump, min_jump_m, st_min, 100.0 * along, 100.0 * min_along_share, n_dec,
         )  # fmt: skip
         return StraightPlacement(None, jump, n_dec, float("nan"), 0.0, 0.0)
     p = a[decisive, :2]

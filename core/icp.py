@@ -2213,7 +2213,9 @@ def windowed_icp(
                 straight = _scan_line(cells, d, usable & ~flagged, n_rows, n_cols, x0, y0, cell)
             if straight is not None:
                 from .breakline_points import place_straight_line
-                from .breaklines import DETECT_FLOOR_M, SCAN_MAX_JUMP_STEPS
+                from .breaklines import DETECT_FLOOR_M, SCAN_MAX_JUMP_STEPS, SCAN_MIN_JUMP_STEPS
+
+                step_m = float(np.linalg.norm(straight.step_m))
 
                 first = fit_spline_field(
                     a[cells.points], breaklines=straight.line,
@@ -2221,8 +2223,9 @@ def windowed_icp(
                 )  # fmt: skip
                 lines = place_straight_line(
                     first.field, a[cells.points], before=b, tree=tree, normals=normals,
-                    gate_m=gate, reach_m=cell, min_jump_m=DETECT_FLOOR_M,
-                    max_jump_m=SCAN_MAX_JUMP_STEPS * float(np.linalg.norm(straight.step_m)),
+                    gate_m=gate, reach_m=cell, station_jump_m=DETECT_FLOOR_M,
+                    min_jump_m=max(DETECT_FLOOR_M, SCAN_MIN_JUMP_STEPS * step_m),
+                    max_jump_m=SCAN_MAX_JUMP_STEPS * step_m,
                 ).line  # fmt: skip
                 lines_source = "none" if lines is None else "detected"
                 progress = scaled(progress, 0.95, 1.0)
