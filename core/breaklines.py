@@ -31,6 +31,8 @@ __all__ = [
     "from_sequence",
     "detect_breaklines",
     "step_edges",
+    "StraightStep",
+    "scan_straight_step",
 ]
 
 
@@ -599,6 +601,193 @@ def detect_breaklines(
             line[end] = line[end] + reach * t
         parts.append(line)
     return from_sequence(parts) if parts else None
+
+
+#: the straight-line scan (:func:`scan_straight_step`): the band on either side of a
+#: candidate line whose cells it fits, in cells
+SCAN_BAND_CELLS = 3.0
+#: ... cells closer than this to the candidate are left out (they straddle it), in cells
+SCAN_GAP_CELLS = 0.25
+#: ... the candidates: directions every this many degrees, offsets every this many cells
+SCAN_ANGLE_STEP_DEG = 7.5
+SCAN_OFFSET_STEP_CELLS = 0.5
+#: ... a candidate is proposed when its step is at least this many times ``floor_m``
+SCAN_MIN_STEP_FLOORS = 2.0
+#: ... and this many times the RMS of the band's residuals
+SCAN_MIN_STEP_RMS = 3.0
+#: ... and each side holds this many cells at least
+SCAN_MIN_SIDE_CELLS = 4
+#: on the points, the field fitted with the candidate may jump across it by at most this
+#: many times the step the cells saw, at every station along it (more: the two sides'
+#: fields are carried over ground the line cuts wrongly, e.g. a straight line through a
+#: block that ends inside the area)
+SCAN_MAX_JUMP_STEPS = 2.0
+#: ... and by at least this share of it (median over the points near it): the cells see a
+#: lobe's flank on the cells' scale as a step, the points resolve it (lone-star's 1 m lobe
+#: of radius 10.8 m: 0.83 m on the cells, 0.12 m on the points; the harness's fault: 0.29 m
+#: on the cells, 0.10-0.26 m on the points)
+SCAN_MIN_JUMP_STEPS = 0.25
+
+
+@dataclass(frozen=True)
+class StraightStep:
+    """The straight line across which a grid of vectors steps most clearly
+    (:func:`scan_straight_step`).
+
+    Attributes
+    ----------
+    line : Breaklines
+        One straight part, from one edge of the vectors' box (and a cell beyond) to the
+        other, metres.
+    angle_deg : float
+        Its direction, degrees counter-clockwise from the x axis, in [0, 180).
+    step_m : ndarray, shape (K,)
+        The fitted step (left side minus right side as seen along the line), metres.
+    rms_m : float
+        RMS of the band's residuals about the fit with the step, metres.
+    f_stat : float
+        The F statistic of the step (the residuals' reduction per component, over the
+        residual variance).
+    n_cells : int
+        Cells in the band.
+    """
+
+    line: Breaklines
+    angle_deg: float
+    step_m: np.ndarray
+    rms_m: float
+    f_stat: float
+    n_cells: int
+
+
+def _poly2(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Design of a quadratic in (u, v): 1, u, v, u², u v, v²."""
+    return np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
+
+
+def scan_straight_step(
+    d: np.ndarray,
+    *,
+    x: np.ndarray,
+    y: np.ndarray,
+    valid: np.ndarray | None = None,
+    floor_m: float = DETECT_FLOOR_M,
+    band_cells: float = SCAN_BAND_CELLS,
+    angle_step_deg: float = SCAN_ANGLE_STEP_DEG,
+) -> StraightStep | None:
+    """The straight line across which a grid of vectors steps most clearly, if any.
+
+    The edge test of :func:`step_edges` compares each difference with its parallel
+    neighbours; where the field itself changes fast (a fault across a lobe whose motion
+    changes by 0.2 m from cell to cell, as much as the fault's 0.3 m) a step does not stand
+    out on any one edge, and where a straight line crosses the grid diagonally its cells
+    straddle it one after the other, so the edges that do pass do not chain. This scan
+    weighs the whole line at once: for every straight line (directions every
+    ``angle_step_deg``, offsets every half cell), the cells within ``band_cells`` of it
+    (leaving out those within :data:`SCAN_GAP_CELLS` of it, which straddle it) are fitted,
+    per component, by a quadratic in the line's coordinates with and without a step across
+    the line (least squares); the line whose step reduces the residuals most (F statistic)
+    is kept, and proposed when its step is at least :data:`SCAN_MIN_STEP_FLOORS` ×
+    ``floor_m`` and :data:`SCAN_MIN_STEP_RMS` × the RMS of the band's residuals.
+
+    The grid alone cannot tell a step from a lobe steep on the cells' scale (on 5 m cells a
+    lobe 7 m wide rises by 0.4 m from one cell to the next): a proposed line is a candidate
+    for the points to confirm and place (:func:`slipmap.core.breakline_points.place_straight_line`).
+
+    Parameters
+    ----------
+    d : (R, C, K) float64
+        Vectors, metres; ``d[r, c]`` sits at ``(x[c], y[r])``.
+    x, y : (C,), (R,) float64
+        Column and row positions (equally spaced, equal spacing in x and y), metres.
+    valid : (R, C) bool, optional
+        Usable vectors (default: all finite).
+    floor_m : float
+        The noise floor of a jump, metres (the step must be twice it).
+    band_cells : float
+        Half-width of the band fitted on either side of a candidate, cells.
+    angle_step_deg : float
+        Spacing of the candidates' directions, degrees.
+
+    Returns
+    -------
+    StraightStep or None
+        None when no candidate passes (or the grid holds too few vectors).
+
+    Notes
+    -----
+    Plain loops over the candidates with ``numpy.linalg.lstsq`` (a few hundred small fits
+    on a grid of tens of cells): there is no fast kernel to check against. The line is
+    straight: a fault or a straight scarp; the edge test of :func:`detect_breaklines` stays
+    the one for lines that bend or end inside the area.
+    """
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    d = np.asarray(d, dtype=np.float64)
+    if d.ndim == 2:
+        d = d[:, :, None]
+    if len(x) < 2 or len(y) < 2:
+        return None
+    ok = np.all(np.isfinite(d), axis=2)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool)
+    r, c = np.nonzero(ok)
+    if len(r) < 2 * SCAN_MIN_SIDE_CELLS + 7:
+        return None
+    cell = float(abs(x[1] - x[0]))
+    pos = np.column_stack([x[c], y[r]])
+    vec = d[r, c]
+    n_k = vec.shape[1]
+    ctr = pos.mean(axis=0)
+    q = (pos - ctr) / cell  # in cells
+    r_max = float(np.max(np.hypot(q[:, 0], q[:, 1])))
+    best = None
+    for th in np.radians(np.arange(0.0, 180.0, angle_step_deg)):
+        t = np.array([np.cos(th), np.sin(th)])
+        nrm = np.array([-t[1], t[0]])
+        u_all, v_all = q @ t, q @ nrm
+        for rho in np.arange(-r_max, r_max + 1e-9, SCAN_OFFSET_STEP_CELLS):
+            v = v_all - rho
+            band = (np.abs(v) <= band_cells) & (np.abs(v) >= SCAN_GAP_CELLS)
+            side = np.sign(v[band])
+            n_l, n_r = int(np.sum(side > 0)), int(np.sum(side < 0))
+            if min(n_l, n_r) < SCAN_MIN_SIDE_CELLS:
+                continue
+            u = u_all[band]
+            us = (u - u.mean()) / max(float(np.ptp(u)), 1.0)
+            x0 = _poly2(us, v[band] / band_cells)
+            x1 = np.column_stack([x0, 0.5 * side])
+            obs = vec[band]
+            dof = n_k * (len(obs) - x1.shape[1])
+            if dof <= 0:
+                continue
+            c0 = np.linalg.lstsq(x0, obs, rcond=None)[0]
+            c1 = np.linalg.lstsq(x1, obs, rcond=None)[0]
+            rss0 = float(np.sum((obs - x0 @ c0) ** 2))
+            rss1 = float(np.sum((obs - x1 @ c1) ** 2))
+            f = (rss0 - rss1) / n_k / max(rss1 / dof, 1e-300)
+            if best is None or f > best[0]:
+                best = (f, th, rho, c1[-1], np.sqrt(rss1 / dof), int(band.sum()))
+    if best is None:
+        return None
+    f, th, rho, step, rms, n_band = best
+    mag = float(np.linalg.norm(step))
+    if mag < SCAN_MIN_STEP_FLOORS * floor_m or mag < SCAN_MIN_STEP_RMS * rms:
+        return None
+    t = np.array([np.cos(th), np.sin(th)])
+    nrm = np.array([-t[1], t[0]])
+    mid = ctr + rho * cell * nrm
+    # across the vectors' box and a cell beyond, both ways
+    lo = pos.min(axis=0) - cell
+    hi = pos.max(axis=0) + cell
+    ends = np.array(
+        [mid - _exit_distance(mid, -t, lo, hi) * t, mid + _exit_distance(mid, t, lo, hi) * t]
+    )
+    line = from_sequence([ends])
+    if line is None:
+        return None
+    return StraightStep(line=line, angle_deg=float(np.degrees(th)), step_m=np.asarray(step),
+                        rms_m=float(rms), f_stat=float(f), n_cells=n_band)  # fmt: skip
 
 
 def _exit_distance(p, t, lo, hi) -> float:

@@ -2208,7 +2208,28 @@ def windowed_icp(
                 cells, d, usable & ~flagged, cov_formal, n_rows, n_cols, x0, y0, cell,
                 grad=grad, sig_grad=sig_rot,
             )  # fmt: skip
-            if lines is not None:
+            straight = None
+            if lines is None:  # a straight step the edge test misses (a fault across a lobe)
+                straight = _scan_line(cells, d, usable & ~flagged, n_rows, n_cols, x0, y0, cell)
+            if straight is not None:
+                from .breakline_points import place_straight_line
+                from .breaklines import DETECT_FLOOR_M, SCAN_MAX_JUMP_STEPS, SCAN_MIN_JUMP_STEPS
+
+                step_m = float(np.linalg.norm(straight.step_m))
+
+                first = fit_spline_field(
+                    a[cells.points], breaklines=straight.line,
+                    progress=scaled(progress, 0.9, 0.95), **spline_kw,
+                )  # fmt: skip
+                lines = place_straight_line(
+                    first.field, a[cells.points], before=b, tree=tree, normals=normals,
+                    gate_m=gate, reach_m=cell, station_jump_m=DETECT_FLOOR_M,
+                    min_jump_m=max(DETECT_FLOOR_M, SCAN_MIN_JUMP_STEPS * step_m),
+                    max_jump_m=SCAN_MAX_JUMP_STEPS * step_m,
+                ).line  # fmt: skip
+                lines_source = "none" if lines is None else "detected"
+                progress = scaled(progress, 0.95, 1.0)
+            elif lines is not None:
                 from .icp_spline import refine_breaklines
 
                 first = fit_spline_field(
@@ -2518,6 +2539,28 @@ def _detect_lines(
         log.info(
             "breaklines: %d found in the cells' motions (%.1f m in all)",
             len(found), found.length_m(),
+        )  # fmt: skip
+    return found
+
+
+def _scan_line(cells, d, usable, n_rows, n_cols, x0, y0, cell):
+    """The straight line across which the cells' motions step most clearly
+    (:func:`slipmap.core.breaklines.scan_straight_step`), a candidate for the points to
+    confirm; None when none is proposed."""
+    from .breaklines import scan_straight_step
+
+    gd = np.full((n_rows, n_cols, 3), np.nan)
+    gv = np.zeros((n_rows, n_cols), dtype=bool)
+    gd[cells.row, cells.col] = d
+    gv[cells.row, cells.col] = usable
+    xs = x0 + (np.arange(n_cols) + 0.5) * cell
+    ys = y0 - (np.arange(n_rows) + 0.5) * cell
+    found = scan_straight_step(gd, x=xs, y=ys, valid=gv)
+    if found is not None:
+        log.info(
+            "breaklines: a straight step proposed at %.1f° (%.3f m, residuals %.3f m), for "
+            "the points to confirm", found.angle_deg, float(np.linalg.norm(found.step_m)),
+            found.rms_m,
         )  # fmt: skip
     return found
 
