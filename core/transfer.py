@@ -38,6 +38,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from .errors import InvalidParameterError
+from .matching import TRANSFERRED_TO_AFTER, TRANSFERRED_TO_BEFORE, PlaneMatches
 from .planes import PlaneSet
 
 log = logging.getLogger(__name__)
@@ -493,7 +494,7 @@ class TransferOutcome:
 
     planes_before: PlaneSet
     planes_after: PlaneSet
-    matches: "PlaneMatches"
+    matches: PlaneMatches
     gathered_before: np.ndarray
     gathered_after: np.ndarray
 
@@ -538,8 +539,6 @@ def transfer_unmatched(
         within ``MAX_RMS_FACTOR`` noise σ, mean offset within one noise σ, at least
         ``MIN_POINTS`` points. Target points are those on no plane (labels -1).
     """
-    from .matching import TRANSFERRED_TO_AFTER, TRANSFERRED_TO_BEFORE, PlaneMatches
-
     pb, pa = planes_before, planes_after
     un_b = np.setdiff1d(np.arange(len(pb)), matches.before)
     un_a = np.setdiff1d(np.arange(len(pa)), matches.after)
@@ -551,7 +550,7 @@ def transfer_unmatched(
         return dict(
             band_m=band,
             edge_margin_m=band + float(src.parameters.point_spacing_m),
-            min_points=MIN_POINTS,
+            min_points=max(MIN_POINTS, int(tgt.parameters.min_plane_points)),
             angle_threshold_deg=angle_threshold_deg,
             max_rms_m=MAX_RMS_FACTOR * noise,
             max_offset_m=noise,

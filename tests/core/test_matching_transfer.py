@@ -140,9 +140,7 @@ def _walls(scene):
 
     before, lb, _, _ = scene
     pb = segment_planes(before, quiet=True)
-    walls = [
-        int(np.bincount(pb.labels[(lb == w) & (pb.labels >= 0)]).argmax()) for w in (3, 4)
-    ]
+    walls = [int(np.bincount(pb.labels[(lb == w) & (pb.labels >= 0)]).argmax()) for w in (3, 4)]
     return pb, np.array(walls)
 
 
@@ -181,9 +179,7 @@ def test_safeguards_refuse_another_surface(scene):
     assert set(np.unique(la[ok.point_index]).tolist()) <= {3, 4}
     # a wide band and no edge margin take in the fence, the ground and the box: the
     # safeguards (RMS, offset) refuse those planes
-    wide = gather_plane_points(
-        pb, before, walls, after, cand, **_kw(band_m=1.2, edge_margin_m=0.0)
-    )
+    wide = gather_plane_points(pb, before, walls, after, cand, **_kw(band_m=1.2, edge_margin_m=0.0))
     assert len(wide) == 0 and wide.n_rejected == 2
     # the wrong motion (30 cm off along x) finds wall_x's plane empty of points on it
     off = gather_plane_points(
