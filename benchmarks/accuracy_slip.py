@@ -196,7 +196,7 @@ LABELS = {
 }
 
 
-def one(case_name: str, seed: int, peer: bool, transfer: bool = True) -> dict:
+def one(case_name: str, seed: int, peer: bool, transfer=None) -> dict:
     """One pair of one case: errors of every method (metres) and their σ."""
     c = CASES[case_name]
     rng = np.random.default_rng(seed + 77)
@@ -234,8 +234,8 @@ def one(case_name: str, seed: int, peer: bool, transfer: bool = True) -> dict:
         try:
             res = estimate_slip(
                 fp.before.points, fp.after.points, trace, sigma_before=fp.before.noise_m,
-                sigma_after=fp.after.noise_m, stochastic_model=model, transfer_planes=transfer,
-                **kw,
+                sigma_after=fp.after.noise_m, stochastic_model=model, **kw,
+                **({} if transfer is None else {"transfer_planes": transfer}),
             )  # fmt: skip
         except Exception as exc:  # noqa: BLE001 - a failed run is recorded and counted
             row[label] = {"failed": f"{type(exc).__name__}: {exc}"}
@@ -430,9 +430,11 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=None, help="per-seed rows (JSON lines)")
     ap.add_argument("--no-peer", action="store_true", help="skip the Open3D ICP peer")
     ap.add_argument(
-        "--no-transfer",
-        action="store_true",
-        help="SlipMap without transferred planes (estimate_slip(transfer_planes=False))",
+        "--transfer",
+        choices=("default", "on", "off"),
+        default="default",
+        help="SlipMap with or without transferred planes (estimate_slip(transfer_planes=...); "
+        "default: the library's default, off)",
     )
     args = ap.parse_args(argv)
     cases = [k for c in args.cases.split(",") if c for k in PRESETS.get(c, (c,))]
@@ -446,7 +448,7 @@ def main(argv=None):
     if peer and peer_python() is None:
         ap.error("no peer venv: run bash benchmarks/peers/setup_peer_venv.sh, or --no-peer")
     jobs = [
-        (c, s, peer, not args.no_transfer)
+        (c, s, peer, {"on": True, "off": False}.get(args.transfer))
         for c in cases
         for s in range(args.first_seed, args.first_seed + args.seeds)
     ]

@@ -146,8 +146,10 @@ _FRAME_KEYS = (
 #: one-sided offsets would bias the plane (a 3-sigma band holds 99.7 % of Gaussian noise)
 CLEAN_LEAF_RATIO = 0.97
 
-#: unmatched planes of each epoch are observed by the other epoch's points (:mod:`.transfer`)
-DEFAULT_TRANSFER_PLANES = True
+#: unmatched planes of each epoch are observed by the other epoch's points (:mod:`.transfer`);
+#: off: on the benchmark's survey kinds it changes nothing or trades accuracy across and along
+#: the fault for the vertical (docs/accuracy.md, "Transferred planes")
+DEFAULT_TRANSFER_PLANES = False
 #: gatherings of the transferred planes' points, each with the motion of the last adjustment
 TRANSFER_ROUNDS = 2
 
@@ -1096,8 +1098,8 @@ def estimate_slip(
         :func:`.adjustment.adjust_rigid`), for both sides.
     transfer_planes : bool
         Planes of one epoch without a match are observed by the other epoch's points that lie
-        on them (:mod:`.transfer`) and adjusted like matched planes (default on). Whole sides
-        only: tiles adjust matched planes.
+        on them (:mod:`.transfer`) and adjusted like matched planes (default off:
+        :data:`DEFAULT_TRANSFER_PLANES`). Whole sides only: tiles adjust matched planes.
 
     Returns
     -------

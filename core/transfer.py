@@ -512,6 +512,7 @@ def transfer_unmatched(
     source_before: Optional[np.ndarray] = None,
     source_after: Optional[np.ndarray] = None,
     angle_threshold_deg: float = 3.0,
+    min_points: int = MIN_POINTS,
 ) -> TransferOutcome:
     """Transfer every unmatched plane of each epoch to the other epoch's free points.
 
@@ -530,6 +531,8 @@ def transfer_unmatched(
         Points that outline the source planes (the clean leaves' points); default all.
     angle_threshold_deg : float
         The matching's normal-angle threshold, also the safeguard's.
+    min_points : int
+        Fewest gathered points of a transferred plane.
 
     Returns
     -------
@@ -537,7 +540,7 @@ def transfer_unmatched(
         Band, edge margin and safeguards from each target epoch's segmentation: band
         ``BAND_SIGMAS`` noise σ, hull shrunk by the band plus the source's point spacing, RMS
         within ``MAX_RMS_FACTOR`` noise σ, mean offset within one noise σ, at least
-        ``MIN_POINTS`` points. Target points are those on no plane (labels -1).
+        ``min_points`` points. Target points are those on no plane (labels -1).
     """
     pb, pa = planes_before, planes_after
     un_b = np.setdiff1d(np.arange(len(pb)), matches.before)
@@ -550,7 +553,7 @@ def transfer_unmatched(
         return dict(
             band_m=band,
             edge_margin_m=band + float(src.parameters.point_spacing_m),
-            min_points=max(MIN_POINTS, int(tgt.parameters.min_plane_points)),
+            min_points=min_points,
             angle_threshold_deg=angle_threshold_deg,
             max_rms_m=MAX_RMS_FACTOR * noise,
             max_offset_m=noise,

@@ -4,7 +4,7 @@ a second epoch too sparse to segment them, on a synthetic scene with a known mot
 import numpy as np
 import pytest
 
-from slipmap.core.displacement import register_side
+from slipmap.core.displacement import DEFAULT_TRANSFER_PLANES, register_side
 from slipmap.core.errors import InvalidParameterError
 from slipmap.core.matching import TRANSFERRED_TO_AFTER
 from slipmap.core.rotation import rotation_matrix
@@ -127,9 +127,10 @@ def test_sparse_walls_are_transferred_and_the_motion_recovered(scene):
 
 def test_without_anything_to_transfer_nothing_changes(scene):
     before, _, _, _ = scene
+    assert not DEFAULT_TRANSFER_PLANES  # an option of the core call (docs/accuracy.md)
     res = register_side(
         before, before, side="left", sigma_before=NOISE_M, sigma_after=NOISE_M,
-        stochastic={"stochastic_model": "white"},
+        stochastic={"stochastic_model": "white"}, transfer_planes=True,
     )  # fmt: skip
     assert res.matches.n_transferred == 0
 
