@@ -10,6 +10,10 @@ Usage::
     # docs/accuracy.md):
     python benchmarks/accuracy_slip.py --cases issue30 --seeds 6 --first-seed 2000 --jobs 1
 
+    # transferred planes (docs/accuracy.md): MLS -> ALS with ALS walls at 0.5 pts/m²
+    python benchmarks/accuracy_slip.py --cases mls-als-facades --seeds 6 --first-seed 2000 \
+        --transfer on     # or off
+
 Each case draws ``--seeds`` synthetic fault pairs (18.1 mm of dextral slip, a town of 12
 buildings on 150 m, independent samplings of both epochs) with a correlated survey error of
 a kind and level (``core.synthetic.SurveyError``: MLS trajectory drift along the drive path,
