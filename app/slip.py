@@ -291,6 +291,17 @@ SPEC = JobSpec(
             advanced=True,
             metavar="M",
         ),
+        Option(
+            "transfer_planes",
+            "bool",
+            "planes of one epoch without a match are observed by the other epoch's points that "
+            "lie on them (a sparse airborne epoch beside a mobile one: walls it cannot segment) "
+            "and adjusted like matched planes; whole sides only, not tiles",
+            label="Transferred planes",
+            default=False,
+            group=_MATCH,
+            advanced=True,
+        ),
         *selection_options(ground_default=True),
         *plane_options(),
         *scale_options(tile_option=False),
@@ -456,6 +467,7 @@ def compute(
         combine=combine,
         components=fixed_components(opts),
         progress=next(parts),
+        transfer_planes=bool(opts.get("transfer_planes")),
         **common,
     )
     tile_planes = None

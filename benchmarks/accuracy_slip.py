@@ -10,6 +10,10 @@ Usage::
     # docs/accuracy.md):
     python benchmarks/accuracy_slip.py --cases issue30 --seeds 6 --first-seed 2000 --jobs 1
 
+    # transferred planes (docs/accuracy.md): MLS -> ALS with ALS walls at 0.5 pts/m²
+    python benchmarks/accuracy_slip.py --cases mls-als-facades --seeds 6 --first-seed 2000 \
+        --transfer on     # or off
+
 Each case draws ``--seeds`` synthetic fault pairs (18.1 mm of dextral slip, a town of 12
 buildings on 150 m, independent samplings of both epochs) with a correlated survey error of
 a kind and level (``core.synthetic.SurveyError``: MLS trajectory drift along the drive path,
@@ -41,6 +45,7 @@ default model ("full"), the peer and the truth side by side. Per-seed rows go to
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -62,7 +67,9 @@ ORIGIN = (500000.0, 4200000.0, 10.0)
 SCENE = dict(n_buildings=12, extent_m=150.0, vegetation=False)
 
 
-def _case(profile, before=None, after=None, after_profile=None, blunder=False, prior=None):
+def _case(
+    profile, before=None, after=None, after_profile=None, blunder=False, prior=None, als_facades=0.0
+):
     # airborne scans see no facades: gable roofs of several azimuths carry the horizontal
     scene = {"roof_kinds": ("gable",)} if "als" in (profile, after_profile) else {}
     if profile == "als":
@@ -72,7 +79,30 @@ def _case(profile, before=None, after=None, after_profile=None, blunder=False, p
         # the MLS cases (the profile's 500 pts/m² would be 4 M points a pair)
         scene["density_pts_m2"] = 100.0
     return dict(profile=profile, before=before, after=after, after_profile=after_profile,
-                blunder=blunder, prior=prior, scene=scene)  # fmt: skip
+                blunder=blunder, prior=prior, scene=scene, als_facades=als_facades)  # fmt: skip
+
+
+@contextlib.contextmanager
+def _als_facades(share):
+    """The synthetic ALS profile with facades at ``share`` of its density while the pair is
+    drawn (``core.synthetic``'s ALS sees no facades; a real one samples walls in its strips'
+    oblique views). A benchmark device: the profile table is swapped and put back."""
+    if not share:
+        yield
+        return
+    from dataclasses import replace
+    from types import MappingProxyType
+
+    import slipmap.core.synthetic as synthetic
+
+    saved = synthetic.PROFILES
+    table = dict(saved)
+    table["als"] = replace(table["als"], facade_factor=float(share))
+    synthetic.PROFILES = MappingProxyType(table)
+    try:
+        yield
+    finally:
+        synthetic.PROFILES = saved
 
 
 def _mls(level, **kw):
@@ -96,6 +126,8 @@ BORESIGHT_ROLL_RAD = math.radians(0.01)
 TLS_ERROR = SurveyError(kind="tls", level_m=0.002, rotation_rad=5e-5, n_setups=6)
 #: smooth drift of short wavelength: a 3 mm field of the horizontal position, plane waves of
 #: wavelengths 37-53 m (not along the path: what a drift over tens of metres does)
+#: ALS walls: 5 % of the nominal density (0.5 pts/m² at 10 pts/m²), the oblique views
+ALS_FACADE_SHARE = 0.05
 FIELD_ERROR = SurveyError(kind="field", level_m=0.003, wavelength_range_m=(37.0, 53.0))
 
 
@@ -109,6 +141,16 @@ CASES = {
     "als-1cm": _case("als", _als(0.01), _als(0.01), prior=(0.01, 0.01)),
     "als-3cm": _case("als", _als(0.03), _als(0.03), prior=(0.03, 0.03)),
     "mls-als": _case("mls", _mls(0.003), _als(0.01), after_profile="als", prior=(None, 0.01)),
+    # the same with the ALS walls sampled at 5 % of the density (0.5 pts/m² of 10): too
+    # sparse for the ALS epoch's segmentation, there for transferred planes (docs/accuracy.md)
+    "mls-als-facades": _case(
+        "mls",
+        _mls(0.003),
+        _als(0.01),
+        after_profile="als",
+        prior=(None, 0.01),
+        als_facades=ALS_FACADE_SHARE,
+    ),  # fmt: skip
     # issue #30's new kinds
     "mls-3mm-lever-crossing": _case(
         "mls",
@@ -149,6 +191,7 @@ LABELS = {
     "als-1cm": "ALS-ALS, 1 cm strip offsets",
     "als-3cm": "ALS-ALS, 3 cm strip offsets",
     "mls-als": "MLS before (3 mm drift), ALS after (1 cm strips)",
+    "mls-als-facades": "MLS before (3 mm drift), ALS after (1 cm strips, walls at 0.5 pts/m²)",
     "mls-3mm-lever-crossing": "MLS, drift 3 mm along GpsTime + 2 mm lever arm flipping with "
     "heading, epochs on crossing streets",
     "als-1cm-roll": "ALS-ALS, 1 cm strip offsets + 0.01° boresight roll",
@@ -157,7 +200,7 @@ LABELS = {
 }
 
 
-def one(case_name: str, seed: int, peer: bool) -> dict:
+def one(case_name: str, seed: int, peer: bool, transfer=None) -> dict:
     """One pair of one case: errors of every method (metres) and their σ."""
     c = CASES[case_name]
     rng = np.random.default_rng(seed + 77)
@@ -168,11 +211,12 @@ def one(case_name: str, seed: int, peer: bool) -> dict:
         extra = dict(blunder_fraction=0.1, blunder_offset_m=(mag * math.sin(az),
                      mag * math.cos(az), 0.0))  # fmt: skip
     t0 = time.perf_counter()
-    fp = make_fault_pair(
-        c["profile"], seed=seed, origin=ORIGIN, right_offset_m=(0.0, -NLOD, 0.0),
-        error_before=c["before"], error_after=c["after"], after_profile=c["after_profile"],
-        **SCENE, **c["scene"], **extra,
-    )  # fmt: skip
+    with _als_facades(c["als_facades"]):
+        fp = make_fault_pair(
+            c["profile"], seed=seed, origin=ORIGIN, right_offset_m=(0.0, -NLOD, 0.0),
+            error_before=c["before"], error_after=c["after"], after_profile=c["after_profile"],
+            **SCENE, **c["scene"], **extra,
+        )  # fmt: skip
     trace = fault_trace([fp.trace_xy])
     truth = fp.relative_offset_m
     row = {"case": case_name, "seed": seed, "n_before": int(fp.before.n_points),
@@ -195,6 +239,7 @@ def one(case_name: str, seed: int, peer: bool) -> dict:
             res = estimate_slip(
                 fp.before.points, fp.after.points, trace, sigma_before=fp.before.noise_m,
                 sigma_after=fp.after.noise_m, stochastic_model=model, **kw,
+                **({} if transfer is None else {"transfer_planes": transfer}),
             )  # fmt: skip
         except Exception as exc:  # noqa: BLE001 - a failed run is recorded and counted
             row[label] = {"failed": f"{type(exc).__name__}: {exc}"}
@@ -205,6 +250,8 @@ def one(case_name: str, seed: int, peer: bool) -> dict:
         sig = [comp["sigma_fault_parallel"], comp["sigma_fault_normal"], comp["sigma_dz"]]
         row[label] = {"err": err, "sigma": sig, "s": round(time.perf_counter() - t0, 2),
                       "planes": [res.left.rigid.n_planes, res.right.rigid.n_planes],
+                      "transferred": [res.left.matches.n_transferred,
+                                      res.right.matches.n_transferred],
                       "rejected": [len(res.left.rigid.rejected_planes),
                                    len(res.right.rigid.rejected_planes)]}  # fmt: skip
         if model != "white":
@@ -386,6 +433,13 @@ def main(argv=None):
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--out", type=Path, default=None, help="per-seed rows (JSON lines)")
     ap.add_argument("--no-peer", action="store_true", help="skip the Open3D ICP peer")
+    ap.add_argument(
+        "--transfer",
+        choices=("default", "on", "off"),
+        default="default",
+        help="SlipMap with or without transferred planes (estimate_slip(transfer_planes=...); "
+        "default: the library's default, off)",
+    )
     args = ap.parse_args(argv)
     cases = [k for c in args.cases.split(",") if c for k in PRESETS.get(c, (c,))]
     for c in cases:
@@ -398,7 +452,9 @@ def main(argv=None):
     if peer and peer_python() is None:
         ap.error("no peer venv: run bash benchmarks/peers/setup_peer_venv.sh, or --no-peer")
     jobs = [
-        (c, s, peer) for c in cases for s in range(args.first_seed, args.first_seed + args.seeds)
+        (c, s, peer, {"on": True, "off": False}.get(args.transfer))
+        for c in cases
+        for s in range(args.first_seed, args.first_seed + args.seeds)
     ]
     t0 = time.perf_counter()
     rows = []

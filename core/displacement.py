@@ -146,6 +146,13 @@ _FRAME_KEYS = (
 #: one-sided offsets would bias the plane (a 3-sigma band holds 99.7 % of Gaussian noise)
 CLEAN_LEAF_RATIO = 0.97
 
+#: unmatched planes of each epoch are observed by the other epoch's points (:mod:`.transfer`);
+#: off: on the benchmark's survey kinds it changes nothing or trades accuracy across and along
+#: the fault for the vertical (docs/accuracy.md, "Transferred planes")
+DEFAULT_TRANSFER_PLANES = False
+#: gatherings of the transferred planes' points, each with the motion of the last adjustment
+TRANSFER_ROUNDS = 2
+
 
 @dataclass(frozen=True)
 class SideResult:
@@ -470,6 +477,7 @@ def register_side(
     match_options: Optional[dict] = None,
     progress: Optional[ProgressCallback] = None,
     stochastic: Optional[dict] = None,
+    transfer_planes: bool = DEFAULT_TRANSFER_PLANES,
 ) -> SideResult:
     """Planes, matches and the rigid adjustment for the points of one side.
 
@@ -482,6 +490,9 @@ def register_side(
     stochastic : dict, optional
         ``stochastic_model``, ``unit_before``/``unit_after`` ((N1,), (N2,) acquisition units of
         the side's points) and ``components`` for :func:`.adjustment.adjust_rigid`.
+    transfer_planes : bool
+        Also adjust the unmatched planes of each epoch observed by the other epoch's points
+        (:mod:`.transfer`; :func:`_with_transferred`).
     """
     opts = dict(plane_options or {})
     pb = _segment_epoch(before, side, "before", progress=scaled(progress, 0.0, 0.35), **opts)
@@ -500,6 +511,12 @@ def register_side(
     rigid, mean_res = _adjust_labelled(
         before, lb, after, la, sigma_before, sigma_after, pb.planarity, pa.planarity, stochastic
     )
+    if transfer_planes:
+        report(progress, 0.85, f"{side} side: transferred planes")
+        pb, pa, m, rigid, mean_res = _with_transferred(
+            before, after, pb, pa, m, rigid, mean_res, sigma_before, sigma_after, stochastic,
+            side=side, angle_threshold_deg=(match_options or {}).get("angle_threshold_deg", 3.0),
+        )  # fmt: skip
     report(progress, 1.0, f"{side} side done")
     return SideResult(
         side=side,
@@ -605,12 +622,17 @@ def _sub_stochastic(stochastic: Optional[dict], mb, ma, components=None) -> dict
 
 def _adjust_labelled(
     before, lb, after, la, sigma_before, sigma_after, planarity_before, planarity_after,
-    stochastic=None,
+    stochastic=None, force_before=None, force_after=None,
 ) -> Tuple[RigidResult, np.ndarray]:  # fmt: skip
     """adjust_rigid on the labelled points (labels = match indices) of clean planar leaves
-    (see CLEAN_LEAF_RATIO); also returns the mean after-epoch misclosure per match (metres)."""
+    (see CLEAN_LEAF_RATIO) and the points ``force_*`` (gathered on transferred planes); also
+    returns the mean after-epoch misclosure per match (metres)."""
     kb = (lb >= 0) & (planarity_before >= CLEAN_LEAF_RATIO)
     ka = (la >= 0) & (planarity_after >= CLEAN_LEAF_RATIO)
+    if force_before is not None:
+        kb |= (lb >= 0) & force_before
+    if force_after is not None:
+        ka |= (la >= 0) & force_after
     rigid = adjust_rigid(
         before[kb],
         lb[kb],
@@ -628,6 +650,58 @@ def _adjust_labelled(
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_res = np.bincount(idx, weights=r[ok], minlength=size) / n
     return rigid, mean_res
+
+
+def _with_transferred(
+    before, after, pb, pa, m, rigid, mean_res, sigma_before, sigma_after, stochastic, *,
+    side, angle_threshold_deg,
+):  # fmt: skip
+    """The side's adjustment with transferred planes (:func:`.transfer.transfer_unmatched`):
+    the unmatched planes of each epoch observed by the other epoch's free points after the
+    motion ``rigid``, adjusted with the matched pairs; gathered again with the new motion
+    until the gathered points repeat (at most :data:`TRANSFER_ROUNDS` rounds). Returns the
+    planes, pairs, adjustment and mean misclosures; the given ones when nothing is gathered
+    or the adjustment with transferred planes fails."""
+    from .rotation import rotation_matrix
+    from .transfer import transfer_unmatched
+
+    clean_b = np.asarray(pb.planarity) >= CLEAN_LEAF_RATIO
+    clean_a = np.asarray(pa.planarity) >= CLEAN_LEAF_RATIO
+    best = (pb, pa, m, rigid, mean_res)
+    seen = None
+    for _ in range(TRANSFER_ROUNDS):
+        cur = best[3]
+        out = transfer_unmatched(
+            before, after, pb, pa, m,
+            rotation=rotation_matrix(cur.params[:3]), translation=cur.params[3:],
+            centre=cur.centre, source_before=clean_b, source_after=clean_a,
+            angle_threshold_deg=angle_threshold_deg,
+        )  # fmt: skip
+        key = (np.flatnonzero(out.gathered_before), np.flatnonzero(out.gathered_after))
+        if out.matches.n_transferred == 0 or (
+            seen is not None and all(np.array_equal(a, b) for a, b in zip(key, seen))
+        ):
+            break
+        seen = key
+        lb = _labels_for_matches(out.planes_before.labels, out.matches.before)
+        la = _labels_for_matches(out.planes_after.labels, out.matches.after)
+        try:
+            r2, mr2 = _adjust_labelled(
+                before, lb, after, la, sigma_before, sigma_after, pb.planarity, pa.planarity,
+                stochastic, force_before=out.gathered_before, force_after=out.gathered_after,
+            )  # fmt: skip
+        except InputDataError as exc:  # keep the matched planes' adjustment
+            log.warning("%s side: transferred planes not used (%s)", side, exc)
+            break
+        best = (out.planes_before, out.planes_after, out.matches, r2, mr2)
+    if best[2] is not m:
+        k = best[2].kind
+        log.info(
+            "%s side: %d transferred planes (%d first-epoch planes observed by second-epoch "
+            "points, %d the other way)",
+            side, int(np.count_nonzero(k)), int((k == 1).sum()), int((k == 2).sum()),
+        )  # fmt: skip
+    return best
 
 
 def side_summary(side: str, pb: PlaneSet, pa: PlaneSet, n_matched: int, tiles: str = "") -> str:
@@ -988,6 +1062,7 @@ def estimate_slip(
     unit_before: Optional[np.ndarray] = None,
     unit_after: Optional[np.ndarray] = None,
     components: Optional[dict] = None,
+    transfer_planes: bool = DEFAULT_TRANSFER_PLANES,
 ) -> SlipResult:
     """Relative displacement across ``trace`` between two epochs.
 
@@ -1021,6 +1096,10 @@ def estimate_slip(
     components : dict, optional
         Plane-level components held fixed instead of estimated (sigmas in metres, see
         :func:`.adjustment.adjust_rigid`), for both sides.
+    transfer_planes : bool
+        Planes of one epoch without a match are observed by the other epoch's points that lie
+        on them (:mod:`.transfer`) and adjusted like matched planes (default off:
+        :data:`DEFAULT_TRANSFER_PLANES`). Whole sides only: tiles adjust matched planes.
 
     Returns
     -------
@@ -1059,7 +1138,9 @@ def estimate_slip(
             stochastic=_sub_stochastic(stochastic, mb, ma),
         )
         if tile_size_m is None:
-            results[side] = register_side(before[mb], after[ma], **kw)
+            results[side] = register_side(
+                before[mb], after[ma], transfer_planes=transfer_planes, **kw
+            )
         else:
             results[side], tl = _register_side_tiled(
                 before[mb], after[ma], tile_size_m=tile_size_m, combine=combine, **kw
@@ -1088,6 +1169,7 @@ def estimate_slip(
             **({"tile_size_m": tile_size_m} if tile_size_m is not None else {}),
             "plane_options": dict(plane_options or {}),
             "match_options": dict(match_options or {}),
+            "transfer_planes": bool(transfer_planes) and tile_size_m is None,
             "stochastic_model": stochastic["stochastic_model"],
             "acquisition_units": {
                 e: int(np.unique(stochastic[f"unit_{e}"]).size)

@@ -19,6 +19,9 @@ from .planes import PlaneSet
 
 log = logging.getLogger(__name__)
 
+#: :attr:`PlaneMatches.transferred` codes
+MATCHED, TRANSFERRED_TO_AFTER, TRANSFERRED_TO_BEFORE = 0, 1, 2
+
 
 @dataclass(frozen=True)
 class PlaneMatches:
@@ -32,12 +35,30 @@ class PlaneMatches:
         Angle between the two normals.
     distance_m : (K,) float64
         Larger of the two centroid-to-plane distances (metres).
+    transferred : (K,) int8, optional
+        How the pair was made: 0 (:data:`MATCHED`) both epochs' segmentations found the
+        plane; 1 (:data:`TRANSFERRED_TO_AFTER`) a first-epoch plane whose second-epoch points
+        were gathered on it, 2 (:data:`TRANSFERRED_TO_BEFORE`) the converse (the other
+        epoch's plane is fitted to the gathered points; :mod:`.transfer`). None: all 0.
     """
 
     before: np.ndarray
     after: np.ndarray
     angle_rad: np.ndarray
     distance_m: np.ndarray
+    transferred: Optional[np.ndarray] = None
+
+    @property
+    def kind(self) -> np.ndarray:
+        """(K,) int8: :attr:`transferred`, zeros when None."""
+        if self.transferred is None:
+            return np.zeros(self.before.size, dtype=np.int8)
+        return np.asarray(self.transferred, dtype=np.int8)
+
+    @property
+    def n_transferred(self) -> int:
+        """Pairs made by transfer (either way)."""
+        return int(np.count_nonzero(self.kind))
 
     def __len__(self) -> int:
         return int(self.before.size)
