@@ -1413,7 +1413,7 @@ def estimate_components(
         # a spatial component that REML set to zero says nothing of the family
         if th.get("spatial", 0.0) <= 0 and sph is not None:
             th, sd, it, conv, _, kern, pc = sph
-    if REML_TILT_SHARE < 1.0:
+    if REML_TILT_SHARE < 1.0 and np.any(ts_full) and (len(kernels) > 1 or REML_TILT_SHARE > 0):
         # the kernel is chosen from the offsets; the components' values are then estimated
         # with the tilts' information as the adjustment and its plane tests use it (else the
         # w-tests, made with the tilts, would hold the components for too small and reject)

@@ -142,61 +142,52 @@ def _draw(rng, model, kern, sig_c, sig_p, p):
 
 
 def test_reml_chooses_the_wave_family_and_its_wavelength():
-    """A hole-effect field (waves of 30 m) on 150 planes: REML chooses the "wave" family and
-    a wavelength within 25 % of the truth; a spherical field of 60 m on the same planes is
-    not taken for a wave."""
+    """A hole-effect field (waves of 30 m) on 150 planes: REML chooses the "wave" family
+    (in at least 2 of 3 draws) and a wavelength within 25 % of the truth (median); a
+    spherical field of 60 m on the same planes is not taken for a wave (at most 1 of 3)."""
     rng = np.random.default_rng(7)
-    model = _planes(rng, 150)
     k = 150
+    model = _planes(rng, k)
     idx = np.arange(k)
     x = _design(model)
     p = np.full(k, 1e-8)
-    hits, lam = 0, []
-    for _ in range(3):
-        e, _ = _draw(rng, model, sto.SpatialKernel("wave", 30.0), 3e-3, 3e-4, p)
-        est = sto.estimate_components(
-            model, idx, e, x, np.zeros((6, 6)), p, which=("plane", "spatial"), fixed={}
-        )
-        hits += est.kernel.family == "wave"
-        lam.append(est.kernel.range_m)
-    assert hits >= 2
-    assert float(np.median(lam)) == pytest.approx(30.0, rel=0.25)
-    waves = 0
-    for _ in range(3):
-        e, _ = _draw(rng, model, sto.SpatialKernel("spherical", 60.0), 3e-3, 3e-4, p)
-        est = sto.estimate_components(
-            model, idx, e, x, np.zeros((6, 6)), p, which=("plane", "spatial"), fixed={}
-        )
-        waves += est.kernel.family == "wave"
-    assert waves <= 1
+    found = {}
+    for truth in (sto.SpatialKernel("wave", 30.0), sto.SpatialKernel("spherical", 60.0)):
+        for _ in range(3):
+            e, _ = _draw(rng, model, truth, 3e-3, 3e-4, p)
+            est = sto.estimate_components(
+                model, idx, e, x, np.zeros((6, 6)), p, which=("plane", "spatial"), fixed={},
+                families=("spherical", "wave"),
+            )  # fmt: skip
+            found.setdefault(truth.family, []).append(est.kernel)
+    assert sum(kk.family == "wave" for kk in found["wave"]) >= 2
+    assert float(np.median([kk.range_m for kk in found["wave"]])) == pytest.approx(30.0, rel=0.25)
+    assert sum(kk.family == "wave" for kk in found["spherical"]) <= 1
 
 
 def test_gls_sigma_of_a_wave_field_is_calibrated_with_the_chosen_family():
-    """Over 24 draws of a 30 m wave field on 80 planes, the GLS translation with the
-    components, family and range REML chose has RMS(err/σ) within [0.75, 1.3] per axis
-    pooled (24 × 3 errors); a spherical model held fixed at the long range a trend reads as
-    (100 m) gives a σ several times too wide."""
+    """Over 16 draws of a 30 m wave field on 60 planes, the GLS translation with the
+    components, family and range REML chose has RMS(err/σ) within [0.75, 1.3] (16 × 3
+    errors pooled; a calibrated σ gives [0.8, 1.2] nine times in ten)."""
     rng = np.random.default_rng(19)
-    k = 80
-    model = _planes(rng, k, extent=200.0)
+    k = 60
+    model = _planes(rng, k, extent=160.0)
     idx = np.arange(k)
     x = _design(model)
     p = np.full(k, 1e-8)
     truth = sto.SpatialKernel("wave", 30.0)
-    z, z_long = [], []
-    for _ in range(24):
+    z = []
+    for _ in range(16):
         e, _ = _draw(rng, model, truth, 3e-3, 3e-4, p)
-        for fixed, out in (({}, z), ({"spatial_range_m": 100.0}, z_long)):
-            est = sto.estimate_components(
-                model, idx, e, x, np.zeros((6, 6)), p, which=("plane", "spatial"),
-                fixed=fixed, families=("spherical", "wave"),
-            )  # fmt: skip
-            theta = {n: v for n, v in est.theta.items() if v > 0}
-            v = sto.covariance(model, idx, p, theta, est.kernel)
-            vix = np.linalg.solve(v, x)
-            q = np.linalg.inv(x.T @ vix)
-            beta = q @ (vix.T @ e)  # the truth is no motion
-            out.extend(beta[3:] / np.sqrt(np.diag(q)[3:]))
+        est = sto.estimate_components(
+            model, idx, e, x, np.zeros((6, 6)), p, which=("plane", "spatial"), fixed={},
+            families=("spherical", "wave"),
+        )  # fmt: skip
+        theta = {n: v for n, v in est.theta.items() if v > 0}
+        v = sto.covariance(model, idx, p, theta, est.kernel)
+        vix = np.linalg.solve(v, x)
+        q = np.linalg.inv(x.T @ vix)
+        beta = q @ (vix.T @ e)  # the truth is no motion
+        z.extend(beta[3:] / np.sqrt(np.diag(q)[3:]))
     rms = float(np.sqrt(np.mean(np.square(z))))
     assert 0.75 <= rms <= 1.3
-    assert float(np.sqrt(np.mean(np.square(z_long)))) < 0.6 * rms
