@@ -16,8 +16,10 @@ difference of the two epochs' common errors along the plane normal)::
            + σ_c² ρ̄_jk(a) n_jᵀ n_k                       spatial (spherical, range a)
            + σ_b² Z_b Z_bᵀ + σ_a² Z_a Z_aᵀ               acquisition units, before / after
 
-``ρ`` is the spherical correlation (compact support: zero beyond the range ``a``; positive
-definite in 3-D). The spatial part is a smooth 3-D error FIELD ``s(p)`` (trajectory drift:
+``ρ`` is a correlation family chosen by the data (:class:`SpatialKernel`: spherical,
+exponential, Gaussian or the "wave" hole effect with negative lobes; all positive definite
+in 3-D and of compact support, the long-tailed ones tapered), each at its range ``a``.
+The spatial part is a smooth 3-D error FIELD ``s(p)`` (trajectory drift:
 each axis a stationary process of variance ``σ_c²``) seen along each plane's normal and
 AVERAGED over the plane, ``δ_j = n_jᵀ mean_{p ∈ j} s(p)``: hence the factor ``n_jᵀ n_k`` (a
 Schur product of two positive semi-definite matrices, so positive semi-definite) and the
@@ -56,7 +58,12 @@ Förstner 1979): ``F θ = q`` with ``F_ik = ½ tr(Π V_i Π V_k)``, ``q_i = ½ e
 − ½ tr(Π V_i Π V₀)`` and ``Π = V⁻¹ − V⁻¹ X (Xᵀ V⁻¹ X + T)⁻¹ Xᵀ V⁻¹`` (the tilt information
 ``T`` enters as prior information on the motion). Negative solutions are set to zero and that
 component removed (the non-negative fixed point). The standard deviation of each component
-is from ``F⁻¹``. The range ``a`` is chosen by profile REML over a geometric grid. Components
+is from ``F⁻¹``. The family and range ``a`` are chosen by profile REML over a geometric grid of
+ranges per family (least −2 log L; another family than the spherical one must beat it by
+:data:`FAMILY_MARGIN`), with the motion a free fixed effect of the offsets alone (the
+tilts' information left out, :data:`REML_TILT_SHARE`: the field tilts the planes, and tilts
+held as precise pin the rotation to a biased value whose lever-arm trend REML would read as
+a long range); the components' values are then estimated at that kernel with the tilts. Components
 whose Fisher information is nil (e.g. one acquisition unit covering the whole side: its
 error is a translation of the whole side, indistinguishable from the motion) are not
 estimable: they keep the prior the caller gives (default: left out, with a note).
@@ -240,8 +247,7 @@ class SpatialKernel:
     def __post_init__(self):
         if self.family not in SPATIAL_FAMILIES:
             raise InvalidParameterError(
-                f"spatial_family must be one of {', '.join(SPATIAL_FAMILIES)}; got "
-                f"{self.family!r}"
+                f"spatial_family must be one of {', '.join(SPATIAL_FAMILIES)}; got {self.family!r}"
             )
 
     @property
@@ -967,9 +973,7 @@ class PlaneModel:
         whose supports come within the kernel's support; ``range_m`` a :class:`SpatialKernel`
         or a spherical range (metres)."""
         kern = as_kernel(range_m)
-        i, j, rho = support_correlation(
-            kern, kern.support_m, self.effective(idx, kern.range_m)
-        )
+        i, j, rho = support_correlation(kern, kern.support_m, self.effective(idx, kern.range_m))
         nrm = self.normals[idx]
         return i, j, rho * np.einsum("ij,ij->i", nrm[i], nrm[j])
 
@@ -980,9 +984,7 @@ class PlaneModel:
         points)."""
         k = idx.size
         kern = as_kernel(range_m)
-        i, j, rho = support_correlation(
-            kern, kern.support_m, self.effective(idx, kern.range_m)
-        )
+        i, j, rho = support_correlation(kern, kern.support_m, self.effective(idx, kern.range_m))
         out = np.zeros((k, k))
         out[i, j] = rho
         return 0.5 * (out + out.T)
@@ -1043,7 +1045,8 @@ class CovarianceOperator:
     """``V`` of the planes ``idx`` with solves, dense or sparse.
 
     Up to :data:`DENSE_MAX_PLANES` planes ``V`` is dense and factored by Cholesky. Beyond,
-    nothing of size planes² is formed: the spherical correlation is zero past its range, so
+    nothing of size planes² is formed: every family's correlation is zero past its support
+    (:attr:`SpatialKernel.support_m`: the range, or the taper's for the tapered families), so
     ``A = diag(p + θ_p + inflation) + θ_c ρ∘NNᵀ`` is sparse (pairs within the range from a
     k-d tree) and factored by SuperLU, and the unit components, of rank 3 × units, enter by
     the Woodbury identity ``V⁻¹ = A⁻¹ − A⁻¹ Z (Λ⁻¹ + Zᵀ A⁻¹ Z)⁻¹ Zᵀ A⁻¹``. Cost and memory
@@ -1386,9 +1389,9 @@ def estimate_components(
     theta0 = {n: start_var / max(len(free), 1) for n in free}
     kernels = [SpatialKernel()]
     if "spatial" in free or "spatial" in fixed_var:
-        kernels = _candidate_kernels(
-            model.centroids[ids], sub.size < k, fixed, families
-        ) or [SpatialKernel()]
+        kernels = _candidate_kernels(model.centroids[ids], sub.size < k, fixed, families) or [
+            SpatialKernel()
+        ]
         if not kernels[0].active:
             free = [n for n in free if n != "spatial"]
             theta["spatial"], source["spatial"] = 0.0, "off"

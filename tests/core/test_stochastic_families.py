@@ -101,9 +101,10 @@ def _planes(rng, k, extent=240.0, samples=False):
         half = rng.choice([0.5, 4.0, 30.0], k)
         f = (np.arange(8) + 0.5) / 8 * 2 - 1
         fa, fb = np.meshgrid(f, f, indexing="ij")
-        s = c[:, None, :] + np.stack([fa.ravel(), fb.ravel(), 0 * fa.ravel()], -1)[None] * half[
-            :, None, None
-        ]
+        s = (
+            c[:, None, :]
+            + np.stack([fa.ravel(), fb.ravel(), 0 * fa.ravel()], -1)[None] * half[:, None, None]
+        )
         w = np.full((k, 64), 1 / 64)
     return sto.PlaneModel(c, n, samples=s, sample_weights=w)
 
