@@ -111,6 +111,10 @@ __all__ = [
     "JointComponents",
     "PlaneGain",
     "spherical_correlation",
+    "SpatialKernel",
+    "SPATIAL_FAMILIES",
+    "DEFAULT_FAMILIES",
+    "as_kernel",
 ]
 
 #: the models: "white" = independent point errors only (the study's model, data snooping
@@ -199,8 +203,13 @@ def spherical_correlation(h: np.ndarray, range_m: float) -> np.ndarray:
     return 1.0 - 1.5 * r + 0.5 * r**3
 
 
-#: families of the spatial correlation (:class:`SpatialKernel`), in the order REML tries them
+#: families of the spatial correlation (:class:`SpatialKernel`)
 SPATIAL_FAMILIES = ("spherical", "exponential", "gaussian", "wave")
+#: the families REML chooses from by default: the spherical one and the one with negative
+#: lobes (the exponential and Gaussian ones differ from the spherical one in the shape near
+#: the origin only, which a few dozen planes hardly see; each family costs a profile of REML
+#: fits, so they are offered through ``families=`` and ``spatial_family``, not tried)
+DEFAULT_FAMILIES = ("spherical", "wave")
 #: taper of the families without compact support, in units of their range (wavelength)
 TAPER_RANGES = {"spherical": 1.0, "exponential": 2.0, "gaussian": 2.0, "wave": 3.0}
 #: −2 log L by which another family must beat the spherical one to be chosen (a family with
@@ -1300,7 +1309,7 @@ def estimate_components(
     seed: int = 0,
     prior_plane_var: float = 0.0,
     rt: Optional[np.ndarray] = None,
-    families: Sequence[str] = SPATIAL_FAMILIES,
+    families: Sequence[str] = DEFAULT_FAMILIES,
 ) -> Estimate:
     """REML estimates of the plane-level components ``which`` (see the module docstring).
 
@@ -1334,7 +1343,8 @@ def estimate_components(
         planes (then nothing is estimated reliably: with 6 or fewer planes the motion absorbs
         every misclosure).
     families : sequence of str
-        Families of the spatial correlation to choose from (:class:`SpatialKernel`): the one
+        Families of the spatial correlation to choose from (:class:`SpatialKernel`; default
+        :data:`DEFAULT_FAMILIES`): the one
         of least −2 log L (REML, each at its best range; the same number of parameters, so
         AIC orders them alike), a family other than the spherical one only when it beats the
         spherical one by :data:`FAMILY_MARGIN`.
