@@ -1014,6 +1014,7 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         units_after=None if m.shares_after is None else codes[1],
         theta={n: float(v) for n, v in cfg.theta.items()},
         range_m=float(cfg.range_m),
+        family=getattr(cfg.range_m, "family", "spherical"),
         small_sample_factor=float(cfg.small),
         **cfg.gain_extra,
     )
@@ -1170,7 +1171,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             inflation=cfg.inflation[idx], prior_plane_var=PRIOR_PLANE_SHARE**2 * apri, rt=rt_s,
         )  # fmt: skip
         cfg.theta = {n: v for n, v in est.theta.items() if v > 0}
-        cfg.range_m = est.range_m
+        cfg.range_m = est.kernel  # family and range (stochastic.SpatialKernel)
         changed = False
         if reject and idx.size > min_planes:
             # the test is against the model, not the last weights
@@ -1299,11 +1300,13 @@ def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, not
     vc = _stoch.VarianceComponents(
         model=model,
         method="point level: a-posteriori variance factor; plane level: REML (iterated "
-        "MINQUE / Helmert-Förstner fixed point), spherical spatial range by profile REML; "
+        "MINQUE / Helmert-Förstner fixed point), spatial correlation family and range by "
+        "profile REML; "
         "robust: w-tests of correlated plane misclosures, IGG-III weights; covariance "
         "scaled by nu/(nu-2), nu = planes - 6, for the estimated components",
         components=tuple(comps),
         spatial_range_m=float(est.range_m) if est is not None else float("nan"),
+        spatial_family=est.kernel.family if est is not None else "spherical",
         n_planes=int(k),
         n_eff=float(n_eff),
         covariance_white=sig_white,

@@ -16,8 +16,10 @@ difference of the two epochs' common errors along the plane normal)::
            + σ_c² ρ̄_jk(a) n_jᵀ n_k                       spatial (spherical, range a)
            + σ_b² Z_b Z_bᵀ + σ_a² Z_a Z_aᵀ               acquisition units, before / after
 
-``ρ`` is the spherical correlation (compact support: zero beyond the range ``a``; positive
-definite in 3-D). The spatial part is a smooth 3-D error FIELD ``s(p)`` (trajectory drift:
+``ρ`` is a correlation family chosen by the data (:class:`SpatialKernel`: spherical,
+exponential, Gaussian or the "wave" hole effect with negative lobes; all positive definite
+in 3-D and of compact support, the long-tailed ones tapered), each at its range ``a``.
+The spatial part is a smooth 3-D error FIELD ``s(p)`` (trajectory drift:
 each axis a stationary process of variance ``σ_c²``) seen along each plane's normal and
 AVERAGED over the plane, ``δ_j = n_jᵀ mean_{p ∈ j} s(p)``: hence the factor ``n_jᵀ n_k`` (a
 Schur product of two positive semi-definite matrices, so positive semi-definite) and the
@@ -56,7 +58,14 @@ Förstner 1979): ``F θ = q`` with ``F_ik = ½ tr(Π V_i Π V_k)``, ``q_i = ½ e
 − ½ tr(Π V_i Π V₀)`` and ``Π = V⁻¹ − V⁻¹ X (Xᵀ V⁻¹ X + T)⁻¹ Xᵀ V⁻¹`` (the tilt information
 ``T`` enters as prior information on the motion). Negative solutions are set to zero and that
 component removed (the non-negative fixed point). The standard deviation of each component
-is from ``F⁻¹``. The range ``a`` is chosen by profile REML over a geometric grid. Components
+is from ``F⁻¹``. The family and range ``a`` are chosen by profile REML over a geometric grid of
+ranges per family (least −2 log L; another family than the spherical one must beat it by
+:data:`FAMILY_MARGIN`; by default the spherical family only, :data:`DEFAULT_FAMILIES`).
+The profile can be made with the motion a free fixed effect of the offsets alone (the tilts'
+information left out, :data:`REML_TILT_SHARE` 0: the field tilts the planes, and tilts held
+as precise pin the rotation to a biased value whose lever-arm trend REML reads as a long
+range), the components' values then estimated at that kernel with the tilts; not the
+default, as it makes the σ too small under trajectory drift (docs/accuracy.md). Components
 whose Fisher information is nil (e.g. one acquisition unit covering the whole side: its
 error is a translation of the whole side, indistinguishable from the motion) are not
 estimable: they keep the prior the caller gives (default: left out, with a note).
@@ -104,6 +113,10 @@ __all__ = [
     "JointComponents",
     "PlaneGain",
     "spherical_correlation",
+    "SpatialKernel",
+    "SPATIAL_FAMILIES",
+    "DEFAULT_FAMILIES",
+    "as_kernel",
 ]
 
 #: the models: "white" = independent point errors only (the study's model, data snooping
@@ -122,6 +135,14 @@ GROSS_MAD = 8.0  # first pass: misclosures beyond this many robust std are gross
 VCE_MAX_ITER = 40
 VCE_TOL = 2e-3  # relative change of the components at which REML stops
 N_RANGES = 6  # spatial ranges tried by profile REML
+#: share of the planes' tilt information REML takes as prior information on the motion when it
+#: profiles the kernel (0: the kernel is chosen from the offsets alone, see
+#: :func:`estimate_components`). 1 by default: the tilt-free profile gets the field kind's
+#: vertical right (1.98 -> 0.33 mm) but makes the σ too small on trajectory drift (the
+#: renovated kind pooled RMS(err/σ) 0.81 -> 1.85 in sample; docs/accuracy.md, "Spatial
+#: correlation family and range chosen by the data"); its cure, a random tilt per plane in
+#: the plane-level model, is not built
+REML_TILT_SHARE = 1.0
 _FLOOR = 1e-14  # m², numerical floor of a variance component
 
 
@@ -135,16 +156,26 @@ def check_stochastic_model(model: str, *, option: str = "stochastic_model") -> s
 
 
 def check_components(components: Optional[Mapping[str, float]], *, option: str = "components"):
-    """Validate fixed components ``{name: sigma_m, "spatial_range_m": a}``; returns a dict."""
+    """Validate fixed components ``{name: sigma_m, "spatial_range_m": a, "spatial_family":
+    family}`` (the family one of :data:`SPATIAL_FAMILIES`; a range without it is spherical);
+    returns a dict."""
     if components is None:
         return {}
     out = {}
+    names = COMPONENT_NAMES + ("spatial_range_m", "spatial_family")
     for k, v in dict(components).items():
-        if k not in COMPONENT_NAMES + ("spatial_range_m",):
+        if k not in names:
             raise InvalidParameterError(
-                f"{option}: unknown component {k!r}; use "
-                f"{', '.join(COMPONENT_NAMES + ('spatial_range_m',))}"
+                f"{option}: unknown component {k!r}; use {', '.join(names)}"
             )
+        if k == "spatial_family":
+            if v not in SPATIAL_FAMILIES:
+                raise InvalidParameterError(
+                    f"{option}: spatial_family must be one of {', '.join(SPATIAL_FAMILIES)};"
+                    f" got {v!r}"
+                )
+            out[k] = str(v)
+            continue
         try:
             f = float(v)
         except (TypeError, ValueError):
@@ -177,6 +208,99 @@ def spherical_correlation(h: np.ndarray, range_m: float) -> np.ndarray:
     """Spherical correlation ``1 − 1.5 h/a + 0.5 (h/a)³`` for ``h < a``, else 0 (any shape)."""
     r = np.minimum(np.asarray(h, dtype=np.float64) / range_m, 1.0)
     return 1.0 - 1.5 * r + 0.5 * r**3
+
+
+#: families of the spatial correlation (:class:`SpatialKernel`)
+SPATIAL_FAMILIES = ("spherical", "exponential", "gaussian", "wave")
+#: the families REML chooses from by default: the spherical one (with the tilts in the profile
+#: the wave family is not chosen even for a wave field, docs/accuracy.md; pass
+#: ``families=("spherical", "wave")`` with :data:`REML_TILT_SHARE` 0 for the tilt-free choice
+#: measured there). The exponential and Gaussian ones differ from the spherical one in the
+#: shape near the origin only, which a few dozen planes hardly see; each family costs a
+#: profile of REML fits, so they are offered through ``families=`` and ``spatial_family``.
+DEFAULT_FAMILIES = ("spherical",)
+#: taper of the families without compact support, in units of their range (wavelength)
+TAPER_RANGES = {"spherical": 1.0, "exponential": 2.0, "gaussian": 2.0, "wave": 3.0}
+#: −2 log L by which another family must beat the spherical one to be chosen (a family with
+#: negative lobes averages a large plane's error away: it has to be seen in the data, not
+#: chosen by the noise of a few dozen planes)
+FAMILY_MARGIN = 2.0
+N_WAVELENGTHS = 8  # wavelengths tried by profile REML for the "wave" family
+
+
+@dataclass(frozen=True)
+class SpatialKernel:
+    """Correlation of the spatial term: a family and its range (metres).
+
+    Every family is positive definite in 3-D and of compact support (so the sparse path of
+    :class:`CovarianceOperator` holds for all): the ones without it are multiplied by a
+    spherical taper of range ``TAPER_RANGES[family] × range_m`` (the product of two positive
+    definite functions is positive definite, Schur's product theorem; covariance tapering,
+    Furrer, Genton & Nychka 2006)::
+
+        spherical    1 − 1.5 r + 0.5 r³                  r = h / a, zero beyond a
+        exponential  exp(−3 h / a) · sph(h; 2a)          a: practical range (5 %)
+        gaussian     exp(−3 (h / a)²) · sph(h; 2a)
+        wave         sin(2π h / λ) / (2π h / λ) · sph(h; 3λ)      λ = range_m, a wavelength
+
+    The "wave" (hole-effect, cardinal sine) family is the correlation of a field made of
+    plane waves of ONE wavelength λ in every 3-D direction (its spectrum is uniform on the
+    sphere ``|k| = 2π/λ``): positive definite in up to three dimensions, NOT a valid
+    correlation in four or more, and its negative lobe (−0.22 at 0.72 λ) is the deepest an
+    isotropic 3-D correlation can have (the cosine ``cos(2π h/λ)`` with lobes of −1 is valid in
+    1-D only, ``J0`` of the 2-D waves of a horizontal field in 2-D only). The taper damps the
+    lobes beyond the first two, as a spread of wavelengths does. It is the family of a survey
+    error that oscillates over tens of metres (a smooth drift of short wavelength): averaged
+    over a plane several wavelengths across it nearly cancels, which a family without
+    negative lobes cannot express (the spherical one then fits a long range, and a large
+    ground plane keeps most of the field's variance).
+
+    Hand-written: scipy has no covariance families (scikit-learn's Gaussian-process kernels
+    lack the hole effect and the taper, and would be a new dependency).
+    """
+
+    family: str = "spherical"
+    range_m: float = float("nan")
+
+    def __post_init__(self):
+        if self.family not in SPATIAL_FAMILIES:
+            raise InvalidParameterError(
+                f"spatial_family must be one of {', '.join(SPATIAL_FAMILIES)}; got {self.family!r}"
+            )
+
+    @property
+    def active(self) -> bool:
+        """A finite positive range (a spatial term to build)."""
+        return bool(self.range_m == self.range_m and self.range_m > 0)
+
+    @property
+    def support_m(self) -> float:
+        """Distance beyond which the correlation is nil, metres."""
+        return TAPER_RANGES[self.family] * float(self.range_m)
+
+    def __float__(self) -> float:
+        return float(self.range_m)
+
+    def __call__(self, h) -> np.ndarray:
+        """Correlation at distances ``h`` (any shape, metres)."""
+        h = np.asarray(h, dtype=np.float64)
+        a = float(self.range_m)
+        if self.family == "spherical":
+            return spherical_correlation(h, a)
+        taper = spherical_correlation(h, self.support_m)
+        if self.family == "exponential":
+            return np.exp(-3.0 * h / a) * taper
+        if self.family == "gaussian":
+            return np.exp(-3.0 * (h / a) ** 2) * taper
+        return np.sinc(2.0 * h / a) * taper  # numpy's sinc(x) = sin(πx)/(πx)
+
+
+def as_kernel(kernel) -> SpatialKernel:
+    """A :class:`SpatialKernel` from a kernel, a range in metres (the spherical family, as
+    before the families) or None / NaN (no spatial term)."""
+    if isinstance(kernel, SpatialKernel):
+        return kernel
+    return SpatialKernel("spherical", float("nan") if kernel is None else float(kernel))
 
 
 def ball_cross_correlation(h: np.ndarray, range_a: float, range_b: float) -> np.ndarray:
@@ -364,6 +488,8 @@ class PlaneGain:
         The plane-level components in force (variances, m²; estimated, prior or fixed).
     range_m : float
         Range of the spatial component, metres (NaN when off).
+    family : str
+        Family of its correlation (:class:`SpatialKernel`).
     small_sample_factor : float
         The factor the adjustment's covariance was scaled by (see
         :class:`VarianceComponents`).
@@ -411,10 +537,16 @@ class PlaneGain:
     prior_plane_var: float = 0.0
     samples: Optional[np.ndarray] = None
     sample_weights: Optional[np.ndarray] = None
+    family: str = "spherical"
 
     def support(self):
         """(k, S, 3) samples, (k, S) weights and (k,) radii (see :class:`PlaneModel`)."""
         return _support_of(self.centroids, self.samples, self.sample_weights)
+
+    @property
+    def kernel(self) -> SpatialKernel:
+        """The spatial correlation in force (:class:`SpatialKernel`)."""
+        return SpatialKernel(self.family, float(self.range_m))
 
 
 def _union_shares(a: PlaneGain, b: PlaneGain, epoch: str) -> Optional[np.ndarray]:
@@ -445,6 +577,8 @@ class JointComponents:
         Spatial range, metres (NaN when off).
     n_planes : int
         Planes of both adjustments.
+    family : str
+        Family of the spatial correlation chosen on both sides' planes together.
     small_sample_factor : float
         ``ν/(ν − 2)`` with ``ν`` the fewer of ``planes − 12`` and the Satterthwaite degrees
         of freedom of the slip's variance, at least 3 (1 when every component was fixed).
@@ -455,6 +589,7 @@ class JointComponents:
     range_m: float
     n_planes: int
     small_sample_factor: float
+    family: str = "spherical"
 
     def to_dict(self) -> Dict[str, object]:
         return {
@@ -466,6 +601,7 @@ class JointComponents:
                 for n in COMPONENT_NAMES
             },  # fmt: skip
             "spatial_range_m": _num(self.range_m),
+            "spatial_family": self.family,
             "n_planes": int(self.n_planes),
             "small_sample_factor": _num(self.small_sample_factor),
         }
@@ -542,7 +678,7 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
         seed=seed, prior_plane_var=max(a.prior_plane_var, b.prior_plane_var), rt=rt,
     )  # fmt: skip
     theta = {n: v for n, v in est.theta.items() if v > 0}
-    v = covariance(model, idx, p, theta, est.range_m, infl)
+    v = covariance(model, idx, p, theta, est.kernel, infl)
     kj = np.zeros((12, k))
     kj[:6, :ka], kj[6:, ka:] = a.gain, b.gain
     cov = kj @ v @ kj.T
@@ -556,7 +692,7 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
         small = 1.0
     joint = JointComponents(
         theta=dict(est.theta), source=dict(est.source), range_m=float(est.range_m),
-        n_planes=int(k), small_sample_factor=float(small),
+        n_planes=int(k), small_sample_factor=float(small), family=est.kernel.family,
     )  # fmt: skip
     return small * 0.5 * (cov + cov.T), joint
 
@@ -587,7 +723,7 @@ def _satterthwaite_dof(model, idx, est, kj, cov) -> float:
     normal one."""
     kd = kj[3:6] - kj[9:12]
     rel = cov[3:6, 3:6] + cov[9:12, 9:12] - cov[3:6, 9:12] - cov[9:12, 3:6]
-    bases = model.bases(idx, est.range_m)
+    bases = model.bases(idx, est.kernel)
     free = [n for n in COMPONENT_NAMES if (n, n) in est.cov and n in bases]
     if not free:
         return float("inf")
@@ -617,7 +753,9 @@ def cross_covariance(a: PlaneGain, b: PlaneGain) -> np.ndarray:
     * spatial: both sides' fields are averages of ONE white noise over balls of radius half
       their range, scaled by each side's ``σ_c``: ``Cov(δ_a,j, δ_b,k) = σ_c,a σ_c,b
       ρ_ab(|c_j − c_k|) n_jᵀ n_k`` with ``ρ_ab`` = :func:`ball_cross_correlation` (the
-      spherical correlation when the ranges agree);
+      spherical correlation when the ranges agree); two sides of one kernel (family and
+      range, :class:`SpatialKernel`) share it; two different families are taken as
+      independent fields (no cross term);
     * acquisition units: a unit present on both sides (the same id in the same epoch) has one
       rigid translation ``ξ_u ~ N(0, I₃)``, seen scaled by each side's ``σ_e``:
       ``σ_e,a σ_e,b Z_a,u Z_b,uᵀ``;
@@ -641,13 +779,21 @@ def cross_covariance(a: PlaneGain, b: PlaneGain) -> np.ndarray:
     """
     out = np.zeros((a.gain.shape[0], b.gain.shape[0]))
     ta, tb = float(a.theta.get("spatial", 0.0)), float(b.theta.get("spatial", 0.0))
-    if ta > 0 and tb > 0 and a.range_m == a.range_m and b.range_m == b.range_m:
+    ka, kb = a.kernel, b.kernel
+    if ka == kb:  # one field: its own correlation
+        corr, support = ka, ka.support_m
+    elif ka.family == kb.family == "spherical":
+        corr = lambda d: ball_cross_correlation(d, a.range_m, b.range_m)  # noqa: E731
         support = 0.5 * (a.range_m + b.range_m)
+    else:
+        # two families: no bivariate model built from one noise is at hand; the fields are
+        # taken as independent (joint_covariance, which estimates one kernel for both sides,
+        # is the path that shares them)
+        corr = None
+    if ta > 0 and tb > 0 and ka.active and kb.active and corr is not None:
         fa = effective_samples(a.centroids, a.samples, a.sample_weights, a.range_m)
         fb = effective_samples(b.centroids, b.samples, b.sample_weights, b.range_m)
-        i, j, rho = support_correlation(
-            lambda d: ball_cross_correlation(d, a.range_m, b.range_m), support, fa, fb
-        )
+        i, j, rho = support_correlation(corr, support, fa, fb)
         if i.size:
             val = math.sqrt(ta * tb) * rho
             val = val * np.einsum("ij,ij->i", a.normals[i], b.normals[j])
@@ -728,7 +874,8 @@ class VarianceComponents:
     components : tuple of Component
         "white" first, then the plane-level components.
     spatial_range_m : float
-        Range of the spherical spatial correlation, metres (NaN when off).
+        Range of the spatial correlation, metres (NaN when off; for the "wave" family its
+        wavelength).
     n_planes : int
         Planes in the plane-level model.
     n_eff : float
@@ -743,6 +890,8 @@ class VarianceComponents:
         because its components are estimated, not known (1 when every component was fixed).
     notes : tuple of str
         Warnings (few planes, components not estimable, REML not converged).
+    spatial_family : str
+        Family of the spatial correlation (:class:`SpatialKernel`, chosen by REML).
     """
 
     model: str
@@ -754,6 +903,7 @@ class VarianceComponents:
     covariance_white: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
     small_sample_factor: float = 1.0
     notes: Tuple[str, ...] = ()
+    spatial_family: str = "spherical"
 
     @property
     def sigma_white_m(self) -> np.ndarray:
@@ -776,6 +926,8 @@ class VarianceComponents:
         }
         if self.spatial_range_m == self.spatial_range_m and "spatial" in out:
             out["spatial_range_m"] = float(self.spatial_range_m)
+            if self.spatial_family != "spherical":
+                out["spatial_family"] = self.spatial_family
         return out
 
     def to_dict(self) -> Dict[str, object]:
@@ -784,6 +936,7 @@ class VarianceComponents:
             "method": self.method,
             "components": {c.name: c.to_dict() for c in self.components},
             "spatial_range_m": _num(self.spatial_range_m),
+            "spatial_family": self.spatial_family,
             "n_planes": int(self.n_planes),
             "n_eff": _num(self.n_eff),
             "sigma_white_m": [_num(v) for v in self.sigma_white_m],
@@ -833,23 +986,23 @@ class PlaneModel:
             range_m,
         )
 
-    def spatial_pairs(self, idx: np.ndarray, range_m: float):
+    def spatial_pairs(self, idx: np.ndarray, range_m):
         """(i, j, ρ̄ n_iᵀ n_j) of the plane pairs of ``idx`` (both orders, diagonal included)
-        whose supports come within the range."""
-        i, j, rho = support_correlation(
-            lambda d: spherical_correlation(d, range_m), range_m, self.effective(idx, range_m)
-        )
+        whose supports come within the kernel's support; ``range_m`` a :class:`SpatialKernel`
+        or a spherical range (metres)."""
+        kern = as_kernel(range_m)
+        i, j, rho = support_correlation(kern, kern.support_m, self.effective(idx, kern.range_m))
         nrm = self.normals[idx]
         return i, j, rho * np.einsum("ij,ij->i", nrm[i], nrm[j])
 
-    def spatial_correlation(self, idx: np.ndarray, range_m: float) -> np.ndarray:
-        """Dense (k, k) ``ρ̄`` of the planes ``idx``: the spherical correlation averaged over
-        each pair's samples (:func:`effective_samples`; the centroids' correlation where
-        both planes are points)."""
+    def spatial_correlation(self, idx: np.ndarray, range_m) -> np.ndarray:
+        """Dense (k, k) ``ρ̄`` of the planes ``idx``: the kernel's correlation (a
+        :class:`SpatialKernel`, or a spherical range in metres) averaged over each pair's
+        samples (:func:`effective_samples`; the centroids' correlation where both planes are
+        points)."""
         k = idx.size
-        i, j, rho = support_correlation(
-            lambda d: spherical_correlation(d, range_m), range_m, self.effective(idx, range_m)
-        )
+        kern = as_kernel(range_m)
+        i, j, rho = support_correlation(kern, kern.support_m, self.effective(idx, kern.range_m))
         out = np.zeros((k, k))
         out[i, j] = rho
         return 0.5 * (out + out.T)
@@ -871,11 +1024,12 @@ class PlaneModel:
         s = self.shares_before if which == "unit_before" else self.shares_after
         return 0 if s is None else int(np.count_nonzero(s[idx].sum(axis=0) > 0))
 
-    def bases(self, idx: np.ndarray, range_m: float) -> Dict[str, np.ndarray]:
-        """Dense (k, k) ``V_i`` of each plane-level component for planes ``idx``."""
+    def bases(self, idx: np.ndarray, range_m) -> Dict[str, np.ndarray]:
+        """Dense (k, k) ``V_i`` of each plane-level component for planes ``idx``
+        (``range_m``: a :class:`SpatialKernel` or a spherical range, metres)."""
         k = idx.size
         out = {"plane": np.eye(k)}
-        if range_m == range_m and range_m > 0:
+        if as_kernel(range_m).active:
             nrm = self.normals[idx]
             out["spatial"] = self.spatial_correlation(idx, range_m) * (nrm @ nrm.T)
         for name in ("unit_before", "unit_after"):
@@ -890,10 +1044,11 @@ def covariance(
     idx: np.ndarray,
     p: np.ndarray,
     theta: Mapping[str, float],
-    range_m: float,
+    range_m,
     inflation: Optional[np.ndarray] = None,
 ) -> np.ndarray:
-    """``V = diag(p (+ inflation)) + Σ θ_i V_i`` (k, k), m²; ``theta`` holds variances (m²)."""
+    """``V = diag(p (+ inflation)) + Σ θ_i V_i`` (k, k), m²; ``theta`` holds variances (m²);
+    ``range_m`` the spatial term's :class:`SpatialKernel` (or a spherical range, metres)."""
     v = np.zeros((idx.size, idx.size))
     bases = model.bases(idx, range_m if theta.get("spatial", 0.0) > 0 else float("nan"))
     for name, b in bases.items():
@@ -908,7 +1063,8 @@ class CovarianceOperator:
     """``V`` of the planes ``idx`` with solves, dense or sparse.
 
     Up to :data:`DENSE_MAX_PLANES` planes ``V`` is dense and factored by Cholesky. Beyond,
-    nothing of size planes² is formed: the spherical correlation is zero past its range, so
+    nothing of size planes² is formed: every family's correlation is zero past its support
+    (:attr:`SpatialKernel.support_m`: the range, or the taper's for the tapered families), so
     ``A = diag(p + θ_p + inflation) + θ_c ρ∘NNᵀ`` is sparse (pairs within the range from a
     k-d tree) and factored by SuperLU, and the unit components, of rank 3 × units, enter by
     the Woodbury identity ``V⁻¹ = A⁻¹ − A⁻¹ Z (Λ⁻¹ + Zᵀ A⁻¹ Z)⁻¹ Zᵀ A⁻¹``. Cost and memory
@@ -930,7 +1086,7 @@ class CovarianceOperator:
 
         a = diags(diag).tocsc()
         tc = float(theta.get("spatial", 0.0))
-        if tc > 0 and range_m == range_m:
+        if tc > 0 and as_kernel(range_m).active:
             i, j, val = model.spatial_pairs(idx, range_m)
             sp = coo_matrix((tc * val, (i, j)), shape=(self.k, self.k)).tocsc()
             sp = 0.5 * (sp + sp.T)
@@ -1033,6 +1189,10 @@ class Estimate:
     iterations: int
     converged: bool
     cov: Dict[Tuple[str, str], float] = field(default_factory=dict)
+    #: the spatial correlation chosen (family and range; NaN range when off)
+    kernel: SpatialKernel = field(default_factory=SpatialKernel)
+    #: −2 log L (REML) of the best range of each family tried, for the report
+    family_m2ll: Dict[str, float] = field(default_factory=dict)
 
 
 def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
@@ -1103,10 +1263,15 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
     return theta, sd, it, converged, gls_at().reml(e), pair_cov
 
 
-def _candidate_ranges(c: np.ndarray, subset: bool = False) -> np.ndarray:
+def _candidate_ranges(c: np.ndarray, subset: bool = False, family: str = "spherical"):
     """Geometric grid of ranges from 3x the median nearest-plane distance to the extent (to
     the radius of a contiguous subset of a larger problem: beyond it the subset says little,
-    and the sparse covariance of the whole problem would fill in)."""
+    and the sparse covariance of the whole problem would fill in).
+
+    For the "wave" family the range is a wavelength: from 2x the median nearest-plane
+    distance (planes closer than half a wavelength see the lobes) to half the extent (two
+    wavelengths across the planes at least), :data:`N_WAVELENGTHS` of them (its likelihood
+    is less smooth in the range than the monotone families')."""
     if c.shape[0] < 3:
         return np.zeros(0)
     dist, _ = cKDTree(c).query(c, k=2)
@@ -1114,9 +1279,29 @@ def _candidate_ranges(c: np.ndarray, subset: bool = False) -> np.ndarray:
     ext = 2.0 * float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())  # rotation-invariant
     if subset:
         ext *= 0.5
+    if family == "wave":
+        lo = max(2.0 * nn, 1.0)
+        hi = 0.5 * ext
+        if hi < 1.5 * lo:
+            return np.zeros(0)
+        return np.geomspace(lo, hi, N_WAVELENGTHS)
     lo = max(3.0 * nn, 1.0)
     hi = max(ext, 2.0 * lo)
     return np.geomspace(lo, hi, N_RANGES)
+
+
+def _candidate_kernels(c, subset, fixed, families):
+    """The (family, range) pairs profile REML tries: the caller's range and family when
+    fixed (a range alone: the spherical family, as before the families), else each family's
+    grid (:func:`_candidate_ranges`)."""
+    fams = tuple(families)
+    if "spatial_family" in fixed:
+        fams = (str(fixed["spatial_family"]),)
+    if "spatial_range_m" in fixed:
+        fam = fams[0] if "spatial_family" in fixed else "spherical"
+        return [SpatialKernel(fam, float(fixed["spatial_range_m"]))]
+    return [SpatialKernel(f, float(r)) for f in fams
+            for r in _candidate_ranges(c, subset, f)]  # fmt: skip
 
 
 def estimate_components(
@@ -1133,6 +1318,7 @@ def estimate_components(
     seed: int = 0,
     prior_plane_var: float = 0.0,
     rt: Optional[np.ndarray] = None,
+    families: Sequence[str] = DEFAULT_FAMILIES,
 ) -> Estimate:
     """REML estimates of the plane-level components ``which`` (see the module docstring).
 
@@ -1154,7 +1340,9 @@ def estimate_components(
     which : sequence of str
         Components to include (subset of :data:`COMPONENT_NAMES`).
     fixed : mapping
-        Components given by the caller: ``{name: sigma_m}`` and optionally ``spatial_range_m``.
+        Components given by the caller: ``{name: sigma_m}`` and optionally ``spatial_range_m``
+        and ``spatial_family`` (one of :data:`SPATIAL_FAMILIES`; a range without a family is
+        spherical).
     inflation : (k,) float64, optional
         Extra variance of down-weighted planes (m²).
     seed : int
@@ -1163,6 +1351,12 @@ def estimate_components(
         Floor of the plane component (m²) when there are fewer than :data:`MIN_PLANES_VCE`
         planes (then nothing is estimated reliably: with 6 or fewer planes the motion absorbs
         every misclosure).
+    families : sequence of str
+        Families of the spatial correlation to choose from (:class:`SpatialKernel`; default
+        :data:`DEFAULT_FAMILIES`): the one
+        of least −2 log L (REML, each at its best range; the same number of parameters, so
+        AIC orders them alike), a family other than the spherical one only when it beats the
+        spherical one by :data:`FAMILY_MARGIN`.
     """
     k = idx.size
     sub = np.arange(k)
@@ -1175,8 +1369,16 @@ def estimate_components(
         sub = np.sort(np.asarray(near))
     es, xs, ps = e[sub], x[sub], p[sub]
     inf_s = None if inflation is None else inflation[sub]
-    ts = t * (sub.size / k)  # the subset's share of the tilt information
-    rts = None if rt is None else rt * (sub.size / k)
+    # the motion is a free fixed effect of the offsets alone (REML_TILT_SHARE = 0): the tilts'
+    # information is point-noise precise, but the survey-error field tilts the planes too (3 mm
+    # over 40 m is 0.1 mrad on every roof); held as a prior on the rotation it pins the
+    # rotation to a biased value, the offsets' residuals then carry the lever arm's linear
+    # trend, and REML reads it as a field of long range (issue #30, the "field" kind: 135-155 m
+    # spherical ranges for a 37-53 m field; with the offsets alone 30-40 m)
+    ts_full = t * (sub.size / k)  # the subset's share of the tilt information
+    rts_full = None if rt is None else rt * (sub.size / k)
+    ts = ts_full * REML_TILT_SHARE
+    rts = None if rt is None or REML_TILT_SHARE == 0 else rts_full * REML_TILT_SHARE
     ids = idx[sub]
     theta: Dict[str, float] = {}
     source: Dict[str, str] = {}
@@ -1204,29 +1406,46 @@ def estimate_components(
     # a cold start every time: warm starts from the adjustment's last round settled on worse
     # fixed points in the calibration (a spatial component of 25 mm where this found 4 mm)
     theta0 = {n: start_var / max(len(free), 1) for n in free}
-    ranges = [float("nan")]
+    kernels = [SpatialKernel()]
     if "spatial" in free or "spatial" in fixed_var:
-        if "spatial_range_m" in fixed:
-            ranges = [float(fixed["spatial_range_m"])]
-        else:
-            ranges = list(_candidate_ranges(model.centroids[ids], subset=sub.size < k))
-            if not ranges:
-                free = [n for n in free if n != "spatial"]
-                theta["spatial"], source["spatial"] = 0.0, "off"
-                notes["spatial"] = "fewer than 3 planes"
-                ranges = [float("nan")]
-    best = None
-    for rng_m in ranges:
-        bases = model.bases(ids, rng_m)
+        kernels = _candidate_kernels(model.centroids[ids], sub.size < k, fixed, families) or [
+            SpatialKernel()
+        ]
+        if not kernels[0].active:
+            free = [n for n in free if n != "spatial"]
+            theta["spatial"], source["spatial"] = 0.0, "off"
+            notes["spatial"] = "fewer than 3 planes"
+    fits: Dict[str, tuple] = {}
+    for kern in kernels:
+        bases = model.bases(ids, kern)
         bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
         fx = {n: fixed_var[n] for n in fixed_var if n in bases}
         th, sd, it, conv, m2ll, pc = _reml_fixed_point(
             es, xs, ts, ps, bases, theta0, fx, inf_s, rts
         )
-        log.debug("REML range %.3g m: %s, -2logL %.6g", rng_m, th, m2ll)
-        if best is None or m2ll < best[4]:
-            best = (th, sd, it, conv, m2ll, rng_m, pc)
-    th, sd, it, conv, _, rng_m, pc = best
+        log.debug("REML %s %.3g m: %s, -2logL %.6g", kern.family, kern.range_m, th, m2ll)
+        if kern.family not in fits or m2ll < fits[kern.family][4]:
+            fits[kern.family] = (th, sd, it, conv, m2ll, kern, pc)
+    best = min(fits.values(), key=lambda f: f[4])
+    sph = fits.get("spherical")
+    if sph is not None and best[4] > sph[4] - FAMILY_MARGIN:
+        best = sph
+    th, sd, it, conv, _, kern, pc = best
+    if len(fits) > 1:
+        # a spatial component that REML set to zero says nothing of the family
+        if th.get("spatial", 0.0) <= 0 and sph is not None:
+            th, sd, it, conv, _, kern, pc = sph
+    if REML_TILT_SHARE < 1.0 and np.any(ts_full) and (len(kernels) > 1 or REML_TILT_SHARE > 0):
+        # the kernel is chosen from the offsets; the components' values are then estimated
+        # with the tilts' information as the adjustment and its plane tests use it (else the
+        # w-tests, made with the tilts, would hold the components for too small and reject)
+        bases = model.bases(ids, kern)
+        bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
+        fx = {n: fixed_var[n] for n in fixed_var if n in bases}
+        th, sd, it, conv, _, pc = _reml_fixed_point(
+            es, xs, ts_full, ps, bases, theta0, fx, inf_s, rts_full
+        )
+    rng_m = kern.range_m
     sds = {}
     for n in free:
         theta[n] = float(th.get(n, 0.0))
@@ -1251,8 +1470,10 @@ def estimate_components(
         source.setdefault(n, "off")
     if theta.get("spatial", 0.0) <= 0:
         rng_m = float("nan") if "spatial_range_m" not in fixed else rng_m
+    kern = SpatialKernel(kern.family, float(rng_m))
     pc = {k: v for k, v in pc.items() if source.get(k[0]) == source.get(k[1]) == "estimated"}
-    return Estimate(theta, sds, source, notes, float(rng_m), int(it), bool(conv), pc)
+    m2ll = {f: float(v[4]) for f, v in fits.items()}
+    return Estimate(theta, sds, source, notes, float(rng_m), int(it), bool(conv), pc, kern, m2ll)
 
 
 # --------------------------------------------------------------------------- robustness
