@@ -152,18 +152,7 @@ def place_straight_line(
         return none
     # each point's motion by the field of either side: its 16 knots, and their copies
     # swapped (copies of the knots that have one; the copy's original for a copy)
-    ci = field.copy_index
-    n_grid = ci.size
-    idx, w = field._basis(a[:, :2], copy_index=ci)
-    copy_of = np.flatnonzero(ci >= 0)
-    flip = idx.copy()
-    main = idx < n_grid
-    has = main & (ci[np.where(main, idx, 0)] >= 0)
-    flip[has] = ci[idx[has]]
-    flip[~main] = copy_of[idx[~main] - n_grid]
-    coef = field.all_coefficients()
-    u_own = np.einsum("pk,pkj->pj", w, coef[idx])
-    u_flip = np.einsum("pk,pkj->pj", w, coef[flip])
+    u_own, u_flip = field.both_sides(a[:, :2])
     # the jump at the line: both sides' fields at the foot of each point on the candidate
     foot = e0 + ((a[:, :2] - e0) @ t0)[:, None] * t0
     n0 = np.array([-t0[1], t0[0]])

@@ -336,6 +336,25 @@ class SplineField:
             n_y=self.n_y, lines=lines, copy_index=copy_index, slopes=slopes,
         )  # fmt: skip
 
+    def both_sides(self, xy: np.ndarray):
+        """(K, 2) map positions -> ``(own, other)``, each (K, 3) displacements, metres: the
+        field of the position's own side of the breaklines and that of the far side (the
+        knots that have a far-side copy swapped for it, and a copy for its original)."""
+        ci = self.copy_index
+        n_grid = ci.size
+        idx, w = self._basis(np.asarray(xy, dtype=np.float64), copy_index=ci)
+        copy_of = np.flatnonzero(ci >= 0)
+        flip = idx.copy()
+        main = idx < n_grid
+        has = main & (ci[np.where(main, idx, 0)] >= 0)
+        flip[has] = ci[idx[has]]
+        flip[~main] = copy_of[idx[~main] - n_grid]
+        coef = self.all_coefficients()
+        return (
+            np.einsum("pk,pkj->pj", w, coef[idx]),
+            np.einsum("pk,pkj->pj", w, coef[flip]),
+        )
+
     def __call__(self, xy: np.ndarray) -> np.ndarray:
         """(K, 2) map positions -> (K, 3) displacements, metres (each position takes the
         knots of its own side of the breaklines)."""
@@ -1484,16 +1503,7 @@ def refine_breaklines(
     a = a[distance_m(a, lines) < reach_m]
     if len(a) < 50:
         return lines
-    ci = field.copy_index
-    n_grid = ci.size
-    idx, w = field._basis(a[:, :2], copy_index=ci)
-    copy_of = np.flatnonzero(ci >= 0)
-    flip = idx.copy()
-    main = idx < n_grid
-    m_has = main & (ci[np.where(main, idx, 0)] >= 0)
-    flip[m_has] = ci[idx[m_has]]
-    flip[~main] = copy_of[idx[~main] - n_grid]
-    coef = field.all_coefficients()
+    u_own, u_flip = field.both_sides(a[:, :2])
 
     def residual(q):
         dist, j = tree.query(q)
@@ -1502,8 +1512,6 @@ def refine_breaklines(
         v = np.einsum("ij,ij->i", nn, q - before[j])
         return np.where((np.asarray(dist) <= gate_m) & np.all(np.isfinite(nn), axis=1), v, np.nan)
 
-    u_own = np.einsum("pk,pkj->pj", w, coef[idx])
-    u_flip = np.einsum("pk,pkj->pj", w, coef[flip])
     jump = np.linalg.norm(u_own - u_flip, axis=1)
     near_part = np.argmin(np.vstack([distance_m(a, breaklines([p])) for p in lines.parts]), axis=0)
     keep_part = [
