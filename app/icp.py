@@ -272,9 +272,11 @@ SPEC = JobSpec(
             "formal_sigma",
             "bool",
             "report the cells' formal sigmas (independent point residuals, 2-4x too small on "
-            "real surfaces); by default each cell's covariance counts the spatial correlation "
+            "real surfaces; the spline field then weighs every point as one independent "
+            "observation); by default each cell's covariance counts the spatial correlation "
             "of its residuals (sub-cell blocks) and the cell-wide error that the agreement of "
-            "neighbouring cells shows",
+            "neighbouring cells shows, and the spline field weighs each cell's points by "
+            "their independent share",
             "Formal sigmas only",
             default=False,
             advanced=True,
