@@ -38,6 +38,7 @@ import numpy as np
 
 from .breaklines import Breaklines, distance_m, from_sequence
 from .icp_options import MAD_TO_SIGMA
+from .icp_spline import nearest_plane_residuals
 
 log = logging.getLogger(__name__)
 
@@ -174,13 +175,9 @@ def place_straight_line(
     u_left = np.where(left[:, None], u_own, u_flip)
     u_right = np.where(left[:, None], u_flip, u_own)
 
-    def residual(q):
-        dist, j = tree.query(q)
-        j = np.asarray(j)
-        nn = normals(j)
-        v = np.einsum("ij,ij->i", nn, q - before[j])
-        ok = (np.asarray(dist) <= gate_m) & np.all(np.isfinite(nn), axis=1)
-        return np.where(ok, np.abs(v), np.inf)
+    def residual(q):  # |v|, inf where no epoch-1 point within the gate
+        v = nearest_plane_residuals(q, before=before, tree=tree, normals=normals, gate_m=gate_m)
+        return np.where(np.isnan(v), np.inf, np.abs(v))
 
     v_l = residual(a - u_left)
     v_r = residual(a - u_right)

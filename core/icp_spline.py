@@ -1441,6 +1441,21 @@ def fit_spline_chunks(
     )
 
 
+def nearest_plane_residuals(
+    q: np.ndarray, *, before: np.ndarray, tree, normals: Callable, gate_m: float
+) -> np.ndarray:
+    """(P,) signed point-to-plane residual of each point ``q`` (P, 3) against its nearest
+    epoch-1 point ``before[j]`` (``tree`` over ``before``, ``normals(j) -> (P, 3)``), metres;
+    NaN where that point is farther than ``gate_m`` or its normal is undefined. Used to judge
+    which side's field moves a point near a breakline back onto epoch 1
+    (:func:`refine_breaklines`, :func:`slipmap.core.breakline_points.place_straight_line`)."""
+    dist, j = tree.query(q)
+    j = np.asarray(j)
+    nn = normals(j)
+    v = np.einsum("ij,ij->i", nn, q - before[j])
+    return np.where((np.asarray(dist) <= gate_m) & np.all(np.isfinite(nn), axis=1), v, np.nan)
+
+
 def refine_breaklines(
     field: SplineField,
     after: np.ndarray,
@@ -1506,11 +1521,7 @@ def refine_breaklines(
     u_own, u_flip = field.both_sides(a[:, :2])
 
     def residual(q):
-        dist, j = tree.query(q)
-        j = np.asarray(j)
-        nn = normals(j)
-        v = np.einsum("ij,ij->i", nn, q - before[j])
-        return np.where((np.asarray(dist) <= gate_m) & np.all(np.isfinite(nn), axis=1), v, np.nan)
+        return nearest_plane_residuals(q, before=before, tree=tree, normals=normals, gate_m=gate_m)
 
     jump = np.linalg.norm(u_own - u_flip, axis=1)
     near_part = np.argmin(np.vstack([distance_m(a, breaklines([p])) for p in lines.parts]), axis=0)
