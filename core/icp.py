@@ -2211,37 +2211,32 @@ def windowed_icp(
             straight = None
             if lines is None:  # a straight step the edge test misses (a fault across a lobe)
                 straight = _scan_line(cells, d, usable & ~flagged, n_rows, n_cols, x0, y0, cell)
-            if straight is not None:
-                from .breakline_points import place_straight_line
-                from .breaklines import DETECT_FLOOR_M, SCAN_MAX_JUMP_STEPS, SCAN_MIN_JUMP_STEPS
-
-                step_m = float(np.linalg.norm(straight.step_m))
-
-                first = fit_spline_field(
-                    a[cells.points], breaklines=straight.line,
-                    progress=scaled(progress, 0.9, 0.95), **spline_kw,
-                )  # fmt: skip
-                lines = place_straight_line(
-                    first.field, a[cells.points], before=b, tree=tree, normals=normals,
-                    gate_m=gate, reach_m=cell, station_jump_m=DETECT_FLOOR_M,
-                    min_jump_m=max(DETECT_FLOOR_M, SCAN_MIN_JUMP_STEPS * step_m),
-                    max_jump_m=SCAN_MAX_JUMP_STEPS * step_m,
-                ).line  # fmt: skip
-                lines_source = "none" if lines is None else "detected"
-                progress = scaled(progress, 0.95, 1.0)
-            elif lines is not None:
-                from .icp_spline import refine_breaklines
-
-                first = fit_spline_field(
-                    a[cells.points], breaklines=lines, progress=scaled(progress, 0.9, 0.95),
-                    **spline_kw,
-                )  # fmt: skip
+            candidate = lines if straight is None else straight.line
+            if candidate is not None:
+                # one fit with the candidate lines, then the points confirm and place them
                 from .breaklines import DETECT_FLOOR_M
 
-                lines = refine_breaklines(
-                    first.field, a[cells.points], before=b, tree=tree, normals=normals,
-                    gate_m=gate, reach_m=cell, min_jump_m=DETECT_FLOOR_M,
+                first = fit_spline_field(
+                    a[cells.points], breaklines=candidate, progress=scaled(progress, 0.9, 0.95),
+                    **spline_kw,
                 )  # fmt: skip
+                near_kw = dict(before=b, tree=tree, normals=normals, gate_m=gate, reach_m=cell)
+                if straight is not None:
+                    from .breakline_points import place_straight_line
+                    from .breaklines import SCAN_MAX_JUMP_STEPS, SCAN_MIN_JUMP_STEPS
+
+                    step_m = float(np.linalg.norm(straight.step_m))
+                    lines = place_straight_line(
+                        first.field, a[cells.points], station_jump_m=DETECT_FLOOR_M,
+                        min_jump_m=max(DETECT_FLOOR_M, SCAN_MIN_JUMP_STEPS * step_m),
+                        max_jump_m=SCAN_MAX_JUMP_STEPS * step_m, **near_kw,
+                    ).line  # fmt: skip
+                else:
+                    from .icp_spline import refine_breaklines
+
+                    lines = refine_breaklines(
+                        first.field, a[cells.points], min_jump_m=DETECT_FLOOR_M, **near_kw
+                    )
                 lines_source = "none" if lines is None else "detected"
                 progress = scaled(progress, 0.95, 1.0)
         weights = None
@@ -2500,6 +2495,19 @@ def finish_cells(
 DETECTED_GAP_CELLS = 0.3
 
 
+def _cell_grid(cells, d, usable, n_rows, n_cols, x0, y0, cell):
+    """The cells' motions ``d`` (K, 3) on their (n_rows, n_cols) grid (NaN where no cell),
+    which cells are ``usable`` there, and the grid's column x and row y centres (map
+    metres, rows north to south), for the detectors of :mod:`slipmap.core.breaklines`."""
+    gd = np.full((n_rows, n_cols, 3), np.nan)
+    gv = np.zeros((n_rows, n_cols), dtype=bool)
+    gd[cells.row, cells.col] = d
+    gv[cells.row, cells.col] = usable
+    xs = x0 + (np.arange(n_cols) + 0.5) * cell
+    ys = y0 - (np.arange(n_rows) + 0.5) * cell
+    return gd, gv, xs, ys
+
+
 def _detect_lines(
     cells, d, usable, cov_d, n_rows, n_cols, x0, y0, cell, *, grad=None, sig_grad=None
 ):
@@ -2513,14 +2521,9 @@ def _detect_lines(
     gradients' uncertainty. Both None: the step test alone."""
     from .breaklines import detect_breaklines
 
-    gd = np.full((n_rows, n_cols, 3), np.nan)
-    gv = np.zeros((n_rows, n_cols), dtype=bool)
+    gd, gv, xs, ys = _cell_grid(cells, d, usable, n_rows, n_cols, x0, y0, cell)
     gs = np.full((n_rows, n_cols), np.nan)
-    gd[cells.row, cells.col] = d
-    gv[cells.row, cells.col] = usable
     gs[cells.row, cells.col] = np.sqrt(np.maximum(np.trace(cov_d, axis1=1, axis2=2), 0.0))
-    xs = x0 + (np.arange(n_cols) + 0.5) * cell
-    ys = y0 - (np.arange(n_rows) + 0.5) * cell
     kw = {}
     if grad is not None:
         gg = np.full((n_rows, n_cols, 3, 3), np.nan)
@@ -2549,12 +2552,7 @@ def _scan_line(cells, d, usable, n_rows, n_cols, x0, y0, cell):
     confirm; None when none is proposed."""
     from .breaklines import scan_straight_step
 
-    gd = np.full((n_rows, n_cols, 3), np.nan)
-    gv = np.zeros((n_rows, n_cols), dtype=bool)
-    gd[cells.row, cells.col] = d
-    gv[cells.row, cells.col] = usable
-    xs = x0 + (np.arange(n_cols) + 0.5) * cell
-    ys = y0 - (np.arange(n_rows) + 0.5) * cell
+    gd, gv, xs, ys = _cell_grid(cells, d, usable, n_rows, n_cols, x0, y0, cell)
     found = scan_straight_step(gd, x=xs, y=ys, valid=gv)
     if found is not None:
         log.info(
