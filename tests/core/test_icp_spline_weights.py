@@ -99,21 +99,23 @@ def test_cell_weights_from_the_common_error_keep_the_field_from_following_it():
     assert weighted < 0.7 * none, (none, weighted)
 
 
-def test_rigid_projection_equals_the_per_cell_least_squares_reference():
-    from slipmap.core.icp_spline import (
-        SplineChunk,
-        Weighting,
-        knot_frame,
-        rigid_projection,
-        rigid_projection_reference,
-    )
+def _projection_chunk(seed):
+    """The chunk of one :func:`_scene` (16 m, 2 m knots), its knot frame and cell centres."""
+    from slipmap.core.icp_spline import SplineChunk, knot_frame
 
-    before, after, _, centres, seg, _ = _scene(4, side=16.0)
+    before, after, _, centres, seg, _ = _scene(seed, side=16.0)
     frame = knot_frame(after[:, :2].min(axis=0), after[:, :2].max(axis=0), centres, 2.0)
     chunk = SplineChunk(
         after, frame=frame, before=before, tree=cKDTree(before),
         normals=lambda j: _normals(before[j, :2]), gate_m=0.5, seg=seg,
     )  # fmt: skip
+    return chunk, frame, centres
+
+
+def test_rigid_projection_equals_the_per_cell_least_squares_reference():
+    from slipmap.core.icp_spline import Weighting, rigid_projection, rigid_projection_reference
+
+    chunk, frame, centres = _projection_chunk(4)
     rng = np.random.default_rng(0)
     c = rng.normal(0.0, 0.02, (chunk.n_k, 3)) + np.array([0.03, -0.05, 0.02])
     wgt = Weighting.of(chunk.residuals(c), OPTS)
@@ -130,14 +132,9 @@ def test_rigid_projection_equals_the_per_cell_least_squares_reference():
 
 def test_rigid_projection_of_a_rigid_motion_is_that_motion():
     """A field that is one translation everywhere projects onto every cell as itself."""
-    from slipmap.core.icp_spline import SplineChunk, Weighting, knot_frame, rigid_projection
+    from slipmap.core.icp_spline import Weighting, rigid_projection
 
-    before, after, _, centres, seg, _ = _scene(5, side=16.0)
-    frame = knot_frame(after[:, :2].min(axis=0), after[:, :2].max(axis=0), centres, 2.0)
-    chunk = SplineChunk(
-        after, frame=frame, before=before, tree=cKDTree(before),
-        normals=lambda j: _normals(before[j, :2]), gate_m=0.5, seg=seg,
-    )  # fmt: skip
+    chunk, _, centres = _projection_chunk(5)
     t = np.array([0.03, -0.05, 0.02])
     c = np.tile(t, (chunk.n_k, 1))
     wgt = Weighting.of(chunk.residuals(c), OPTS)
