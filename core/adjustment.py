@@ -569,14 +569,15 @@ class _PlaneLevel:
 
 
 class _StochasticConfig:
-    """The plane-level model in force: components ``theta`` (variances, m²), spatial range,
+    """The plane-level model in force: components ``theta`` (variances, m²), the spatial
+    correlation ``kernel`` (family and range, :class:`.stochastic.SpatialKernel`),
     point-level factor ``s0sq``, per-plane variance ``inflation`` (b,) of down-weighted
     planes, and the structure ``model`` (:class:`.stochastic.PlaneModel`)."""
 
     def __init__(self, model: PlaneModel, b: int):
         self.model = model
         self.theta: dict = {}
-        self.range_m = float("nan")
+        self.kernel = _stoch.SpatialKernel()  # no spatial term until one is estimated
         self.s0sq = 1.0
         self.inflation = np.zeros(b)
         self.gain = np.zeros((6, 0))  # Q Hᵀ V⁻¹ of the final solution (see _stochastic)
@@ -587,7 +588,7 @@ class _StochasticConfig:
     def v_matrix(self, active: np.ndarray, p: np.ndarray) -> np.ndarray:
         idx = np.flatnonzero(active)
         return _stoch.covariance(
-            self.model, idx, self.s0sq * p, self.theta, self.range_m, self.inflation[idx]
+            self.model, idx, self.s0sq * p, self.theta, self.kernel, self.inflation[idx]
         )
 
     def v_operator(
@@ -597,7 +598,7 @@ class _StochasticConfig:
         idx = np.flatnonzero(active)
         infl = self.inflation[idx] if inflated else None
         return _stoch.CovarianceOperator(
-            self.model, idx, self.s0sq * p, self.theta, self.range_m, infl
+            self.model, idx, self.s0sq * p, self.theta, self.kernel, infl
         )
 
 
@@ -1013,8 +1014,8 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         units_before=None if m.shares_before is None else codes[0],
         units_after=None if m.shares_after is None else codes[1],
         theta={n: float(v) for n, v in cfg.theta.items()},
-        range_m=float(cfg.range_m),
-        family=getattr(cfg.range_m, "family", "spherical"),
+        range_m=float(cfg.kernel.range_m),
+        family=cfg.kernel.family,
         small_sample_factor=float(cfg.small),
         **cfg.gain_extra,
     )
@@ -1171,7 +1172,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             inflation=cfg.inflation[idx], prior_plane_var=PRIOR_PLANE_SHARE**2 * apri, rt=rt_s,
         )  # fmt: skip
         cfg.theta = {n: v for n, v in est.theta.items() if v > 0}
-        cfg.range_m = est.kernel  # family and range (stochastic.SpatialKernel)
+        cfg.kernel = est.kernel
         changed = False
         if reject and idx.size > min_planes:
             # the test is against the model, not the last weights
