@@ -8,7 +8,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
-from test_icp_breaklines import A, B, SLAB, UTM, _east, _scarp_pair
+from test_icp_breaklines import SLAB, UTM, A, B, _east, _scarp_pair
 
 from slipmap.core.breaklines import breaklines, distance_m
 from slipmap.core.icp import _spline_blocks, spline_model_variance, windowed_icp
