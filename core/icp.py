@@ -1870,8 +1870,10 @@ def windowed_icp(
         ``sigma_model="blocks"`` (the default) and ``"field"`` or ``"region"`` it first
         supplies the error the cells' residuals cannot show, a factor and a cap on the cells'
         effective observations (:func:`~slipmap.core.icp_blocks.cell_floor`: covariances
-        times ``a + n / n_cap``; a spline field takes at least
-        :data:`~slipmap.core.icp_blocks.SPLINE_FLOOR_SHARE` of its cells' excess); the
+        times ``a + n / n_cap``; an unweighted spline field takes at least
+        :data:`~slipmap.core.icp_blocks.SPLINE_FLOOR_SHARE` of its cells' excess, a weighted
+        one, whose covariance carries the cells' ``F``, none but adds its misfit to the rigid
+        cells, :func:`spline_model_variance`); the
         field's factor below is then only estimated and recorded as a check
         (``"field"``), or the region factors are applied on top (``"region"``); ``"formal"``
         leaves the block covariances. With ``sigma_model="independent"``:

@@ -69,9 +69,11 @@ PLATEAU = 0.1
 #: shrinkage weight of the field's pooled ratio, in blocks
 PRIOR_BLOCKS = 8.0
 #: a spline field's neighbours share one field, so their agreement misses most of the
-#: cell-wide error: its variance multiplier is at least ``1 + SPLINE_FLOOR_SHARE (g - 1)``
-#: with ``g`` the rigid cells' multiplier of the same run (their neighbours are independent
-#: fits). Calibrated on lone-star, seeds 0-2 (docs/fields.md, "Honest sigma").
+#: cell-wide error: an UNWEIGHTED spline fit's variance multiplier is at least
+#: ``1 + SPLINE_FLOOR_SHARE (g - 1)`` with ``g`` the rigid cells' multiplier of the same run
+#: (their neighbours are independent fits). Calibrated on lone-star, seeds 0-2 (docs/fields.md,
+#: "Honest sigma"). A fit whose data were weighed ``1 / F`` (the default where the floor can
+#: be estimated) carries ``F`` in its covariance and takes no share (core.icp._spline_blocks).
 SPLINE_FLOOR_SHARE = 0.3
 #: quantile of the squared normalised neighbour residuals the cell floor matches to chi²₁'s:
 #: below the median, so that cells next to a discontinuity or a wrong minimum (a large
