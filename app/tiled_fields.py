@@ -1325,7 +1325,7 @@ def _icp_spline_tiled(
         sigma_scaling=sigma_kw["sigma_scaling"],
         cells=(cells_res.row, cells_res.col,
                np.column_stack([cells_res.dx, cells_res.dy, cells_res.dz]), cells_res.cov_d,
-               cells_res.n, c_all, c_ok),
+               cells_res.n, c_all, c_ok, cells_res.cov_d_formal, cells.row, cells.col),
     )  # fmt: skip
     sp = spline_cells(sfit, cells, ok, min_points=minp, median_threshold=med_thr,
                       median_eps_m=med_eps, n_rows=n_rows, n_cols=n_cols)  # fmt: skip

@@ -293,7 +293,7 @@ def scene(cloud, pts, case, fld, density, seed, args, tmp: Path, cells_log: list
     # --- windowed ICP through the job
     ref = None
     variants = icp_variants(bool(lines), args.variants)
-    if seed >= args.variant_seeds:
+    if seed - args.first_seed >= args.variant_seeds:
         variants = variants[:1]
     for name, extra in variants:
         if "breaklines" in extra:
@@ -510,6 +510,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one seed")
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds first .. first + seeds - 1")
     ap.add_argument("--cases", nargs="+", default=None, help="default: all")
     ap.add_argument("--densities", nargs="+", default=["tls", "als"], choices=["tls", "als"])
     ap.add_argument(
@@ -548,7 +549,7 @@ def main(argv=None) -> int:
         args.out = ROOT / "benchmarks" / "results" / name
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     logging.getLogger("slipmap").setLevel(logging.ERROR)
-    seeds = range(1 if args.quick else args.seeds)
+    seeds = range(args.first_seed, args.first_seed + (1 if args.quick else args.seeds))
     cloud = read_las(DATA)
     pts = cloud.xyz
     flds = fields(pts[:, :2].min(axis=0), pts[:, :2].max(axis=0))

@@ -1611,17 +1611,27 @@ def _spline_blocks(sfit, usable: np.ndarray, near, blocks_kw, *, sigma_scaling, 
     ``sfit`` with ``cov_blocks`` (else unchanged): each cell's block covariance shrunk towards
     its formal covariance times the field's pooled ratio (over ``usable``), the pair
     covariances of ``near`` scaled by ``sqrt(r_i r_j)`` (``r`` the cells' variance ratios per
-    component). ``cells``: ``(row, col, d, cov_d, n, ok, usable)`` of the rigid or affine
-    cell pass (block covariances), whose cell-wide floor
-    (:func:`~slipmap.core.icp_blocks.cell_floor`) the spline's takes a share of unless
-    ``sigma_scaling="formal"``. Returns the new ``sfit`` and ``blocks_kw`` for
-    :func:`finish_cells` (the one-file and the tiled run share this)."""
+    component). ``cells``: ``(row, col, d, cov_d, n, ok, usable[, cov_formal])`` of the rigid
+    or affine cell pass (block covariances; formal ones where given). Unless
+    ``sigma_scaling="formal"``:
+
+    * a fit whose data were weighed ``1 / F`` (``sfit.data_weight``, the rigid cells'
+      honest-sigma model) carries ``F`` in its covariance already: no share of the rigid
+      cells' cell-wide floor on top (:func:`spline_model_variance` adds what the field
+      misses instead);
+    * an unweighted fit takes a share of the rigid cells' floor
+      (:func:`~slipmap.core.icp_blocks.cell_floor`, :data:`~slipmap.core.icp_blocks.
+      SPLINE_FLOOR_SHARE`).
+
+    Returns the new ``sfit`` and ``blocks_kw`` for :func:`finish_cells` (the one-file and the
+    tiled run share this)."""
     from .icp_blocks import cell_floor, shrink_covariance
 
     kw = dict(blocks_kw, cov_formal=None, cov_d_blocks=None, n_blocks=None)
     kw["sigma_formal"] = np.sqrt(np.diagonal(sfit.cov[:, :3, :3], axis1=1, axis2=2))
     if sfit.cov_blocks is None:
         return sfit, kw
+    weighted = sfit.data_weight is not None
     fvar = np.diagonal(sfit.cov[:, :3, :3], axis1=1, axis2=2)
     bvar = np.diagonal(sfit.cov_blocks[:, :3, :3], axis1=1, axis2=2)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -1636,13 +1646,74 @@ def _spline_blocks(sfit, usable: np.ndarray, near, blocks_kw, *, sigma_scaling, 
         pair = pair * np.sqrt(r[near[:, 0]] * r[near[:, 1]])
     log.info("spline field: block variance ratio %.2f (blocks of %g m)", kappa, kw["sigma_block_m"])
     kw["sigma_block_ratio"] = kappa
-    if sigma_scaling != "formal":  # the rigid cells' cell-wide error (icp_blocks)
-        row, col, d, cov_d, n, ok, cu = cells
-        sd_c = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
-        kw["cells_floor"] = cell_floor(
-            row[ok], col[ok], d[ok], sd_c[ok], n[ok], usable=cu[ok]
-        )  # fmt: skip
+    if sigma_scaling != "formal":
+        if weighted and sfit.projection is not None:
+            # the field's misfit to the rigid cells: what a smooth (per side) field misses
+            kw["model_var"] = spline_model_variance(sfit, cells)
+        if not weighted:  # the rigid cells' cell-wide error (icp_blocks)
+            row, col, d, cov_d, n, ok, cu = cells[:7]
+            sd_c = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
+            kw["cells_floor"] = cell_floor(
+                row[ok], col[ok], d[ok], sd_c[ok], n[ok], usable=cu[ok]
+            )  # fmt: skip
     return replace(sfit, cov=c9, pair_cov=pair), kw
+
+
+def spline_model_variance(sfit, cells) -> np.ndarray:
+    """The variance of what a spline field misses at each cell, from the rigid cells.
+
+    A rigid cell measures its own motion independently of the field's smoothing; the field's
+    :func:`~slipmap.core.icp_spline.rigid_projection` (what the cell would measure if the
+    ground moved as the field, on the same points, normals and weights) differs from it by
+    the cell's own error (honest variance ``F σ_formal²``, ``F`` the cell's data-weight model,
+    :func:`~slipmap.core.icp_spline.cell_data_weights`) and by the field's model error there:
+    a scarp not found (a slump's outline), the step a misplaced breakline gives to the cells
+    beside it, a peak smoothed off. Its variance is estimated per cell and component as
+    ``max(0, r² - F σ_formal²)``, ``r`` the rigid motion less the projection (a one-sample
+    estimate, unbiased for the squared model error where the cell's honest sigma is; zero
+    where the field fits). Cells without a rigid fit or projection get zero.
+
+    Parameters
+    ----------
+    sfit : SplineFit
+        With ``projection`` and ``data_weight`` (K cells, the order of ``cells``' row / col
+        lookup below).
+    cells : tuple
+        ``(row, col, d, cov_d, n, ok, usable[, cov_formal])`` of the rigid cells (L of them)
+        and, as ``sfit``'s cells, ``row_k, col_k`` of the spline's K cells appended as
+        ``cells[8:10]`` when the two orders differ (a tiled run); else the same cells.
+
+    Returns
+    -------
+    (K, 3) float64
+        Metres²; added to the cells' covariances after the floor.
+    """
+    row, col, d, cov_d, n, ok = cells[:6]
+    cov_f = cells[7] if len(cells) > 7 and cells[7] is not None else cov_d
+    k = len(sfit.d)
+    if len(cells) > 9:
+        key = {(int(a), int(b)): i for i, (a, b) in enumerate(zip(row, col))}
+        idx = np.array([key.get((int(a), int(b)), -1) for a, b in zip(cells[8], cells[9])])
+    else:
+        idx = np.arange(k) if len(row) == k else np.full(k, -1)
+    out = np.zeros((k, 3))
+    have = idx >= 0
+    if not have.any():
+        return out
+    j = idx[have]
+    f = 1.0 / np.asarray(sfit.data_weight, dtype=np.float64)[have]
+    var_r = f[:, None] * np.diagonal(np.asarray(cov_f)[j], axis1=1, axis2=2)
+    resid = np.asarray(d, dtype=np.float64)[j] - sfit.projection[have]
+    ex = resid**2 - var_r
+    good = np.asarray(ok, dtype=bool)[j][:, None] & np.isfinite(ex)
+    out[have] = np.where(good, np.maximum(ex, 0.0), 0.0)
+    log.info(
+        "spline field's misfit to the rigid cells: %d of %d cells add a model error "
+        "(median %.2f cm where they do)", int(np.any(out > 0, axis=1).sum()), k,
+        100 * float(np.median(np.sqrt(out.max(axis=1))[np.any(out > 0, axis=1)]))
+        if np.any(out > 0) else 0.0,
+    )  # fmt: skip
+    return out
 
 
 def _median_flags(cells: _Cells, d, usable, n_rows, n_cols, eps_m, threshold):
@@ -1799,8 +1870,10 @@ def windowed_icp(
         ``sigma_model="blocks"`` (the default) and ``"field"`` or ``"region"`` it first
         supplies the error the cells' residuals cannot show, a factor and a cap on the cells'
         effective observations (:func:`~slipmap.core.icp_blocks.cell_floor`: covariances
-        times ``a + n / n_cap``; a spline field takes at least
-        :data:`~slipmap.core.icp_blocks.SPLINE_FLOOR_SHARE` of its cells' excess); the
+        times ``a + n / n_cap``; an unweighted spline field takes at least
+        :data:`~slipmap.core.icp_blocks.SPLINE_FLOOR_SHARE` of its cells' excess, a weighted
+        one, whose covariance carries the cells' ``F``, none but adds its misfit to the rigid
+        cells, :func:`spline_model_variance`); the
         field's factor below is then only estimated and recorded as a check
         (``"field"``), or the region factors are applied on top (``"region"``); ``"formal"``
         leaves the block covariances. With ``sigma_model="independent"``:
@@ -2267,7 +2340,7 @@ def windowed_icp(
         cu = fits.ok & fits.converged & ~flagged  # the cell pass's usable cells
         sfit, blocks_kw = _spline_blocks(
             sfit, cu & (sfit.n >= minp), near, blocks_kw, sigma_scaling=sigma_scaling,
-            cells=(cells.row, cells.col, d, cov_d, fits.n, fits.ok, cu),
+            cells=(cells.row, cells.col, d, cov_d, fits.n, fits.ok, cu, cov_formal),
         )  # fmt: skip
         sp = spline_cells(sfit, cells, fits.ok, min_points=minp, median_threshold=med_thr,
                           median_eps_m=med_eps, n_rows=n_rows, n_cols=n_cols)  # fmt: skip
@@ -2396,7 +2469,7 @@ def finish_cells(
     pair_cov=None, sigma_scaling="field", sigma_regions=3, sigma_region_by="roughness",
     lines=None, lines_source="none", sigma_model="independent", sigma_block_m=math.nan,
     sigma_block_ratio=math.nan, sigma_formal=None, cov_formal=None, cov_d_blocks=None,
-    n_blocks=None, cells_floor=None,
+    n_blocks=None, cells_floor=None, model_var=None,
 ) -> WindowedICPResult:  # fmt: skip
     """The result of a windowed-ICP run from its cells' values (``rot`` None: the
     antisymmetric part of ``grad``), the cells not ``ok`` left out and counted, the sigmas
@@ -2404,7 +2477,9 @@ def finish_cells(
     cells and their covariances). A tiled spline run finishes here too. ``sigma_model`` ..
     ``n_blocks``: the block covariances' record (:class:`WindowedICPResult`; the arrays per
     cell, ``cov_formal`` the formal covariances of rigid or affine cells), ``cells_floor``
-    the rigid cells' :class:`~slipmap.core.icp_blocks.CellFloor` of a spline field."""
+    the rigid cells' :class:`~slipmap.core.icp_blocks.CellFloor` of a spline field,
+    ``model_var`` (K, 3) the variance of a weighted spline field's misfit to the rigid cells
+    (:func:`spline_model_variance`), added after the floor."""
     skipped = dict(skipped)
     skipped["icp_failed"] = int(np.count_nonzero(~ok))
     n_ok = int(np.count_nonzero(ok))
@@ -2484,7 +2559,13 @@ def finish_cells(
         both = ok[near[:, 0]] & ok[near[:, 1]]
         pairs = (new[near[both]], pair_cov[both])
     res = _apply_sigma_scaling(
-        res, sigma_scaling, sigma_regions, sigma_region_by, pairs, cells_floor=cells_floor
+        res,
+        sigma_scaling,
+        sigma_regions,
+        sigma_region_by,
+        pairs,
+        cells_floor=cells_floor,
+        model_var=None if model_var is None else np.asarray(model_var)[ok],
     )
     log.info("windowed ICP: %d cells fitted%s, %.1f s", n_ok, skipped_cells_text(skipped),
              res.seconds)  # fmt: skip
@@ -2648,6 +2729,7 @@ def _apply_sigma_scaling(
     sigma_region_by: str = "roughness",
     pair_cov=None,
     cells_floor=None,
+    model_var=None,
 ) -> WindowedICPResult:
     """``res`` with its covariances scaled as ``sigma_scaling`` says (see windowed_icp; the
     tiled run assembles its result and scales it here too). ``pair_cov``: the formal
@@ -2656,7 +2738,7 @@ def _apply_sigma_scaling(
     after it is applied where it exceeds 1 (about 1 on lone-star's TLS cells; 1.3-2 on
     sparse airborne cells, whose block sigmas fell short)."""
     if sigma_scaling != "formal" and res.sigma_model == "blocks":
-        res = _apply_floor(res, pair_cov, cells_floor)
+        res = _apply_floor(res, pair_cov, cells_floor, model_var)
     if sigma_scaling == "field":
         # with block sigmas the neighbour factor is applied only where it exceeds 1 (as for
         # any model): on lone-star (TLS) it is about 1 and changes little, but on sparse
@@ -2668,13 +2750,17 @@ def _apply_sigma_scaling(
     return res
 
 
-def _apply_floor(res: WindowedICPResult, pair_cov=None, cells_floor=None) -> WindowedICPResult:
+def _apply_floor(
+    res: WindowedICPResult, pair_cov=None, cells_floor=None, model_var=None
+) -> WindowedICPResult:
     """``res`` with each cell's covariance times ``a + n / n_cap`` (the cell-wide error its
     residuals cannot show, :func:`slipmap.core.icp_blocks.cell_floor`); ``pair_cov`` is
     kept (the floor is uncorrelated between cells). ``cells_floor``: the rigid cells' floor
     of the same run (a spline field): the multiplier is at least
     ``1 + SPLINE_FLOOR_SHARE (g_cells - 1)`` (:data:`~slipmap.core.icp_blocks.
-    SPLINE_FLOOR_SHARE`)."""
+    SPLINE_FLOOR_SHARE`) (an unweighted spline fit). ``model_var`` (K, 3): a weighted spline
+    field's misfit to the rigid cells (:func:`spline_model_variance`), added to the
+    variances after the floor (a model error does not scale with the residuals)."""
     from .icp_blocks import cell_floor
 
     usable = np.asarray(res.converged, dtype=bool).copy()
@@ -2697,7 +2783,8 @@ def _apply_floor(res: WindowedICPResult, pair_cov=None, cells_floor=None) -> Win
             "too small on real surfaces); use smaller cells or a larger area",
             fl.n_cells,
         )
-        return res
+        if model_var is None:
+            return res
     g = fl.scale(res.n)
     if cells_floor is not None and math.isfinite(cells_floor.factor):
         from .icp_blocks import SPLINE_FLOOR_SHARE
@@ -2708,7 +2795,13 @@ def _apply_floor(res: WindowedICPResult, pair_cov=None, cells_floor=None) -> Win
         k: getattr(res, k) * f
         for k in ("sigma_dx", "sigma_dy", "sigma_dz", "sigma_rx", "sigma_ry", "sigma_rz")
     }
-    return replace(res, **scaled_cols, cov_d=res.cov_d * g[:, None, None])
+    cov_d = res.cov_d * g[:, None, None]
+    if model_var is not None:
+        mv = np.where(np.isfinite(model_var), model_var, 0.0)
+        cov_d = cov_d + mv[:, :, None] * np.eye(3)[None]
+        sd = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
+        scaled_cols.update(sigma_dx=sd[:, 0], sigma_dy=sd[:, 1], sigma_dz=sd[:, 2])
+    return replace(res, **scaled_cols, cov_d=cov_d)
 
 
 def _scale_sigmas(res: WindowedICPResult, pair_cov=None, apply: bool = True) -> WindowedICPResult:

@@ -408,6 +408,14 @@ class SplineFit:
         spline_block_covariance`), m² and m²/m.
     n_blocks : (K,) int64 or None
         With ``block_m``: blocks with used points in each cell (``report_seg``).
+    cov_prior : (K, 9, 9) float64 or None
+        With ``block_m``: the penalty's share of ``cov_blocks`` (``s0² A⁻¹ P A⁻¹``, the
+        prior's variance; ``cov_blocks`` less it is the estimate's sampling covariance).
+    data_weight : (K,) float64 or None
+        The cells' data weights ``1 / F`` of a weighted fit (``cell_weight``); None: every
+        point counted as independent.
+    projection : (K, 3) float64 or None
+        With ``data_weight``: :func:`rigid_projection` of the fitted field, metres.
     """
 
     field: SplineField
@@ -423,6 +431,9 @@ class SplineFit:
     pair_cov: Optional[np.ndarray] = None
     cov_blocks: Optional[np.ndarray] = None
     n_blocks: Optional[np.ndarray] = None
+    cov_prior: Optional[np.ndarray] = None
+    data_weight: Optional[np.ndarray] = None
+    projection: Optional[np.ndarray] = None
 
 
 def _second_differences(kx: int, ky: int):
@@ -1401,7 +1412,7 @@ def fit_spline_chunks(
                 column = (pairs[sel, 0] - part.start) * 9 + comp
                 vals = sol[comp * n_k + ridx[pj], column[:, None]]  # (S, 16)
                 pair_cov[sel, comp] = s0sq * np.sum(vals * rw[pj], axis=1)
-    cov_blocks = n_blocks = None
+    cov_blocks = n_blocks = cov_prior = None
     if block_m is not None:  # the residuals' spatial correlation (issue #29, icp_blocks)
         from .icp_blocks import spline_block_covariance
 
@@ -1409,10 +1420,15 @@ def fit_spline_chunks(
             float(sum(p.sum_w for p in parts)) / max(n_ok, 1) / max(mean_dpsi, 1e-12) ** 2
             * used / dof
         )  # fmt: skip
-        cov_blocks, n_blocks = spline_block_covariance(
+        cov_blocks, n_blocks, cov_prior = spline_block_covariance(
             [p.block_scores for p in parts], rows=g.reshape(k, 9, 48), cols=cols,
-            factor=factor, penalty=penalty, s0sq=s0sq, scale=c_scale,
+            factor=factor, penalty=penalty, s0sq=s0sq, scale=c_scale, prior_part=True,
         )  # fmt: skip
+    projection = None
+    if cell_weight is not None:
+        # what each cell would measure as a rigid cell if the ground moved as this field:
+        # the rigid cells' motions less it are the field's misfit (honest sigma, icp.py)
+        projection = rigid_projection(run, c, wgt, rxy)
     n_used = np.zeros(k, dtype=np.int64)
     ss_cell = np.zeros(k)
     for p in parts:
@@ -1438,6 +1454,9 @@ def fit_spline_chunks(
         pair_cov=pair_cov,
         cov_blocks=cov_blocks,
         n_blocks=n_blocks,
+        cov_prior=cov_prior,
+        data_weight=cell_weight,
+        projection=projection,
     )
 
 
