@@ -574,13 +574,16 @@ class _PlaneLevel:
         self.rtr = rtj[:, :3]
         self.n_white = g_mat[:, :6, :6].sum(0)
 
-    def tilt(self, s0sq: float, tilt_var: float = 0.0):
+    def tilt(self, s0sq: float, tilt_var: float = 0.0, keep: Optional[np.ndarray] = None):
         """The tilt information (6, 6) and right-hand side (6,) scaled by the point-level
         factor, each plane's tilt weighed with the random tilt ``tilt_var`` (rad²,
-        :func:`.stochastic.tilt_information`); ``tilt_var`` 0: ``t / s0sq``, ``rt / s0sq``."""
-        if not tilt_var > 0:
+        :func:`.stochastic.tilt_information`) and the tilts of the planes not in ``keep``
+        (k,) left out; ``tilt_var`` 0 and every plane kept: ``t / s0sq``, ``rt / s0sq``."""
+        if not tilt_var > 0 and (keep is None or bool(np.all(keep))):
             return self.t / s0sq, self.rt / s0sq
         at, rtl = _stoch.tilt_information(self.tr / s0sq, self.rtr / s0sq, tilt_var)
+        if keep is not None:
+            at, rtl = at * keep[:, None, None], rtl * keep[:, None]
         t = self.t / s0sq
         rt = self.rt / s0sq
         t[:3, :3] = at.sum(axis=0)
@@ -602,6 +605,7 @@ class _StochasticConfig:
         self.s0sq = 1.0
         self.inflation = np.zeros(b)
         self.tilt_var = 0.0
+        self.tilt_keep = np.ones(b, dtype=bool)  # planes whose tilt is used
         self.gain = np.zeros((6, 0))  # Q Hᵀ V⁻¹ of the final solution (see _stochastic)
         self.gain_idx = np.zeros(0, dtype=np.int64)
         self.small = 1.0
@@ -637,7 +641,7 @@ def _step_block(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
         pl = _PlaneLevel(g_mat, g_vec)
         vop = cfg.v_operator(active, pl.p)
         vih = vop.solve(pl.h)
-        t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var)
+        t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
         nred = t_s + pl.h.T @ vih
         rred = rt_s + vih.T @ pl.y
     nred = 0.5 * (nred + nred.T)
@@ -959,6 +963,11 @@ def _solve(
     ``unit_codes``: each epoch's (U,) unit ids of the shares' columns, or None (unknown:
     the result's :class:`.stochastic.PlaneGain` then has no units to share)."""
     before_plane, after_plane = labels
+    if dense and float(fixed.get("tilt_rad", 0.0)) > 0:
+        raise InvalidParameterError(
+            "adjust_rigid_dense does not model the random tilt per plane: leave out "
+            "components['tilt_rad'] (or give 0), or use adjust_rigid"
+        )
     if dense and 6 + 5 * b > DENSE_MAX_UNKNOWNS:
         raise InvalidParameterError(
             f"adjust_rigid_dense is a reference for small problems ({6 + 5 * b} unknowns); "
@@ -1166,7 +1175,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         idx = np.flatnonzero(active)
         e = pl.y  # at convergence the increment is nil: y is the misclosure residual
         xd = pl.h
-        t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var)
+        t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
         p_s = cfg.s0sq * pl.p
         cfg.model.normals[idx] = state.n[idx] / np.linalg.norm(state.n[idx], axis=1)[:, None]
         if not gross_done:
@@ -1218,7 +1227,11 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             )
             old_tv, cfg.tilt_var = cfg.tilt_var, tilt_est.var
             tilt_moved = abs(cfg.tilt_var - old_tv) > 0.02 * max(cfg.tilt_var, old_tv)
-            t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var)
+            keep = np.ones(idx.size, dtype=bool) if tilt_est.keep is None else tilt_est.keep
+            tilt_moved = tilt_moved or not np.array_equal(keep, cfg.tilt_keep[idx])
+            cfg.tilt_keep[:] = True
+            cfg.tilt_keep[idx] = keep
+            t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, keep)
         changed = False
         if reject and idx.size > min_planes:
             # the test is against the model, not the last weights
@@ -1281,7 +1294,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     # the motion's gain on the plane-level random effects, Q Hᵀ V⁻¹ (6, k), for the
     # covariance with another adjustment of the same survey (stochastic.cross_covariance)
     vih = vop.solve(pl.h)
-    t_fin, rt_fin = pl.tilt(cfg.s0sq, cfg.tilt_var)
+    t_fin, rt_fin = pl.tilt(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
     n_fin = t_fin + pl.h.T @ vih
     q_fin = np.linalg.inv(0.5 * (n_fin + n_fin.T))
     cfg.gain = q_fin @ vih.T
@@ -1344,6 +1357,8 @@ def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, not
         src = est.source.get(name, "off") if est is not None else "off"
         comps.append(_stoch.Component(name, sig, sd, src, est_notes.get(name, "")))
     all_notes = list(notes) + [v for k_, v in est_notes.items() if k_ == "reml"]
+    if tilt is not None and tilt.note:
+        all_notes.append(f"random tilt per plane: {tilt.note}")
     if k < _stoch.MIN_PLANES_VCE:
         all_notes.append(f"only {k} planes: the components are poorly determined")
     vc = _stoch.VarianceComponents(

@@ -159,6 +159,7 @@ TILT_TOL = 1e-4  # relative change of the tilt variance at which they stop
 #: a tilt variance below this share of the planes' median point-noise tilt variance is nil
 TILT_NEGLIGIBLE = 1e-6
 MIN_PLANES_TILT = 6  # fewer planes than this: the tilt variance is not estimated
+TILT_ALPHA = 0.01  # family-wise level of the test of the planes' tilts (Bonferroni)
 
 
 def check_stochastic_model(model: str, *, option: str = "stochastic_model") -> str:
@@ -1574,7 +1575,9 @@ class TiltEstimate:
     iterations : int
     converged : bool
     note : str
-        Why it is off or nil; empty otherwise.
+        Why it is off or nil, and the tilts left out; empty otherwise.
+    keep : (k,) bool, optional
+        Planes whose tilt is used (False: left out by the tilt test); None: all.
     """
 
     var: float = 0.0
@@ -1583,6 +1586,7 @@ class TiltEstimate:
     iterations: int = 0
     converged: bool = True
     note: str = ""
+    keep: Optional[np.ndarray] = None
 
     @property
     def sigma_rad(self) -> float:
@@ -1608,6 +1612,51 @@ def point_tilt_variance(a: np.ndarray) -> np.ndarray:
     return 0.5 * inv.sum(axis=1)
 
 
+def _tilt_pinv(a: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) pseudo-inverses of the tilt informations ``a`` (k, 3, 3) on their range:
+    each plane's point-noise tilt covariance ``C_j`` in the rotation's coordinates."""
+    w, vec = np.linalg.eigh(0.5 * (a + a.transpose(0, 2, 1)))
+    big = (w > 1e-9 * w.max(axis=1, keepdims=True)) & (w > 0)
+    inv = np.divide(1.0, w, out=np.zeros_like(w), where=big)
+    return np.einsum("kij,kj,klj->kil", vec, inv, vec)
+
+
+def _tilt_gls(a, r, hvh, hvy, s):
+    """The GLS with the random tilt ``s`` (rad²): ``Q`` (6, 6), the increment ``β`` (6,),
+    the weighted tilt residuals ``g`` (k, 3) and the projector's blocks ``Π_jj`` (k, 3, 3)."""
+    at, rtl = tilt_information(a, r, s)
+    n = np.array(hvh, dtype=np.float64, copy=True)
+    n[:3, :3] += at.sum(axis=0)
+    rhs = np.array(hvy, dtype=np.float64, copy=True)
+    rhs[:3] += rtl.sum(axis=0)
+    q = np.linalg.pinv(0.5 * (n + n.T), hermitian=True)  # a motion the planes leave free: 0
+    beta = q @ rhs
+    g = np.linalg.solve(np.eye(3) + s * a, (r - a @ beta[:3])[:, :, None])[:, :, 0]
+    return q, beta, g, at - at @ q[:3, :3] @ at
+
+
+def _tilt_helmert(a, r, hvh, hvy, s, floor):
+    """The Helmert / Förstner iteration of :func:`estimate_tilt_variance` from ``s``: (s,
+    sd, iterations, converged); ``s`` 0 when it falls below ``floor``."""
+    converged, it, fisher = False, 0, float("nan")
+    while it < TILT_MAX_ITER:
+        it += 1
+        _, _, g, pjj = _tilt_gls(a, r, hvh, hvy, s)
+        num = float((g * g).sum())
+        den = float(np.trace(pjj, axis1=1, axis2=2).sum())
+        fisher = float(np.einsum("kij,kji->", pjj, pjj))
+        s_new = s * num / den if den > 0 else 0.0
+        if s_new < floor:
+            return 0.0, float("nan"), it, True
+        done = abs(s_new - s) <= TILT_TOL * s
+        s = s_new
+        if done:
+            converged = True
+            break
+    sd = math.sqrt(2.0 / fisher) if fisher > 0 else float("nan")
+    return float(s), sd, it, converged
+
+
 def estimate_tilt_variance(
     a: np.ndarray,
     r: np.ndarray,
@@ -1617,7 +1666,8 @@ def estimate_tilt_variance(
     start: float = 0.0,
 ) -> TiltEstimate:
     """REML estimate of the random tilt's variance ``σ_t²`` (rad²) from the planes' tilt
-    misclosures, the offsets' part of the model held at its current components.
+    misclosures, the offsets' part of the model held at its current components, with a
+    test of each plane's tilt.
 
     The tilt of plane ``j`` is an observation of the motion's rotation with covariance
     ``C_j + σ_t² I₂`` (:func:`tilt_information`); the offsets give the information ``HᵀV⁻¹H``
@@ -1630,7 +1680,17 @@ def estimate_tilt_variance(
     stays positive and takes the large steps from the point-noise level a field's tilts need.
     A variance below :data:`TILT_NEGLIGIBLE` × the median point-noise tilt variance is nil.
     The standard deviation is ``√(2 / Σ tr Π_jj²)`` (the Fisher information with the planes'
-    leverage cross terms left out). Cost: batched 3x3 solves, linear in planes.
+    leverage cross terms left out).
+
+    Robustness: one plane whose tilt is grossly off (a mismatched or rebuilt surface: 23 mrad
+    where the others scatter by 0.1 mrad, on a renovated pair) would set ``σ_t`` alone. The
+    iteration starts from a robust value (the median over planes of ``|v_j|² / (2 ln 2) −
+    c_j``, ``c_j`` the point-noise tilt variance: ``|v_j|² / (c_j + σ_t²)`` is χ² with two
+    degrees of freedom), and each plane's tilt is tested by ``q_j = g_jᵀ (C_j + σ_t² I) g_j``
+    (χ²₂) against ``max(K_REJECT_MIN², −2 ln(TILT_ALPHA / k))`` (Bonferroni); the tilts beyond
+    are left out of the estimate and of the motion (:attr:`TiltEstimate.keep`), and the
+    estimate and test are repeated until the set settles. Cost: batched 3x3 solves, linear
+    in planes.
 
     Parameters
     ----------
@@ -1643,7 +1703,7 @@ def estimate_tilt_variance(
     hvy : (6,) float64
         ``HᵀV⁻¹y`` of the offsets at the current motion.
     start : float
-        Starting value (rad²); <= 0: the median point-noise tilt variance.
+        Starting value (rad²); <= 0: the robust value above.
 
     Returns
     -------
@@ -1652,39 +1712,41 @@ def estimate_tilt_variance(
     k = a.shape[0]
     if k < MIN_PLANES_TILT:
         return TiltEstimate(note=f"only {k} planes (< {MIN_PLANES_TILT}): no random tilt")
-    c_med = float(np.median(point_tilt_variance(a)))
+    cinv = _tilt_pinv(a)
+    cpt = 0.5 * np.trace(cinv, axis1=1, axis2=2)
+    c_med = float(np.median(cpt))
     if not c_med > 0:
         return TiltEstimate(note="no tilt information")
     floor = TILT_NEGLIGIBLE * c_med
-    s = float(start) if start > floor else c_med
-    eye = np.eye(3)
-    converged, it, fisher = False, 0, float("nan")
-    while it < TILT_MAX_ITER:
-        it += 1
-        at, rtl = tilt_information(a, r, s)
-        n = np.array(hvh, dtype=np.float64, copy=True)
-        n[:3, :3] += at.sum(axis=0)
-        rhs = np.array(hvy, dtype=np.float64, copy=True)
-        rhs[:3] += rtl.sum(axis=0)
-        q = np.linalg.inv(0.5 * (n + n.T))
-        beta = q @ rhs
-        g = np.linalg.solve(eye + s * a, (r - a @ beta[:3])[:, :, None])[:, :, 0]
-        pjj = at - at @ q[:3, :3] @ at
-        num = float((g * g).sum())
-        den = float(np.trace(pjj, axis1=1, axis2=2).sum())
-        fisher = float(np.einsum("kij,kji->", pjj, pjj))
-        s_new = s * num / den if den > 0 else 0.0
-        if s_new < floor:
-            return TiltEstimate(0.0, float("nan"), "estimated", it, True,
-                                "the planes' tilts agree within their point noise")  # fmt: skip
-        done = abs(s_new - s) <= TILT_TOL * s
-        s = s_new
-        if done:
-            converged = True
+    crit = max(K_REJECT_MIN**2, -2.0 * math.log(TILT_ALPHA / k))
+    keep = np.ones(k, dtype=bool)
+    s = float(start)
+    if not s > floor:
+        v = np.einsum("kij,kj->ki", cinv, r)
+        s = max(float(np.median((v * v).sum(axis=1) / (2.0 * math.log(2.0)) - cpt)), c_med)
+    sd, it, conv = float("nan"), 0, True
+    for _ in range(5):
+        s, sd, n_it, conv = _tilt_helmert(a[keep], r[keep], hvh, hvy, max(s, c_med), floor)
+        it += n_it
+        # every plane's tilt tested against the GLS of the kept ones
+        q, beta, _, _ = _tilt_gls(a[keep], r[keep], hvh, hvy, s)
+        res = r - a @ beta[:3]
+        g = np.linalg.solve(np.eye(3) + s * a, res[:, :, None])[:, :, 0]
+        qj = np.einsum("ki,kij,kj->k", g, cinv, g) + s * (g * g).sum(axis=1)
+        new = qj <= crit
+        if int(new.sum()) < MIN_PLANES_TILT or np.array_equal(new, keep):
             break
-    sd = math.sqrt(2.0 / fisher) if fisher > 0 else float("nan")
-    note = "" if converged else f"the tilt variance did not converge in {TILT_MAX_ITER} iterations"
-    return TiltEstimate(float(s), sd, "estimated", it, converged, note)
+        keep = new
+    notes = []
+    if s <= 0:
+        notes.append("the planes' tilts agree within their point noise")
+    if not conv:
+        notes.append(f"the tilt variance did not converge in {TILT_MAX_ITER} iterations")
+    n_out = int((~keep).sum())
+    if n_out:
+        notes.append(f"{n_out} plane{'s' if n_out > 1 else ''}' tilts left out (χ² of the "
+                     f"tilt misclosure beyond {crit:.1f})")  # fmt: skip
+    return TiltEstimate(float(s), sd, "estimated", it, conv, "; ".join(notes), keep)
 
 
 # --------------------------------------------------------------------------- robustness
