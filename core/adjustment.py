@@ -1210,6 +1210,10 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
                         "" if len(drop) == 1 else "s",
                     )
                     continue
+        if not _stoch.REML_RANDOM_TILT:
+            # the components and the plane tests with the tilts point-noise precise; the
+            # random tilt weighs them in the adjustment only
+            t_s, rt_s = pl.tilt(cfg.s0sq)
         est = _stoch.estimate_components(
             cfg.model, idx, e, xd, t_s, p_s, which=which, fixed=fixed,
             inflation=cfg.inflation[idx], prior_plane_var=PRIOR_PLANE_SHARE**2 * apri, rt=rt_s,
@@ -1231,7 +1235,8 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             tilt_moved = tilt_moved or not np.array_equal(keep, cfg.tilt_keep[idx])
             cfg.tilt_keep[:] = True
             cfg.tilt_keep[idx] = keep
-            t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, keep)
+            if _stoch.REML_RANDOM_TILT:
+                t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, keep)
         changed = False
         if reject and idx.size > min_planes:
             # the test is against the model, not the last weights

@@ -154,6 +154,9 @@ _FLOOR = 1e-14  # m², numerical floor of a variance component
 #: misclosures and weighs each plane's tilt by ``(C_j + σ_t² I₂)⁻¹`` (docs/accuracy.md,
 #: "A random tilt per plane")
 RANDOM_TILT = False
+#: whether the plane-level components (REML) and the plane tests use the tilts weighed by
+#: the random tilt (True) or point-noise precise (False: the random tilt in the motion only)
+REML_RANDOM_TILT = True
 TILT_MAX_ITER = 200  # Helmert / Förstner iterations of the tilt variance
 TILT_TOL = 1e-4  # relative change of the tilt variance at which they stop
 #: a tilt variance below this share of the planes' median point-noise tilt variance is nil
