@@ -1535,7 +1535,9 @@ def adjust_rigid(
     components : dict, optional
         Plane-level components to hold fixed instead of estimating them, as standard
         deviations in metres: ``plane``, ``spatial``, ``unit_before``, ``unit_after`` and
-        ``spatial_range_m`` (e.g. a side's global estimate for a strip or window).
+        ``spatial_range_m`` (e.g. a side's global estimate for a strip or window), and
+        ``tilt_rad``, the random tilt per plane in radians (:data:`.stochastic.RANDOM_TILT`;
+        not with :func:`adjust_rigid_dense`, which has no random tilt).
 
     Returns
     -------

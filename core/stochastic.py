@@ -49,6 +49,17 @@ the information on the motion that the plane's tilt gives whatever its offset. E
 
 With ``Σ_δ = 0`` this is the white model's reduced system exactly.
 
+A random tilt per plane (:data:`RANDOM_TILT`, off by default). ``T`` is a sum over planes of
+rank-2 blocks on the rotation, ``T_j = E_j C_j⁻¹ E_jᵀ`` (``C_j`` the point-noise covariance of
+the plane's tilt on two axes ``E_j`` in the plane; the translation is not in it: with the
+offset free a translation only moves a plane along its normal). A survey-error field tilts
+each plane too (3 mm over 40 m: 0.1 mrad), so its tilt is not point-noise precise: with a
+random tilt ``τ_j ~ N(0, σ_t² I₂)``, white across planes, each block becomes ``E_j (C_j + σ_t²
+I₂)⁻¹ E_jᵀ = T_j (I + σ_t² T_j)⁻¹`` (:func:`tilt_information`). ``σ_t²`` is estimated by
+REML from the planes' tilt misclosures (:func:`estimate_tilt_variance`, with a χ² test of each
+plane's tilt) in each robust round, after the offsets' components; ``components={"tilt_rad":
+σ_t}`` holds it fixed. With ``σ_t = 0`` the system is the one above exactly.
+
 Estimation of the components (:func:`estimate_components`). The point-level factor ``σ0²``
 is the a-posteriori variance factor of the point residuals once each plane's ``δ̂`` is
 removed (redundancy ≈ points − 5 planes − 6). The plane-level components are estimated by
@@ -144,8 +155,10 @@ N_RANGES = 6  # spatial ranges tried by profile REML
 #: :func:`estimate_components`). 1 by default: the tilt-free profile gets the field kind's
 #: vertical right (1.98 -> 0.33 mm) but makes the σ too small on trajectory drift (the
 #: renovated kind pooled RMS(err/σ) 0.81 -> 1.85 in sample; docs/accuracy.md, "Spatial
-#: correlation family and range chosen by the data"); its cure, a random tilt per plane in
-#: the plane-level model, is not built
+#: correlation family and range chosen by the data"); the random tilt per plane
+#: (:data:`RANDOM_TILT`) that was to reconcile both is built but not the default either (it
+#: narrows the σ under trajectory drift the same way; docs/accuracy.md, "A random tilt per
+#: plane")
 REML_TILT_SHARE = 1.0
 _FLOOR = 1e-14  # m², numerical floor of a variance component
 #: a random tilt per plane (:func:`tilt_information`, :func:`estimate_tilt_variance`): the
@@ -927,7 +940,7 @@ class VarianceComponents:
     small_sample_factor: float = 1.0
     notes: Tuple[str, ...] = ()
     spatial_family: str = "spherical"
-    tilt: "TiltEstimate" = field(default_factory=lambda: TiltEstimate())
+    tilt: TiltEstimate = field(default_factory=lambda: TiltEstimate())
 
     @property
     def sigma_white_m(self) -> np.ndarray:
