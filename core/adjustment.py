@@ -553,7 +553,10 @@ def _reduce(state: _State, epochs, active: np.ndarray, b: int):
 
 class _PlaneLevel:
     """Plane-level GLS pieces of the active planes (see :mod:`.stochastic`), unscaled:
-    ``y`` (k,), ``h`` (k, 6), ``p`` (k,) = 1/D, tilt information ``t`` (6, 6) and ``rt`` (6,)."""
+    ``y`` (k,), ``h`` (k, 6), ``p`` (k,) = 1/D, tilt information ``t`` (6, 6) and ``rt`` (6,)
+    summed over the planes, and per plane its rotation block ``tr`` (k, 3, 3) and ``rtr``
+    (k, 3) (a plane's tilt says nothing of the translation: with its offset free, a
+    translation only moves it along its normal), for the random tilt per plane."""
 
     def __init__(self, g_mat, g_vec):
         dd = g_mat[:, 6, 6]
@@ -562,17 +565,38 @@ class _PlaneLevel:
         self.p = 1.0 / dd
         self.h = c / dd[:, None]
         self.y = q / dd
-        self.t = (g_mat[:, :6, :6] - c[:, :, None] * c[:, None, :] / dd[:, None, None]).sum(0)
+        tj = g_mat[:, :6, :6] - c[:, :, None] * c[:, None, :] / dd[:, None, None]
+        rtj = g_vec[:, :6] - c * (q / dd)[:, None]
+        self.t = tj.sum(0)
         self.t = 0.5 * (self.t + self.t.T)
-        self.rt = (g_vec[:, :6] - c * (q / dd)[:, None]).sum(0)
+        self.rt = rtj.sum(0)
+        self.tr = 0.5 * (tj[:, :3, :3] + tj[:, :3, :3].transpose(0, 2, 1))
+        self.rtr = rtj[:, :3]
         self.n_white = g_mat[:, :6, :6].sum(0)
+
+    def tilt(self, s0sq: float, tilt_var: float = 0.0, keep: Optional[np.ndarray] = None):
+        """The tilt information (6, 6) and right-hand side (6,) scaled by the point-level
+        factor, each plane's tilt weighed with the random tilt ``tilt_var`` (rad²,
+        :func:`.stochastic.tilt_information`) and the tilts of the planes not in ``keep``
+        (k,) left out; ``tilt_var`` 0 and every plane kept: ``t / s0sq``, ``rt / s0sq``."""
+        if not tilt_var > 0 and (keep is None or bool(np.all(keep))):
+            return self.t / s0sq, self.rt / s0sq
+        at, rtl = _stoch.tilt_information(self.tr / s0sq, self.rtr / s0sq, tilt_var)
+        if keep is not None:
+            at, rtl = at * keep[:, None, None], rtl * keep[:, None]
+        t = self.t / s0sq
+        rt = self.rt / s0sq
+        t[:3, :3] = at.sum(axis=0)
+        rt[:3] = rtl.sum(axis=0)
+        return t, rt
 
 
 class _StochasticConfig:
     """The plane-level model in force: components ``theta`` (variances, m²), the spatial
     correlation ``kernel`` (family and range, :class:`.stochastic.SpatialKernel`),
     point-level factor ``s0sq``, per-plane variance ``inflation`` (b,) of down-weighted
-    planes, and the structure ``model`` (:class:`.stochastic.PlaneModel`)."""
+    planes, the random tilt per plane ``tilt_var`` (rad², 0: the tilts point-noise precise)
+    and the structure ``model`` (:class:`.stochastic.PlaneModel`)."""
 
     def __init__(self, model: PlaneModel, b: int):
         self.model = model
@@ -580,6 +604,8 @@ class _StochasticConfig:
         self.kernel = _stoch.SpatialKernel()  # no spatial term until one is estimated
         self.s0sq = 1.0
         self.inflation = np.zeros(b)
+        self.tilt_var = 0.0
+        self.tilt_keep = np.ones(b, dtype=bool)  # planes whose tilt is used
         self.gain = np.zeros((6, 0))  # Q Hᵀ V⁻¹ of the final solution (see _stochastic)
         self.gain_idx = np.zeros(0, dtype=np.int64)
         self.small = 1.0
@@ -615,8 +641,9 @@ def _step_block(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
         pl = _PlaneLevel(g_mat, g_vec)
         vop = cfg.v_operator(active, pl.p)
         vih = vop.solve(pl.h)
-        nred = pl.t / cfg.s0sq + pl.h.T @ vih
-        rred = pl.rt / cfg.s0sq + vih.T @ pl.y
+        t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
+        nred = t_s + pl.h.T @ vih
+        rred = rt_s + vih.T @ pl.y
     nred = 0.5 * (nred + nred.T)
     _check_singular(nred)
     qxx = np.linalg.inv(nred)
@@ -637,6 +664,11 @@ def _step_dense(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
     after-epoch conditions) with the pseudo-observations ``δ ~ N(0, Σ_δ)``: the mixed model in
     its direct form, against the block step's Woodbury form. Needs ``Σ_δ`` regular (a plane
     component > 0)."""
+    if cfg is not None and cfg.tilt_var > 0:
+        raise InvalidParameterError(
+            "adjust_rigid_dense does not model the random tilt per plane: leave out "
+            "components['tilt_rad'] (or give 0), or use adjust_rigid"
+        )
     act = np.flatnonzero(active)
     col = np.full(b, -1)
     col[act] = np.arange(act.size)
@@ -931,6 +963,11 @@ def _solve(
     ``unit_codes``: each epoch's (U,) unit ids of the shares' columns, or None (unknown:
     the result's :class:`.stochastic.PlaneGain` then has no units to share)."""
     before_plane, after_plane = labels
+    if dense and float(fixed.get("tilt_rad", 0.0)) > 0:
+        raise InvalidParameterError(
+            "adjust_rigid_dense does not model the random tilt per plane: leave out "
+            "components['tilt_rad'] (or give 0), or use adjust_rigid"
+        )
     if dense and 6 + 5 * b > DENSE_MAX_UNKNOWNS:
         raise InvalidParameterError(
             f"adjust_rigid_dense is a reference for small problems ({6 + 5 * b} unknowns); "
@@ -1119,6 +1156,13 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     gross_passes = 0
     notes: List[str] = []
     apri = _apriori_condition_variance(epochs, active, cfg.model.normals, b)
+    # the random tilt per plane: estimated (stochastic.RANDOM_TILT) or given (tilt_rad)
+    tilt_est = _stoch.TiltEstimate()
+    if "tilt_rad" in fixed:
+        cfg.tilt_var = float(fixed["tilt_rad"]) ** 2
+        tilt_est = _stoch.TiltEstimate(cfg.tilt_var, source="fixed")
+    # adjust_rigid_dense, the reference of the mixed model, has no random tilt
+    tilt_free = _stoch.RANDOM_TILT and "tilt_rad" not in fixed and step is _step_block
     for outer in range(MAX_OUTER + MAX_GROSS_PASSES):
         it, converged, nred, qxx = _iterate(
             state, epochs, active, b, functools.partial(_with_cfg, step, cfg if outer else None),
@@ -1131,8 +1175,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         idx = np.flatnonzero(active)
         e = pl.y  # at convergence the increment is nil: y is the misclosure residual
         xd = pl.h
-        t_s = pl.t / cfg.s0sq
-        rt_s = pl.rt / cfg.s0sq
+        t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
         p_s = cfg.s0sq * pl.p
         cfg.model.normals[idx] = state.n[idx] / np.linalg.norm(state.n[idx], axis=1)[:, None]
         if not gross_done:
@@ -1167,12 +1210,33 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
                         "" if len(drop) == 1 else "s",
                     )
                     continue
+        if not _stoch.REML_RANDOM_TILT:
+            # the components and the plane tests with the tilts point-noise precise; the
+            # random tilt weighs them in the adjustment only
+            t_s, rt_s = pl.tilt(cfg.s0sq)
         est = _stoch.estimate_components(
             cfg.model, idx, e, xd, t_s, p_s, which=which, fixed=fixed,
             inflation=cfg.inflation[idx], prior_plane_var=PRIOR_PLANE_SHARE**2 * apri, rt=rt_s,
         )  # fmt: skip
         cfg.theta = {n: v for n, v in est.theta.items() if v > 0}
         cfg.kernel = est.kernel
+        tilt_moved = False
+        if tilt_free:
+            # the tilts' misclosures against their point noise, with the offsets' model as
+            # just estimated (stochastic.estimate_tilt_variance)
+            vop = cfg.v_operator(active, pl.p)
+            vih = vop.solve(xd)
+            tilt_est = _stoch.estimate_tilt_variance(
+                pl.tr / cfg.s0sq, pl.rtr / cfg.s0sq, xd.T @ vih, vih.T @ e, start=cfg.tilt_var
+            )
+            old_tv, cfg.tilt_var = cfg.tilt_var, tilt_est.var
+            tilt_moved = abs(cfg.tilt_var - old_tv) > 0.02 * max(cfg.tilt_var, old_tv)
+            keep = np.ones(idx.size, dtype=bool) if tilt_est.keep is None else tilt_est.keep
+            tilt_moved = tilt_moved or not np.array_equal(keep, cfg.tilt_keep[idx])
+            cfg.tilt_keep[:] = True
+            cfg.tilt_keep[idx] = keep
+            if _stoch.REML_RANDOM_TILT:
+                t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, keep)
         changed = False
         if reject and idx.size > min_planes:
             # the test is against the model, not the last weights
@@ -1214,7 +1278,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
                     changed = True
                 cfg.inflation = new_infl
         theta_now = np.array([est.theta.get(n, 0.0) for n in _stoch.COMPONENT_NAMES])
-        if theta_old is not None and not changed:
+        if theta_old is not None and not changed and not tilt_moved:
             scale = max(float(np.max(theta_now)), float(np.median(p_s)), 1e-14)
             if float(np.max(np.abs(theta_now - theta_old))) <= 0.02 * scale:
                 break
@@ -1235,13 +1299,14 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     # the motion's gain on the plane-level random effects, Q Hᵀ V⁻¹ (6, k), for the
     # covariance with another adjustment of the same survey (stochastic.cross_covariance)
     vih = vop.solve(pl.h)
-    n_fin = pl.t / cfg.s0sq + pl.h.T @ vih
+    t_fin, rt_fin = pl.tilt(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
+    n_fin = t_fin + pl.h.T @ vih
     q_fin = np.linalg.inv(0.5 * (n_fin + n_fin.T))
     cfg.gain = q_fin @ vih.T
     cfg.gain_idx = idx
     cfg.gain_extra = dict(
         model=model, fixed=dict(fixed), e=pl.y.copy(), p=cfg.s0sq * pl.p, h=pl.h.copy(),
-        inflation=cfg.inflation[idx].copy(), t=pl.t / cfg.s0sq, rt=pl.rt / cfg.s0sq,
+        inflation=cfg.inflation[idx].copy(), t=t_fin, rt=rt_fin,
         q=0.5 * (q_fin + q_fin.T), prior_plane_var=PRIOR_PLANE_SHARE**2 * apri,
     )  # fmt: skip
     # estimated components make the GLS covariance optimistic (Kackar & Harville 1984): the
@@ -1255,7 +1320,8 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     qw = np.linalg.inv(0.5 * (pl.n_white + pl.n_white.T))
     sig_white = (s0w if s0w == s0w else 1.0) * qw[3:, 3:]
     stoch = _components_result(model, est, epochs, active, cfg, idx.size, n_eff, sig_white,
-                               notes, weights, wstat, state.delta, mis, b, small)  # fmt: skip
+                               notes, weights, wstat, state.delta, mis, b, small,
+                               tilt_est)  # fmt: skip
     cov = 0.5 * (qxx + qxx.T)
     return (state, active, it, converged, nred, qxx, cfg.s0sq, red_d, n_cond, cov), stoch
 
@@ -1271,7 +1337,7 @@ def _apriori_condition_variance(epochs, active, normals, b) -> float:
 
 
 def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, notes, weights,
-                       wstat, delta, mis, b, small=1.0):  # fmt: skip
+                       wstat, delta, mis, b, small=1.0, tilt=None):  # fmt: skip
     """VarianceComponents and the per-plane diagnostics of a stochastic adjustment."""
     apri = _apriori_condition_variance(epochs, active, cfg.model.normals, b)
     comps = [
@@ -1296,6 +1362,8 @@ def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, not
         src = est.source.get(name, "off") if est is not None else "off"
         comps.append(_stoch.Component(name, sig, sd, src, est_notes.get(name, "")))
     all_notes = list(notes) + [v for k_, v in est_notes.items() if k_ == "reml"]
+    if tilt is not None and tilt.note:
+        all_notes.append(f"random tilt per plane: {tilt.note}")
     if k < _stoch.MIN_PLANES_VCE:
         all_notes.append(f"only {k} planes: the components are poorly determined")
     vc = _stoch.VarianceComponents(
@@ -1313,6 +1381,7 @@ def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, not
         covariance_white=sig_white,
         small_sample_factor=float(small),
         notes=tuple(all_notes),
+        tilt=tilt if tilt is not None else _stoch.TiltEstimate(),
     )
     delta_out = np.where(active, delta, np.nan)
     return vc, weights, wstat, delta_out, mis
@@ -1466,7 +1535,9 @@ def adjust_rigid(
     components : dict, optional
         Plane-level components to hold fixed instead of estimating them, as standard
         deviations in metres: ``plane``, ``spatial``, ``unit_before``, ``unit_after`` and
-        ``spatial_range_m`` (e.g. a side's global estimate for a strip or window).
+        ``spatial_range_m`` (e.g. a side's global estimate for a strip or window), and
+        ``tilt_rad``, the random tilt per plane in radians (:data:`.stochastic.RANDOM_TILT`;
+        not with :func:`adjust_rigid_dense`, which has no random tilt).
 
     Returns
     -------

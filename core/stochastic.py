@@ -49,6 +49,17 @@ the information on the motion that the plane's tilt gives whatever its offset. E
 
 With ``Σ_δ = 0`` this is the white model's reduced system exactly.
 
+A random tilt per plane (:data:`RANDOM_TILT`, off by default). ``T`` is a sum over planes of
+rank-2 blocks on the rotation, ``T_j = E_j C_j⁻¹ E_jᵀ`` (``C_j`` the point-noise covariance of
+the plane's tilt on two axes ``E_j`` in the plane; the translation is not in it: with the
+offset free a translation only moves a plane along its normal). A survey-error field tilts
+each plane too (3 mm over 40 m: 0.1 mrad), so its tilt is not point-noise precise: with a
+random tilt ``τ_j ~ N(0, σ_t² I₂)``, white across planes, each block becomes ``E_j (C_j + σ_t²
+I₂)⁻¹ E_jᵀ = T_j (I + σ_t² T_j)⁻¹`` (:func:`tilt_information`). ``σ_t²`` is estimated by
+REML from the planes' tilt misclosures (:func:`estimate_tilt_variance`, with a χ² test of each
+plane's tilt) in each robust round, after the offsets' components; ``components={"tilt_rad":
+σ_t}`` holds it fixed. With ``σ_t = 0`` the system is the one above exactly.
+
 Estimation of the components (:func:`estimate_components`). The point-level factor ``σ0²``
 is the a-posteriori variance factor of the point residuals once each plane's ``δ̂`` is
 removed (redundancy ≈ points − 5 planes − 6). The plane-level components are estimated by
@@ -117,6 +128,10 @@ __all__ = [
     "SPATIAL_FAMILIES",
     "DEFAULT_FAMILIES",
     "as_kernel",
+    "RANDOM_TILT",
+    "TiltEstimate",
+    "tilt_information",
+    "estimate_tilt_variance",
 ]
 
 #: the models: "white" = independent point errors only (the study's model, data snooping
@@ -140,10 +155,27 @@ N_RANGES = 6  # spatial ranges tried by profile REML
 #: :func:`estimate_components`). 1 by default: the tilt-free profile gets the field kind's
 #: vertical right (1.98 -> 0.33 mm) but makes the σ too small on trajectory drift (the
 #: renovated kind pooled RMS(err/σ) 0.81 -> 1.85 in sample; docs/accuracy.md, "Spatial
-#: correlation family and range chosen by the data"); its cure, a random tilt per plane in
-#: the plane-level model, is not built
+#: correlation family and range chosen by the data"); the random tilt per plane
+#: (:data:`RANDOM_TILT`) that was to reconcile both is built but not the default either (it
+#: narrows the σ under trajectory drift the same way; docs/accuracy.md, "A random tilt per
+#: plane")
 REML_TILT_SHARE = 1.0
 _FLOOR = 1e-14  # m², numerical floor of a variance component
+#: a random tilt per plane (:func:`tilt_information`, :func:`estimate_tilt_variance`): the
+#: survey-error field tilts each plane, so its tilt information is not point-noise precise;
+#: when True the adjustment estimates the tilt variance σ_t² (rad²) from the planes' tilt
+#: misclosures and weighs each plane's tilt by ``(C_j + σ_t² I₂)⁻¹`` (docs/accuracy.md,
+#: "A random tilt per plane")
+RANDOM_TILT = False
+#: whether the plane-level components (REML) and the plane tests use the tilts weighed by
+#: the random tilt (True) or point-noise precise (False: the random tilt in the motion only)
+REML_RANDOM_TILT = True
+TILT_MAX_ITER = 200  # Helmert / Förstner iterations of the tilt variance
+TILT_TOL = 1e-4  # relative change of the tilt variance at which they stop
+#: a tilt variance below this share of the planes' median point-noise tilt variance is nil
+TILT_NEGLIGIBLE = 1e-6
+MIN_PLANES_TILT = 6  # fewer planes than this: the tilt variance is not estimated
+TILT_ALPHA = 0.01  # family-wise level of the test of the planes' tilts (Bonferroni)
 
 
 def check_stochastic_model(model: str, *, option: str = "stochastic_model") -> str:
@@ -157,12 +189,13 @@ def check_stochastic_model(model: str, *, option: str = "stochastic_model") -> s
 
 def check_components(components: Optional[Mapping[str, float]], *, option: str = "components"):
     """Validate fixed components ``{name: sigma_m, "spatial_range_m": a, "spatial_family":
-    family}`` (the family one of :data:`SPATIAL_FAMILIES`; a range without it is spherical);
+    family, "tilt_rad": σ_t}`` (the family one of :data:`SPATIAL_FAMILIES`; a range without it
+    is spherical; ``tilt_rad`` the random tilt per plane, radians, :data:`RANDOM_TILT`);
     returns a dict."""
     if components is None:
         return {}
     out = {}
-    names = COMPONENT_NAMES + ("spatial_range_m", "spatial_family")
+    names = COMPONENT_NAMES + ("spatial_range_m", "spatial_family", "tilt_rad")
     for k, v in dict(components).items():
         if k not in names:
             raise InvalidParameterError(
@@ -179,11 +212,12 @@ def check_components(components: Optional[Mapping[str, float]], *, option: str =
         try:
             f = float(v)
         except (TypeError, ValueError):
-            raise InvalidParameterError(f"{option}: {k} must be a number (metres)") from None
+            unit = "radians" if k == "tilt_rad" else "metres"
+            raise InvalidParameterError(f"{option}: {k} must be a number ({unit})") from None
         if not math.isfinite(f) or f < 0 or (k == "spatial_range_m" and f <= 0):
             raise InvalidParameterError(
                 f"{option}: {k} must be a finite number {'> 0' if k.endswith('_m') else '>= 0'}"
-                f" (metres); got {v!r}"
+                f" ({'radians' if k == 'tilt_rad' else 'metres'}); got {v!r}"
             )
         out[k] = f
     return out
@@ -892,6 +926,8 @@ class VarianceComponents:
         Warnings (few planes, components not estimable, REML not converged).
     spatial_family : str
         Family of the spatial correlation (:class:`SpatialKernel`, chosen by REML).
+    tilt : TiltEstimate
+        The random tilt per plane (:data:`RANDOM_TILT`; source "off" when not modelled).
     """
 
     model: str
@@ -904,6 +940,7 @@ class VarianceComponents:
     small_sample_factor: float = 1.0
     notes: Tuple[str, ...] = ()
     spatial_family: str = "spherical"
+    tilt: TiltEstimate = field(default_factory=lambda: TiltEstimate())
 
     @property
     def sigma_white_m(self) -> np.ndarray:
@@ -928,6 +965,8 @@ class VarianceComponents:
             out["spatial_range_m"] = float(self.spatial_range_m)
             if self.spatial_family != "spherical":
                 out["spatial_family"] = self.spatial_family
+        if self.tilt.source != "off":
+            out["tilt_rad"] = float(self.tilt.sigma_rad)
         return out
 
     def to_dict(self) -> Dict[str, object]:
@@ -942,6 +981,7 @@ class VarianceComponents:
             "sigma_white_m": [_num(v) for v in self.sigma_white_m],
             "small_sample_factor": _num(self.small_sample_factor),
             "notes": list(self.notes),
+            **({"random_tilt": self.tilt.to_dict()} if self.tilt.source != "off" else {}),
         }
 
 
@@ -1474,6 +1514,255 @@ def estimate_components(
     pc = {k: v for k, v in pc.items() if source.get(k[0]) == source.get(k[1]) == "estimated"}
     m2ll = {f: float(v[4]) for f, v in fits.items()}
     return Estimate(theta, sds, source, notes, float(rng_m), int(it), bool(conv), pc, kern, m2ll)
+
+
+# --------------------------------------------------------------------------- random tilt
+
+
+def tilt_information(a: np.ndarray, r: np.ndarray, tilt_var: float):
+    """Each plane's tilt information on the rotation with a random tilt of variance
+    ``tilt_var`` per plane (rad², on each of the normal's two degrees of freedom).
+
+    A plane's tilt is seen with the point-noise covariance ``C_j`` (2x2 on two orthonormal
+    axes ``E_j`` (3, 2) in the plane: a rotation about the normal tilts nothing), so its
+    information on the motion's rotation is ``a_j = E_j C_j⁻¹ E_jᵀ`` (3x3, rank 2) and its
+    right-hand side ``r_j = a_j v_j`` (``v_j`` the tilt misclosure: the plane's own rotation
+    less the motion's). A random tilt ``τ_j ~ N(0, σ_t² I₂)`` — what a survey-error field's
+    gradient over the plane does — makes them ``E_j (C_j + σ_t² I₂)⁻¹ E_jᵀ = a_j (I₃ + σ_t²
+    a_j)⁻¹`` and ``(I₃ + σ_t² a_j)⁻¹ r_j`` (``a_j`` and ``(I₃ + σ_t² a_j)⁻¹`` commute, and the
+    normal, null for ``a_j``, stays null): one batched 3x3 solve per plane, no tangent basis.
+    :func:`tilt_information_reference` is the slow, obvious form.
+
+    Parameters
+    ----------
+    a : (k, 3, 3) float64
+        Tilt information of each plane on the rotation, rad⁻² (scaled by the point-level
+        factor).
+    r : (k, 3) float64
+        Its right-hand side, rad⁻¹.
+    tilt_var : float
+        ``σ_t²``, rad².
+
+    Returns
+    -------
+    a_t : (k, 3, 3) float64, r_t : (k, 3) float64
+        ``a`` and ``r`` themselves (the same arrays) when ``tilt_var <= 0``.
+    """
+    if not tilt_var > 0:
+        return a, r
+    m = np.eye(3) + float(tilt_var) * a
+    sol = np.linalg.solve(m, np.concatenate([a, r[:, :, None]], axis=2))
+    at = sol[:, :, :3]
+    return 0.5 * (at + at.transpose(0, 2, 1)), sol[:, :, 3]
+
+
+def tilt_information_reference(a: np.ndarray, r: np.ndarray, tilt_var: float, rel_tol=1e-9):
+    """The slow, obvious form of :func:`tilt_information`: per plane, the tangent axes ``E``
+    and the point-noise covariance ``C`` of the tilt from the eigenvectors of ``a`` (its
+    eigenvalues above ``rel_tol`` × the largest), the tilt misclosure ``v = E C Eᵀ r``, and
+    ``E (C + σ_t² I)⁻¹ Eᵀ`` and ``E (C + σ_t² I)⁻¹ Eᵀ v`` (a loop over planes)."""
+    k = a.shape[0]
+    at, rt = np.zeros((k, 3, 3)), np.zeros((k, 3))
+    for j in range(k):
+        w, vec = np.linalg.eigh(0.5 * (a[j] + a[j].T))
+        keep = w > rel_tol * w.max()
+        e = vec[:, keep]
+        c = np.diag(1.0 / w[keep])
+        v = e @ c @ e.T @ r[j]
+        wt = np.linalg.inv(c + float(tilt_var) * np.eye(int(keep.sum())))
+        at[j] = e @ wt @ e.T
+        rt[j] = at[j] @ v
+    return at, rt
+
+
+@dataclass(frozen=True)
+class TiltEstimate:
+    """The random tilt per plane (:func:`estimate_tilt_variance`).
+
+    Attributes
+    ----------
+    var : float
+        ``σ_t²``, rad² (0 when off or nil).
+    sd : float
+        Standard deviation of ``var`` from the REML information, rad² (NaN when not
+        estimated).
+    source : str
+        "estimated", "fixed" or "off".
+    iterations : int
+    converged : bool
+    note : str
+        Why it is off or nil, and the tilts left out; empty otherwise.
+    keep : (k,) bool, optional
+        Planes whose tilt is used (False: left out by the tilt test); None: all.
+    """
+
+    var: float = 0.0
+    sd: float = float("nan")
+    source: str = "off"
+    iterations: int = 0
+    converged: bool = True
+    note: str = ""
+    keep: Optional[np.ndarray] = None
+
+    @property
+    def sigma_rad(self) -> float:
+        """``σ_t``, rad."""
+        return math.sqrt(max(self.var, 0.0))
+
+    def to_dict(self) -> Dict[str, object]:
+        sd = self.sd / (2.0 * self.sigma_rad) if self.sigma_rad > 0 else float("nan")
+        out: Dict[str, object] = {
+            "sigma_rad": _num(self.sigma_rad), "sd_rad": _num(sd), "source": self.source,
+        }  # fmt: skip
+        if self.note:
+            out["note"] = self.note
+        return out
+
+
+def point_tilt_variance(a: np.ndarray) -> np.ndarray:
+    """(k,) each plane's point-noise tilt variance per degree of freedom, rad²: half the trace
+    of ``C_j`` (the pseudo-inverse of ``a_j`` (k, 3, 3) on its range)."""
+    w = np.linalg.eigvalsh(0.5 * (a + a.transpose(0, 2, 1)))
+    big = w > 1e-9 * w.max(axis=1, keepdims=True)
+    inv = np.divide(1.0, w, out=np.zeros_like(w), where=big & (w > 0))
+    return 0.5 * inv.sum(axis=1)
+
+
+def _tilt_pinv(a: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) pseudo-inverses of the tilt informations ``a`` (k, 3, 3) on their range:
+    each plane's point-noise tilt covariance ``C_j`` in the rotation's coordinates."""
+    w, vec = np.linalg.eigh(0.5 * (a + a.transpose(0, 2, 1)))
+    big = (w > 1e-9 * w.max(axis=1, keepdims=True)) & (w > 0)
+    inv = np.divide(1.0, w, out=np.zeros_like(w), where=big)
+    return np.einsum("kij,kj,klj->kil", vec, inv, vec)
+
+
+def _tilt_gls(a, r, hvh, hvy, s):
+    """The GLS with the random tilt ``s`` (rad²): ``Q`` (6, 6), the increment ``β`` (6,),
+    the weighted tilt residuals ``g`` (k, 3) and the projector's blocks ``Π_jj`` (k, 3, 3)."""
+    at, rtl = tilt_information(a, r, s)
+    n = np.array(hvh, dtype=np.float64, copy=True)
+    n[:3, :3] += at.sum(axis=0)
+    rhs = np.array(hvy, dtype=np.float64, copy=True)
+    rhs[:3] += rtl.sum(axis=0)
+    q = np.linalg.pinv(0.5 * (n + n.T), hermitian=True)  # a motion the planes leave free: 0
+    beta = q @ rhs
+    g = np.linalg.solve(np.eye(3) + s * a, (r - a @ beta[:3])[:, :, None])[:, :, 0]
+    return q, beta, g, at - at @ q[:3, :3] @ at
+
+
+def _tilt_helmert(a, r, hvh, hvy, s, floor):
+    """The Helmert / Förstner iteration of :func:`estimate_tilt_variance` from ``s``: (s,
+    sd, iterations, converged); ``s`` 0 when it falls below ``floor``."""
+    converged, it, fisher = False, 0, float("nan")
+    while it < TILT_MAX_ITER:
+        it += 1
+        _, _, g, pjj = _tilt_gls(a, r, hvh, hvy, s)
+        num = float((g * g).sum())
+        den = float(np.trace(pjj, axis1=1, axis2=2).sum())
+        fisher = float(np.einsum("kij,kji->", pjj, pjj))
+        s_new = s * num / den if den > 0 else 0.0
+        if s_new < floor:
+            return 0.0, float("nan"), it, True
+        done = abs(s_new - s) <= TILT_TOL * s
+        s = s_new
+        if done:
+            converged = True
+            break
+    sd = math.sqrt(2.0 / fisher) if fisher > 0 else float("nan")
+    return float(s), sd, it, converged
+
+
+def estimate_tilt_variance(
+    a: np.ndarray,
+    r: np.ndarray,
+    hvh: np.ndarray,
+    hvy: np.ndarray,
+    *,
+    start: float = 0.0,
+) -> TiltEstimate:
+    """REML estimate of the random tilt's variance ``σ_t²`` (rad²) from the planes' tilt
+    misclosures, the offsets' part of the model held at its current components, with a
+    test of each plane's tilt.
+
+    The tilt of plane ``j`` is an observation of the motion's rotation with covariance
+    ``C_j + σ_t² I₂`` (:func:`tilt_information`); the offsets give the information ``HᵀV⁻¹H``
+    and right-hand side ``HᵀV⁻¹y`` on the motion. For a given ``σ_t²`` the GLS increment is
+    ``β = Q (Σ r̃_j + HᵀV⁻¹y)``, ``Q = (Σ ã_j + HᵀV⁻¹H)⁻¹``, the weighted tilt residuals
+    ``g_j = (C_j + σ_t² I)⁻¹ (v_j − β_rot) = (I + σ_t² a_j)⁻¹ (r_j − a_j β_rot)`` and the
+    diagonal blocks of the REML projector ``Π_jj = ã_j − ã_j Q_rot ã_j``. The REML equation
+    of the one component is ``Σ |g_j|² = Σ tr Π_jj``; it is solved by the Helmert / Förstner
+    iteration ``σ_t² ← σ_t² Σ |g_j|² / Σ tr Π_jj`` (Förstner 1979; Koch 1999 §3.6), which
+    stays positive and takes the large steps from the point-noise level a field's tilts need.
+    A variance below :data:`TILT_NEGLIGIBLE` × the median point-noise tilt variance is nil.
+    The standard deviation is ``√(2 / Σ tr Π_jj²)`` (the Fisher information with the planes'
+    leverage cross terms left out).
+
+    Robustness: one plane whose tilt is grossly off (a mismatched or rebuilt surface: 23 mrad
+    where the others scatter by 0.1 mrad, on a renovated pair) would set ``σ_t`` alone. The
+    iteration starts from a robust value (the median over planes of ``|v_j|² / (2 ln 2) −
+    c_j``, ``c_j`` the point-noise tilt variance: ``|v_j|² / (c_j + σ_t²)`` is χ² with two
+    degrees of freedom), and each plane's tilt is tested by ``q_j = g_jᵀ (C_j + σ_t² I) g_j``
+    (χ²₂) against ``max(K_REJECT_MIN², −2 ln(TILT_ALPHA / k))`` (Bonferroni); the tilts beyond
+    are left out of the estimate and of the motion (:attr:`TiltEstimate.keep`), and the
+    estimate and test are repeated until the set settles. Cost: batched 3x3 solves, linear
+    in planes.
+
+    Parameters
+    ----------
+    a : (k, 3, 3) float64
+        Point-noise tilt information of each plane on the rotation, rad⁻² (scaled).
+    r : (k, 3) float64
+        Its right-hand side at the current motion, rad⁻¹.
+    hvh : (6, 6) float64
+        ``HᵀV⁻¹H`` of the offsets.
+    hvy : (6,) float64
+        ``HᵀV⁻¹y`` of the offsets at the current motion.
+    start : float
+        Starting value (rad²); <= 0: the robust value above.
+
+    Returns
+    -------
+    TiltEstimate
+    """
+    k = a.shape[0]
+    if k < MIN_PLANES_TILT:
+        return TiltEstimate(note=f"only {k} planes (< {MIN_PLANES_TILT}): no random tilt")
+    cinv = _tilt_pinv(a)
+    cpt = 0.5 * np.trace(cinv, axis1=1, axis2=2)
+    c_med = float(np.median(cpt))
+    if not c_med > 0:
+        return TiltEstimate(note="no tilt information")
+    floor = TILT_NEGLIGIBLE * c_med
+    crit = max(K_REJECT_MIN**2, -2.0 * math.log(TILT_ALPHA / k))
+    keep = np.ones(k, dtype=bool)
+    s = float(start)
+    if not s > floor:
+        v = np.einsum("kij,kj->ki", cinv, r)
+        s = max(float(np.median((v * v).sum(axis=1) / (2.0 * math.log(2.0)) - cpt)), c_med)
+    sd, it, conv = float("nan"), 0, True
+    for _ in range(5):
+        s, sd, n_it, conv = _tilt_helmert(a[keep], r[keep], hvh, hvy, max(s, c_med), floor)
+        it += n_it
+        # every plane's tilt tested against the GLS of the kept ones
+        q, beta, _, _ = _tilt_gls(a[keep], r[keep], hvh, hvy, s)
+        res = r - a @ beta[:3]
+        g = np.linalg.solve(np.eye(3) + s * a, res[:, :, None])[:, :, 0]
+        qj = np.einsum("ki,kij,kj->k", g, cinv, g) + s * (g * g).sum(axis=1)
+        new = qj <= crit
+        if int(new.sum()) < MIN_PLANES_TILT or np.array_equal(new, keep):
+            break
+        keep = new
+    notes = []
+    if s <= 0:
+        notes.append("the planes' tilts agree within their point noise")
+    if not conv:
+        notes.append(f"the tilt variance did not converge in {TILT_MAX_ITER} iterations")
+    n_out = int((~keep).sum())
+    if n_out:
+        notes.append(f"{n_out} plane{'s' if n_out > 1 else ''}' tilts left out (χ² of the "
+                     f"tilt misclosure beyond {crit:.1f})")  # fmt: skip
+    return TiltEstimate(float(s), sd, "estimated", it, conv, "; ".join(notes), keep)
 
 
 # --------------------------------------------------------------------------- robustness
