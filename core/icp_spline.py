@@ -70,7 +70,7 @@ MIN_SPLINE_CELLS = 4
 #: no choice. Two knot spacings (a cell at the default spacing) is the default: with (1, 2)
 #: the likelihood picks one knot spacing on the harness's lobes and the slump (1.25 / 1.77 /
 #: 1.01 -> 1.08 / 1.48 / 0.78 cm, slump 10.3 -> 5.4 cm) but also on the fault (1.42 -> 1.62
-#: cm): docs/fields.md, "Knot spacing chosen from the data (2026-11-27)"
+#: cm): docs/fields.md, "Knot spacing chosen from the data"
 LOCAL_WIDTHS_KNOTS: Tuple[float, ...] = (2.0,)
 
 
