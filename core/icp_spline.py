@@ -64,6 +64,14 @@ TRACE_PROBES = 32
 MAX_KNOTS = 250_000
 #: fewest cells with points a spline field is fitted to (its start is interpolated from them)
 MIN_SPLINE_CELLS = 4
+#: widths (in knot spacings) of the local penalty's Gaussian kernel
+#: (:func:`_local_variance_components`) compared by their restricted likelihood
+#: (:func:`_restricted_score`) when the smoothing is estimated with cell weights; one width:
+#: no choice. Two knot spacings (a cell at the default spacing) is the default: with (1, 2)
+#: the likelihood picks one knot spacing on the harness's lobes and the slump (1.25 / 1.77 /
+#: 1.01 -> 1.08 / 1.48 / 0.78 cm, slump 10.3 -> 5.4 cm) but also on the fault (1.42 -> 1.62
+#: cm): docs/fields.md, "Knot spacing chosen from the data"
+LOCAL_WIDTHS_KNOTS: Tuple[float, ...] = (2.0,)
 
 
 class SplineSizeError(InvalidParameterError):
@@ -416,6 +424,11 @@ class SplineFit:
         point counted as independent.
     projection : (K, 3) float64 or None
         With ``data_weight``: :func:`rigid_projection` of the fitted field, metres.
+    penalty_width_m : float or None
+        Width of the local penalty's kernel, metres (None: one penalty weight per component).
+    restricted_score : float or None
+        With the local penalty: minus twice the restricted log-likelihood of the final
+        weighted fit, up to a constant (:func:`_restricted_score`; lower is likelier).
     """
 
     field: SplineField
@@ -434,6 +447,8 @@ class SplineFit:
     cov_prior: Optional[np.ndarray] = None
     data_weight: Optional[np.ndarray] = None
     projection: Optional[np.ndarray] = None
+    penalty_width_m: Optional[float] = None
+    restricted_score: Optional[float] = None
 
 
 def _second_differences(kx: int, ky: int):
@@ -637,6 +652,29 @@ def _local_variance_components(
     return out
 
 
+def _restricted_score(
+    factor, penalty, c: np.ndarray, wvv: float, wvv_weighted: float, n_obs: int
+) -> float:
+    """Minus twice the restricted log-likelihood of a penalised fit, up to a constant that
+    the same data and knots share, ``log|A| - log|P| + (vᵀWv + cᵀPc) / s0²``: ``A = N + P``
+    the penalised normal matrix (``factor``, its sparse LU), ``P`` the penalty (with its
+    ridge, which stands in for the null space of the second differences: the same for every
+    kernel, so it cancels between them), ``vᵀWv`` the weighted residuals with the cells' data
+    weights (``wvv_weighted``), ``c`` (K, 3) the coefficients and ``s0²`` the points' variance
+    from the unweighted ``wvv`` over ``n_obs - 3K``, as in :func:`_variance_components`.
+    Lower is likelier (Patterson and Thompson's REML of a linear mixed model, the penalty
+    the random effects' precision; Wood 2011 for smoothing parameters). Written here: the
+    log-determinants come from the sparse LU factors (SuperLU's ``L`` has a unit diagonal)."""
+    from scipy.sparse.linalg import splu
+
+    n_k = c.shape[0]
+    lda = float(np.sum(np.log(np.abs(factor.U.diagonal()))))
+    ldp = float(np.sum(np.log(np.abs(splu(penalty.tocsc()).U.diagonal()))))
+    cv = c.T.reshape(-1)
+    s0sq = wvv / max(n_obs - 3 * n_k, 1)
+    return lda - ldp + (wvv_weighted + float(cv @ (penalty @ cv))) / max(s0sq, 1e-300)
+
+
 def _diag_r_inv_rt(factor, rmat, j: int, n_k: int, seed: int = 0) -> np.ndarray:
     """``diag(R A⁻¹_jj Rᵀ)`` (T,) of component ``j``: exact up to TRACE_EXACT_MAX knots,
     else Hutchinson's diagonal estimate with TRACE_PROBES Rademacher probes."""
@@ -757,6 +795,9 @@ class ChunkNormals:
         Points of non-zero weight.
     n_ok : int
         Paired points.
+    wvv_weighted : float
+        ``sum w_p dw_p v_p²`` with the cells' data weights ``dw_p``, m² (``wvv`` without
+        them).
     """
 
     nmat: object
@@ -765,6 +806,7 @@ class ChunkNormals:
     wvv: float
     n_obs: int
     n_ok: int
+    wvv_weighted: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -945,13 +987,13 @@ class SplineChunk:
         wt = np.zeros(len(v))
         wt[ok] = np.where(keep, wv, 0.0)
         wt[self.gap] = 0.0
+        dw = wt * self.data_weight(cell_weight)
         nmat, rhs, gram = _assemble(
-            None, self.bounds, self.idx16, self.w16, nrm, v, wt * self.data_weight(cell_weight),
-            self.n_k, ok=ok,
-        )  # fmt: skip
+            None, self.bounds, self.idx16, self.w16, nrm, v, dw, self.n_k, ok=ok
+        )
         return ChunkNormals(
             nmat, rhs, gram, float(np.sum(wt * v * v)), int(np.count_nonzero(wt)),
-            int(np.count_nonzero(ok)),
+            int(np.count_nonzero(ok)), float(np.sum(dw * v * v)),
         )  # fmt: skip
 
     def report(
@@ -1206,6 +1248,7 @@ def fit_spline_chunks(
     progress: Optional[ProgressCallback] = None,
     block_m: Optional[float] = None,
     cell_weight=None,
+    penalty_width_knots: Optional[float] = None,
 ) -> SplineFit:
     """:func:`fit_spline_field` over chunks of points: the Gauss-Newton normal equations,
     the weights' scale and the final sums are sums (or quantiles) over the after-points, so
@@ -1223,6 +1266,11 @@ def fit_spline_chunks(
     initial, report_xy, report_pairs, smoothing, gate_m, opts, progress, block_m, cell_weight
         As :func:`fit_spline_field` (with ``block_m`` every chunk's ``report`` gives its
         block sums, :class:`~slipmap.core.icp_blocks.BlockScores`, added here).
+    penalty_width_knots : float, optional
+        Width of the local penalty's Gaussian kernel in knot spacings (with cell weights and
+        the smoothing estimated). None: each of :data:`LOCAL_WIDTHS_KNOTS`, the fit of the
+        lowest :func:`_restricted_score` kept (the data choose how local the smoothing is,
+        as they choose how strong).
 
     Returns
     -------
@@ -1274,11 +1322,38 @@ def fit_spline_chunks(
     # and a local estimate would follow their shared errors further: one weight per
     # component there, as before.
     local = auto and cell_weight is not None
+    if local and penalty_width_knots is None and len(LOCAL_WIDTHS_KNOTS) > 1:
+        fits = [
+            fit_spline_chunks(
+                run,
+                frame=frame,
+                initial=initial,
+                report_xy=report_xy,
+                report_pairs=report_pairs,
+                smoothing=smoothing,
+                gate_m=gate_m,
+                opts=opts,
+                progress=progress,
+                block_m=block_m,
+                cell_weight=cell_weight,
+                penalty_width_knots=w,
+            )  # fmt: skip
+            for w in LOCAL_WIDTHS_KNOTS
+        ]
+        best = min(fits, key=lambda f: f.restricted_score)
+        log.info(
+            "spline field: local penalty of %.2f m (restricted likelihood: %s)",
+            best.penalty_width_m,
+            ", ".join(f"{f.penalty_width_m:g} m {f.restricted_score:.1f}" for f in fits),
+        )
+        return best
     kernel = n_nominal = None
+    width = None
     if local:  # Gaussian of two knot spacings (a cell by default), cut at three widths
         from scipy.spatial import cKDTree
 
-        width = 2.0 * h
+        wk = LOCAL_WIDTHS_KNOTS[0] if penalty_width_knots is None else penalty_width_knots
+        width = float(wk) * h
         kt = cKDTree(rpos)
         kd = kt.sparse_distance_matrix(kt, 3.0 * width, output_type="coo_matrix")
         kernel = sp.csr_matrix(
@@ -1308,6 +1383,7 @@ def fit_spline_chunks(
         gram = _sum_sparse([p.gram for p in parts], n_k)
         rhs = np.sum([p.rhs for p in parts], axis=0)
         wvv = float(sum(p.wvv for p in parts))
+        wvv_weighted = float(sum(p.wvv_weighted for p in parts))
         n_obs = int(sum(p.n_obs for p in parts))
         n_ok = int(sum(p.n_ok for p in parts))
         if lam_abs is None:
@@ -1357,6 +1433,7 @@ def fit_spline_chunks(
         if rms_du < max(opts.tolerance_m, floor) or since_best >= STALL_ITERATIONS:
             converged = True
             break
+    score = _restricted_score(factor, penalty, c, wvv, wvv_weighted, n_obs) if local else None
     # final residuals, sigma0 and the report
     wgt = weighting_at(c)
     bm = None if block_m is None else float(block_m)
@@ -1457,6 +1534,8 @@ def fit_spline_chunks(
         cov_prior=cov_prior,
         data_weight=cell_weight,
         projection=projection,
+        penalty_width_m=width,
+        restricted_score=score,
     )
 
 
