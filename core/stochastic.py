@@ -74,7 +74,8 @@ Robustness (:func:`plane_tests`). Plane misclosures are tested with the w-test o
 observations ``w_j = (Π e)_j / √Π_jj`` — against the plane-level spread (the components), not
 the white point noise. Planes beyond ``k_reject`` are rejected; planes between ``k_weight`` and
 ``k_reject`` are down-weighted by the IGG-III weight, applied as an inflation of their
-variance in ``V``. The first pass starts from a robust scale (MAD of the misclosures) so that
+variance in ``V``. The first pass starts from a robust scale (a MAD of the misclosures, each
+standardised by its own white part: :func:`_mad_scale`) so that
 gross outliers (renovated buildings) cannot inflate the components and mask themselves.
 
 Cost. Dense ``V`` (planes × planes) with one Cholesky per Gauss–Helmert iteration, and
@@ -1535,11 +1536,47 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
     return np.abs(z) > k_gross, math.sqrt(s2)
 
 
+#: median of the χ² distribution with one degree of freedom: a standardised residual's square
+#: is below it half of the time
+_CHI2_1_MEDIAN = 0.454936423119572
+
+
 def _mad_scale(r: np.ndarray, p: np.ndarray):
-    """Robust plane-level variance ``s²`` (MAD of the residuals less the median white part)
-    and the residuals standardised by ``√(p + s²)``."""
-    mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-    s2 = max(mad * mad - float(np.median(p)), 0.0)
+    """Robust plane-level variance ``s²`` and the residuals standardised by ``√(p + s²)``.
+
+    ``s²`` is the smallest value ≥ 0 at which the median of ``u_j = d_j² / (p_j + s²)``
+    (``d = r − median(r)``), each plane weighted by its information on ``s²``,
+    ``1 / (p_j + s²)²``, is the median of χ²₁: each plane is standardised by its own white
+    part, and planes whose white part dwarfs ``s²`` (they cannot tell it) weigh little. With
+    one ``p`` for all planes this is ``MAD² − p`` (for an odd count; the lower middle value
+    for an even one), the former rule. That rule,
+    ``MAD² − median(p)``, took the median plane's white part for every plane: among many
+    imprecise planes (transferred ALS walls, ``p`` of several mm²) it exceeded the MAD, ``s``
+    fell to 0, and a ground plane known to a fraction of a millimetre was standardised by its
+    own tiny ``p`` and rejected (docs/accuracy.md, "Transferred planes"). A weighted median
+    keeps the 50 % breakdown (by weight). It is a step function of ``s²``, so a bisection of
+    the bracket ``[0, max d² / median(χ²₁)]`` (where every ``u`` is below the target) finds
+    the crossing.
+    """
+    d2 = (r - np.median(r)) ** 2
+    pp = p + _FLOOR
+
+    def excess(s2: float) -> float:
+        v = pp + s2
+        w = 1.0 / (v * v)
+        return _weighted_median(d2 / v, w / w.sum()) - _CHI2_1_MEDIAN
+
+    if r.size == 0 or excess(0.0) <= 0.0:
+        s2 = 0.0
+    else:
+        lo, hi = 0.0, float(d2.max()) / _CHI2_1_MEDIAN
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            if excess(mid) > 0.0:
+                lo = mid
+            else:
+                hi = mid
+        s2 = hi
     return s2, r / np.sqrt(p + s2 + _FLOOR)
 
 
