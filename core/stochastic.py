@@ -1544,29 +1544,35 @@ _CHI2_1_MEDIAN = 0.454936423119572
 def _mad_scale(r: np.ndarray, p: np.ndarray):
     """Robust plane-level variance ``s²`` and the residuals standardised by ``√(p + s²)``.
 
-    ``s²`` is the smallest value ≥ 0 at which the median of ``u_j = d_j² / (p_j + s²)``
-    (``d = r − median(r)``), each plane weighted by its information on ``s²``,
-    ``1 / (p_j + s²)²``, is the median of χ²₁: each plane is standardised by its own white
-    part, and planes whose white part dwarfs ``s²`` (they cannot tell it) weigh little. With
-    one ``p`` for all planes this is ``MAD² − p`` (for an odd count; the lower middle value
-    for an even one), the former rule. That rule,
-    ``MAD² − median(p)``, took the median plane's white part for every plane: among many
-    imprecise planes (transferred ALS walls, ``p`` of several mm²) it exceeded the MAD, ``s``
-    fell to 0, and a ground plane known to a fraction of a millimetre was standardised by its
-    own tiny ``p`` and rejected (docs/accuracy.md, "Transferred planes"). A weighted median
-    keeps the 50 % breakdown (by weight). It is a step function of ``s²``, so a bisection of
-    the bracket ``[0, max d² / median(χ²₁)]`` (where every ``u`` is below the target) finds
-    the crossing.
+    ``s²`` is the value ≥ 0 at which the median of ``u_j = d_j² / (p_j + s²)``
+    (``d = r − median(r)``) is the median of χ²₁, each plane weighted by
+    ``w_j = 1 / (p_j + m²)`` with ``m² = median(d²) / median(χ²₁)`` (the plain MAD², white part
+    and spread together): each plane is standardised by its own white part, and a plane whose
+    white part dwarfs the spread (it cannot tell ``s²``) weighs little. ``1 / (p_j + s²)`` is
+    the weight of the locally optimal sign estimating equation ``Σ w_j sign(u_j − c) = 0``;
+    it is taken at the pilot ``m²`` because at a trial ``s²`` near 0 it hands the median to
+    the one or two most precise planes (the ground): the equation then has spurious roots at
+    ``s = 0`` and rejected sound planes (an ALS pair of the benchmark, three to five planes a
+    side). With the weights fixed, each ``u_j`` falls with ``s²`` and so does their weighted
+    median: one root, found by bisection of ``[0, max d² / median(χ²₁)]``. With one ``p`` for
+    all planes this is ``MAD² − p`` (for an odd count; the lower middle value for an even
+    one), the former rule. That rule, ``MAD² − median(p)``, took the median plane's white
+    part for every plane: among many imprecise planes (transferred ALS walls, ``p`` of
+    several mm²) it exceeded the MAD, ``s`` fell to 0, and a ground plane known to a fraction
+    of a millimetre was standardised by its own tiny ``p`` and rejected (docs/accuracy.md,
+    "Transferred planes"). A weighted median keeps the 50 % breakdown (by weight).
     """
     d2 = (r - np.median(r)) ** 2
     pp = p + _FLOOR
+    if r.size == 0:
+        return 0.0, r.copy()
+    w = 1.0 / (pp + float(np.median(d2)) / _CHI2_1_MEDIAN)
+    w = w / w.sum()
 
     def excess(s2: float) -> float:
-        v = pp + s2
-        w = 1.0 / (v * v)
-        return _weighted_median(d2 / v, w / w.sum()) - _CHI2_1_MEDIAN
+        return _weighted_median(d2 / (pp + s2), w) - _CHI2_1_MEDIAN
 
-    if r.size == 0 or excess(0.0) <= 0.0:
+    if excess(0.0) <= 0.0:
         s2 = 0.0
     else:
         lo, hi = 0.0, float(d2.max()) / _CHI2_1_MEDIAN
