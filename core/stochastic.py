@@ -1521,18 +1521,23 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
     ``k_gross``. Returns (bool (k,) gross, robust plane sigma s (m))."""
     r = e - x @ _lms_start(e, x, p)
     rt = np.zeros(x.shape[1]) if rt is None else rt
+    h = np.zeros(e.size)  # leverage of the last fit (the start's residuals: none)
     for _ in range(10):
-        s2, z = _mad_scale(r, p)
+        s2, z = _mad_scale(r, p, h)
         w = igg3_weight(z, 2.0, max(k_gross, 3.0))
         wt = w / (p + s2 + _FLOOR)
         m = x.T @ (wt[:, None] * x) + t
         beta = np.linalg.lstsq(m, x.T @ (wt * e) + rt, rcond=None)[0]
+        # a fit of 6 parameters to a dozen planes takes up their residuals: plane j's residual
+        # variance is (p_j + s²)(1 − h_j), h_j = wt_j x_j M⁻¹ x_jᵀ; without it the scale of a
+        # side of 11-15 planes fell to 0 and a sound ground plane was rejected (mls-als 2005)
+        h = np.clip(wt * np.einsum("ij,jk,ik->i", x, np.linalg.pinv(m, hermitian=True), x), 0, 1)
         r_new = e - x @ beta
         if np.allclose(r_new, r, atol=1e-12, rtol=0):
             r = r_new
             break
         r = r_new
-    s2, z = _mad_scale(r, p)
+    s2, z = _mad_scale(r, p, h)
     return np.abs(z) > k_gross, math.sqrt(s2)
 
 
@@ -1541,8 +1546,11 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
 _CHI2_1_MEDIAN = 0.454936423119572
 
 
-def _mad_scale(r: np.ndarray, p: np.ndarray):
-    """Robust plane-level variance ``s²`` and the residuals standardised by ``√(p + s²)``.
+def _mad_scale(r: np.ndarray, p: np.ndarray, h: Optional[np.ndarray] = None):
+    """Robust plane-level variance ``s²`` and the residuals standardised by
+    ``√((p + s²)(1 − h))`` (``h`` (k,): the residuals' leverage in the fit that left them,
+    default none; ``1 − h`` is held at 0.1 or more, so a plane the fit passes through is not
+    standardised by nothing).
 
     ``s²`` is the value ≥ 0 at which the median of ``u_j = d_j² / (p_j + s²)``
     (``d = r − median(r)``) is the median of χ²₁, each plane weighted by
@@ -1562,7 +1570,8 @@ def _mad_scale(r: np.ndarray, p: np.ndarray):
     of a millimetre was standardised by its own tiny ``p`` and rejected (docs/accuracy.md,
     "Transferred planes"). A weighted median keeps the 50 % breakdown (by weight).
     """
-    d2 = (r - np.median(r)) ** 2
+    q = np.ones(r.size) if h is None else np.clip(1.0 - h, 0.1, 1.0)
+    d2 = (r - np.median(r)) ** 2 / q
     pp = p + _FLOOR
     if r.size == 0:
         return 0.0, r.copy()
@@ -1583,7 +1592,7 @@ def _mad_scale(r: np.ndarray, p: np.ndarray):
             else:
                 hi = mid
         s2 = hi
-    return s2, r / np.sqrt(p + s2 + _FLOOR)
+    return s2, r / np.sqrt((p + s2 + _FLOOR) * q)
 
 
 LMS_SUBSETS = 500  # random elemental subsets of the least-median-of-squares start
