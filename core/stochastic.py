@@ -85,7 +85,8 @@ Robustness (:func:`plane_tests`). Plane misclosures are tested with the w-test o
 observations ``w_j = (Π e)_j / √Π_jj`` — against the plane-level spread (the components), not
 the white point noise. Planes beyond ``k_reject`` are rejected; planes between ``k_weight`` and
 ``k_reject`` are down-weighted by the IGG-III weight, applied as an inflation of their
-variance in ``V``. The first pass starts from a robust scale (MAD of the misclosures) so that
+variance in ``V``. The first pass starts from a robust scale (a MAD of the misclosures, each
+standardised by its own white part: :func:`_mad_scale`) so that
 gross outliers (renovated buildings) cannot inflate the components and mask themselves.
 
 Cost. Dense ``V`` (planes × planes) with one Cholesky per Gauss–Helmert iteration, and
@@ -1809,27 +1810,78 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
     ``k_gross``. Returns (bool (k,) gross, robust plane sigma s (m))."""
     r = e - x @ _lms_start(e, x, p)
     rt = np.zeros(x.shape[1]) if rt is None else rt
+    h = np.zeros(e.size)  # leverage of the last fit (the start's residuals: none)
     for _ in range(10):
-        s2, z = _mad_scale(r, p)
+        s2, z = _mad_scale(r, p, h)
         w = igg3_weight(z, 2.0, max(k_gross, 3.0))
         wt = w / (p + s2 + _FLOOR)
         m = x.T @ (wt[:, None] * x) + t
         beta = np.linalg.lstsq(m, x.T @ (wt * e) + rt, rcond=None)[0]
+        # a fit of 6 parameters to a dozen planes takes up their residuals: plane j's residual
+        # variance is (p_j + s²)(1 − h_j), h_j = wt_j x_j M⁻¹ x_jᵀ; without it the scale of a
+        # side of 11-15 planes fell to 0 and a sound ground plane was rejected (mls-als 2005)
+        h = np.clip(wt * np.einsum("ij,jk,ik->i", x, np.linalg.pinv(m, hermitian=True), x), 0, 1)
         r_new = e - x @ beta
         if np.allclose(r_new, r, atol=1e-12, rtol=0):
             r = r_new
             break
         r = r_new
-    s2, z = _mad_scale(r, p)
+    s2, z = _mad_scale(r, p, h)
     return np.abs(z) > k_gross, math.sqrt(s2)
 
 
-def _mad_scale(r: np.ndarray, p: np.ndarray):
-    """Robust plane-level variance ``s²`` (MAD of the residuals less the median white part)
-    and the residuals standardised by ``√(p + s²)``."""
-    mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
-    s2 = max(mad * mad - float(np.median(p)), 0.0)
-    return s2, r / np.sqrt(p + s2 + _FLOOR)
+#: median of the χ² distribution with one degree of freedom: a standardised residual's square
+#: is below it half of the time
+_CHI2_1_MEDIAN = 0.454936423119572
+
+
+def _mad_scale(r: np.ndarray, p: np.ndarray, h: Optional[np.ndarray] = None):
+    """Robust plane-level variance ``s²`` and the residuals standardised by
+    ``√((p + s²)(1 − h))`` (``h`` (k,): the residuals' leverage in the fit that left them,
+    default none; ``1 − h`` is held at 0.1 or more, so a plane the fit passes through is not
+    standardised by nothing).
+
+    ``s²`` is the value ≥ 0 at which the median of ``u_j = d_j² / (p_j + s²)``
+    (``d = r − median(r)``) is the median of χ²₁, each plane weighted by
+    ``w_j = 1 / (p_j + m²)`` with ``m² = median(d²) / median(χ²₁)`` (the plain MAD², white part
+    and spread together): each plane is standardised by its own white part, and a plane whose
+    white part dwarfs the spread (it cannot tell ``s²``) weighs little. ``1 / (p_j + s²)`` is
+    the weight of the locally optimal sign estimating equation ``Σ w_j sign(u_j − c) = 0``;
+    it is taken at the pilot ``m²`` because at a trial ``s²`` near 0 it hands the median to
+    the one or two most precise planes (the ground): the equation then has spurious roots at
+    ``s = 0`` and rejected sound planes (an ALS pair of the benchmark, three to five planes a
+    side). With the weights fixed, each ``u_j`` falls with ``s²`` and so does their weighted
+    median: one root, found by bisection of ``[0, max d² / median(χ²₁)]``. With one ``p`` for
+    all planes this is ``MAD² − p`` (for an odd count; the lower middle value for an even
+    one), the former rule. That rule, ``MAD² − median(p)``, took the median plane's white
+    part for every plane: among many imprecise planes (transferred ALS walls, ``p`` of
+    several mm²) it exceeded the MAD, ``s`` fell to 0, and a ground plane known to a fraction
+    of a millimetre was standardised by its own tiny ``p`` and rejected (docs/accuracy.md,
+    "Transferred planes"). A weighted median keeps the 50 % breakdown (by weight).
+    """
+    q = np.ones(r.size) if h is None else np.clip(1.0 - h, 0.1, 1.0)
+    d2 = (r - np.median(r)) ** 2 / q
+    pp = p + _FLOOR
+    if r.size == 0:
+        return 0.0, r.copy()
+    w = 1.0 / (pp + float(np.median(d2)) / _CHI2_1_MEDIAN)
+    w = w / w.sum()
+
+    def excess(s2: float) -> float:
+        return _weighted_median(d2 / (pp + s2), w) - _CHI2_1_MEDIAN
+
+    if excess(0.0) <= 0.0:
+        s2 = 0.0
+    else:
+        lo, hi = 0.0, float(d2.max()) / _CHI2_1_MEDIAN
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            if excess(mid) > 0.0:
+                lo = mid
+            else:
+                hi = mid
+        s2 = hi
+    return s2, r / np.sqrt((p + s2 + _FLOOR) * q)
 
 
 LMS_SUBSETS = 500  # random elemental subsets of the least-median-of-squares start
