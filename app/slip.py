@@ -298,7 +298,7 @@ SPEC = JobSpec(
             "lie on them (a sparse airborne epoch beside a mobile one: walls it cannot segment) "
             "and adjusted like matched planes; whole sides only, not tiles",
             label="Transferred planes",
-            default=False,
+            default=True,
             group=_MATCH,
             advanced=True,
         ),

@@ -127,7 +127,6 @@ def test_sparse_walls_are_transferred_and_the_motion_recovered(scene):
 
 def test_without_anything_to_transfer_nothing_changes(scene):
     before, _, _, _ = scene
-    assert not DEFAULT_TRANSFER_PLANES  # an option of the core call (docs/accuracy.md)
     res = register_side(
         before, before, side="left", sigma_before=NOISE_M, sigma_after=NOISE_M,
         stochastic={"stochastic_model": "white"}, transfer_planes=True,
@@ -212,3 +211,12 @@ def test_append_planes_refuses_labelled_points(scene):
     idx = np.flatnonzero(pb.labels == walls[0])[:10]
     with pytest.raises(InvalidParameterError, match="already on a plane"):
         append_planes(pb, before, idx, np.zeros(10, dtype=np.int64))
+
+
+def test_the_slip_jobs_default_is_the_cores():
+    """On by default (docs/accuracy.md, "Transferred planes"), and every face's default (the
+    slip job's option) is the core call's."""
+    from slipmap.app.slip import SPEC
+
+    assert DEFAULT_TRANSFER_PLANES
+    assert SPEC["transfer_planes"].default is DEFAULT_TRANSFER_PLANES
