@@ -1810,23 +1810,18 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
     ``k_gross``. Returns (bool (k,) gross, robust plane sigma s (m))."""
     r = e - x @ _lms_start(e, x, p)
     rt = np.zeros(x.shape[1]) if rt is None else rt
-    h = np.zeros(e.size)  # leverage of the last fit (the start's residuals: none)
     for _ in range(10):
-        s2, z = _mad_scale(r, p, h)
+        s2, z = _mad_scale(r, p)
         w = igg3_weight(z, 2.0, max(k_gross, 3.0))
         wt = w / (p + s2 + _FLOOR)
         m = x.T @ (wt[:, None] * x) + t
         beta = np.linalg.lstsq(m, x.T @ (wt * e) + rt, rcond=None)[0]
-        # a fit of 6 parameters to a dozen planes takes up their residuals: plane j's residual
-        # variance is (p_j + s²)(1 − h_j), h_j = wt_j x_j M⁻¹ x_jᵀ; without it the scale of a
-        # side of 11-15 planes fell to 0 and a sound ground plane was rejected (mls-als 2005)
-        h = np.clip(wt * np.einsum("ij,jk,ik->i", x, np.linalg.pinv(m, hermitian=True), x), 0, 1)
         r_new = e - x @ beta
         if np.allclose(r_new, r, atol=1e-12, rtol=0):
             r = r_new
             break
         r = r_new
-    s2, z = _mad_scale(r, p, h)
+    s2, z = _mad_scale(r, p)
     return np.abs(z) > k_gross, math.sqrt(s2)
 
 
@@ -1835,35 +1830,37 @@ def robust_start(e: np.ndarray, x: np.ndarray, t: np.ndarray, p: np.ndarray, k_g
 _CHI2_1_MEDIAN = 0.454936423119572
 
 
-def _mad_scale(r: np.ndarray, p: np.ndarray, h: Optional[np.ndarray] = None):
-    """Robust plane-level variance ``s²`` and the residuals standardised by
-    ``√((p + s²)(1 − h))`` (``h`` (k,): the residuals' leverage in the fit that left them,
-    default none; ``1 − h`` is held at 0.1 or more, so a plane the fit passes through is not
-    standardised by nothing).
+def _mad_scale(r: np.ndarray, p: np.ndarray):
+    """Robust plane-level variance ``s²`` (MAD of the residuals less the median white part)
+    and the residuals standardised by ``√(p + s²)``.
 
-    ``s²`` is the value ≥ 0 at which the median of ``u_j = d_j² / (p_j + s²)``
-    (``d = r − median(r)``) is the median of χ²₁, each plane weighted by
-    ``w_j = 1 / (p_j + m²)`` with ``m² = median(d²) / median(χ²₁)`` (the plain MAD², white part
-    and spread together): each plane is standardised by its own white part, and a plane whose
-    white part dwarfs the spread (it cannot tell ``s²``) weighs little. ``1 / (p_j + s²)`` is
-    the weight of the locally optimal sign estimating equation ``Σ w_j sign(u_j − c) = 0``;
-    it is taken at the pilot ``m²`` because at a trial ``s²`` near 0 it hands the median to
-    the one or two most precise planes (the ground): the equation then has spurious roots at
-    ``s = 0`` and rejected sound planes (an ALS pair of the benchmark, three to five planes a
-    side). With the weights fixed, each ``u_j`` falls with ``s²`` and so does their weighted
-    median: one root, found by bisection of ``[0, max d² / median(χ²₁)]``. With one ``p`` for
-    all planes this is ``MAD² − p`` (for an odd count; the lower middle value for an even
-    one), the former rule. That rule, ``MAD² − median(p)``, took the median plane's white
-    part for every plane: among many imprecise planes (transferred ALS walls, ``p`` of
-    several mm²) it exceeded the MAD, ``s`` fell to 0, and a ground plane known to a fraction
-    of a millimetre was standardised by its own tiny ``p`` and rejected (docs/accuracy.md,
-    "Transferred planes"). A weighted median keeps the 50 % breakdown (by weight).
+    ``MAD² − median(p)`` takes the median plane's white part for every plane. Among many
+    imprecise planes (transferred ALS walls, ``p`` of several mm²) it falls below 0: ``s``
+    was then 0 and a ground plane known to a fraction of a millimetre, standardised by its own
+    tiny ``p``, was rejected (docs/accuracy.md, "Transferred planes"). There (only) ``s²`` is
+    where the median of ``u_j = d_j² / (p_j + s²)`` (``d = r − median r``) is the median of
+    χ²₁, each plane weighted by ``1 / (p_j + m²)`` (``m²`` the plain MAD²): each plane is
+    standardised by its own white part, and a plane whose white part dwarfs the spread
+    weighs little (:func:`_own_scale`). Where the former rule is positive it is kept: the
+    per-plane rule everywhere changed sides of a dozen planes, whose median is of an almost
+    exact fit (an ALS pair lost three sound roofs out of sample; docs/accuracy.md).
     """
-    q = np.ones(r.size) if h is None else np.clip(1.0 - h, 0.1, 1.0)
-    d2 = (r - np.median(r)) ** 2 / q
+    mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    s2 = mad * mad - float(np.median(p))
+    if s2 <= 0.0 and r.size:
+        s2 = _own_scale(r, p)
+    s2 = max(s2, 0.0)
+    return s2, r / np.sqrt(p + s2 + _FLOOR)
+
+
+def _own_scale(r: np.ndarray, p: np.ndarray) -> float:
+    """``s²`` ≥ 0 at which the weighted median of ``d_j² / (p_j + s²)`` is the median of χ²₁
+    (weights ``1 / (p_j + m²)``, fixed at the plain MAD² ``m²`` so that the median falls
+    monotonically with ``s²``: weights taken at the trial ``s²`` hand the median to the
+    ground near ``s = 0`` and have spurious roots there), by bisection of
+    ``[0, max d² / median(χ²₁)]``. With one ``p`` for all planes it is ``MAD² − p``."""
+    d2 = (r - np.median(r)) ** 2
     pp = p + _FLOOR
-    if r.size == 0:
-        return 0.0, r.copy()
     w = 1.0 / (pp + float(np.median(d2)) / _CHI2_1_MEDIAN)
     w = w / w.sum()
 
@@ -1871,17 +1868,15 @@ def _mad_scale(r: np.ndarray, p: np.ndarray, h: Optional[np.ndarray] = None):
         return _weighted_median(d2 / (pp + s2), w) - _CHI2_1_MEDIAN
 
     if excess(0.0) <= 0.0:
-        s2 = 0.0
-    else:
-        lo, hi = 0.0, float(d2.max()) / _CHI2_1_MEDIAN
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            if excess(mid) > 0.0:
-                lo = mid
-            else:
-                hi = mid
-        s2 = hi
-    return s2, r / np.sqrt((p + s2 + _FLOOR) * q)
+        return 0.0
+    lo, hi = 0.0, float(d2.max()) / _CHI2_1_MEDIAN
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if excess(mid) > 0.0:
+            lo = mid
+        else:
+            hi = mid
+    return hi
 
 
 LMS_SUBSETS = 500  # random elemental subsets of the least-median-of-squares start

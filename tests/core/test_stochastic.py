@@ -375,15 +375,19 @@ def test_renovated_pair_seed_1017_vertical_not_taken_from_a_moved_roof():
 
 
 def test_robust_scale_is_mad_squared_less_p_when_every_plane_has_the_same_p():
-    """The closed form: with one white part ``p`` the scale is ``MAD² − p`` (clipped at 0)."""
+    """The closed form: with one white part ``p`` the per-plane scale is ``MAD² − p`` (clipped
+    at 0), and the robust start's scale is that."""
     rng = np.random.default_rng(5)
     for s_true, p0 in ((0.002, 0.001**2), (0.0005, 0.002**2), (0.003, 0.0)):
         r = rng.normal(0.0007, math.sqrt(s_true**2 + p0), 301)
         p = np.full(r.size, p0)
         # MAD² = median(d²) / median(χ²₁) (1.4826² rounded): the closed form
         mad2 = np.median((r - np.median(r)) ** 2) / sto._CHI2_1_MEDIAN
+        assert sto._own_scale(r, p) == pytest.approx(
+            max(mad2 - p0, 0.0), rel=1e-9, abs=2 * sto._FLOOR
+        )
         s2, z = sto._mad_scale(r, p)
-        assert s2 == pytest.approx(max(mad2 - p0, 0.0), rel=1e-9, abs=2 * sto._FLOOR)
+        assert s2 == pytest.approx(max(mad2 - p0, 0.0), rel=1e-4, abs=2 * sto._FLOOR)  # 1.4826
         np.testing.assert_allclose(z, r / np.sqrt(p + s2 + sto._FLOOR))
 
 
@@ -399,8 +403,8 @@ def test_robust_scale_weighs_each_planes_own_white_part():
     for _ in range(30):
         p = np.concatenate([np.full(40, 0.006**2), np.full(15, 0.0001**2)])
         r = rng.normal(0.0, np.sqrt(p + s_true**2))
-        s2, z = sto._mad_scale(r, p)
-        assert 0.4 * s_true < math.sqrt(s2) < 2.5 * s_true
+        assert 0.4 * s_true < math.sqrt(sto._own_scale(r, p)) < 2.5 * s_true
+        _, z = sto._mad_scale(r, p)
         flagged_new += int(np.sum(np.abs(z[40:]) > sto.GROSS_MAD))
         mad = 1.4826 * np.median(np.abs(r - np.median(r)))
         s2_old = max(mad**2 - np.median(p), 0.0)
@@ -426,9 +430,9 @@ def test_robust_start_keeps_precise_planes_among_imprecise_ones():
 
 def test_robust_start_on_a_side_of_a_dozen_planes_keeps_sound_planes():
     """A side of 12 planes (3 precise horizontal ones, 9 at 1.5 mm; 1 mm plane-level spread,
-    nothing gross): the 6-parameter fit takes up half the residuals' spread, and the former
-    scale (``MAD² − median(p)``, no leverage) fell to 0 and rejected 32 sound planes in these
-    50 sides (5 %); each plane's own white part and its leverage, 5 (under 1 %)."""
+    nothing gross): the 6-parameter fit takes up half the residuals' spread, the former scale
+    ``MAD² − median(p)`` fell to 0 in most of these sides and rejected 32 sound planes in 50
+    (5 %); with each plane's own white part where it falls to 0, 5 (under 1 %)."""
     flagged = 0
     for seed in range(50):
         rng = np.random.default_rng(seed)
