@@ -582,6 +582,20 @@ def _assemble(order, bounds, idx16, w16, nrm, v, wt, n_k, ok=None):
     return n, rhs, matrix(g_rows, g_cols, g_vals, n_k)
 
 
+def _row_groups(idx: np.ndarray) -> np.ndarray:
+    """(P,) int64: each row's rank among the distinct rows of ``idx`` (P, M) in lexicographic
+    order, as ``np.unique(idx, axis=0, return_inverse=True)[1]`` (the reference, several
+    times slower: it sorts a structured view)."""
+    if len(idx) == 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.lexsort(idx.T[::-1])
+    srt = idx[order]
+    new = np.r_[True, np.any(srt[1:] != srt[:-1], axis=1)]
+    out = np.empty(len(idx), dtype=np.int64)
+    out[order] = np.cumsum(new) - 1
+    return out
+
+
 #: the six distinct products ``n_i n_j`` of a target normal's components (i <= j)
 _NORMAL_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -604,6 +618,7 @@ def _kron_maps():
 
 
 _E48, _E16 = _kron_maps()
+_KRON_BLOCK = 1024  # points per product in _assemble_kron
 
 
 @dataclass(frozen=True)
@@ -640,7 +655,7 @@ class NormalPattern:
         return cls(int(n_k), p48, i48, s48, p16, i16, s16)
 
 
-def _assemble_kron(bounds, idx16, bu, bv, nrm, v, wt, n_k, ok, pattern=None):
+def _assemble_kron(bounds, idx16, w16, bu, bv, nrm, v, wt, n_k, ok, pattern=None):
     """:func:`_assemble` (with ``order=None`` and ``ok``) from the basis' Kronecker structure:
     a point's 16 weights are ``bv_r bu_c`` (:func:`spline_basis`), so its (48, 48) block
     ``w (n nᵀ) ⊗ (b bᵀ)`` has only 6 x 100 distinct entries (``n_i n_j``, i <= j; and
@@ -654,8 +669,8 @@ def _assemble_kron(bounds, idx16, bu, bv, nrm, v, wt, n_k, ok, pattern=None):
     ----------
     bounds : (G + 1,) int64
         Interval slices of the points (sorted by interval, all with the same 16 knots).
-    idx16 : (P, 16) int64
-        Coefficient indices.
+    idx16, w16 : (P, 16) int64, (P, 16) float64
+        Coefficient indices and weights.
     bu, bv : (P, 4) float64
         The cubic B-spline weights along x and along y (``w16 = bv ⊗ bu``, row-major).
     nrm, v, wt, n_k, ok
@@ -681,10 +696,14 @@ def _assemble_kron(bounds, idx16, bu, bv, nrm, v, wt, n_k, ok, pattern=None):
     rhs16 = np.empty((n_g, 3, 16))
     for g in range(n_g):
         s0, s1 = int(bounds[g]), int(bounds[g + 1])
-        q = (qv[s0:s1, :, None] * qu[s0:s1, None, :]).reshape(s1 - s0, 100)
-        sums[g] = (coef[s0:s1].T @ q).reshape(700)
-        b = bv[s0:s1, :, None] * bu[s0:s1, None, :]
-        rhs16[g] = wv_n[s0:s1].T @ b.reshape(s1 - s0, 16)
+        acc = np.zeros((7, 100))
+        # in blocks of points whose (n, 100) products stay in the cache (1.5x faster)
+        for t0 in range(s0, s1, _KRON_BLOCK):
+            t1 = min(t0 + _KRON_BLOCK, s1)
+            q = (qv[t0:t1, :, None] * qu[t0:t1, None, :]).reshape(t1 - t0, 100)
+            acc += coef[t0:t1].T @ q
+        sums[g] = acc.reshape(700)
+        rhs16[g] = wv_n[s0:s1].T @ w16[s0:s1]
     n3 = 3 * n_k
     first = idx16[np.asarray(bounds[:-1], dtype=np.int64)]
     rhs_idx = np.arange(3)[None, :, None] * n_k + first[:, None, :]
@@ -1007,8 +1026,7 @@ class SplineChunk:
         if lines is None:
             cell_of = (idx16[:, 0] // kx) * frame.n_x + idx16[:, 0] % kx
         else:
-            _, cell_of = np.unique(idx16, axis=0, return_inverse=True)
-            cell_of = cell_of.reshape(-1)
+            cell_of = _row_groups(idx16)
         perm = np.argsort(cell_of, kind="stable")
         self.a, self.idx16, self.w16 = a[perm], idx16[perm], w16[perm]
         # points closer than breakline_gap_m to a line carry no weight (a line placed from
@@ -1019,7 +1037,8 @@ class SplineChunk:
 
             self.gap = distance_m(self.a, lines) < breakline_gap_m
         self.seg = None if seg is None else np.asarray(seg, dtype=np.int64)[perm]
-        _, starts = np.unique(cell_of[perm], return_index=True)
+        c_sorted = cell_of[perm]
+        starts = np.flatnonzero(np.r_[len(a) > 0, c_sorted[1:] != c_sorted[:-1]])
         self.bounds = np.append(starts, len(a))
         # the weights along x and y (w16 = bv ⊗ bu; each sums to 1) for _assemble_kron,
         # and its CSR pattern (built at the first iteration, the same for every one)
@@ -1114,7 +1133,7 @@ class SplineChunk:
         if self._pattern is None:
             self._pattern = NormalPattern.of(self.bounds, self.idx16, self.n_k)
         nmat, rhs, gram = _assemble_kron(
-            self.bounds, self.idx16, self._bu, self._bv, nrm, v, dw, self.n_k, ok,
+            self.bounds, self.idx16, self.w16, self._bu, self._bv, nrm, v, dw, self.n_k, ok,
             self._pattern,
         )  # fmt: skip
         return ChunkNormals(

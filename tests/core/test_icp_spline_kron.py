@@ -43,15 +43,20 @@ def _lines():
     return breaklines([np.array([[103.3, -52.0], [112.1, -36.0]])])
 
 
-@pytest.mark.parametrize("with_lines", [False, True])
-def test_kronecker_normal_equations_equal_the_plain_interval_products(with_lines):
+@pytest.mark.parametrize("with_lines, block", [(False, 1024), (True, 1024), (True, 7)])
+def test_kronecker_normal_equations_equal_the_plain_interval_products(
+    with_lines, block, monkeypatch
+):
+    import slipmap.core.icp_spline as spline
+
+    monkeypatch.setattr(spline, "_KRON_BLOCK", block)  # 7: many blocks per interval
     bounds, idx, w, nrm, v, wt, n_k, ok = _case(3, _lines() if with_lines else None)
     n_ref, b_ref, g_ref = _assemble(None, bounds, idx, w, nrm, v, wt, n_k, ok=ok)
     w4 = w.reshape(-1, 4, 4)
     pattern = NormalPattern.of(bounds, idx, n_k)
     for _ in range(2):  # the pattern reused, as between iterations
         n_new, b_new, g_new = _assemble_kron(
-            bounds, idx, w4.sum(axis=1), w4.sum(axis=2), nrm, v, wt, n_k, ok, pattern
+            bounds, idx, w, w4.sum(axis=1), w4.sum(axis=2), nrm, v, wt, n_k, ok, pattern
         )
         for ref, new in ((n_ref, n_new), (g_ref, g_new)):
             ref, new = ref.toarray(), new.toarray()
@@ -61,3 +66,19 @@ def test_kronecker_normal_equations_equal_the_plain_interval_products(with_lines
     assert n_new.nnz == n_ref.nnz and g_new.nnz == g_ref.nnz
     np.testing.assert_array_equal(n_new.indptr, n_ref.indptr)
     np.testing.assert_array_equal(n_new.indices, n_ref.indices)
+
+
+def test_row_groups_equal_numpys_unique_rows():
+    from slipmap.core.icp_spline import _row_groups
+
+    rng = np.random.default_rng(5)
+    idx = rng.integers(0, 4, size=(5000, 16)) * 10**9 + rng.integers(0, 3, size=(1, 16))
+    idx[::7] = idx[3]  # repeated rows
+    ref = np.unique(idx, axis=0, return_inverse=True)[1].reshape(-1)
+    np.testing.assert_array_equal(_row_groups(idx), ref)
+    # few distinct values: many equal rows
+    small = rng.integers(0, 2, size=(3000, 16))
+    np.testing.assert_array_equal(
+        _row_groups(small), np.unique(small, axis=0, return_inverse=True)[1].reshape(-1)
+    )
+    assert _row_groups(np.zeros((0, 16), dtype=np.int64)).shape == (0,)
