@@ -664,11 +664,6 @@ def _step_dense(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
     after-epoch conditions) with the pseudo-observations ``δ ~ N(0, Σ_δ)``: the mixed model in
     its direct form, against the block step's Woodbury form. Needs ``Σ_δ`` regular (a plane
     component > 0)."""
-    if cfg is not None and cfg.tilt_var > 0:
-        raise InvalidParameterError(
-            "adjust_rigid_dense does not model the random tilt per plane: leave out "
-            "components['tilt_rad'] (or give 0), or use adjust_rigid"
-        )
     act = np.flatnonzero(active)
     col = np.full(b, -1)
     col[act] = np.arange(act.size)

@@ -621,8 +621,7 @@ def spline_block_covariance(
     s0sq: float,
     scale: float,
     chunk: int = 64,
-    prior_part: bool = False,
-):
+) -> Tuple[np.ndarray, np.ndarray]:
     """Block covariance of a spline field's reported rows: ``R A⁻¹ (c M + s0² P) A⁻¹ Rᵀ``.
 
     ``M = sum_b g_b g_bᵀ`` with ``g_b`` the summed scores of the points of block ``b``
@@ -649,17 +648,12 @@ def spline_block_covariance(
         ``c`` (``mean(w) / mean(psi')² * n / (n - u)``).
     chunk : int
         Reported positions per solve.
-    prior_part : bool
-        Also return the penalty's share ``R A⁻¹ s0² P A⁻¹ Rᵀ`` (the prior's variance of the
-        regularised estimate; ``cov`` less it is the estimate's own sampling covariance).
 
     Returns
     -------
     cov : (K, 9, 9) float64
     n_blocks : (K,) int64
         Blocks with used points in each cell.
-    prior : (K, 9, 9) float64
-        Only with ``prior_part``: the penalty's share of ``cov``.
     """
     import scipy.sparse as sp
 
@@ -680,7 +674,6 @@ def spline_block_covariance(
     # blocks x coefficients; a block's shares from several chunks (and groups) are added
     S = sp.csr_matrix((vals.ravel(), (np.repeat(binv, 48), rr.ravel())), shape=(nb, n3))
     cov = np.zeros((k, 9, 9))
-    prior = np.zeros((k, 9, 9))
     for s0 in range(0, k, chunk):
         part = slice(s0, min(s0 + chunk, k))
         kk = part.stop - part.start
@@ -693,11 +686,10 @@ def spline_block_covariance(
         z = np.asarray(S @ sol).reshape(nb, kk, 9)
         ps = np.asarray(penalty @ sol).reshape(n3, kk, 9)
         sr = sol.reshape(n3, kk, 9)
-        prior[part] = s0sq * np.einsum("nki,nkj->kij", sr, ps)
-        cov[part] = scale * np.einsum("bki,bkj->kij", z, z) + prior[part]
+        cov[part] = scale * np.einsum("bki,bkj->kij", z, z) + s0sq * np.einsum(
+            "nki,nkj->kij", sr, ps
+        )
     cb = np.concatenate([s.cell_blocks for s in scores]).reshape(-1, 3)
     cb = np.unique(cb, axis=0).reshape(-1, 3) if len(cb) else cb
     n_blocks = np.bincount(cb[:, 0], minlength=k).astype(np.int64)[:k]
-    if prior_part:
-        return cov, n_blocks, prior
     return cov, n_blocks

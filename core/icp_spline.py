@@ -416,9 +416,6 @@ class SplineFit:
         spline_block_covariance`), m² and m²/m.
     n_blocks : (K,) int64 or None
         With ``block_m``: blocks with used points in each cell (``report_seg``).
-    cov_prior : (K, 9, 9) float64 or None
-        With ``block_m``: the penalty's share of ``cov_blocks`` (``s0² A⁻¹ P A⁻¹``, the
-        prior's variance; ``cov_blocks`` less it is the estimate's sampling covariance).
     data_weight : (K,) float64 or None
         The cells' data weights ``1 / F`` of a weighted fit (``cell_weight``); None: every
         point counted as independent.
@@ -444,7 +441,6 @@ class SplineFit:
     pair_cov: Optional[np.ndarray] = None
     cov_blocks: Optional[np.ndarray] = None
     n_blocks: Optional[np.ndarray] = None
-    cov_prior: Optional[np.ndarray] = None
     data_weight: Optional[np.ndarray] = None
     projection: Optional[np.ndarray] = None
     penalty_width_m: Optional[float] = None
@@ -1641,7 +1637,7 @@ def fit_spline_chunks(
                 column = (pairs[sel, 0] - part.start) * 9 + comp
                 vals = sol[comp * n_k + ridx[pj], column[:, None]]  # (S, 16)
                 pair_cov[sel, comp] = s0sq * np.sum(vals * rw[pj], axis=1)
-    cov_blocks = n_blocks = cov_prior = None
+    cov_blocks = n_blocks = None
     if block_m is not None:  # the residuals' spatial correlation (issue #29, icp_blocks)
         from .icp_blocks import spline_block_covariance
 
@@ -1649,9 +1645,9 @@ def fit_spline_chunks(
             float(sum(p.sum_w for p in parts)) / max(n_ok, 1) / max(mean_dpsi, 1e-12) ** 2
             * used / dof
         )  # fmt: skip
-        cov_blocks, n_blocks, cov_prior = spline_block_covariance(
+        cov_blocks, n_blocks = spline_block_covariance(
             [p.block_scores for p in parts], rows=g.reshape(k, 9, 48), cols=cols,
-            factor=factor, penalty=penalty, s0sq=s0sq, scale=c_scale, prior_part=True,
+            factor=factor, penalty=penalty, s0sq=s0sq, scale=c_scale,
         )  # fmt: skip
     projection = None
     if cell_weight is not None:
@@ -1683,7 +1679,6 @@ def fit_spline_chunks(
         pair_cov=pair_cov,
         cov_blocks=cov_blocks,
         n_blocks=n_blocks,
-        cov_prior=cov_prior,
         data_weight=cell_weight,
         projection=projection,
         penalty_width_m=width,

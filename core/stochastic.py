@@ -85,8 +85,8 @@ Robustness (:func:`plane_tests`). Plane misclosures are tested with the w-test o
 observations ``w_j = (Π e)_j / √Π_jj`` — against the plane-level spread (the components), not
 the white point noise. Planes beyond ``k_reject`` are rejected; planes between ``k_weight`` and
 ``k_reject`` are down-weighted by the IGG-III weight, applied as an inflation of their
-variance in ``V``. The first pass starts from a robust scale (a MAD of the misclosures, each
-standardised by its own white part: :func:`_mad_scale`) so that
+variance in ``V``. The first pass starts from a robust scale (a MAD of the misclosures;
+among many imprecise planes each standardised by its own white part: :func:`_mad_scale`) so that
 gross outliers (renovated buildings) cannot inflate the components and mask themselves.
 
 Cost. Dense ``V`` (planes × planes) with one Cholesky per Gauss–Helmert iteration, and
@@ -1618,15 +1618,6 @@ class TiltEstimate:
         if self.note:
             out["note"] = self.note
         return out
-
-
-def point_tilt_variance(a: np.ndarray) -> np.ndarray:
-    """(k,) each plane's point-noise tilt variance per degree of freedom, rad²: half the trace
-    of ``C_j`` (the pseudo-inverse of ``a_j`` (k, 3, 3) on its range)."""
-    w = np.linalg.eigvalsh(0.5 * (a + a.transpose(0, 2, 1)))
-    big = w > 1e-9 * w.max(axis=1, keepdims=True)
-    inv = np.divide(1.0, w, out=np.zeros_like(w), where=big & (w > 0))
-    return 0.5 * inv.sum(axis=1)
 
 
 def _tilt_pinv(a: np.ndarray) -> np.ndarray:
