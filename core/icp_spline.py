@@ -67,11 +67,13 @@ MIN_SPLINE_CELLS = 4
 #: widths (in knot spacings) of the local penalty's Gaussian kernel
 #: (:func:`_local_variance_components`) compared by their restricted likelihood
 #: (:func:`_restricted_score`) when the smoothing is estimated with cell weights; one width:
-#: no choice. Two knot spacings (a cell at the default spacing) is the default: with (1, 2)
-#: the likelihood picks one knot spacing on the harness's lobes and the slump (1.25 / 1.77 /
-#: 1.01 -> 1.08 / 1.48 / 0.78 cm, slump 10.3 -> 5.4 cm) but also on the fault (1.42 -> 1.62
-#: cm): docs/fields.md, "Knot spacing chosen from the data"
-LOCAL_WIDTHS_KNOTS: Tuple[float, ...] = (2.0,)
+#: no choice. Half a knot spacing (each second difference's variance from itself and its
+#: nearest rows: the field bends where the data bend) against two (a cell at the default
+#: spacing): on the harness the likelihood takes the narrow kernel on the lobes, the slump
+#: and the fault, the wide one on the near-uniform shift (seed 0: lobes 1.01 / 1.25 / 1.77
+#: -> 0.68 / 1.10 / 1.31 cm, slump 10.3 -> 3.2 cm, shift 0.24 cm kept; the fault 1.42 ->
+#: 1.86 cm): docs/fields.md, "The local penalty's width chosen by the likelihood"
+LOCAL_WIDTHS_KNOTS: Tuple[float, ...] = (0.5, 2.0)
 
 
 class SplineSizeError(InvalidParameterError):
@@ -1497,7 +1499,7 @@ def fit_spline_chunks(
         return best
     kernel = n_nominal = None
     width = None
-    if local:  # Gaussian of two knot spacings (a cell by default), cut at three widths
+    if local:  # Gaussian of the given width, cut at three widths
         from scipy.spatial import cKDTree
 
         wk = LOCAL_WIDTHS_KNOTS[0] if penalty_width_knots is None else penalty_width_knots

@@ -96,14 +96,15 @@ def test_spline_field_recovers_a_linear_field_exactly_without_noise():
 def test_spline_field_follows_a_lobe_three_cells_wide():
     """The lobe of tests/core/test_icp_cells.py (radius 6 m, 4 m cells): rigid cells 4.7 cm,
     two deformation passes 1.8 cm at the centres; the spline field with knots 1.5 m apart
-    and its smoothing estimated gets under a centimetre."""
+    and its smoothing estimated gets under a centimetre (the likelihood takes the local
+    penalty of half a knot spacing here: 8.1 mm; the wide kernel alone 7.1 mm)."""
     before, after, lobe = lobe_pair()
     res = windowed_icp(
         before, after, cell_m=4.0, coarse_to_fine=1, field_model="spline", spline_spacing_m=1.5
     )
     in_lobe, stable, n_inside = lobe_errors(res, lobe)
     assert n_inside >= 6
-    assert in_lobe < 0.008  # measured 6.4 mm
+    assert in_lobe < 0.01  # measured 8.1 mm
     assert stable < 0.004  # measured 2.6 mm
     assert np.all(np.isfinite(res.sigma_dx)) and np.all(res.sigma_dx > 0)
 
