@@ -438,7 +438,7 @@ def main(argv=None):
         choices=("default", "on", "off"),
         default="default",
         help="SlipMap with or without transferred planes (estimate_slip(transfer_planes=...); "
-        "default: the library's default, off)",
+        "default: the library's default, core.displacement.DEFAULT_TRANSFER_PLANES)",
     )
     args = ap.parse_args(argv)
     cases = [k for c in args.cases.split(",") if c for k in PRESETS.get(c, (c,))]
