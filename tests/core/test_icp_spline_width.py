@@ -94,7 +94,7 @@ def test_a_narrow_lobe_chooses_the_narrow_kernel_and_is_recovered(monkeypatch, w
 @pytest.mark.parametrize("widths", [(1.0, 2.0), DEFAULT_WIDTHS])
 def test_the_choice_does_not_move_a_uniform_shift_with_cell_offsets(monkeypatch, widths):
     """Each cell's points share an offset (the weights' test scene): the field chosen from
-    the two kernels is the default kernel's to a millimetre and near the shift."""
+    the two kernels is the wide kernel's to a millimetre and near the shift."""
     before, after, shift, centres, seg, var_b = _scene(4, side=16.0)
     n = np.bincount(seg, minlength=len(centres)).astype(float)
     w = 1.0 / (1.0 + n * var_b / (2 * 0.002**2))
