@@ -43,7 +43,7 @@ from .icp_options import (
     _robust_weights,
     _shared_target_inflation,
 )
-from .progress import ProgressCallback, report
+from .progress import ProgressCallback, report, scaled
 
 log = logging.getLogger(__name__)
 
@@ -1418,9 +1418,9 @@ def fit_spline_chunks(
         block sums, :class:`~slipmap.core.icp_blocks.BlockScores`, added here).
     penalty_width_knots : float, optional
         Width of the local penalty's Gaussian kernel in knot spacings (with cell weights and
-        the smoothing estimated). None: each of :data:`LOCAL_WIDTHS_KNOTS`, the fit of the
-        lowest :func:`_restricted_score` kept (the data choose how local the smoothing is,
-        as they choose how strong).
+        the smoothing estimated). None: each of :data:`LOCAL_WIDTHS_KNOTS` iterated from the
+        same start, the one of the lowest :func:`_restricted_score` kept and only it reported
+        (the data choose how local the smoothing is, as they choose how strong).
 
     Returns
     -------
@@ -1441,9 +1441,7 @@ def fit_spline_chunks(
             return first
         cell_weight = np.asarray(cell_weight, dtype=np.float64)
         initial = first.field
-    auto = smoothing is None
     lam = _check_smoothing(smoothing)
-    lam_abs = None  # absolute penalty weight per component, set at the first iteration
     rxy = np.asarray(report_xy, dtype=np.float64).reshape(-1, 2)
     h, n_x, n_y = frame.spacing_m, frame.n_x, frame.n_y
     lo = np.asarray(frame.origin_xy, dtype=np.float64)
@@ -1471,47 +1469,10 @@ def fit_spline_chunks(
     # the ground around it is held flat. Without weights the points count as independent
     # and a local estimate would follow their shared errors further: one weight per
     # component there, as before.
-    local = auto and cell_weight is not None
-    if local and penalty_width_knots is None and len(LOCAL_WIDTHS_KNOTS) > 1:
-        fits = [
-            fit_spline_chunks(
-                run,
-                frame=frame,
-                initial=initial,
-                report_xy=report_xy,
-                report_pairs=report_pairs,
-                smoothing=smoothing,
-                gate_m=gate_m,
-                opts=opts,
-                progress=progress,
-                block_m=block_m,
-                cell_weight=cell_weight,
-                penalty_width_knots=w,
-            )  # fmt: skip
-            for w in LOCAL_WIDTHS_KNOTS
-        ]
-        best = min(fits, key=lambda f: f.restricted_score)
-        log.info(
-            "spline field: local penalty of %.2f m (restricted likelihood: %s)",
-            best.penalty_width_m,
-            ", ".join(f"{f.penalty_width_m:g} m {f.restricted_score:.1f}" for f in fits),
-        )
-        return best
-    kernel = n_nominal = None
-    width = None
-    if local:  # Gaussian of the given width, cut at three widths
-        from scipy.spatial import cKDTree
-
-        wk = LOCAL_WIDTHS_KNOTS[0] if penalty_width_knots is None else penalty_width_knots
-        width = float(wk) * h
-        kt = cKDTree(rpos)
-        kd = kt.sparse_distance_matrix(kt, 3.0 * width, output_type="coo_matrix")
-        kernel = sp.csr_matrix(
-            (np.exp(-0.5 * (kd.data / width) ** 2), (kd.row, kd.col)), shape=(len(rpos),) * 2
-        ) + sp.identity(len(rpos), format="csr")
-        n_nominal = float(np.count_nonzero(r2.diagonal() > 0))
+    local = smoothing is None and cell_weight is not None
+    n_nominal = float(np.count_nonzero(r2.diagonal() > 0)) if local else None
     lhs0 = (bmat.T @ bmat + 1e-6 * r2 + 1e-9 * sp.identity(n_k)).tocsc()
-    c = splu(lhs0).solve(np.asarray(bmat.T @ f0))  # (K, 3)
+    c0 = splu(lhs0).solve(np.asarray(bmat.T @ f0))  # (K, 3)
 
     def weighting_at(c):
         absv = np.concatenate([np.asarray(p, dtype=np.float64) for p in run("residuals", c)])
@@ -1522,68 +1483,103 @@ def fit_spline_chunks(
             )
         return Weighting.of(absv, opts)
 
-    converged, it = False, 0
-    factor = None
-    best, since_best = np.inf, 0
-    for it in range(1, opts.max_iterations + 1):
-        report(progress, (it - 1) / opts.max_iterations, f"spline field: iteration {it}")
-        wgt = weighting_at(c)
-        parts = run("normal_equations", c, wgt, cell_weight)
-        nmat = _sum_sparse([p.nmat for p in parts], 3 * n_k)
-        gram = _sum_sparse([p.gram for p in parts], n_k)
-        rhs = np.sum([p.rhs for p in parts], axis=0)
-        wvv = float(sum(p.wvv for p in parts))
-        wvv_weighted = float(sum(p.wvv_weighted for p in parts))
-        n_obs = int(sum(p.n_obs for p in parts))
-        n_ok = int(sum(p.n_ok for p in parts))
-        if lam_abs is None:
-            dg = nmat.diagonal()
-            scale = float(np.median(dg[dg > 0])) if np.any(dg > 0) else 1.0
-            lam_abs = np.full(3, lam * scale)
-            ridge = sp.identity(3 * n_k, format="csr") * (1e-12 * scale)
-            if n_k > n_grid:  # copies no point uses: held by the penalty and a small ridge
-                idle = nmat.diagonal().reshape(3, n_k).sum(axis=0) <= 0
-                idle[:n_grid] = False
-                ridge = ridge + sp.diags(np.tile(idle * (1e-6 * scale), 3), format="csr")
-        if local:
-            if np.ndim(lam_abs) == 1:
-                lam_abs = np.repeat(np.asarray(lam_abs)[:, None], rmat.shape[0], axis=1)
-            penalty = (
-                sp.block_diag([(rmat.T @ sp.diags(w) @ rmat) for w in lam_abs], format="csr")
-                + ridge
-            )
-        else:
-            penalty = sp.block_diag([w * r2 for w in lam_abs], format="csr") + ridge
-        cvec = c.T.reshape(-1)  # component-major
-        factor = splu((nmat + penalty).tocsc())
-        step = factor.solve(rhs - penalty @ cvec)
-        dc = step.reshape(3, n_k).T
-        c = c + dc
-        if auto and local:
-            new = _local_variance_components(
-                factor, rmat, kernel, lam_abs, c, wvv, n_obs, n_nominal
-            )
-            new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
-            auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
-            lam_abs = new
-        elif auto:
-            new = _variance_components(factor, r2, lam_abs, c, wvv, n_obs)
-            new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
-            auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
-            lam_abs = new
-        # RMS change of the field at the paired points: sum_j dc_j' G dc_j over their count
-        du2 = sum(float(dc[:, j] @ (gram @ dc[:, j])) for j in range(3))
-        rms_du = float(np.sqrt(max(du2, 0.0) / max(n_ok, 1)))
-        log.debug("spline field: iteration %d, RMS change %.2e m", it, rms_du)
-        # the nearest-neighbour pairs flip as the field moves and the steps shrink slowly
-        # (by ~0.8 an iteration on lone-star) towards a jitter: stop at CHANGE_FLOOR of the
-        # residuals' robust spread (or at tolerance_m), or when the change stalls
-        floor = CHANGE_FLOOR * MAD_TO_SIGMA * wgt.median_abs_m
-        best, since_best = (rms_du, 0) if rms_du < best else (best, since_best + 1)
-        if rms_du < max(opts.tolerance_m, floor) or since_best >= STALL_ITERATIONS:
-            converged = True
-            break
-    score = _restricted_score(factor, penalty, c, wvv, wvv_weighted, n_obs) if local else None
+    def local_kernel(width):  # Gaussian of the given width, cut at three widths
+        from scipy.spatial import cKDTree
+
+        kt = cKDTree(rpos)
+        kd = kt.sparse_distance_matrix(kt, 3.0 * width, output_type="coo_matrix")
+        return sp.csr_matrix(
+            (np.exp(-0.5 * (kd.data / width) ** 2), (kd.row, kd.col)), shape=(len(rpos),) * 2
+        ) + sp.identity(len(rpos), format="csr")
+
+    def iterate(c, kernel, progress):
+        """The Gauss-Newton iterations from ``c`` (with ``kernel``: the local penalty):
+        ``(c, factor, penalty, iterations, converged, restricted score or None)``."""
+        auto = smoothing is None
+        lam_abs = None  # absolute penalty weight per component, set at the first iteration
+        converged, it = False, 0
+        factor = None
+        best, since_best = np.inf, 0
+        for it in range(1, opts.max_iterations + 1):
+            report(progress, (it - 1) / opts.max_iterations, f"spline field: iteration {it}")
+            wgt = weighting_at(c)
+            parts = run("normal_equations", c, wgt, cell_weight)
+            nmat = _sum_sparse([p.nmat for p in parts], 3 * n_k)
+            gram = _sum_sparse([p.gram for p in parts], n_k)
+            rhs = np.sum([p.rhs for p in parts], axis=0)
+            wvv = float(sum(p.wvv for p in parts))
+            wvv_weighted = float(sum(p.wvv_weighted for p in parts))
+            n_obs = int(sum(p.n_obs for p in parts))
+            n_ok = int(sum(p.n_ok for p in parts))
+            if lam_abs is None:
+                dg = nmat.diagonal()
+                scale = float(np.median(dg[dg > 0])) if np.any(dg > 0) else 1.0
+                lam_abs = np.full(3, lam * scale)
+                ridge = sp.identity(3 * n_k, format="csr") * (1e-12 * scale)
+                if n_k > n_grid:  # copies no point uses: held by the penalty and a small ridge
+                    idle = nmat.diagonal().reshape(3, n_k).sum(axis=0) <= 0
+                    idle[:n_grid] = False
+                    ridge = ridge + sp.diags(np.tile(idle * (1e-6 * scale), 3), format="csr")
+            if local:
+                if np.ndim(lam_abs) == 1:
+                    lam_abs = np.repeat(np.asarray(lam_abs)[:, None], rmat.shape[0], axis=1)
+                penalty = (
+                    sp.block_diag([(rmat.T @ sp.diags(w) @ rmat) for w in lam_abs], format="csr")
+                    + ridge
+                )
+            else:
+                penalty = sp.block_diag([w * r2 for w in lam_abs], format="csr") + ridge
+            cvec = c.T.reshape(-1)  # component-major
+            factor = splu((nmat + penalty).tocsc())
+            step = factor.solve(rhs - penalty @ cvec)
+            dc = step.reshape(3, n_k).T
+            c = c + dc
+            if auto and local:
+                new = _local_variance_components(
+                    factor, rmat, kernel, lam_abs, c, wvv, n_obs, n_nominal
+                )
+                new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
+                auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
+                lam_abs = new
+            elif auto:
+                new = _variance_components(factor, r2, lam_abs, c, wvv, n_obs)
+                new = np.clip(new, AUTO_RANGE[0] * scale, AUTO_RANGE[1] * scale)
+                auto = bool(np.any(np.abs(new / lam_abs - 1.0) > AUTO_SETTLED))
+                lam_abs = new
+            # RMS change of the field at the paired points: sum_j dc_j' G dc_j over their count
+            du2 = sum(float(dc[:, j] @ (gram @ dc[:, j])) for j in range(3))
+            rms_du = float(np.sqrt(max(du2, 0.0) / max(n_ok, 1)))
+            log.debug("spline field: iteration %d, RMS change %.2e m", it, rms_du)
+            # the nearest-neighbour pairs flip as the field moves and the steps shrink slowly
+            # (by ~0.8 an iteration on lone-star) towards a jitter: stop at CHANGE_FLOOR of the
+            # residuals' robust spread (or at tolerance_m), or when the change stalls
+            floor = CHANGE_FLOOR * MAD_TO_SIGMA * wgt.median_abs_m
+            best, since_best = (rms_du, 0) if rms_du < best else (best, since_best + 1)
+            if rms_du < max(opts.tolerance_m, floor) or since_best >= STALL_ITERATIONS:
+                converged = True
+                break
+        score = _restricted_score(factor, penalty, c, wvv, wvv_weighted, n_obs) if local else None
+        return c, factor, penalty, it, converged, score
+
+    if not local:
+        width = None
+        c, factor, penalty, it, converged, score = iterate(c0, None, progress)
+    else:
+        # the local penalty's width: the given one, or each of LOCAL_WIDTHS_KNOTS iterated
+        # from the same start and the likeliest (lowest restricted score) kept; only it is
+        # reported below
+        widths = LOCAL_WIDTHS_KNOTS if penalty_width_knots is None else (penalty_width_knots,)
+        tried = []
+        for i, wk in enumerate(widths):
+            width = float(wk) * h
+            part = scaled(progress, i / len(widths), (i + 1) / len(widths))
+            tried.append((width, *iterate(c0, local_kernel(width), part)))
+        width, c, factor, penalty, it, converged, score = min(tried, key=lambda t: t[-1])
+        if len(tried) > 1:
+            log.info(
+                "spline field: local penalty of %.2f m (restricted likelihood: %s)",
+                width, ", ".join(f"{t[0]:g} m {t[-1]:.1f}" for t in tried),
+            )  # fmt: skip
     # final residuals, sigma0 and the report
     wgt = weighting_at(c)
     bm = None if block_m is None else float(block_m)
