@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from test_stochastic import _normals
 
 from slipmap.core import adjustment as adj
 from slipmap.core import stochastic as sto
@@ -17,20 +18,6 @@ from slipmap.core.errors import InvalidParameterError
 OFFSET = np.array([500000.0, 4200000.0, 100.0])
 T_TRUE = np.array([0.05, -0.12, 0.03])
 W_TRUE = np.array([3e-4, -5e-4, 1e-3])
-
-
-def _normals(n_planes, rng):
-    out = []
-    for i in range(n_planes):
-        if i % 3 == 0:
-            v = np.array([*rng.normal(0, 0.3, 2), 1.0])
-        elif i % 3 == 1:
-            az = rng.uniform(0, np.pi)
-            v = np.array([np.sin(az), np.cos(az), 0.0])
-        else:
-            v = rng.normal(size=3)
-        out.append(v / np.linalg.norm(v))
-    return np.array(out)
 
 
 def make_tilted_pair(seed, *, n_planes=60, n_per=300, sigma=0.003, tilt_sigma=0.0,
