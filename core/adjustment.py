@@ -1356,7 +1356,7 @@ def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, not
         sd = sd_var / (2.0 * sig) if sig > 0 and sd_var == sd_var else float("nan")
         src = est.source.get(name, "off") if est is not None else "off"
         comps.append(_stoch.Component(name, sig, sd, src, est_notes.get(name, "")))
-    all_notes = list(notes) + [v for k_, v in est_notes.items() if k_ == "reml"]
+    all_notes = list(notes) + [v for k_, v in est_notes.items() if k_ in ("reml", "plane_level")]
     if tilt is not None and tilt.note:
         all_notes.append(f"random tilt per plane: {tilt.note}")
     if k < _stoch.MIN_PLANES_VCE:

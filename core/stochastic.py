@@ -68,7 +68,10 @@ MINQUE / Helmert–Förstner fixed point (Fisher scoring of the REML score, Koch
 Förstner 1979): ``F θ = q`` with ``F_ik = ½ tr(Π V_i Π V_k)``, ``q_i = ½ eᵀ Π V_i Π e
 − ½ tr(Π V_i Π V₀)`` and ``Π = V⁻¹ − V⁻¹ X (Xᵀ V⁻¹ X + T)⁻¹ Xᵀ V⁻¹`` (the tilt information
 ``T`` enters as prior information on the motion). Negative solutions are set to zero and that
-component removed (the non-negative fixed point). The standard deviation of each component
+component removed (the non-negative fixed point). The positive components are then tested
+together against none (:func:`_test_plane_level`, a likelihood ratio against the χ̄² null of
+variances on their boundary, :data:`COMPONENT_TEST_ALPHA`) and all set to zero when the
+misclosures show no error beyond the point noise. The standard deviation of each component
 is from ``F⁻¹``. The family and range ``a`` are chosen by profile REML over a geometric grid of
 ranges per family (least −2 log L; another family than the spherical one must beat it by
 :data:`FAMILY_MARGIN`; by default the spherical family only, :data:`DEFAULT_FAMILIES`).
@@ -177,6 +180,9 @@ TILT_TOL = 1e-4  # relative change of the tilt variance at which they stop
 TILT_NEGLIGIBLE = 1e-6
 MIN_PLANES_TILT = 6  # fewer planes than this: the tilt variance is not estimated
 TILT_ALPHA = 0.01  # family-wise level of the test of the planes' tilts (Bonferroni)
+#: level of the test of the plane-level components together against none
+#: (:func:`_test_plane_level`; ``None``: every positive REML value is kept, the positive part)
+COMPONENT_TEST_ALPHA: Optional[float] = 0.05
 
 
 def check_stochastic_model(model: str, *, option: str = "stochastic_model") -> str:
@@ -1304,6 +1310,77 @@ def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
     return theta, sd, it, converged, gls_at().reml(e), pair_cov
 
 
+def chi_bar_squared_critical(m: int, alpha: float) -> float:
+    """Upper ``alpha`` point of the χ̄² mixture ``Σ_k C(m, k) 2⁻ᵐ χ²_k`` (χ²₀ = 0): the null
+    distribution of the likelihood ratio of ``m`` independent variances that are all zero
+    (each estimate is on the boundary half the time; Self & Liang 1987, Stram & Lee 1994).
+
+    Parameters
+    ----------
+    m : int
+        Number of variances tested together (≥ 1).
+    alpha : float
+        Level of the test (0 < alpha < 1).
+    """
+    from scipy.optimize import brentq
+    from scipy.stats import chi2
+
+    w = np.array([math.comb(m, k) for k in range(m + 1)], dtype=float) / 2.0**m
+
+    def tail(c):
+        return sum(w[k] * chi2.sf(c, k) for k in range(1, m + 1)) - alpha
+
+    return float(brentq(tail, 1e-9, 200.0))
+
+
+def _test_plane_level(problem, fit, theta0):
+    """The REML likelihood ratio of the estimated plane-level components against none of them;
+    all are set to zero when it is below the :data:`COMPONENT_TEST_ALPHA` point of its null
+    (:func:`chi_bar_squared_critical`, as many variances as REML set positive).
+
+    Why: REML's non-negative estimate of a variance whose truth is zero is positive about half
+    the time (the positive part of an unbiased estimate). On white-noise pairs it set a spatial
+    or plane component of 0.1-0.3 mm on most sides, and a long-range spatial term moves a side
+    like the motion, so the slip's σ came out 1.5x its error (issue #30). The components are
+    tested together, not one by one: one by one, a correlated field is often as likely as a
+    nugget of the same variance (a 3 mm field of 30 m waves on 150 planes: likelihood ratio
+    1.6 against the nugget alone), and a nugget averages down over the planes where the field
+    does not, so removing the field would make σ too small. Together, the test asks only
+    whether the misclosures hold any error beyond the point noise at all.
+
+    Parameters
+    ----------
+    problem : tuple
+        ``(e, x, t, p, bases, fixed, inflation, rt)`` as :func:`_reml_fixed_point` takes them.
+    fit : tuple
+        ``(theta, sd, iterations, converged, -2 log L, pair covariances)`` of the full model.
+    theta0 : dict
+        The start of each free component.
+
+    Returns
+    -------
+    (theta, sd, iterations, converged, pair covariances, likelihood ratio or None, names)
+        The fit, with every free component zero when the ratio is below the critical value
+        (the ratio and the names of the components set to zero returned then; None and ()
+        when the components are kept or none was positive).
+    """
+    e, x, t, p, bases, fixed, inflation, rt = problem
+    th, sd, it, conv, m2ll, pc = fit
+    live = [n for n in bases if n not in fixed and th.get(n, 0.0) > 0]
+    if not live:
+        return th, sd, it, conv, pc, None, ()
+    sub = {k: b for k, b in bases.items() if k in fixed}
+    m2ll0 = _reml_fixed_point(e, x, t, p, sub, {}, fixed, inflation, rt)[4]
+    lr = float(m2ll0 - m2ll)
+    crit = chi_bar_squared_critical(len(live), COMPONENT_TEST_ALPHA)
+    log.debug("plane-level components %s: likelihood ratio %.3f (critical %.3f)", live, lr, crit)
+    if lr >= crit:
+        return th, sd, it, conv, pc, None, ()
+    th = dict(th, **{n: 0.0 for n in live})
+    sd = dict(sd, **{n: float("nan") for n in live})
+    return th, sd, it, conv, {}, max(lr, 0.0), tuple(live)
+
+
 def _candidate_ranges(c: np.ndarray, subset: bool = False, family: str = "spherical"):
     """Geometric grid of ranges from 3x the median nearest-plane distance to the extent (to
     the radius of a contiguous subset of a larger problem: beyond it the subset says little,
@@ -1471,11 +1548,11 @@ def estimate_components(
     sph = fits.get("spherical")
     if sph is not None and best[4] > sph[4] - FAMILY_MARGIN:
         best = sph
-    th, sd, it, conv, _, kern, pc = best
+    th, sd, it, conv, m2ll_best, kern, pc = best
     if len(fits) > 1:
         # a spatial component that REML set to zero says nothing of the family
         if th.get("spatial", 0.0) <= 0 and sph is not None:
-            th, sd, it, conv, _, kern, pc = sph
+            th, sd, it, conv, m2ll_best, kern, pc = sph
     if REML_TILT_SHARE < 1.0 and np.any(ts_full) and (len(kernels) > 1 or REML_TILT_SHARE > 0):
         # the kernel is chosen from the offsets; the components' values are then estimated
         # with the tilts' information as the adjustment and its plane tests use it (else the
@@ -1483,9 +1560,26 @@ def estimate_components(
         bases = model.bases(ids, kern)
         bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
         fx = {n: fixed_var[n] for n in fixed_var if n in bases}
-        th, sd, it, conv, _, pc = _reml_fixed_point(
+        th, sd, it, conv, m2ll_best, pc = _reml_fixed_point(
             es, xs, ts_full, ps, bases, theta0, fx, inf_s, rts_full
         )
+    if COMPONENT_TEST_ALPHA is not None and not few:
+        bases = model.bases(ids, kern)
+        bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
+        fx = {n: fixed_var[n] for n in fixed_var if n in bases}
+        th, sd, it, conv, pc, lr, zeroed = _test_plane_level(
+            (es, xs, ts_full, ps, bases, fx, inf_s, rts_full),
+            (th, sd, it, conv, m2ll_best, pc),
+            theta0,
+        )
+        if lr is not None:
+            notes["plane_level"] = (
+                f"no plane-level error beyond the point noise: REML likelihood ratio {lr:.2f} "
+                f"of the components {', '.join(zeroed)} against none is below the "
+                f"{COMPONENT_TEST_ALPHA:.0%} point of its null; they are set to 0"
+            )
+            for n in zeroed:
+                notes[n] = "set to 0: not significant (see the notes)"
     rng_m = kern.range_m
     sds = {}
     for n in free:

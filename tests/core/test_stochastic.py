@@ -217,13 +217,17 @@ def test_dense_mixed_model_equals_block_gls(comps):
 
 
 def test_without_plane_level_error_sigma_not_wider_than_white():
+    """White noise only: the full model's σ is the white one times the square root of the
+    small-sample factor ν/(ν − 2) (1.02 with 60 planes) on most pairs. The components are
+    tested against none (``stochastic.COMPONENT_TEST_ALPHA``); with REML's positive part
+    kept the median ratio was 1.07 and four of ten pairs 1.08-1.15."""
     ratios = []
     for seed in range(10):
         pair = make_pair(seed)
         w = _adjust(pair, stochastic_model="white")
         f = _adjust(pair, stochastic_model="full")
         ratios.append(f.sigma[3:] / w.sigma[3:])
-    assert np.median(ratios) <= 1.1
+    assert np.median(ratios) <= 1.04
 
 
 def test_point_permutation_invariance():
