@@ -157,6 +157,16 @@ SPEC = JobSpec(
             minimum=0,
             advanced=True,
         ),
+        _num(
+            "vertical_compensation",
+            "bool",
+            "remove the elevation change measured by the previous pass from the deformed "
+            "after-DEM before each correlation: a change that varies across a window (a "
+            "lobe's flank) otherwise reads as a horizontal shift",
+            "Compensate the elevation change between passes",
+            default=True,
+            advanced=True,
+        ),
         breaklines_option(
             "the windows are deformed per side, a window crossed by a line is correlated on its "
             "centre's side only, outliers are tested against and replaced by neighbours on "
@@ -377,6 +387,7 @@ def _compute(opts: Mapping[str, Any], wins, progress, given_lines=None):
         snr_min=opts["snr_min"],
         median_threshold=opts["median_threshold"],
         breaklines=lines,
+        vertical_compensation=bool(opts.get("vertical_compensation", True)),
         progress=scaled(progress, 0.05, 0.95),
     )
     return res, grid, crs, zb, za

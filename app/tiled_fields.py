@@ -498,6 +498,7 @@ def piv_tiled(
     snr_min: float = 1.2,
     median_threshold: float = 1.5,
     breaklines=None,
+    vertical_compensation: bool = True,
     selection: Selection = _ALL,
     tile_size_m: float = DEFAULT_TILE_SIZE_M,
     engine: Optional[Engine] = None,
@@ -510,7 +511,7 @@ def piv_tiled(
     ----------
     before, after : TileCollection
     grid_m, windows_px, overlap, search_px, expected_max_displacement_m, snr_min,
-    median_threshold, breaklines
+    median_threshold, breaklines, vertical_compensation
         As :func:`~slipmap.core.piv.piv` (``grid_m`` the DEM cell, m); every block gets the
         breaklines (those that miss it change nothing there).
     tile_size_m : float
@@ -561,6 +562,7 @@ def piv_tiled(
         snr_min=snr_min,
         median_threshold=median_threshold,
         breaklines=breaklines,
+        vertical_compensation=vertical_compensation,
         workers=1,
     )
     tasks = []
@@ -956,7 +958,8 @@ def piv_for_job(opts, windows_px, *, bytes_per_cell: float, progress=None, break
             overlap=opts["overlap"], search_px=opts.get("search_px"),
             expected_max_displacement_m=opts.get("max_displacement_m"),
             snr_min=opts["snr_min"], median_threshold=opts["median_threshold"],
-            breaklines=lines, selection=selection, tile_size_m=_tile(opts), engine=eng,
+            breaklines=lines, vertical_compensation=bool(opts.get("vertical_compensation", True)),
+            selection=selection, tile_size_m=_tile(opts), engine=eng,
             progress=progress,
             check_block=_memory_check(bytes_per_cell, "DEM block with its halo"),
         )  # fmt: skip
