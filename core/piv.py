@@ -734,16 +734,20 @@ def _window_stack(a: np.ndarray, lay: _Layout, idx: np.ndarray) -> np.ndarray:
     return view[lay.r0[idx[0]], lay.c0[idx[1]]]
 
 
+def _finite_window_sums(a: np.ndarray, lay: _Layout):
+    """Sums of the finite values of ``a`` over each window of ``lay``, their counts, and the
+    finite mask of ``a``."""
+    ok = np.isfinite(a)
+    return _window_sums(np.where(ok, a, 0.0), lay), _window_sums(ok.astype(np.float64), lay), ok
+
+
 def _vertical_predictor(img2w, img1, lay, rows, cols, sides, nb_ok) -> np.ndarray:
     """The elevation change at every pixel (m): the mean of the deformed image 2 less image 1
     over each window of the previous pass's layout ``lay`` (windows with under a quarter of
     their pixels valid filled from their neighbours, on their side of any breakline), then
     interpolated to the pixels as the horizontal predictor is (:func:`_predictor`). What
     :func:`piv` reports as ``dz`` at the end, made at every deformed pass."""
-    d = img2w - img1
-    ok = np.isfinite(d)
-    s = _window_sums(np.where(ok, d, 0.0), lay)
-    cnt = _window_sums(ok.astype(np.float64), lay)
+    s, cnt, _ = _finite_window_sums(img2w - img1, lay)
     with np.errstate(invalid="ignore", divide="ignore"):
         mz = np.where(cnt >= 0.25 * lay.size**2, s / cnt, np.nan)
     if not np.isfinite(mz).any():
@@ -1357,9 +1361,7 @@ def piv(
     pc = _predictor(prev_c, prev_lay, rows_px, cols_px, sides)
     diff = warper.warp(pr, pc) - img1
     del pr, pc
-    ok = np.isfinite(diff)
-    s = _window_sums(np.where(ok, diff, 0.0), lay)
-    cnt = _window_sums(ok.astype(np.float64), lay)
+    s, cnt, ok = _finite_window_sums(diff, lay)
     need = np.full(s.shape, min_valid_fraction * lay.size**2)
     if final_sides is not None:  # crossed windows: their own side's pixels
         sidx, smasks, side_fraction = final_sides

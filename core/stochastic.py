@@ -1533,6 +1533,8 @@ def estimate_components(
             free = [n for n in free if n != "spatial"]
             theta["spatial"], source["spatial"] = 0.0, "off"
             notes["spatial"] = "fewer than 3 planes"
+    # each fit keeps its kernel's bases: the chosen one's serve the refit with the tilts and
+    # the test of the components below (a spatial basis is the costly part of a fit)
     fits: Dict[str, tuple] = {}
     for kern in kernels:
         bases = model.bases(ids, kern)
@@ -1543,30 +1545,24 @@ def estimate_components(
         )
         log.debug("REML %s %.3g m: %s, -2logL %.6g", kern.family, kern.range_m, th, m2ll)
         if kern.family not in fits or m2ll < fits[kern.family][4]:
-            fits[kern.family] = (th, sd, it, conv, m2ll, kern, pc)
+            fits[kern.family] = (th, sd, it, conv, m2ll, kern, pc, bases, fx)
     best = min(fits.values(), key=lambda f: f[4])
     sph = fits.get("spherical")
     if sph is not None and best[4] > sph[4] - FAMILY_MARGIN:
         best = sph
-    th, sd, it, conv, m2ll_best, kern, pc = best
+    th, sd, it, conv, m2ll_best, kern, pc, bases, fx = best
     if len(fits) > 1:
         # a spatial component that REML set to zero says nothing of the family
         if th.get("spatial", 0.0) <= 0 and sph is not None:
-            th, sd, it, conv, m2ll_best, kern, pc = sph
+            th, sd, it, conv, m2ll_best, kern, pc, bases, fx = sph
     if REML_TILT_SHARE < 1.0 and np.any(ts_full) and (len(kernels) > 1 or REML_TILT_SHARE > 0):
         # the kernel is chosen from the offsets; the components' values are then estimated
         # with the tilts' information as the adjustment and its plane tests use it (else the
         # w-tests, made with the tilts, would hold the components for too small and reject)
-        bases = model.bases(ids, kern)
-        bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
-        fx = {n: fixed_var[n] for n in fixed_var if n in bases}
         th, sd, it, conv, m2ll_best, pc = _reml_fixed_point(
             es, xs, ts_full, ps, bases, theta0, fx, inf_s, rts_full
         )
     if COMPONENT_TEST_ALPHA is not None and not few:
-        bases = model.bases(ids, kern)
-        bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
-        fx = {n: fixed_var[n] for n in fixed_var if n in bases}
         th, sd, it, conv, pc, lr, zeroed = _test_plane_level(
             (es, xs, ts_full, ps, bases, fx, inf_s, rts_full),
             (th, sd, it, conv, m2ll_best, pc),
