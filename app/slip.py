@@ -468,6 +468,7 @@ def compute(
         components=fixed_components(opts),
         progress=next(parts),
         transfer_planes=bool(opts.get("transfer_planes")),
+        random_tilt=bool(opts.get("random_tilt")),
         **common,
     )
     tile_planes = None
@@ -480,6 +481,7 @@ def compute(
             combine="joint",
             components=fixed_components(opts),
             progress=next(parts),
+            random_tilt=bool(opts.get("random_tilt")),
             **common,
         )
         result = replace(
@@ -1117,6 +1119,7 @@ def _compute_tiled(opts, trace, progress):
         combine=opts.get("combine") or "joint",
         units=how,
         components=fixed_components(opts),
+        random_tilt=bool(opts.get("random_tilt")),
         **core_options(opts),
     )
     runtime = time.perf_counter() - t0

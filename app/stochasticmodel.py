@@ -318,6 +318,20 @@ def stochastic_options(*, group: str = GROUP) -> tuple:
             metavar="S",
         ),
         Option(
+            "random_tilt",
+            "bool",
+            "each plane is also tilted by the survey error (a random tilt per plane, its "
+            "variance estimated per side), so the planes' tilts pin the rotation only as far as "
+            "the survey allows: more accurate on airborne, mixed mobile/airborne and "
+            "short-wavelength drift pairs; off by default because under mobile-mapping "
+            'trajectory drift it can make the sigma too small (docs/accuracy.md, "The random '
+            'tilt on the current code"); plane and full models only',
+            label="Random tilt per plane",
+            default=False,
+            group=group,
+            advanced=True,
+        ),
+        Option(
             "fixed_components",
             "keyvalues",
             "plane-level components held fixed instead of estimated, NAME=SIGMA_M: plane, "
@@ -364,6 +378,13 @@ def check_stochastic(opts: Mapping[str, Any]) -> Dict[str, float]:
         warn_option(
             "{gps_gap_s} is set but {units} is not GpsTime: the GPS gap is not used; set "
             "{units} to GpsTime to split the epochs at GPS time gaps"
+        )
+    if opts.get("random_tilt") and opts.get("stochastic_model") == "white":
+        raise OptionError(
+            "random_tilt",
+            "the white model has no plane-level components to tilt; set {stochastic_model} to "
+            "plane or full, or turn {random_tilt} off",
+            also=("stochastic_model",),
         )
     if fixed and opts.get("stochastic_model") == "white":
         raise OptionError(

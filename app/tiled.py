@@ -595,6 +595,7 @@ def slip_tiled(
     stochastic_model: str = "full",
     units: str = "auto",
     components: Optional[dict] = None,
+    random_tilt: Optional[bool] = None,
     selection: Selection = Selection(),
     engine: Optional[Engine] = None,
     progress: Optional[ProgressCallback] = None,
@@ -654,6 +655,11 @@ def slip_tiled(
             )
     model = check_stochastic_model(stochastic_model)
     components = check_components(components)
+    if random_tilt and model == "white":
+        raise InvalidParameterError(
+            "random_tilt needs a plane-level stochastic model (plane or full): the white model "
+            "has no plane-level components"
+        )
     eng = _engine(engine)
     for coll in (before, after):
         if coll.n_points == 0:
@@ -739,7 +745,7 @@ def slip_tiled(
         all_b, all_a = PlaneMoments.concat(mom_b), PlaneMoments.concat(mom_a)
         kw = dict(
             sigma_before=sigma_before, sigma_after=sigma_after, stochastic_model=model,
-            use_units=use_units,
+            use_units=use_units, random_tilt=random_tilt,
         )  # fmt: skip
         report(progress, 0.85 + 0.07 * si, f"{side} side: adjustment")
         rigid = adjust_rigid_moments(all_b, all_a, components=components, **kw)
@@ -784,6 +790,7 @@ def slip_tiled(
             "stochastic_model": model,
             "acquisition_units": n_units if use_units else {},
             **({"components": dict(components)} if components else {}),
+            **({"random_tilt": bool(random_tilt)} if random_tilt is not None else {}),
             "engine": eng.describe(),
         },
         tiles=tuple(tiles_all),

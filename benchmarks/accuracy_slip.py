@@ -14,6 +14,10 @@ Usage::
     python benchmarks/accuracy_slip.py --cases mls-als-facades --seeds 6 --first-seed 2000 \
         --transfer on     # or off
 
+    # the random tilt per plane (docs/accuracy.md, "The random tilt on the current code")
+    python benchmarks/accuracy_slip.py --cases issue30 --seeds 18 --first-seed 2000 \
+        --no-peer --jobs 2 --random-tilt on
+
 Each case draws ``--seeds`` synthetic fault pairs (18.1 mm of dextral slip, a town of 12
 buildings on 150 m, independent samplings of both epochs) with a correlated survey error of
 a kind and level (``core.synthetic.SurveyError``: MLS trajectory drift along the drive path,
@@ -200,7 +204,7 @@ LABELS = {
 }
 
 
-def one(case_name: str, seed: int, peer: bool, transfer=None) -> dict:
+def one(case_name: str, seed: int, peer: bool, transfer=None, random_tilt=None) -> dict:
     """One pair of one case: errors of every method (metres) and their σ."""
     c = CASES[case_name]
     rng = np.random.default_rng(seed + 77)
@@ -240,6 +244,7 @@ def one(case_name: str, seed: int, peer: bool, transfer=None) -> dict:
                 fp.before.points, fp.after.points, trace, sigma_before=fp.before.noise_m,
                 sigma_after=fp.after.noise_m, stochastic_model=model, **kw,
                 **({} if transfer is None else {"transfer_planes": transfer}),
+                **({} if random_tilt is None or model == "white" else {"random_tilt": random_tilt}),
             )  # fmt: skip
         except Exception as exc:  # noqa: BLE001 - a failed run is recorded and counted
             row[label] = {"failed": f"{type(exc).__name__}: {exc}"}
@@ -440,6 +445,14 @@ def main(argv=None):
         help="SlipMap with or without transferred planes (estimate_slip(transfer_planes=...); "
         "default: the library's default, core.displacement.DEFAULT_TRANSFER_PLANES)",
     )
+    ap.add_argument(
+        "--random-tilt",
+        choices=("default", "on", "off"),
+        default="default",
+        help="SlipMap's plane and full models with or without the random tilt per plane "
+        "(estimate_slip(random_tilt=...); default: the library's default, "
+        "core.stochastic.RANDOM_TILT)",
+    )
     args = ap.parse_args(argv)
     cases = [k for c in args.cases.split(",") if c for k in PRESETS.get(c, (c,))]
     for c in cases:
@@ -452,7 +465,13 @@ def main(argv=None):
     if peer and peer_python() is None:
         ap.error("no peer venv: run bash benchmarks/peers/setup_peer_venv.sh, or --no-peer")
     jobs = [
-        (c, s, peer, {"on": True, "off": False}.get(args.transfer))
+        (
+            c,
+            s,
+            peer,
+            {"on": True, "off": False}.get(args.transfer),
+            {"on": True, "off": False}.get(args.random_tilt),
+        )
         for c in cases
         for s in range(args.first_seed, args.first_seed + args.seeds)
     ]

@@ -909,6 +909,7 @@ def _run(
     unit_before=None,
     unit_after=None,
     components=None,
+    random_tilt=None,
 ):
     before, before_plane = _check_points(before, before_plane, "before")
     after, after_plane = _check_points(after, after_plane, "after")
@@ -945,23 +946,24 @@ def _run(
         epochs, b, centre, shares, dense=dense, model=model, fixed=fixed,
         max_iterations=max_iterations, tolerance=tolerance, alpha=alpha, min_planes=min_planes,
         reject_outlier_planes=reject_outlier_planes, progress=progress,
-        labels=(before_plane, after_plane), unit_codes=codes,
+        labels=(before_plane, after_plane), unit_codes=codes, random_tilt=random_tilt,
     )  # fmt: skip
 
 
 def _solve(
     epochs, b, centre, shares, *, dense, model, fixed, max_iterations, tolerance, alpha,
-    min_planes, reject_outlier_planes, progress, labels, unit_codes=None,
+    min_planes, reject_outlier_planes, progress, labels, unit_codes=None, random_tilt=None,
 ):  # fmt: skip
     """The adjustment of two epochs (:class:`_Epoch` or :class:`_MomentEpoch`); ``shares``:
     each epoch's (b, U) acquisition-unit shares or None (stochastic models only);
     ``unit_codes``: each epoch's (U,) unit ids of the shares' columns, or None (unknown:
-    the result's :class:`.stochastic.PlaneGain` then has no units to share)."""
+    the result's :class:`.stochastic.PlaneGain` then has no units to share); ``random_tilt``:
+    estimate a random tilt per plane (None: :data:`.stochastic.RANDOM_TILT`)."""
     before_plane, after_plane = labels
-    if dense and float(fixed.get("tilt_rad", 0.0)) > 0:
+    if dense and (float(fixed.get("tilt_rad", 0.0)) > 0 or random_tilt):
         raise InvalidParameterError(
             "adjust_rigid_dense does not model the random tilt per plane: leave out "
-            "components['tilt_rad'] (or give 0), or use adjust_rigid"
+            "components['tilt_rad'] (or give 0) and random_tilt, or use adjust_rigid"
         )
     if dense and 6 + 5 * b > DENSE_MAX_UNKNOWNS:
         raise InvalidParameterError(
@@ -1001,8 +1003,10 @@ def _solve(
         samples, weights = _plane_samples(epochs, gc, b)
         plane_model = PlaneModel(gc, n0.copy(), shares[0], shares[1], samples, weights)
         cfg = _StochasticConfig(plane_model, b)
+        tilt = _stoch.RANDOM_TILT if random_tilt is None else bool(random_tilt)
         out, stoch = _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit,
-                                 rejected, reject_outlier_planes, min_planes, opts)  # fmt: skip
+                                 rejected, reject_outlier_planes, min_planes, opts,
+                                 random_tilt=tilt)  # fmt: skip
         stoch = stoch + (_plane_gain(cfg, centre, unit_codes or (None, None)),)
     state, active, it, converged, nred, qxx, s0, redundancy, n_cond, cov = out
     report(progress, 0.97, "residuals")
@@ -1134,9 +1138,10 @@ def _with_cfg(step, cfg, state, epochs, active, b):
 
 
 def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejected, reject,
-                min_planes, opts):  # fmt: skip
+                min_planes, opts, *, random_tilt=False):  # fmt: skip
     """Plane-level variance components (REML), robust plane tests and the GLS adjustment,
-    iterated to a fixed point (see :mod:`.stochastic`)."""
+    iterated to a fixed point (see :mod:`.stochastic`); ``random_tilt``: estimate a random
+    tilt per plane (unless ``fixed`` holds ``tilt_rad``)."""
     max_iterations, tolerance, progress = opts
     which = ("plane",) if model == "plane" else _stoch.COMPONENT_NAMES
     k_reject = max(_stoch.K_REJECT_MIN, z_crit)
@@ -1151,13 +1156,13 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     gross_passes = 0
     notes: List[str] = []
     apri = _apriori_condition_variance(epochs, active, cfg.model.normals, b)
-    # the random tilt per plane: estimated (stochastic.RANDOM_TILT) or given (tilt_rad)
+    # the random tilt per plane: estimated (random_tilt) or given (tilt_rad)
     tilt_est = _stoch.TiltEstimate()
     if "tilt_rad" in fixed:
         cfg.tilt_var = float(fixed["tilt_rad"]) ** 2
         tilt_est = _stoch.TiltEstimate(cfg.tilt_var, source="fixed")
     # adjust_rigid_dense, the reference of the mixed model, has no random tilt
-    tilt_free = _stoch.RANDOM_TILT and "tilt_rad" not in fixed and step is _step_block
+    tilt_free = random_tilt and "tilt_rad" not in fixed and step is _step_block
     for outer in range(MAX_OUTER + MAX_GROSS_PASSES):
         it, converged, nred, qxx = _iterate(
             state, epochs, active, b, functools.partial(_with_cfg, step, cfg if outer else None),
@@ -1485,6 +1490,7 @@ def adjust_rigid(
     unit_before: Optional[np.ndarray] = None,
     unit_after: Optional[np.ndarray] = None,
     components: Optional[dict] = None,
+    random_tilt: Optional[bool] = None,
 ) -> RigidResult:
     """Estimate the rigid motion before -> after from points on matched planes.
 
@@ -1533,6 +1539,12 @@ def adjust_rigid(
         ``spatial_range_m`` (e.g. a side's global estimate for a strip or window), and
         ``tilt_rad``, the random tilt per plane in radians (:data:`.stochastic.RANDOM_TILT`;
         not with :func:`adjust_rigid_dense`, which has no random tilt).
+    random_tilt : bool, optional
+        Plane-level models: each plane is also tilted by the survey error, a random tilt
+        whose variance is estimated by REML from the planes' tilt misclosures
+        (:func:`.stochastic.estimate_tilt_variance`), so the tilts inform the rotation only as
+        far as the survey lets them (docs/accuracy.md, "A random tilt per plane"). None: the
+        default, :data:`.stochastic.RANDOM_TILT`. Not with :func:`adjust_rigid_dense`.
 
     Returns
     -------
@@ -1552,7 +1564,7 @@ def adjust_rigid(
         tolerance=tolerance, reject_outlier_planes=reject_outlier_planes, alpha=alpha,
         min_planes=min_planes, progress=progress, dense=False,
         stochastic_model=stochastic_model, unit_before=unit_before, unit_after=unit_after,
-        components=components,
+        components=components, random_tilt=random_tilt,
     )  # fmt: skip
 
 
@@ -1575,6 +1587,7 @@ def adjust_rigid_dense(
     unit_before: Optional[np.ndarray] = None,
     unit_after: Optional[np.ndarray] = None,
     components: Optional[dict] = None,
+    random_tilt: Optional[bool] = None,
 ) -> RigidResult:
     """Reference solver: :func:`adjust_rigid` with the full Gauss-Helmert matrices.
 
@@ -1589,5 +1602,5 @@ def adjust_rigid_dense(
         tolerance=tolerance, reject_outlier_planes=reject_outlier_planes, alpha=alpha,
         min_planes=min_planes, progress=progress, dense=True,
         stochastic_model=stochastic_model, unit_before=unit_before, unit_after=unit_after,
-        components=components,
+        components=components, random_tilt=random_tilt,
     )  # fmt: skip

@@ -609,6 +609,7 @@ def _stochastic_kw(stochastic: Optional[dict]) -> dict:
         "components": st.get("components"),
         "unit_before": st.get("unit_before"),
         "unit_after": st.get("unit_after"),
+        "random_tilt": st.get("random_tilt"),
     }
 
 
@@ -1066,6 +1067,7 @@ def estimate_slip(
     unit_after: Optional[np.ndarray] = None,
     components: Optional[dict] = None,
     transfer_planes: bool = DEFAULT_TRANSFER_PLANES,
+    random_tilt: Optional[bool] = None,
 ) -> SlipResult:
     """Relative displacement across ``trace`` between two epochs.
 
@@ -1103,6 +1105,10 @@ def estimate_slip(
         Planes of one epoch without a match are observed by the other epoch's points that lie
         on them (:mod:`.transfer`) and adjusted like matched planes (default off:
         :data:`DEFAULT_TRANSFER_PLANES`). Whole sides only: tiles adjust matched planes.
+    random_tilt : bool, optional
+        Each plane is also tilted by the survey error, with a variance estimated per side
+        (:func:`.adjustment.adjust_rigid`); strips, windows and tiles hold the side's value.
+        None: :data:`.stochastic.RANDOM_TILT` (off). Not with the white model.
 
     Returns
     -------
@@ -1120,7 +1126,7 @@ def estimate_slip(
     if tile_size_m is not None:
         tile_size_m = _positive("tile_size_m", tile_size_m)
     stochastic = _stochastic_options(
-        before, after, stochastic_model, unit_before, unit_after, components
+        before, after, stochastic_model, unit_before, unit_after, components, random_tilt
     )
     _, _, masks = _side_points(before, after, trace, buffer_m)
     sigma_before = _packed(sigma_before, "sigma_before")
@@ -1173,6 +1179,7 @@ def estimate_slip(
             "plane_options": dict(plane_options or {}),
             "match_options": dict(match_options or {}),
             "transfer_planes": bool(transfer_planes) and tile_size_m is None,
+            **({"random_tilt": bool(random_tilt)} if random_tilt is not None else {}),
             "stochastic_model": stochastic["stochastic_model"],
             "acquisition_units": {
                 e: int(np.unique(stochastic[f"unit_{e}"]).size)
@@ -1245,10 +1252,18 @@ def _relative_covariance(left: SideResult, right: SideResult):
     return _positive_part(cov), cross, comps
 
 
-def _stochastic_options(before, after, model, unit_before, unit_after, components) -> dict:
+def _stochastic_options(
+    before, after, model, unit_before, unit_after, components, random_tilt=None
+) -> dict:
     """Validated stochastic-model options of a whole run."""
     check_stochastic_model(model)
+    if random_tilt and model == "white":
+        raise InvalidParameterError(
+            "random_tilt needs a plane-level stochastic model (plane or full): the white model "
+            "has no plane-level components"
+        )
     return {
+        "random_tilt": None if random_tilt is None else bool(random_tilt),
         "stochastic_model": model,
         "components": check_components(components),
         "unit_before": check_units(unit_before, np.asarray(before).shape[0], "unit_before"),

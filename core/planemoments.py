@@ -234,6 +234,7 @@ def adjust_rigid_moments(
     stochastic_model: str = "white",
     use_units: bool = True,
     components: Optional[dict] = None,
+    random_tilt: Optional[bool] = None,
 ) -> _adj.RigidResult:
     """:func:`.adjustment.adjust_rigid` on per-plane moments (scalar or per-axis sigma).
 
@@ -295,5 +296,5 @@ def adjust_rigid_moments(
         epochs, b, centre, shares, dense=False, model=model, fixed=fixed,
         max_iterations=max_iterations, tolerance=tolerance, alpha=alpha, min_planes=min_planes,
         reject_outlier_planes=reject_outlier_planes, progress=progress, labels=(None, None),
-        unit_codes=codes,
+        unit_codes=codes, random_tilt=random_tilt,
     )  # fmt: skip

@@ -1842,8 +1842,8 @@ def estimate_tilt_variance(
         notes.append(f"the tilt variance did not converge in {TILT_MAX_ITER} iterations")
     n_out = int((~keep).sum())
     if n_out:
-        notes.append(f"{n_out} plane{'s' if n_out > 1 else ''}' tilts left out (χ² of the "
-                     f"tilt misclosure beyond {crit:.1f})")  # fmt: skip
+        whose = "1 plane's tilt" if n_out == 1 else f"{n_out} planes' tilts"
+        notes.append(f"{whose} left out (χ² of the tilt misclosure beyond {crit:.1f})")
     return TiltEstimate(float(s), sd, "estimated", it, conv, "; ".join(notes), keep)
 
 

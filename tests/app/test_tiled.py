@@ -124,6 +124,25 @@ def test_slip_tiled_equals_estimate_slip_with_tiles(data, slip_ref):
     _same_slip(runs[1], runs[0], rel=1e-12)  # the tiled path: layout-independent
 
 
+def test_slip_tiled_random_tilt_equals_estimate_slip(data):
+    """The random tilt per plane on tiled inputs: the same slip and the same estimated tilt
+    per side as the one-file run with tiles."""
+    ref = estimate_slip(
+        data["before"].xyz, data["after"].xyz, data["trace"], tile_size_m=TILE,
+        stochastic_model="plane", random_tilt=True, **SIG,
+    )  # fmt: skip
+    got = slip_tiled(
+        data["before_tiles"], data["after_tiles"], data["trace"], tile_size_m=TILE,
+        stochastic_model="plane", units="none", random_tilt=True, **SIG,
+    )  # fmt: skip
+    _same_slip(got, ref)
+    assert got.parameters["random_tilt"] is True
+    for g, r in ((got.left, ref.left), (got.right, ref.right)):
+        tg, tr = g.rigid.variance_components.tilt, r.rigid.variance_components.tilt
+        assert tg.source == tr.source == "estimated"
+        assert tg.sigma_rad == pytest.approx(tr.sigma_rad, rel=1e-6, abs=1e-12)
+
+
 def test_slip_tiled_combine_tiles(data):
     ref = estimate_slip(
         data["before"].xyz, data["after"].xyz, data["trace"], tile_size_m=TILE,

@@ -184,3 +184,21 @@ def test_reference_comparison_table_x(mls_result):
     assert ref["scale"] == pytest.approx(abs(delta) / np.sqrt(2) / norm)
     s0 = 0.5 * (ref["variance_left"] + ref["variance_right"])
     assert ref["relative_scale"] == pytest.approx(abs(delta) / 2 / (s0 * norm))
+
+
+def test_random_tilt_option_reaches_both_sides(mls_pair):
+    """``random_tilt=True``: each side's plane-level model estimates a random tilt (not a
+    fixed or absent one), the run's parameters say so, and the slip stays within the
+    millimetre of the default; the white model, which has no plane level, refuses it."""
+    from slipmap.core.errors import InvalidParameterError
+
+    res = _run(mls_pair, 0.02, random_tilt=True)
+    assert res.parameters["random_tilt"] is True
+    for side in (res.left, res.right):
+        tilt = side.rigid.variance_components.tilt
+        assert tilt.source == "estimated"
+        assert 0.0 <= tilt.sigma_rad < 1e-3
+    rel = res.components()
+    assert abs(rel["right_lateral_slip"] - NLOD) < 0.001
+    with pytest.raises(InvalidParameterError, match="random_tilt"):
+        _run(mls_pair, 0.02, random_tilt=True, stochastic_model="white")

@@ -230,3 +230,37 @@ def test_estimate_tilt_variance_plane_level():
     assert est.sd > 0
     est0 = sto.estimate_tilt_variance(a[:4], r[:4], np.zeros((6, 6)), np.zeros(6))
     assert est0.source == "off" and est0.var == 0.0
+
+
+def test_random_tilt_keyword_is_the_switch(monkeypatch):
+    """``random_tilt=True`` is the module default switched on, bit for bit; ``False`` turns a
+    default of on off; the moments' adjustment (tiles) takes the keyword too; the dense
+    reference refuses it."""
+    from slipmap.core.planemoments import PlaneMoments, adjust_rigid_moments
+
+    b, lb, a, la = make_tilted_pair(11, n_planes=30, n_per=200, tilt_sigma=2e-4)
+    kw = dict(centre=OFFSET, sigma_before=0.003, sigma_after=0.003, stochastic_model="plane")
+    monkeypatch.setattr(sto, "RANDOM_TILT", False)
+    r_kw = adjust_rigid(b, lb, a, la, random_tilt=True, **kw)
+    r_off = adjust_rigid(b, lb, a, la, **kw)
+    assert r_kw.variance_components.tilt.source == "estimated"
+    assert r_kw.variance_components.tilt.sigma_rad == pytest.approx(2e-4, rel=0.35)
+    assert r_off.variance_components.tilt.source == "off"
+    monkeypatch.setattr(sto, "RANDOM_TILT", True)
+    r_mod = adjust_rigid(b, lb, a, la, **kw)
+    np.testing.assert_array_equal(r_kw.params, r_mod.params)
+    np.testing.assert_array_equal(r_kw.covariance, r_mod.covariance)
+    r_no = adjust_rigid(b, lb, a, la, random_tilt=False, **kw)
+    np.testing.assert_array_equal(r_no.params, r_off.params)
+    np.testing.assert_array_equal(r_no.covariance, r_off.covariance)
+    monkeypatch.setattr(sto, "RANDOM_TILT", False)
+    n = int(max(lb.max(), la.max())) + 1
+    mb = PlaneMoments.from_points(b, lb, n, origin_m=OFFSET)
+    ma = PlaneMoments.from_points(a, la, n, origin_m=OFFSET)
+    m_kw = adjust_rigid_moments(mb, ma, random_tilt=True, **kw)
+    assert m_kw.variance_components.tilt.sigma_rad == pytest.approx(
+        r_kw.variance_components.tilt.sigma_rad, rel=1e-6
+    )
+    np.testing.assert_allclose(m_kw.params, r_kw.params, rtol=0, atol=1e-9)
+    with pytest.raises(InvalidParameterError, match="random_tilt"):
+        adjust_rigid_dense(b, lb, a, la, random_tilt=True, **kw)

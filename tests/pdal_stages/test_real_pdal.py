@@ -393,3 +393,27 @@ def test_displacement_pipeline_bindings_equals_cli(pdal_py, demo_pair, tmp_path)
     pipe = pdal_py.Pipeline(_pipeline_doc("displacement_fault", files, _slip_args(demo_pair)))
     pipe.execute()
     _assert_cli_slip(pipe.metadata["metadata"]["filters.python"]["children"], demo_pair)
+
+
+def test_displacement_pipeline_random_tilt_equals_cli(pdal_py, demo_pair, tmp_path):
+    """``random_tilt`` as a JSON boolean in real PDAL's pdalargs reaches the adjustment: the
+    slip and its σ equal the CLI's ``--random-tilt`` run on the same epochs, and the stage's
+    metadata records it."""
+    out = tmp_path / "cli"
+    _cli("displacement", str(demo_pair / "demo_before.laz"), str(demo_pair / "demo_after.laz"),
+         "--fault", str(demo_pair / "demo_fault.geojson"), "--sigma", "0.02", "--random-tilt",
+         "--out", str(out))  # fmt: skip
+    cli = json.loads((out / "displacement.json").read_text())
+    assert cli["parameters"]["random_tilt"] is True
+    files = {
+        "INPUT_epoch1.laz": demo_pair / "demo_before.laz",
+        "INPUT_epoch2.laz": demo_pair / "demo_after.laz",
+        "OUTPUT_slip.laz": tmp_path / "slip.laz",
+    }
+    args = dict(_slip_args(demo_pair), random_tilt=True)
+    pipe = pdal_py.Pipeline(_pipeline_doc("displacement_fault", files, args))
+    pipe.execute()
+    kids = pipe.metadata["metadata"]["filters.python"]["children"]
+    for key in ("right_lateral_slip", "sigma_right_lateral", "dz", "sigma_dz"):
+        assert kids[key] == pytest.approx(cli["relative"][key], abs=1e-5), key
+    assert kids["summary"]["parameters"]["random_tilt"] is True
