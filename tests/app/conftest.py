@@ -1,4 +1,5 @@
-"""Helpers of the application-layer tests: checksums and folder listings."""
+"""Helpers of the application-layer tests: checksums, folder listings, a fault pair as the
+files a user gives the slip job."""
 
 import hashlib
 
@@ -38,3 +39,23 @@ def snapshot():
             return [self._state(p) for p in self.paths] == self.before
 
     return Snap
+
+
+@pytest.fixture
+def fault_pair_files(line_file):
+    """``paths, fault = fault_pair_files(folder, fp, crs)``: ``fp`` (a
+    :class:`slipmap.core.synthetic.FaultPair`) written as ``before.laz`` and ``after.laz``
+    (with their classes) and its trace as ``fault.gpkg`` in ``folder``, all in ``crs``; the
+    two epoch paths and the trace path, as strings."""
+    from slipmap.core.io.las import PointCloud, write_las
+
+    def write(folder, fp, crs):
+        paths = []
+        for epoch, sc in (("before", fp.before), ("after", fp.after)):
+            p = folder / f"{epoch}.laz"
+            write_las(p, PointCloud(sc.points, {"Classification": sc.classification}, crs=crs))
+            paths.append(str(p))
+        line_file(folder / "fault.gpkg", fp.trace_xy, crs)
+        return paths, str(folder / "fault.gpkg")
+
+    return write

@@ -10,7 +10,6 @@ import pyproj
 import pytest
 
 from slipmap.cli import main
-from slipmap.core.io.las import PointCloud, write_las
 from slipmap.core.synthetic import make_fault_pair
 
 pytest.importorskip("osgeo.ogr", reason="GDAL/OGR (python3-gdal) missing")
@@ -19,16 +18,10 @@ ORIGIN = (498000.0, 4234000.0, 20.0)
 UTM10 = pyproj.CRS.from_epsg(32610)
 
 
-def _files(tmp_path, line_file):
+def _files(tmp_path, fault_pair_files):
     fp = make_fault_pair("mls", seed=7, origin=ORIGIN, right_offset_m=(0.0, -0.0181, 0.0),
                          vegetation=False, extent_m=80.0)  # fmt: skip
-    paths = []
-    for epoch, sc in (("before", fp.before), ("after", fp.after)):
-        p = tmp_path / f"{epoch}.laz"
-        write_las(p, PointCloud(sc.points, {"Classification": sc.classification}, crs=UTM10))
-        paths.append(str(p))
-    line_file(tmp_path / "fault.gpkg", fp.trace_xy, UTM10)
-    return paths, str(tmp_path / "fault.gpkg")
+    return fault_pair_files(tmp_path, fp, UTM10)
 
 
 def _main(argv):
@@ -38,8 +31,8 @@ def _main(argv):
     return rc, console.getvalue()
 
 
-def test_random_tilt_reaches_the_adjustment_and_the_summary(tmp_path, line_file):
-    paths, fault = _files(tmp_path, line_file)
+def test_random_tilt_reaches_the_adjustment_and_the_summary(tmp_path, fault_pair_files):
+    paths, fault = _files(tmp_path, fault_pair_files)
     out = tmp_path / "out"
     rc, console = _main(["displacement", *paths, "--fault", fault, "--out", str(out),
                          "--stochastic-model", "plane", "--random-tilt"])  # fmt: skip
@@ -51,8 +44,8 @@ def test_random_tilt_reaches_the_adjustment_and_the_summary(tmp_path, line_file)
         assert tilt["source"] == "estimated" and tilt["sigma_rad"] >= 0.0
 
 
-def test_random_tilt_with_the_white_model_is_refused(tmp_path, line_file):
-    paths, fault = _files(tmp_path, line_file)
+def test_random_tilt_with_the_white_model_is_refused(tmp_path, fault_pair_files):
+    paths, fault = _files(tmp_path, fault_pair_files)
     out = tmp_path / "out"
     rc, console = _main(["displacement", *paths, "--fault", fault, "--out", str(out),
                          "--stochastic-model", "white", "--random-tilt"])  # fmt: skip

@@ -16,7 +16,6 @@ import pyproj
 import pytest
 
 from slipmap.cli import main
-from slipmap.core.io.las import PointCloud, write_las
 from slipmap.core.synthetic import Building, make_fault_pair
 
 pytest.importorskip("osgeo.ogr", reason="GDAL/OGR (python3-gdal) missing")
@@ -25,17 +24,12 @@ ORIGIN = (498000.0, 4234000.0, 20.0)
 UTM10 = pyproj.CRS.from_epsg(32610)
 
 
-def _run(tmp_path, fp, name, line_file):
+def _run(tmp_path, fp, name, fault_pair_files):
     d = tmp_path / name
     d.mkdir()
-    paths = []
-    for epoch, sc in (("before", fp.before), ("after", fp.after)):
-        p = d / f"{epoch}.laz"
-        write_las(p, PointCloud(sc.points, {"Classification": sc.classification}, crs=UTM10))
-        paths.append(str(p))
-    line_file(d / "fault.gpkg", fp.trace_xy, UTM10)
+    paths, fault = fault_pair_files(d, fp, UTM10)
     out = d / "out"
-    argv = ["displacement", *paths, "--fault", str(d / "fault.gpkg"), "--out", str(out)]
+    argv = ["displacement", *paths, "--fault", fault, "--out", str(out)]
     console = io.StringIO()
     with contextlib.redirect_stderr(console):
         rc = main(argv + ["--stochastic-model", "white"])
@@ -43,7 +37,7 @@ def _run(tmp_path, fp, name, line_file):
     return console.getvalue(), json.loads((out / "displacement.json").read_text()), out
 
 
-def test_an_airborne_pair_with_low_roofs_names_the_weak_components(tmp_path, line_file):
+def test_an_airborne_pair_with_low_roofs_names_the_weak_components(tmp_path, fault_pair_files):
     pitch = math.radians(4.0)
     blds = [
         Building((x, y), 16.0, 10.0, 6.0, rotation_rad=r, roof="gable", roof_pitch_rad=pitch)
@@ -53,7 +47,7 @@ def test_an_airborne_pair_with_low_roofs_names_the_weak_components(tmp_path, lin
         "als", seed=3, origin=ORIGIN, right_offset_m=(0.0, -0.02, 0.0), buildings=blds,
         extent_m=80.0, vegetation=False, density_pts_m2=10.0,
     )  # fmt: skip
-    console, payload, out = _run(tmp_path, fp, "weak", line_file)
+    console, payload, out = _run(tmp_path, fp, "weak", fault_pair_files)
     weak = payload["weak_components"]
     # both sides see roofs and ground only: both horizontal components, never dz
     assert {(w["component"], w["side"]) for w in weak} == {
@@ -76,12 +70,12 @@ def test_an_airborne_pair_with_low_roofs_names_the_weak_components(tmp_path, lin
     assert "Weakly determined: The right-lateral slip is barely determined" in html
 
 
-def test_a_pair_with_planes_facing_every_way_has_no_weak_component(tmp_path, line_file):
+def test_a_pair_with_planes_facing_every_way_has_no_weak_component(tmp_path, fault_pair_files):
     fp = make_fault_pair(
         "mls", seed=7, origin=ORIGIN, right_offset_m=(0.0, -0.018, 0.0),
         density_pts_m2=25.0, vegetation=False,
     )  # fmt: skip
-    console, payload, out = _run(tmp_path, fp, "strong", line_file)
+    console, payload, out = _run(tmp_path, fp, "strong", fault_pair_files)
     assert payload["weak_components"] == []
     assert "weakly determined" not in console
     assert "Weakly determined" not in (out / "report.html").read_text()
