@@ -305,6 +305,17 @@ def desktop(provider, data, profile, tmp_path_factory):
             "shot_dialog": str(shots / "desktop_displacement_dialog.png"),
         }
     )
+    tilted = tmp / "tilted"
+    tilted.mkdir()
+    scenarios.append(
+        {
+            "id": "displacement-random-tilt",
+            "alg": "slipmap:displacement",
+            "layers": _layers(data, "displacement"),
+            "values": {**required["displacement"], "RANDOM_TILT": True},
+            "outputs": {"SUMMARY": str(tilted / "slip.json")},
+        }
+    )
     cancelled = tmp / "cancelled"
     cancelled.mkdir()
     scenarios.append(
@@ -322,7 +333,7 @@ def desktop(provider, data, profile, tmp_path_factory):
         scenarios = [s for s in scenarios if s["id"] in only.split(",")]
     record = _launch(profile, {"scenarios": scenarios}, tmp, timeout=900)
     by_id = {s["id"]: s for s in record["scenarios"]}
-    return record, by_id, {"full": full, "cancelled": cancelled}
+    return record, by_id, {"full": full, "cancelled": cancelled, "tilted": tilted}
 
 
 def _scenario(desktop, sid):
@@ -423,6 +434,19 @@ def test_fault_slip_maps_open_styled_with_one_sign(desktop):
     assert windows["labels"][0].endswith("(\u2212 = left-lateral)"), windows["labels"]
     legend = " ".join(" ".join(map(str, x.get("rules", []))) for x in layers)
     assert "right-lateral" in legend, legend
+
+
+def test_random_tilt_ticked_in_the_dialog_reaches_both_sides(desktop):
+    """The advanced checkbox "Random tilt per plane" ticked in the real dialog: the run
+    records it and each side's adjustment estimated a random tilt."""
+    s = _scenario(desktop, "displacement-random-tilt")
+    _assert_ran(s)
+    assert s["parameters"]["RANDOM_TILT"] == "True", s["parameters"]
+    summary = json.loads((desktop[2]["tilted"] / "slip.json").read_text())
+    assert summary["parameters"]["random_tilt"] is True
+    for side in ("left", "right"):
+        tilt = summary[side]["variance_components"]["random_tilt"]
+        assert tilt["source"] == "estimated" and tilt["sigma_rad"] >= 0.0, tilt
 
 
 def test_cancel_leaves_nothing_behind(desktop):
