@@ -639,7 +639,7 @@ def slip_tiled(
     from ..core.fault import mean_strike_rad
     from ..core.matching import PlaneMatches
     from ..core.planemoments import adjust_rigid_moments
-    from ..core.stochastic import check_components, check_stochastic_model
+    from ..core.stochastic import check_components, check_random_tilt, check_stochastic_model
 
     if combine not in COMBINE_MODES:
         raise InvalidParameterError(f"combine must be one of {COMBINE_MODES}, got {combine!r}")
@@ -655,11 +655,7 @@ def slip_tiled(
             )
     model = check_stochastic_model(stochastic_model)
     components = check_components(components)
-    if random_tilt and model == "white":
-        raise InvalidParameterError(
-            "random_tilt needs a plane-level stochastic model (plane or full): the white model "
-            "has no plane-level components"
-        )
+    random_tilt = check_random_tilt(random_tilt, model)
     eng = _engine(engine)
     for coll in (before, after):
         if coll.n_points == 0:

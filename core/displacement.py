@@ -30,6 +30,7 @@ from .stochastic import (
     DEFAULT_STOCHASTIC_MODEL,
     JointComponents,
     check_components,
+    check_random_tilt,
     check_stochastic_model,
     check_units,
     cross_covariance,
@@ -1257,13 +1258,8 @@ def _stochastic_options(
 ) -> dict:
     """Validated stochastic-model options of a whole run."""
     check_stochastic_model(model)
-    if random_tilt and model == "white":
-        raise InvalidParameterError(
-            "random_tilt needs a plane-level stochastic model (plane or full): the white model "
-            "has no plane-level components"
-        )
     return {
-        "random_tilt": None if random_tilt is None else bool(random_tilt),
+        "random_tilt": check_random_tilt(random_tilt, model),
         "stochastic_model": model,
         "components": check_components(components),
         "unit_before": check_units(unit_before, np.asarray(before).shape[0], "unit_before"),

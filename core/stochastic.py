@@ -122,6 +122,7 @@ __all__ = [
     "Component",
     "VarianceComponents",
     "check_components",
+    "check_random_tilt",
     "check_stochastic_model",
     "cross_covariance",
     "joint_covariance",
@@ -192,6 +193,17 @@ def check_stochastic_model(model: str, *, option: str = "stochastic_model") -> s
             f"{option} must be one of {', '.join(STOCHASTIC_MODELS)}; got {model!r}"
         )
     return model
+
+
+def check_random_tilt(random_tilt: Optional[bool], model: str) -> Optional[bool]:
+    """``random_tilt`` as a bool (None stays None: the default, :data:`RANDOM_TILT`); raise
+    when it is asked of the white model, which has no plane level to tilt."""
+    if random_tilt and model == "white":
+        raise InvalidParameterError(
+            "random_tilt needs a plane-level stochastic model (plane or full): the white model "
+            "has no plane-level components"
+        )
+    return None if random_tilt is None else bool(random_tilt)
 
 
 def check_components(components: Optional[Mapping[str, float]], *, option: str = "components"):
