@@ -2275,6 +2275,7 @@ def windowed_icp(
             opts=opts,
             grid=grid,
         )
+        first = None  # the fit with candidate lines, when lines were detected
         if lines is None and detect_breaklines:
             # the formal covariances: the detection's threshold was set with them
             lines = _detect_lines(
@@ -2326,6 +2327,8 @@ def windowed_icp(
                     projection=projection, fitted=fits.ok,
                 )[0]  # fmt: skip
 
+        if first is not None:  # the refit starts where the candidate's fit ended
+            spline_kw.update(initial=first.field, smoothing_start=first.smoothing_estimate)
         sfit = fit_spline_field(
             a[cells.points],
             cell_weight=weights,

@@ -428,6 +428,10 @@ class SplineFit:
     restricted_score : float or None
         With the local penalty: minus twice the restricted log-likelihood of the final
         weighted fit, up to a constant (:func:`_restricted_score`; lower is likelier).
+    smoothing_estimate : (3,) float64 or None
+        With one penalty weight per component estimated (``smoothing=None``, no cell
+        weights): the weights reached, relative to the median diagonal of the normal matrix
+        (as ``smoothing``), for ``smoothing_start`` of a refit; None otherwise.
     """
 
     field: SplineField
@@ -447,6 +451,7 @@ class SplineFit:
     projection: Optional[np.ndarray] = None
     penalty_width_m: Optional[float] = None
     restricted_score: Optional[float] = None
+    smoothing_estimate: Optional[np.ndarray] = None
 
 
 def _second_differences(kx: int, ky: int):
@@ -1265,6 +1270,7 @@ def fit_spline_field(
     breakline_gap_m: float = 0.0,
     block_m: Optional[float] = None,
     cell_weight: Optional[np.ndarray] = None,
+    smoothing_start: Optional[np.ndarray] = None,
 ) -> SplineFit:
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
 
@@ -1337,6 +1343,13 @@ def fit_spline_field(
         unweighted fit). The variance components take the points' own variance and, with
         the smoothing estimated, a penalty weight per second difference
         (:func:`_local_variance_components`). None: every point counts as independent.
+    smoothing_start : (3,) float64, optional
+        With ``smoothing=None``: where the estimate of the unweighted fit's penalty weights
+        starts (relative, as ``smoothing``; e.g. ``SplineFit.smoothing_estimate`` of a fit
+        of the same points), instead of :data:`AUTO_START`. With ``initial`` that fit's
+        field, a refit (other breaklines) starts where the first one ended and needs a
+        few iterations instead of its own 20-odd (issue #29 item 5). The weighted fits'
+        local weights start at :data:`AUTO_START` as before.
 
     Returns
     -------
@@ -1365,7 +1378,7 @@ def fit_spline_field(
     return fit_spline_chunks(
         run, frame=frame, initial=initial, report_xy=report_xy, report_pairs=report_pairs,
         smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress, block_m=block_m,
-        cell_weight=cell_weight,
+        cell_weight=cell_weight, smoothing_start=smoothing_start,
     )  # fmt: skip
 
 
@@ -1399,6 +1412,7 @@ def fit_spline_chunks(
     block_m: Optional[float] = None,
     cell_weight=None,
     penalty_width_knots: Optional[float] = None,
+    smoothing_start: Optional[np.ndarray] = None,
 ) -> SplineFit:
     """:func:`fit_spline_field` over chunks of points: the Gauss-Newton normal equations,
     the weights' scale and the final sums are sums (or quantiles) over the after-points, so
@@ -1413,7 +1427,8 @@ def fit_spline_chunks(
         after-point in exactly one chunk, each chunk's ``seg`` indexing ``report_xy``.
     frame : SplineField
         The knot lattice (:func:`knot_frame` of all chunks' points).
-    initial, report_xy, report_pairs, smoothing, gate_m, opts, progress, block_m, cell_weight
+    initial, report_xy, report_pairs, smoothing, gate_m, opts, progress, block_m, cell_weight,
+    smoothing_start
         As :func:`fit_spline_field` (with ``block_m`` every chunk's ``report`` gives its
         block sums, :class:`~slipmap.core.icp_blocks.BlockScores`, added here).
     penalty_width_knots : float, optional
@@ -1433,6 +1448,7 @@ def fit_spline_chunks(
         first = fit_spline_chunks(
             run, frame=frame, initial=initial, report_xy=report_xy, report_pairs=report_pairs,
             smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress, block_m=block_m,
+            smoothing_start=smoothing_start,
         )  # fmt: skip
         c1 = first.field.all_coefficients()
         wgt1 = Weighting.of(np.concatenate([np.asarray(p) for p in run("residuals", c1)]), opts)
@@ -1514,7 +1530,9 @@ def fit_spline_chunks(
             if lam_abs is None:
                 dg = nmat.diagonal()
                 scale = float(np.median(dg[dg > 0])) if np.any(dg > 0) else 1.0
-                lam_abs = np.full(3, lam * scale)
+                warm = smoothing is None and not local and smoothing_start is not None
+                start = smoothing_start if warm else lam
+                lam_abs = np.broadcast_to(np.asarray(start, dtype=np.float64), (3,)) * scale
                 ridge = sp.identity(3 * n_k, format="csr") * (1e-12 * scale)
                 if n_k > n_grid:  # copies no point uses: held by the penalty and a small ridge
                     idle = nmat.diagonal().reshape(3, n_k).sum(axis=0) <= 0
@@ -1559,11 +1577,12 @@ def fit_spline_chunks(
                 converged = True
                 break
         score = _restricted_score(factor, penalty, c, wvv, wvv_weighted, n_obs) if local else None
-        return c, factor, penalty, it, converged, score
+        global_estimate = lam_abs / scale if smoothing is None and not local else None
+        return c, factor, penalty, it, converged, score, global_estimate
 
     if not local:
         width = None
-        c, factor, penalty, it, converged, score = iterate(c0, None, progress)
+        c, factor, penalty, it, converged, score, estimate = iterate(c0, None, progress)
     else:
         # the local penalty's width: the given one, or each of LOCAL_WIDTHS_KNOTS iterated
         # from the same start and the likeliest (lowest restricted score) kept; only it is
@@ -1574,11 +1593,11 @@ def fit_spline_chunks(
             width = float(wk) * h
             part = scaled(progress, i / len(widths), (i + 1) / len(widths))
             tried.append((width, *iterate(c0, local_kernel(width), part)))
-        width, c, factor, penalty, it, converged, score = min(tried, key=lambda t: t[-1])
+        width, c, factor, penalty, it, converged, score, estimate = min(tried, key=lambda t: t[-2])
         if len(tried) > 1:
             log.info(
                 "spline field: local penalty of %.2f m (restricted likelihood: %s)",
-                width, ", ".join(f"{t[0]:g} m {t[-1]:.1f}" for t in tried),
+                width, ", ".join(f"{t[0]:g} m {t[-2]:.1f}" for t in tried),
             )  # fmt: skip
     # final residuals, sigma0 and the report
     wgt = weighting_at(c)
@@ -1681,6 +1700,7 @@ def fit_spline_chunks(
         projection=projection,
         penalty_width_m=width,
         restricted_score=score,
+        smoothing_estimate=estimate,
     )
 
 

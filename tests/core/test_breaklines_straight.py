@@ -157,8 +157,9 @@ def test_a_fault_across_a_lobe_is_found_placed_and_both_sides_recovered():
     err, n = _errors(res, fault, trace, 3.0)
     smooth, _ = _errors(windowed_icp(before, after, **kw), fault, trace, 3.0)
     assert n >= 40
-    # measured 3.3 mm against the smooth field's 6.5 mm
-    assert err < 0.005 and err < 0.6 * smooth, (err, smooth)
+    # measured 3.3 mm against the smooth field's 6.5 mm when written; 2.2-2.3 mm against
+    # 3.8 mm since (the refit started from the candidate's fit, issue #29: 2.30 mm)
+    assert err < 0.005 and err < 0.7 * smooth, (err, smooth)
 
 
 def test_a_lobe_the_scan_proposes_a_line_for_is_left_whole(caplog, monkeypatch):
@@ -177,4 +178,9 @@ def test_a_lobe_the_scan_proposes_a_line_for_is_left_whole(caplog, monkeypatch):
     assert "a straight step proposed" in caplog.text  # the grid alone cannot tell
     assert res.breaklines_source == "none" and res.breaklines is None
     smooth = windowed_icp(before, after, **kw)
-    np.testing.assert_allclose(res.dx, smooth.dx, atol=1e-9)
+    # the refit without the line starts where the candidate's fit ended (issue #29), so it
+    # is the smooth field to the fits' convergence: measured 0.12 mm, 0.016 sigma
+    for k in ("dx", "dy", "dz"):
+        gap = np.abs(getattr(res, k) - getattr(smooth, k))
+        assert np.all(gap < 0.05 * getattr(smooth, "sigma_" + k)), k
+        assert gap.max() < 5e-4, k
