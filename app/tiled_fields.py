@@ -27,12 +27,14 @@ owns. No point cloud travels to the driver.
   same points from tiles); the stable-ground pre-alignment is refused on tiled inputs (it
   needs one fit over both whole epochs).
 * The ICP's spline field (``field_model="spline"``, :func:`_icp_spline_tiled`): one field
-  over all blocks, not one per block. The tiled cell pass starts it; then each Gauss-Newton
-  iteration is two rounds over the blocks: every block returns the ``|v|`` of its points
-  (the robust weights' scale is a median over all of them), then its share of the normal
-  equations (the sparse normal-matrix entries of the knots its points touch, the right-hand
-  side, the sums the variance-component smoothing and the stop test need); the driver adds
-  the shares, solves once and hands the new coefficients back
+  over all blocks, not one per block, smooth on each side of the given ``breaklines`` (every
+  block's chunk is built on the frame with the lines; none are detected on tiles). The
+  tiled cell pass starts it; then each Gauss-Newton iteration is two rounds over the
+  blocks: every block returns the ``|v|`` of its points (the robust weights' scale is a
+  median over all of them), then its share of the normal equations (the sparse
+  normal-matrix entries of the knots its points touch, the right-hand side, the sums the
+  variance-component smoothing and the stop test need); the driver adds the shares, solves
+  once and hands the new coefficients back
   (:func:`~slipmap.core.icp_spline.fit_spline_chunks`, the one-file run's code with one
   chunk). A block owns the cells whose centres it holds (each after-point in one block) and
   reads the before-points two gates and a cell around (its points' targets and their normals
@@ -758,7 +760,13 @@ def icp_tiled(
     spline_kw = {
         "spacing_m": icp_kw.pop("spline_spacing_m", None),
         "smoothing": icp_kw.pop("spline_smoothing", None),
+        "lines": _given_lines(icp_kw.pop("breaklines", None)) if spline else None,
     }
+    if icp_kw.pop("detect_breaklines", False) and spline:
+        log.info(
+            "tiled inputs: breaklines are not detected (give them with breaklines for a field "
+            "that may jump at scarps, or run on one file per epoch)"
+        )
     cell = float(cell_m)
     if not (math.isfinite(cell) and cell > 0):
         raise InvalidParameterError(f"cell_m must be a positive number, got {cell_m!r}")
@@ -966,12 +974,15 @@ def piv_for_job(opts, windows_px, *, bytes_per_cell: float, progress=None, break
     return res, grid, before.crs
 
 
-def icp_for_job(opts, core_kwargs: Dict[str, Any], *, progress=None):
-    """The icp job on tiled inputs (``core_kwargs``: the job's windowed_icp keywords).
+def icp_for_job(opts, core_kwargs: Dict[str, Any], *, progress=None, breaklines_of=None):
+    """The icp job on tiled inputs (``core_kwargs``: the job's windowed_icp keywords;
+    ``breaklines_of(crs)``: the given breaklines in the epochs' CRS, for the spline field).
     Returns ``(WindowedICPResult, crs)``."""
     from .tiled import engine_from
 
     before, after, selection = open_pair(opts)
+    if breaklines_of is not None and core_kwargs.get("field_model") == "spline":
+        core_kwargs = dict(core_kwargs, breaklines=breaklines_of(before.crs))
     with engine_from(opts) as eng:
         res = icp_tiled(
             before, after, selection=selection, tile_size_m=_tile(opts), engine=eng,
@@ -1024,7 +1035,7 @@ class _SplineCall:
     block: _SplineBlock
     stage: str  # "cells" or a SplineChunk method
     args: tuple = ()
-    frame: Optional[Tuple[Tuple[float, float], float, int, int]] = None
+    frame: Optional[Tuple[Tuple[float, float], float, int, int, Any]] = None  # + breaklines
     cell_index: Optional[np.ndarray] = None  # the run's index of each of the block's cells
 
 
@@ -1091,8 +1102,8 @@ def _spline_chunk(call: _SplineCall):
     grid = _target_grid(b, blk.backend)
     if grid is not None and blk.neighbours_k <= grid.MAX_NORMAL_K:
         normals.device = grid
-    origin, h, n_x, n_y = call.frame
-    frame = SplineField(origin, h, n_x, n_y, np.zeros((n_y + 3, n_x + 3, 3)))
+    origin, h, n_x, n_y, lines = call.frame
+    frame = SplineField(origin, h, n_x, n_y, np.zeros((n_y + 3, n_x + 3, 3)), lines=lines)
     chunk = SplineChunk(
         a[cells.points], frame=frame, before=b, tree=tree, normals=normals,
         gate_m=blk.gate_m, seg=np.asarray(call.cell_index)[cells.seg], grid=grid,
@@ -1110,6 +1121,19 @@ def _keep(key, value, size: float) -> None:
         _CHUNKS.popitem(last=False)
     if size <= SPLINE_CACHE_BYTES:
         _CHUNKS[key] = (value, size)
+
+
+def _given_lines(breaklines):
+    """The tiled spline field's given breaklines (:func:`~slipmap.core.breaklines.
+    from_sequence`; None: none), checked as the one-file run checks them."""
+    from ..core.breaklines import Breaklines, from_sequence
+
+    if breaklines is not None and not isinstance(breaklines, (Breaklines, list, tuple)):
+        raise InvalidParameterError("breaklines must be a Breaklines or a list of (M, 2) arrays")
+    try:
+        return from_sequence(breaklines)
+    except InvalidParameterError as exc:
+        raise InvalidParameterError(f"breaklines: {exc}") from exc
 
 
 def _spline_block(call: _SplineCall):
@@ -1261,8 +1285,9 @@ def _icp_spline_tiled(
     lo = np.min([s["lo"] for s in survey], axis=0)
     hi = np.max([s["hi"] for s in survey], axis=0)
     h = spline_kw["spacing_m"]
-    frame = knot_frame(lo, hi, cells.centres[:, :2], h)
-    frame_t = (frame.origin_xy, frame.spacing_m, frame.n_x, frame.n_y)
+    lines = spline_kw.get("lines")  # given breaklines (none are detected on tiles)
+    frame = knot_frame(lo, hi, cells.centres[:, :2], h, lines=lines)
+    frame_t = (frame.origin_xy, frame.spacing_m, frame.n_x, frame.n_y, lines)
     live = [i for i, s in enumerate(survey) if len(s["keys"])]
     index_of = {i: np.searchsorted(keys, survey[i]["keys"]) for i in live}
     names = [f"spline block at x {blocks[i].block.xmin:.1f}, y {blocks[i].block.ymin:.1f}"
@@ -1340,5 +1365,6 @@ def _icp_spline_tiled(
         origin_xy=(float(x0), float(y0)), cell_m=cell, n_rows=n_rows, n_cols=n_cols,
         prealignment=None, t_start=0.0, cell_model=cells_res.cell_model,
         deform_passes=cells_res.deform_passes, field_model="spline", near=near,
-        pair_cov=sfit.pair_cov, **sigma_kw, **blocks_kw,
+        pair_cov=sfit.pair_cov, lines=lines, lines_source="none" if lines is None else "given",
+        **sigma_kw, **blocks_kw,
     )  # fmt: skip

@@ -22,7 +22,9 @@ split into two disjoint random halves, the second moved by the default lobe, one
    Horizontal error against the true motion at the vector positions, on the vectors both mark
    valid, over the lobe (``r < 1``) and its interior (``r <= 0.5``).
 4. Windowed ICP: SlipMap's :func:`~slipmap.core.icp.windowed_icp` (rigid cells; with one
-   coarser pass; with two deformation passes) against Open3D's point-to-plane ICP per cell
+   coarser pass; with two deformation passes; the default of ``slipmap icp``: the spline
+   field, breaklines found from the data, at most 5000 after-points per cell) against
+   Open3D's point-to-plane ICP per cell
    (``benchmarks/peers/open3d_cells.py``) on the same cells (``--lobe-cell`` m; cells with
    >= 500 correspondences). 3-D error against the true motion at the cell centres, in the
    lobe and on stable ground; for SlipMap also on the lobe cells whose reported σ are all
@@ -257,6 +259,22 @@ def _icp_truth(field, c_xy, iterations=20):
     return field(p0)
 
 
+def default_icp_kwargs() -> dict:
+    """The keywords ``slipmap icp`` gives :func:`~slipmap.core.icp.windowed_icp` with every
+    option at its default (the job's ``SPEC`` parsed as the CLI parses it, less the cell)."""
+    from slipmap.app.icp import SPEC, core_kwargs
+
+    opts = SPEC.parse({"before": "before.laz", "after": "after.laz", "out": "out"},
+                      run_check=False)  # fmt: skip
+    kw = core_kwargs(opts)
+    kw.pop("cell_m", None)
+    return kw
+
+
+#: the default run of ``slipmap icp`` (the spline field, its breaklines found from the data,
+#: at most DEFAULT_MAX_POINTS_PER_CELL after-points per cell), timed beside the rigid cells
+DEFAULT_RUN = "slipmap icp defaults"
+
 ICP_RUNS = (
     ("slipmap rigid", {"coarse_to_fine": 0}),
     ("slipmap rigid, coarse-to-fine 1", {"coarse_to_fine": 1}),
@@ -264,6 +282,7 @@ ICP_RUNS = (
      {"coarse_to_fine": 1, "deform_passes": 2}),
     ("slipmap rigid, coarse-to-fine 1, spline field",
      {"coarse_to_fine": 1, "field_model": "spline"}),
+    (DEFAULT_RUN, default_icp_kwargs()),
 )  # fmt: skip
 
 
@@ -317,11 +336,13 @@ def lobe_icp(
     ``repeat`` > 1 SlipMap's rigid run and Open3D's run ``repeat`` times more, alternately,
     and each reports every time (``runs_s``) and the fastest (``min_s``): on a shared VM the
     spread between runs of the same work is larger than the difference asked about.
-    ``timing_only``: the rigid runs (the default backend and ``backends``) alone."""
+    ``timing_only``: the rigid runs (the default backend and ``backends``) and the default
+    of ``slipmap icp`` alone; ``repeat`` times these."""
     if cap is not None:
         pair = replace(pair, after=cap_per_cell(pair.after, cell, cap))
     runs = {}
-    todo = (ICP_RUNS[:1] if timing_only else ICP_RUNS) + backend_runs(backends)
+    timed_runs = (ICP_RUNS[0], ICP_RUNS[-1])  # the rigid cells and the default
+    todo = (timed_runs if timing_only else ICP_RUNS) + backend_runs(backends)
     for name, kw in todo:
         t0 = time.perf_counter()
         runs[name] = (windowed_icp(pair.before, pair.after, cell_m=cell, **kw), t0)
@@ -381,7 +402,7 @@ def lobe_icp(
         ok = m & np.all(np.isfinite(d), axis=1)
         out["methods"][name][k] = _stats(d[ok] - truth[ok])
     if repeat > 1:
-        timed = (ICP_RUNS[0],) + backend_runs(backends)
+        timed = timed_runs + backend_runs(backends)
         times = {n: [runs[n][1]] for n, _ in timed}
         cpus = {n: [] for n, _ in timed}
         times[name] = [float(o["seconds"])]
@@ -491,11 +512,13 @@ def main(argv=None) -> int:
     ap.add_argument("--no-piv", action="store_true", help="lobe case: the ICP part only")
     ap.add_argument(
         "--repeat", type=int, default=1,
-        help="lobe case: run SlipMap's rigid ICP and Open3D's N times, alternately (times)",
+        help="lobe case: run SlipMap's rigid ICP, the default of `slipmap icp` and Open3D's "
+        "N times, alternately (times)",
     )  # fmt: skip
     ap.add_argument(
         "--icp-timing-only", action="store_true",
-        help="lobe case: SlipMap's rigid ICP (numpy and OpenCL pairs) and Open3D's only",
+        help="lobe case: SlipMap's rigid ICP (numpy and OpenCL pairs), the default of "
+        "`slipmap icp` and Open3D's only",
     )  # fmt: skip
     ap.add_argument(
         "--backends", nargs="+", default=None, choices=("numpy", "numba", "opencl", "auto"),

@@ -152,3 +152,41 @@ def test_default_falls_back_to_cells_where_too_few_cells_hold_points(tmp_path, c
     assert "too few cells for the default spline field" in err and "--cell" in err
     summary = json.loads((out / "icp.json").read_text())
     assert summary["model"]["field"] == "cells" and summary["breaklines"]["source"] == "none"
+
+
+def test_cli_registers_at_most_5000_points_per_cell_by_default_and_0_means_all(tmp_path, capsys):
+    """``--max-points-per-cell``: 5000 after-points per cell by default (docs/fields.md
+    "Speed"), every point with 0; both recover the known shift."""
+    pyproj = pytest.importorskip("pyproj")
+    pytest.importorskip("osgeo.ogr", reason="GDAL/OGR (python3-gdal) missing")
+    from slipmap.core.io.las import PointCloud, write_las
+
+    assert (
+        core_kwargs(SPEC.parse({"before": "b", "after": "a", "out": "o"}, run_check=False))[
+            "max_points_per_cell"
+        ]
+        == 5000
+    )
+    crs = pyproj.CRS.from_epsg(32612)
+    b, a = tmp_path / "b.las", tmp_path / "a.las"
+    shift = np.array([0.04, -0.02, 0.01])
+    write_las(b, PointCloud(xyz=_rough(100_000, 1, side=20.0), crs=crs))
+    write_las(a, PointCloud(xyz=_rough(100_000, 2, side=20.0) + shift, crs=crs))
+    used = {}
+    for extra in ([], ["--max-points-per-cell", "0"]):
+        out = tmp_path / f"out{len(extra)}"
+        argv = ["icp", str(b), str(a), "--cell", "5", "--field-model", "cells", "--out", str(out)]
+        try:
+            rc = main(argv + extra)
+        except SystemExit as e:
+            rc = e.code
+        assert rc == 0, capsys.readouterr().err
+        with open(out / "icp.csv", newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        n = np.array([float(r["n"]) for r in rows])  # points in the cell's fit
+        d = np.array([[float(r[k]) for k in ("dx", "dy", "dz")] for r in rows])
+        full = n >= 0.8 * n.max()
+        assert np.abs(np.median(d[full], axis=0) - shift).max() < 0.003
+        used[len(extra)] = n
+    assert 4000 < used[0].max() <= 5000
+    assert used[2].max() > 5500  # 100 000 points on 20 m: about 6250 per full 5 m cell

@@ -215,9 +215,13 @@ def test_icp_cli_equals_core_and_writes_layers(shifted_pair, tmp_path):
         ]
     )
     assert rc == 0
-    core = windowed_icp(  # the job's defaults: the spline field, breaklines detected
+    from slipmap.app.icp import DEFAULT_MAX_POINTS_PER_CELL
+
+    # the job's defaults: the spline field, breaklines detected, 5000 points per cell
+    core = windowed_icp(
         read_las(d / "b.las").xyz, read_las(d / "a.las").xyz, cell_m=5.0, coarse_to_fine=1,
         field_model="spline", detect_breaklines=True,
+        max_points_per_cell=DEFAULT_MAX_POINTS_PER_CELL,
     )  # fmt: skip
     cols = read_csv_columns(
         out / "icp.csv",
@@ -245,7 +249,7 @@ def test_icp_cli_equals_core_and_writes_layers(shifted_pair, tmp_path):
     core_formal = windowed_icp(
         read_las(d / "b.las").xyz, read_las(d / "a.las").xyz, cell_m=5.0, coarse_to_fine=1,
         field_model="spline", detect_breaklines=True, sigma_model="independent",
-        sigma_scaling="formal",
+        sigma_scaling="formal", max_points_per_cell=DEFAULT_MAX_POINTS_PER_CELL,
     )  # fmt: skip
     np.testing.assert_array_equal(cols_formal["dx"], core_formal.dx)
     np.testing.assert_allclose(cols_formal["sigma_dz"], core_formal.sigma_dz)
