@@ -51,11 +51,12 @@ Truth and scores:
   smooth (the cell's residual RMS above / below the median), near / far.
 
 ICP variants run on the first seed only (``--variant-seeds``). ``--max-points-per-cell``
-(default 2000) is given to every ICP run and Open3D gets the same sample: the job's own
-default (all points) took 33 s against 11.5 s for the capped run on a TLS slab scene with a
-small lobe beside it (seed 0, far-cell RMSE 4.19 against 4.35 cm, 2026-11-27, shared 2-core
-machine); the harness measures
-the default model, not the default point budget (``--max-points-per-cell 0``: all points).
+(default 2000) is given to every ICP run and Open3D gets the same sample. The job's own
+default was every point until stop 39 (it took 33 s against 11.5 s for the capped run on a
+TLS slab scene with a small lobe beside it, seed 0, far-cell RMSE 4.19 against 4.35 cm,
+2026-11-27, shared 2-core machine) and is 5000 since (docs/benchmarks.md "Stop 39"); the
+harness measures the default model at 2000 points per cell (``--max-points-per-cell 0``: the
+job's own default, and Open3D on the same sample).
 
 Usage (one line; ``--quick``: one seed, no variants, about 4 minutes on 2 cores)::
 
@@ -288,7 +289,8 @@ def scene(cloud, pts, case, fld, density, seed, args, tmp: Path, cells_log: list
     base = {"before": str(bpath), "after": str(apath), "crs": CRS, "out": str(tmp / "out")}
     out = {"case": case, "density": density, "seed": seed,
            "points": [len(before), len(after)], "icp": {}, "piv": {}}  # fmt: skip
-    cap = args.max_points_per_cell
+    # 0: the job's own default (Open3D gets the same sample either way)
+    cap = args.max_points_per_cell or icp_job.SPEC["max_points_per_cell"].default
     icp_base = dict(base, max_points_per_cell=cap) if cap else base
     # --- windowed ICP through the job
     ref = None
@@ -397,7 +399,8 @@ CELL_COLS = ("method", "density", "case", "seed", "ex", "ey", "ez", "sx", "sy", 
 
 
 def coverage(cells_log: list) -> dict:
-    """Share of error components within 2σ per method, density and class of cell."""
+    """Share of error components within 2σ per method, density and class of cell, and their
+    RMS of error over σ (1 for honest σ; below 1: too wide)."""
     out = {}
     if not cells_log:
         return out
@@ -406,6 +409,7 @@ def coverage(cells_log: list) -> dict:
     num = np.array([c[4:] for c in cells_log], dtype=np.float64)
     e, s, n, rr, dist = num[:, 0:3], num[:, 3:6], num[:, 6], num[:, 7], num[:, 8]
     inside = np.abs(e) <= 2.0 * s
+    z2 = (e / s) ** 2
     for m in dict.fromkeys(meth):
         for d in dict.fromkeys(dens):
             sel = (meth == m) & (dens == d)
@@ -422,7 +426,8 @@ def coverage(cells_log: list) -> dict:
                 "far": sel & (dist >= NEAR_M),
             }
             out[f"{m}|{d}"] = {
-                k: {"cells": int(v.sum()), "within_2sigma": round(float(inside[v].mean()), 3)}
+                k: {"cells": int(v.sum()), "within_2sigma": round(float(inside[v].mean()), 3),
+                    "rms_err_over_sigma": round(float(np.sqrt(np.mean(z2[v]))), 3)}
                 if v.any() else {"cells": 0, "within_2sigma": None}
                 for k, v in classes.items()
             }  # fmt: skip
@@ -493,6 +498,14 @@ def tables(results: list, cov: dict) -> str:
             for c in ("all", "dense", "sparse", "rough", "smooth", "near", "far")
         ]  # fmt: skip
         lines.append(f"| {k.replace('|', ', ')} | " + " | ".join(cells) + " |")
+    lines += ["", "| RMS(error / σ) | all | dense | sparse | rough | smooth | near | far |"]
+    lines.append("|---|---|---|---|---|---|---|---|")
+    for k, v in cov.items():
+        cells = [
+            "—" if v[c].get("rms_err_over_sigma") is None else f"{v[c]['rms_err_over_sigma']:.2f}"
+            for c in ("all", "dense", "sparse", "rough", "smooth", "near", "far")
+        ]  # fmt: skip
+        lines.append(f"| {k.replace('|', ', ')} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -532,7 +545,7 @@ def main(argv=None) -> int:
         type=int,
         default=2000,
         help="the icp job's max_points_per_cell in every ICP run, and the same sample for "
-        "Open3D (0: all points, the job's own default; slow on TLS)",
+        "Open3D (0: the job's own default, 5000)",
     )
     ap.add_argument("--no-peers", action="store_true")
     ap.add_argument("--out", type=Path, default=None, help="JSON (default in benchmarks/results)")
@@ -576,6 +589,9 @@ def main(argv=None) -> int:
         "total_seconds": round(time.perf_counter() - t0, 1),
         "scenes": results,
         "coverage": cov,
+        # one row per scored cell: method, density, case, seed, error (3), sigma (3), points,
+        # residual RMS, distance to the nearest discontinuity (m)
+        "cells": [[*c[:4], *(float(x) for x in c[4:])] for c in cells_log],
     }  # fmt: skip
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(doc, indent=1, default=str), encoding="utf-8")
