@@ -53,6 +53,16 @@ def _write_tiles(points, folder, edge):
         write_las(folder / f"t_{key[0]}_{key[1]}.laz", PointCloud(points[m], {}, UTM11))
 
 
+def _write_epochs(root, before, after):
+    """``before`` and ``after`` (local metres, moved to ORIGIN) as one LAZ per epoch and as
+    23 m / 19 m tiles (the blocks follow neither); returns ``root``."""
+    for name, pts, edge in (("before", before, 23.0), ("after", after, 19.0)):
+        pts = pts + ORIGIN
+        write_las(root / f"{name}.laz", PointCloud(pts, {}, UTM11))
+        _write_tiles(pts, root / f"{name}_tiles", edge)
+    return root
+
+
 @pytest.fixture(scope="module")
 def epochs(tmp_path_factory):
     """Independent samplings (20 pts/m²) of the ground before and after the lobe, as one LAZ
@@ -62,11 +72,7 @@ def epochs(tmp_path_factory):
     before = _terrain(rng, 160_000, 100.0, 80.0)
     after = _terrain(rng, 160_000, 100.0, 80.0)
     after = after + LOBE(after[:, :2])
-    for name, pts, edge in (("before", before, 23.0), ("after", after, 19.0)):
-        pts = pts + ORIGIN
-        write_las(root / f"{name}.laz", PointCloud(pts, {}, UTM11))
-        _write_tiles(pts, root / f"{name}_tiles", edge)
-    return root
+    return _write_epochs(root, before, after)
 
 
 def _whole(coll):

@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_tiled_fields import ORIGIN, UTM11, _cli, _rows, _terrain, _whole, _write_tiles
+from test_tiled_fields import ORIGIN, UTM11, _cli, _rows, _terrain, _whole, _write_epochs
 
 from slipmap.app import tiled_fields as tf
 from slipmap.core.errors import CancelledError
 from slipmap.core.icp import windowed_icp
-from slipmap.core.io.las import PointCloud, write_las
 from slipmap.core.io.tiles import open_collection
 from slipmap.core.synthetic import LobeField
 
@@ -35,11 +34,7 @@ def scene(tmp_path_factory):
     before = _terrain(rng, 40_000, 60.0, 40.0)
     after = _terrain(rng, 40_000, 60.0, 40.0)
     after = after + LOBE(after[:, :2])
-    for name, pts, edge in (("before", before, 23.0), ("after", after, 19.0)):
-        pts = pts + ORIGIN
-        write_las(root / f"{name}.laz", PointCloud(pts, {}, UTM11))
-        _write_tiles(pts, root / f"{name}_tiles", edge)
-    return root
+    return _write_epochs(root, before, after)
 
 
 def _truth(x, y):
@@ -175,11 +170,7 @@ def slab(tmp_path_factory):
     before = _terrain(rng, 40_000, 60.0, 40.0)
     after = _terrain(rng, 40_000, 60.0, 40.0)
     after = after + _beyond(after[:, :2])[:, None] * SLAB
-    for name, pts, edge in (("before", before, 23.0), ("after", after, 19.0)):
-        pts = pts + ORIGIN
-        write_las(root / f"{name}.laz", PointCloud(pts, {}, UTM11))
-        _write_tiles(pts, root / f"{name}_tiles", edge)
-    return root
+    return _write_epochs(root, before, after)
 
 
 def test_given_breaklines_on_blocks_equal_the_one_file_run_and_keep_the_step(slab):
