@@ -1,7 +1,7 @@
 """The field algorithms on tiled inputs in QGIS (issue #17): a glob of tiles per epoch gives
 the one-file DEM difference and ICP cells; the tiles' size and the Dask scheduler are
 advanced parameters; a moving-area layer (a global pre-alignment) is refused for tiles
-naming its label, nothing written."""
+naming its label, nothing written; a breaklines layer reaches the tiled spline field."""
 
 import numpy as np
 import pyproj
@@ -130,3 +130,40 @@ def test_moving_area_layer_refused_for_tiles(provider, epochs, tmp_path):
         )  # fmt: skip
     assert "tiled inputs" in str(e.value) and "Moving area" in str(e.value)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_breaklines_layer_with_tiles_reaches_the_tiled_spline_field(provider, epochs, tmp_path):
+    """A BREAKLINES line layer with tile globs (refused before stop 39): the default spline
+    field of the tiles takes the line, as the one-file run does (the same cells within
+    1e-6 m), and the summary says the line was given."""
+    import json
+
+    from qgis.core import QgsFeature, QgsGeometry, QgsPointXY, QgsVectorLayer
+
+    line = QgsVectorLayer("LineString?crs=EPSG:32611", "scarp", "memory")
+    f = QgsFeature()
+    x0, y0 = ORIGIN[0], ORIGIN[1]
+    f.setGeometry(QgsGeometry.fromPolylineXY([QgsPointXY(x0 + 27.0, y0 - 3.0),
+                                              QgsPointXY(x0 + 33.0, y0 + 51.0)]))  # fmt: skip
+    line.dataProvider().addFeatures([f])
+    cells = {}
+    for name, b, a in (
+        ("file", epochs / "before.las", epochs / "after.las"),
+        ("tiles", epochs / "before_tiles" / "t_*.las", epochs / "after_tiles" / "t_*.las"),
+    ):
+        summary = tmp_path / f"{name}_icp.json"
+        res = _run(
+            "windowedicp",
+            {"BEFORE": str(b), "AFTER": str(a), "CELL": 6.0, "MIN_POINTS": 50,
+             "SPLINE_SPACING": 6.0, "TILE_SIZE": 12.0, "BREAKLINES": line,
+             "CELLS": str(tmp_path / f"{name}_cells.gpkg"), "VECTORS": "memory:",
+             "SUMMARY": str(summary)},
+        )  # fmt: skip
+        doc = json.loads(summary.read_text())
+        assert doc["model"]["field"] == "spline", name
+        assert doc["breaklines"]["source"] == "given" and doc["breaklines"]["count"] == 1, name
+        layer = QgsVectorLayer(res["CELLS"], "cells", "ogr")
+        cells[name] = np.array(sorted((g["x"], g["y"], g["dx"], g["sigma_dx"])
+                                      for g in layer.getFeatures()))  # fmt: skip
+    assert len(cells["tiles"]) == len(cells["file"]) > 40
+    assert np.max(np.abs(cells["tiles"] - cells["file"])) <= 1e-6
