@@ -72,10 +72,11 @@ CHECK_TILED = {
 }
 #: the field model when field_model is not set (too few cells: cells, with a warning)
 DEFAULT_FIELD_MODEL = "spline"
-#: after-points registered per cell by default (0: all). docs/fields.md "Speed": on the
-#: lone-star lobe (5 m cells, up to 46 000 points each) 5000 give the accuracy of every
-#: point in 0.53x the time (2000: 0.39x, the lobe's cells 11 % worse)
-DEFAULT_MAX_POINTS_PER_CELL = 5000
+#: after-points registered per cell by default (0: all). docs/benchmarks.md "Stop 39": the
+#: landslide harness is more accurate at 2000 than at 5000 (about every point at its
+#: density) on lobe-small, lobe-long, the slump and the fault, and the lone-star lobe takes
+#: 0.39x the time of every point (its lobe cells 11 % worse, its stable cells better)
+DEFAULT_MAX_POINTS_PER_CELL = 2000
 
 SPEC = JobSpec(
     name="icp",
@@ -122,7 +123,7 @@ SPEC = JobSpec(
             "max_points_per_cell",
             "int",
             "register at most this many after-points per cell (a seeded sample that depends "
-            "on the points only, the same from tiles; 0: every point). By default 5000: on "
+            "on the points only, the same from tiles; 0: every point). By default 2000: on "
             "dense TLS cells more points make the run slower, not the motion more accurate "
             "(their errors are shared within the cell)",
             "Most points per cell (0: all)",

@@ -23,7 +23,7 @@ split into two disjoint random halves, the second moved by the default lobe, one
    valid, over the lobe (``r < 1``) and its interior (``r <= 0.5``).
 4. Windowed ICP: SlipMap's :func:`~slipmap.core.icp.windowed_icp` (rigid cells; with one
    coarser pass; with two deformation passes; the default of ``slipmap icp``: the spline
-   field, breaklines found from the data, at most 5000 after-points per cell) against
+   field, breaklines found from the data, at most 2000 after-points per cell) against
    Open3D's point-to-plane ICP per cell
    (``benchmarks/peers/open3d_cells.py``) on the same cells (``--lobe-cell`` m; cells with
    >= 500 correspondences). 3-D error against the true motion at the cell centres, in the

@@ -54,9 +54,9 @@ ICP variants run on the first seed only (``--variant-seeds``). ``--max-points-pe
 (default 2000) is given to every ICP run and Open3D gets the same sample. The job's own
 default was every point until stop 39 (it took 33 s against 11.5 s for the capped run on a
 TLS slab scene with a small lobe beside it, seed 0, far-cell RMSE 4.19 against 4.35 cm,
-2026-11-27, shared 2-core machine) and is 5000 since (docs/benchmarks.md "Stop 39"); the
-harness measures the default model at 2000 points per cell (``--max-points-per-cell 0``: the
-job's own default, and Open3D on the same sample).
+2026-11-27, shared 2-core machine) and is 2000 since (docs/benchmarks.md "Stop 39"), the
+density the harness measured before (``--max-points-per-cell 0``: the job's own default, and
+Open3D on the same sample).
 
 Usage (one line; ``--quick``: one seed, no variants, about 4 minutes on 2 cores)::
 
@@ -545,7 +545,7 @@ def main(argv=None) -> int:
         type=int,
         default=2000,
         help="the icp job's max_points_per_cell in every ICP run, and the same sample for "
-        "Open3D (0: the job's own default, 5000)",
+        "Open3D (0: the job's own default, 2000)",
     )
     ap.add_argument("--no-peers", action="store_true")
     ap.add_argument("--out", type=Path, default=None, help="JSON (default in benchmarks/results)")

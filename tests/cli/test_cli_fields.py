@@ -217,7 +217,7 @@ def test_icp_cli_equals_core_and_writes_layers(shifted_pair, tmp_path):
     assert rc == 0
     from slipmap.app.icp import DEFAULT_MAX_POINTS_PER_CELL
 
-    # the job's defaults: the spline field, breaklines detected, 5000 points per cell
+    # the job's defaults: the spline field, breaklines detected, 2000 points per cell
     core = windowed_icp(
         read_las(d / "b.las").xyz, read_las(d / "a.las").xyz, cell_m=5.0, coarse_to_fine=1,
         field_model="spline", detect_breaklines=True,
