@@ -1148,14 +1148,22 @@ def _splitmix64(x: np.ndarray) -> np.ndarray:
     return x ^ (x >> np.uint64(31))
 
 
+#: the lattice (metres) the sample's hash rounds coordinates to: far finer than any survey's
+#: resolution, far coarser than the float rounding between two decodings of one stored point
+SAMPLE_QUANTUM_M = 1e-5
+
+
 def sample_priority(xyz: np.ndarray, seed: int = 0) -> np.ndarray:
     """A pseudo-random priority of each point that depends only on its coordinates and
-    ``seed``: a hash (SplitMix64) of the float64 bits of x, y, z.
+    ``seed``: a hash (SplitMix64) of x, y, z rounded to :data:`SAMPLE_QUANTUM_M`.
 
     A cell's ``max_points_per_cell`` sample is its points of lowest priority, so it is the
     same set of points whatever order or tiling they arrive in (a generator's draw would
     depend on both); written here because numpy's generators draw by position, not by
-    value.
+    value. The coordinates are rounded before hashing because one stored LAS point decodes
+    to floats that differ in the last bits (about 1e-15 m) between a file and its tiles,
+    whose offsets differ; points stored at a multiple of 10 µm (LAS scales of 0.01 mm and
+    coarser) lie far from the rounding's midpoints, so both decodings hash alike.
 
     Parameters
     ----------
@@ -1168,7 +1176,8 @@ def sample_priority(xyz: np.ndarray, seed: int = 0) -> np.ndarray:
     -------
     (N,) uint64
     """
-    bits = np.ascontiguousarray(xyz, dtype=np.float64).reshape(-1, 3).view(np.uint64)
+    q = np.round(np.asarray(xyz, dtype=np.float64).reshape(-1, 3) / SAMPLE_QUANTUM_M)
+    bits = np.ascontiguousarray(q.astype(np.int64)).view(np.uint64)
     h = np.full(len(bits), np.uint64((int(seed) * 0x9E3779B97F4A7C15) % 2**64))
     for j in range(3):
         h = _splitmix64(h ^ bits[:, j])

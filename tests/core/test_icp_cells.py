@@ -288,3 +288,17 @@ def test_numba_backend_without_numba_says_what_to_do(monkeypatch):
     before, after = field_pair(4, shift_left=np.array([0.05, 0.0, 0.01]), density=20)
     with pytest.raises(DependencyError, match="backend 'numba'.*pip install numba.*'auto'"):
         windowed_icp(before, after, cell_m=5.0, backend="numba")
+
+
+def test_the_sample_priority_ignores_the_last_bits_of_a_decoded_coordinate():
+    """One stored LAS point decodes to floats that differ in the last bits between a file and
+    its tiles (other offsets): the hash rounds to 10 µm, so both draw the same sample."""
+    from slipmap.core.icp import sample_priority
+
+    rng = np.random.default_rng(4)
+    stored = np.round(rng.uniform(0.0, 100.0, (20_000, 3)) * 1000.0) / 1000.0  # 1 mm scale
+    xyz = stored + np.array([500_000.0, 4_200_000.0, 100.0])
+    jitter = np.nextafter(xyz, np.where(rng.random(xyz.shape) < 0.5, -np.inf, np.inf))
+    assert np.any(jitter != xyz)
+    np.testing.assert_array_equal(sample_priority(jitter), sample_priority(xyz))
+    assert len(np.unique(sample_priority(xyz))) == len(xyz)  # distinct points, distinct hashes

@@ -10,6 +10,7 @@ import pytest
 from qgis_scenes import rough_surface
 
 import slipmap
+from slipmap.app.icp import DEFAULT_MAX_POINTS_PER_CELL
 
 pytestmark = pytest.mark.qgis
 
@@ -426,9 +427,10 @@ def test_windowedicp_equals_core(provider, epochs, tmp_path):
 
     paths, clouds = epochs
     res = _run("windowedicp", _icp_params(paths, tmp_path))
-    ref = windowed_icp(
-        clouds["before"], clouds["after"], cell_m=6.0, min_points=50, coarse_to_fine=0
-    )
+    ref = windowed_icp(  # the job's default sample: at most 2000 after-points per cell
+        clouds["before"], clouds["after"], cell_m=6.0, min_points=50, coarse_to_fine=0,
+        max_points_per_cell=DEFAULT_MAX_POINTS_PER_CELL,
+    )  # fmt: skip
     cols = ref.to_columns()
     from qgis.core import QgsWkbTypes
 
@@ -483,6 +485,7 @@ def test_windowedicp_spline_field_equals_core(provider, epochs, tmp_path):
     ref = windowed_icp(
         clouds["before"], clouds["after"], cell_m=6.0, min_points=50, coarse_to_fine=0,
         field_model="spline", spline_spacing_m=4.0,
+        max_points_per_cell=DEFAULT_MAX_POINTS_PER_CELL,
     )  # fmt: skip
     layer, names, rows = _features(res["VECTORS"])
     assert len(rows) == len(ref)
