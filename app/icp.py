@@ -72,10 +72,9 @@ CHECK_TILED = {
 }
 #: the field model when field_model is not set (too few cells: cells, with a warning)
 DEFAULT_FIELD_MODEL = "spline"
-#: after-points registered per cell by default (0: all). docs/benchmarks.md "Stop 39": the
-#: landslide harness is more accurate at 2000 than at 5000 (about every point at its
-#: density) on lobe-small, lobe-long, the slump and the fault, and the lone-star lobe takes
-#: 0.39x the time of every point (its lobe cells 11 % worse, its stable cells better)
+#: after-points registered per cell by default (0: all). docs/benchmarks.md "Stop 39": on
+#: the landslide harness 2000 and 5000 (about every point at its density) differ by less
+#: than two draws of 2000 points do; the lone-star lobe takes 0.39x the time of every point
 DEFAULT_MAX_POINTS_PER_CELL = 2000
 
 SPEC = JobSpec(
