@@ -359,21 +359,14 @@ _KEYS = ("table", "layers", "raster", "plot", "summary")
 
 
 def core_kwargs(opts: Mapping[str, Any]) -> Dict[str, Any]:
-    """``windowed_icp`` keywords of the options (unset ones left to the core's default)."""
-    from .tiled import is_tiled
-
+    """``windowed_icp`` keywords of the options (unset ones left to the core's default; the
+    tiled run says itself that it detects no breaklines, :func:`.tiled_fields.icp_tiled`)."""
     kw = {k: opts[k] for k in CORE_KEYS if opts.get(k) is not None}
     if kw.get("max_points_per_cell") == 0:  # every point
         del kw["max_points_per_cell"]
     kw["field_model"] = field_model_of(opts)
-    tiled = opts.get("before") is not None and is_tiled(opts, "before", "after")
-    if kw["field_model"] == "spline" and not tiled:
+    if kw["field_model"] == "spline":
         kw["detect_breaklines"] = bool(opts.get("detect_breaklines", True))
-    elif kw["field_model"] == "spline" and opts.get("detect_breaklines", True):
-        log.info(
-            "tiled inputs: breaklines are not detected (give them with breaklines for a field "
-            "that may jump at scarps, or run on one file per epoch)"
-        )
     regions = int(opts.get("sigma_regions") or 1)
     if opts.get("formal_sigma"):
         kw["sigma_scaling"] = "formal"

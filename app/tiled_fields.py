@@ -750,6 +750,7 @@ def icp_tiled(
     WindowedICPResult
         All cells of the whole run's lattice, in its order (row, then column).
     """
+    from ..core.breaklines import given_breaklines
     from ..core.icp import WindowedICPResult, _apply_sigma_scaling, reblock
 
     if icp_kw.get("prealign"):
@@ -760,7 +761,7 @@ def icp_tiled(
     spline_kw = {
         "spacing_m": icp_kw.pop("spline_spacing_m", None),
         "smoothing": icp_kw.pop("spline_smoothing", None),
-        "lines": _given_lines(icp_kw.pop("breaklines", None)) if spline else None,
+        "lines": given_breaklines(icp_kw.pop("breaklines", None)) if spline else None,
     }
     if icp_kw.pop("detect_breaklines", False) and spline:
         log.info(
@@ -1121,19 +1122,6 @@ def _keep(key, value, size: float) -> None:
         _CHUNKS.popitem(last=False)
     if size <= SPLINE_CACHE_BYTES:
         _CHUNKS[key] = (value, size)
-
-
-def _given_lines(breaklines):
-    """The tiled spline field's given breaklines (:func:`~slipmap.core.breaklines.
-    from_sequence`; None: none), checked as the one-file run checks them."""
-    from ..core.breaklines import Breaklines, from_sequence
-
-    if breaklines is not None and not isinstance(breaklines, (Breaklines, list, tuple)):
-        raise InvalidParameterError("breaklines must be a Breaklines or a list of (M, 2) arrays")
-    try:
-        return from_sequence(breaklines)
-    except InvalidParameterError as exc:
-        raise InvalidParameterError(f"breaklines: {exc}") from exc
 
 
 def _spline_block(call: _SplineCall):

@@ -489,23 +489,16 @@ def tables(results: list, cov: dict) -> str:
             )
         ]
         lines.append("| " + " | ".join(row) + " |")  # fmt: skip
-    lines += ["", "| σ coverage (within 2σ) | all | dense | sparse | rough | smooth | near | far |"]
-    lines.append("|---|---|---|---|---|---|---|---|")
-    for k, v in cov.items():
-        cells = [
-            "—" if v[c]["within_2sigma"] is None
-            else f"{100 * v[c]['within_2sigma']:.0f} % ({v[c]['cells']})"
-            for c in ("all", "dense", "sparse", "rough", "smooth", "near", "far")
-        ]  # fmt: skip
-        lines.append(f"| {k.replace('|', ', ')} | " + " | ".join(cells) + " |")
-    lines += ["", "| RMS(error / σ) | all | dense | sparse | rough | smooth | near | far |"]
-    lines.append("|---|---|---|---|---|---|---|---|")
-    for k, v in cov.items():
-        cells = [
-            "—" if v[c].get("rms_err_over_sigma") is None else f"{v[c]['rms_err_over_sigma']:.2f}"
-            for c in ("all", "dense", "sparse", "rough", "smooth", "near", "far")
-        ]  # fmt: skip
-        lines.append(f"| {k.replace('|', ', ')} | " + " | ".join(cells) + " |")
+    classes = ("all", "dense", "sparse", "rough", "smooth", "near", "far")
+    for title, key, fmt in (
+        ("σ coverage (within 2σ)", "within_2sigma",
+         lambda c: f"{100 * c['within_2sigma']:.0f} % ({c['cells']})"),
+        ("RMS(error / σ)", "rms_err_over_sigma", lambda c: f"{c['rms_err_over_sigma']:.2f}"),
+    ):  # fmt: skip
+        lines += ["", f"| {title} | " + " | ".join(classes) + " |", "|---" * 8 + "|"]
+        for k, v in cov.items():
+            cells = ["—" if v[c].get(key) is None else fmt(v[c]) for c in classes]
+            lines.append(f"| {k.replace('|', ', ')} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -589,8 +582,7 @@ def main(argv=None) -> int:
         "total_seconds": round(time.perf_counter() - t0, 1),
         "scenes": results,
         "coverage": cov,
-        # one row per scored cell: method, density, case, seed, error (3), sigma (3), points,
-        # residual RMS, distance to the nearest discontinuity (m)
+        "cell_columns": list(CELL_COLS),  # one row per scored cell, distance in metres
         "cells": [[*c[:4], *(float(x) for x in c[4:])] for c in cells_log],
     }  # fmt: skip
     args.out.parent.mkdir(parents=True, exist_ok=True)

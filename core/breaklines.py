@@ -29,6 +29,7 @@ __all__ = [
     "same_side",
     "distance_m",
     "from_sequence",
+    "given_breaklines",
     "detect_breaklines",
     "step_edges",
     "StraightStep",
@@ -216,6 +217,18 @@ def from_sequence(parts: Sequence[np.ndarray] | Breaklines | None) -> Breaklines
         return None if parts.empty else parts
     bl = breaklines(parts)
     return None if bl.empty else bl
+
+
+def given_breaklines(parts) -> Breaklines | None:
+    """A run's ``breaklines`` option checked (:func:`from_sequence`; errors name the
+    option): one check for the one-file and the tiled windowed ICP."""
+    try:
+        lines = from_sequence(parts)
+    except InvalidParameterError as exc:
+        raise InvalidParameterError(f"breaklines: {exc}") from exc
+    if parts is not None and not isinstance(parts, (Breaklines, list, tuple)):
+        raise InvalidParameterError("breaklines must be a Breaklines or a list of (M, 2) arrays")
+    return lines
 
 
 # --------------------------------------------------------------------------- detection

@@ -2050,14 +2050,9 @@ def windowed_icp(
         if spline_smoothing is None
         else _positive("spline_smoothing", spline_smoothing, allow_zero=True)
     )
-    from .breaklines import Breaklines, from_sequence
+    from .breaklines import given_breaklines
 
-    try:
-        lines = from_sequence(breaklines)
-    except InvalidParameterError as exc:
-        raise InvalidParameterError(f"breaklines: {exc}") from exc
-    if breaklines is not None and not isinstance(breaklines, (Breaklines, list, tuple)):
-        raise InvalidParameterError("breaklines must be a Breaklines or a list of (M, 2) arrays")
+    lines = given_breaklines(breaklines)
     lines_source = "given" if lines is not None else "none"
     med_thr = _positive("median_threshold", median_threshold, allow_zero=True)
     med_eps = _positive("median_eps_m", median_eps_m, allow_zero=True)
