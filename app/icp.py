@@ -359,8 +359,8 @@ _KEYS = ("table", "layers", "raster", "plot", "summary")
 
 
 def core_kwargs(opts: Mapping[str, Any]) -> Dict[str, Any]:
-    """``windowed_icp`` keywords of the options (unset ones left to the core's default; the
-    tiled run says itself that it detects no breaklines, :func:`.tiled_fields.icp_tiled`)."""
+    """``windowed_icp`` keywords of the options (unset ones left to the core's default; a
+    tiled run takes the same, :func:`.tiled_fields.icp_tiled`)."""
     kw = {k: opts[k] for k in CORE_KEYS if opts.get(k) is not None}
     if kw.get("max_points_per_cell") == 0:  # every point
         del kw["max_points_per_cell"]

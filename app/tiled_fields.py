@@ -27,8 +27,12 @@ owns. No point cloud travels to the driver.
   same points from tiles); the stable-ground pre-alignment is refused on tiled inputs (it
   needs one fit over both whole epochs).
 * The ICP's spline field (``field_model="spline"``, :func:`_icp_spline_tiled`): one field
-  over all blocks, not one per block, smooth on each side of the given ``breaklines`` (every
-  block's chunk is built on the frame with the lines; none are detected on tiles). The
+  over all blocks, not one per block, smooth on each side of the ``breaklines`` (every
+  block's chunk is built on the frame with the lines). Lines not given are detected as the
+  one-file run detects them (``detect_breaklines``): the tiled cell pass's motions propose
+  candidates, the blocks fit the field with them, each block sends the points within reach
+  of a candidate (each point from one block), the driver confirms and places the lines on
+  them and the blocks fit the field again (:func:`_confirm_lines_tiled`). The
   tiled cell pass starts it; then each Gauss-Newton iteration is two rounds over the
   blocks: every block returns the ``|v|`` of its points (the robust weights' scale is a
   median over all of them), then its share of the normal equations (the sparse
@@ -763,11 +767,7 @@ def icp_tiled(
         "smoothing": icp_kw.pop("spline_smoothing", None),
         "lines": given_breaklines(icp_kw.pop("breaklines", None)) if spline else None,
     }
-    if icp_kw.pop("detect_breaklines", False) and spline:
-        log.info(
-            "tiled inputs: breaklines are not detected (give them with breaklines for a field "
-            "that may jump at scarps, or run on one file per epoch)"
-        )
+    spline_kw["detect"] = bool(icp_kw.pop("detect_breaklines", False)) and spline
     cell = float(cell_m)
     if not (math.isfinite(cell) and cell > 0):
         raise InvalidParameterError(f"cell_m must be a positive number, got {cell_m!r}")
@@ -874,6 +874,120 @@ def icp_tiled(
         return replace(res, seconds=0.0)
     res = _apply_sigma_scaling(res, **sigma_kw)
     return replace(res, seconds=0.0)
+
+
+def _largest_motion(frame, c: np.ndarray, n_grid: int, xy: np.ndarray) -> float:
+    """The largest motion (m) of the spline field with coefficients ``c`` (the grid's, then
+    the knot copies') on ``frame`` at ``xy`` (the cell centres): a knot no point uses may
+    stray further in an iteration without moving any point."""
+    field = replace(
+        frame, coefficients=c[:n_grid].reshape(frame.n_y + 3, frame.n_x + 3, 3),
+        copy_coefficients=c[n_grid:] if len(c) > n_grid else None,
+    )  # fmt: skip
+    return float(np.max(np.linalg.norm(field(xy), axis=1), initial=0.0))
+
+
+def _on_cells(k: int, at: np.ndarray, values, fill=np.nan) -> np.ndarray:
+    """``values`` of the tiled cell pass's cells placed on the spline run's ``k`` cells."""
+    v = np.asarray(values)
+    out = np.full((k,) + v.shape[1:], fill, dtype=np.result_type(v, type(fill)))
+    out[at] = v
+    return out
+
+
+def _candidate_lines(cells, d, usable, at, cells_res, lattice):
+    """The breaklines the tiled cell pass's motions propose
+    (:func:`~slipmap.core.icp.candidate_lines` on the values the one-file run reads: formal
+    covariances, the cells' fitted gradients and the formal sigmas of their rotations)."""
+    from ..core.icp import _rotation_scale, candidate_lines
+
+    x0, y0, n_rows, n_cols, cell = lattice
+    k = len(d)
+    sig_rot = np.column_stack([cells_res.sigma_rx, cells_res.sigma_ry, cells_res.sigma_rz])
+    if cells_res.sigma_model == "blocks" and cells_res.sigma_formal is not None:
+        # the cells' rotation sigmas carry their block ratio (core.icp._rotation_scale)
+        sig_rot = sig_rot / _rotation_scale(cells_res.cov_d, cells_res.sigma_formal)[:, None]
+    grad = None if cells_res.gradient is None else _on_cells(k, at, cells_res.gradient)
+    return candidate_lines(
+        cells, d, usable, _on_cells(k, at, cells_res.cov_d_formal), (n_rows, n_cols, x0, y0, cell),
+        grad=grad, sig_grad=_on_cells(k, at, sig_rot),
+    )  # fmt: skip
+
+
+def _cell_weights(cells, d, ok, converged, flagged, at, cells_res):
+    """Each cell's data weight from the tiled cell pass's block covariances, as the one-file
+    run makes it (:func:`~slipmap.core.icp_spline.cell_data_weights`): a callable of the
+    field's rigid projection."""
+    from ..core.icp import _choose_and_shrink
+    from ..core.icp_spline import cell_data_weights
+
+    k = len(d)
+    u_res = np.asarray(cells_res.converged, bool) & ~np.asarray(cells_res.flagged, bool)
+    _, cov_h = _choose_and_shrink(
+        cells_res.cov_d_formal, cells_res.cov_d_blocks, cells_res.n_blocks, u_res
+    )
+    cov_hk, cov_fk = _on_cells(k, at, cov_h), _on_cells(k, at, cells_res.cov_d_formal)
+    n_k = _on_cells(k, at, cells_res.n, fill=0)
+
+    def weights(projection):
+        return cell_data_weights(
+            cells.row, cells.col, d, cov_hk, cov_fk, n_k, projection=projection,
+            usable=ok & converged & ~flagged, fitted=ok,
+        )[0]  # fmt: skip
+
+    return weights
+
+
+#: bytes of the driver per point near candidate breaklines (coordinates, KD-tree, normals)
+CORRIDOR_POINT_BYTES = 200.0
+
+
+def _confirm_lines_tiled(field, straight, blocks, *, engine, gate_m, cell_m, progress):
+    """Candidate breaklines (``field.lines``) confirmed and placed by the points near them, as
+    the one-file run does (:func:`~slipmap.core.icp.confirm_lines`): each block returns its
+    after-points within a cell of the lines and the epoch-1 points within reach of their
+    targets and of the targets' normal neighbourhoods (a cell, two gates and a cell), each
+    point from one block; the driver counts them first (refused, naming
+    ``detect_breaklines``, when they would not fit), then confirms on them alone."""
+    from ..core.icp import confirm_lines
+    from .resources import _SHARE, available_bytes
+
+    lines = field.lines
+    reach_a = float(cell_m)
+    reach_b = reach_a + 2.0 * float(gate_m) + float(cell_m)
+    boxes = [b.block.grown(b.halo_m) for b in blocks]
+    names = [f"breakline corridor at x {b.block.xmin:.1f}, y {b.block.ymin:.1f}" for b in blocks]
+
+    def gather(count_only: bool):
+        calls = [_SplineCall(b, "corridor", (lines, reach_a, reach_b, boxes[:i], count_only))
+                 for i, b in enumerate(blocks)]  # fmt: skip
+        return _engine(engine).map(
+            _spline_block, calls, names=names, what="block", progress=progress
+        )
+
+    n = float(sum(gather(True)))
+    need, avail = n * CORRIDOR_POINT_BYTES, available_bytes()
+    if avail is not None and need > _SHARE * avail:
+        from .options import OptionError
+
+        raise OptionError(
+            "detect_breaklines",
+            f"the {n:.3g} points near the candidate breaklines need {need / 2**30:.1f} GiB, "
+            f"more than the {_SHARE * avail / 2**30:.1f} GiB this machine can give them; give "
+            "the breaklines instead, or turn the detection off",
+        )
+    parts = gather(False)
+    a = np.concatenate([pa for pa, _ in parts]).reshape(-1, 3)
+    b = np.concatenate([pb for _, pb in parts]).reshape(-1, 3)
+    blk = blocks[0]
+    tree, normals, _ = _matcher_of(b, blk.neighbours_k, blk.backend)
+    log.info(
+        "breaklines: %d after- and %d before-points near the candidates, from %d block(s)",
+        len(a), len(b), len(blocks),
+    )  # fmt: skip
+    return confirm_lines(
+        field, a, straight, before=b, tree=tree, normals=normals, gate_m=gate_m, cell_m=cell_m
+    )
 
 
 # --------------------------------------------------------------------------- the jobs
@@ -1036,7 +1150,8 @@ class _SplineCall:
     block: _SplineBlock
     stage: str  # "cells" or a SplineChunk method
     args: tuple = ()
-    frame: Optional[Tuple[Tuple[float, float], float, int, int, Any]] = None  # + breaklines
+    # the fit's knot frame (origin, spacing, n_x, n_y), breaklines, their gap (m) and its name
+    frame: Optional[Tuple[Tuple[float, float], float, int, int, Any, float, str]] = None
     cell_index: Optional[np.ndarray] = None  # the run's index of each of the block's cells
 
 
@@ -1079,38 +1194,86 @@ def _spline_survey(blk: _SplineBlock):
     }
 
 
-def _spline_chunk(call: _SplineCall):
-    """The block's :class:`~slipmap.core.icp_spline.SplineChunk`, from this process's cache
-    or built (read, cells, KD-tree, normals: the one-file run's objects over the block)."""
+def _matcher_of(b: np.ndarray, neighbours_k: int, backend: str):
+    """The one-file run's nearest-plane objects over epoch-1 points ``b``: their KD-tree
+    (queried with map coordinates), lazily computed normals and the compiled matcher's grid
+    (None: numpy)."""
     from scipy.spatial import cKDTree
 
     from ..core.icp import _NormalCache, _OffsetTree, _target_grid
-    from ..core.icp_spline import SplineChunk, SplineField
 
-    blk = call.block
-    hit = _CHUNKS.get(blk.key)
+    off = b.mean(axis=0) if len(b) else np.zeros(3)
+    tree = _OffsetTree(cKDTree(b - off), off)
+    normals = _NormalCache(b, tree.tree, neighbours_k, offset=off)
+    grid = _target_grid(b, backend) if len(b) else None
+    if grid is not None and neighbours_k <= grid.MAX_NORMAL_K:
+        normals.device = grid
+    return tree, normals, grid
+
+
+def _block_data(blk: _SplineBlock):
+    """The block's cells, points and matcher ``(cells, a, b, tree, normals, grid)``, from this
+    process's cache or read and built (the survey's read of this block, when it is here)."""
+    key = blk.key + ("data",)
+    hit = _CHUNKS.get(key)
     if hit is not None:
-        _CHUNKS.move_to_end(blk.key)
+        _CHUNKS.move_to_end(key)
         return hit[0]
     read = _CHUNKS.pop(blk.key + ("cells",), None)
     if read is not None:  # the survey's read of this block, in this process
         cells, a, b = read[0]
     else:
         cells, _, a, b = _spline_cells_of(blk)
-    off = b.mean(axis=0)
-    tree = _OffsetTree(cKDTree(b - off), off)
-    normals = _NormalCache(b, tree.tree, blk.neighbours_k, offset=off)
-    grid = _target_grid(b, blk.backend)
-    if grid is not None and blk.neighbours_k <= grid.MAX_NORMAL_K:
-        normals.device = grid
-    origin, h, n_x, n_y, lines = call.frame
+    data = (cells, a, b) + _matcher_of(b, blk.neighbours_k, blk.backend)
+    _keep(key, data, 64.0 * len(a) + 150.0 * len(b))
+    return data
+
+
+def _spline_chunk(call: _SplineCall):
+    """The block's :class:`~slipmap.core.icp_spline.SplineChunk` of one fit (its knot frame,
+    breaklines and gap), from this process's cache or built on :func:`_block_data` (the
+    one-file run's objects over the block). A detected-breakline run fits twice: a block
+    keeps one fit's chunk at a time."""
+    from ..core.icp_spline import SplineChunk, SplineField
+
+    blk = call.block
+    origin, h, n_x, n_y, lines, gap_m, fit = call.frame
+    key = blk.key + ("chunk", fit)
+    hit = _CHUNKS.get(key)
+    if hit is not None:
+        _CHUNKS.move_to_end(key)
+        return hit[0]
+    for k in [k for k in _CHUNKS if k[:2] == blk.key and k[2:3] == ("chunk",)]:
+        del _CHUNKS[k]  # the block's chunk of an earlier fit
+    cells, a, b, tree, normals, grid = _block_data(blk)
     frame = SplineField(origin, h, n_x, n_y, np.zeros((n_y + 3, n_x + 3, 3)), lines=lines)
     chunk = SplineChunk(
         a[cells.points], frame=frame, before=b, tree=tree, normals=normals,
         gate_m=blk.gate_m, seg=np.asarray(call.cell_index)[cells.seg], grid=grid,
+        breakline_gap_m=gap_m,
     )  # fmt: skip
-    _keep(blk.key, chunk, 400.0 * len(chunk) + 150.0 * len(b))
+    _keep(key, chunk, 400.0 * len(chunk))
     return chunk
+
+
+def _spline_corridor(call: _SplineCall):
+    """The block's points around candidate breaklines, for the driver to confirm and place
+    them (:func:`~slipmap.core.icp.confirm_lines`): its cells' after-points (the sample the
+    fit uses) within ``reach_after_m`` of the lines, and the epoch-1 points within
+    ``reach_before_m`` that no live block before it in ``boxes`` read (so each point comes
+    once). ``count_only``: their number alone."""
+    from ..core.breaklines import distance_m
+
+    lines, reach_after_m, reach_before_m, boxes, count_only = call.args
+    cells, a, b = _block_data(call.block)[:3]
+    pa = a[cells.points]
+    pa = pa[distance_m(pa, lines) < reach_after_m]
+    mine = distance_m(b, lines) < reach_before_m
+    for box in boxes:  # the live blocks before this one: their reads own these points
+        mine &= ~box.contains(b)
+    if count_only:
+        return len(pa) + int(mine.sum())
+    return pa, b[mine]
 
 
 def _keep(key, value, size: float) -> None:
@@ -1129,6 +1292,8 @@ def _spline_block(call: _SplineCall):
     with _quiet_core():
         if call.stage == "cells":
             return _spline_survey(call.block)
+        if call.stage == "corridor":
+            return _spline_corridor(call)
         chunk = _spline_chunk(call)
         return getattr(chunk, call.stage)(*call.args)
 
@@ -1165,6 +1330,7 @@ def _icp_spline_tiled(
     import uuid
 
     from ..core.icp import (
+        DETECTED_GAP_CELLS,
         _Cells,
         _deformation_field,
         _near_pairs,
@@ -1273,61 +1439,79 @@ def _icp_spline_tiled(
     lo = np.min([s["lo"] for s in survey], axis=0)
     hi = np.max([s["hi"] for s in survey], axis=0)
     h = spline_kw["spacing_m"]
-    lines = spline_kw.get("lines")  # given breaklines (none are detected on tiles)
-    frame = knot_frame(lo, hi, cells.centres[:, :2], h, lines=lines)
-    frame_t = (frame.origin_xy, frame.spacing_m, frame.n_x, frame.n_y, lines)
+    lines = spline_kw.get("lines")  # given breaklines
+    lines_source = "none" if lines is None else "given"
     live = [i for i, s in enumerate(survey) if len(s["keys"])]
     index_of = {i: np.searchsorted(keys, survey[i]["keys"]) for i in live}
     names = [f"spline block at x {blocks[i].block.xmin:.1f}, y {blocks[i].block.ymin:.1f}"
              for i in live]  # fmt: skip
     warned = []
 
-    def run(stage, *args):
-        c = args[0]
-        if not warned and float(np.max(np.linalg.norm(c, axis=1), initial=0.0)) > reach:
-            warned.append(True)
-            log.warning(
-                "the spline field moves by more than the %.2f m gate somewhere: tiled blocks "
-                "may differ from the one-file run at their edges; give a larger buffer_m",
-                reach,
+    def fitter(fit_lines, gap_m: float, name: str):
+        """The knot frame with ``fit_lines`` and the chunk runner of one fit."""
+        frame = knot_frame(lo, hi, cells.centres[:, :2], h, lines=fit_lines)
+        frame_t = (frame.origin_xy, frame.spacing_m, frame.n_x, frame.n_y, fit_lines,
+                   float(gap_m), name)  # fmt: skip
+
+        n_grid = (frame.n_x + 3) * (frame.n_y + 3)
+
+        def run(stage, *args):
+            c = np.asarray(args[0])
+            if not warned and _largest_motion(frame, c, n_grid, cells.centres[:, :2]) > reach:
+                warned.append(True)
+                log.warning(
+                    "the spline field moves by more than the %.2f m gate somewhere: tiled "
+                    "blocks may differ from the one-file run at their edges; give a larger "
+                    "buffer_m", reach,
+                )  # fmt: skip
+            calls = [_SplineCall(blocks[i], stage, args, frame_t, index_of[i]) for i in live]
+            return _engine(engine).map(
+                _spline_block, calls, names=names, what="block",
+                progress=cancel_only if progress is not None else None,
             )  # fmt: skip
-        calls = [_SplineCall(blocks[i], stage, args, frame_t, index_of[i]) for i in live]
-        return _engine(engine).map(
-            _spline_block, calls, names=names, what="block",
-            progress=cancel_only if progress is not None else None,
-        )  # fmt: skip
+
+        return frame, run
 
     log.info(
-        "spline field on %d block(s): %d cells, %d x %d knot intervals of %g m (halo %.1f m)",
-        len(live), k, frame.n_x, frame.n_y, h, halo,
+        "spline field on %d block(s): %d cells, knots %g m apart (halo %.1f m)",
+        len(live), k, h, halo,
     )  # fmt: skip
-    weights = None
-    if math.isfinite(block_m) and cells_res.cov_d_blocks is not None:
-        # each cell's data weighed by its independent share, as the one-file run (core.icp)
-        from ..core.icp import _choose_and_shrink
-        from ..core.icp_spline import cell_data_weights
-
-        u_res = np.asarray(cells_res.converged, bool) & ~np.asarray(cells_res.flagged, bool)
-        _, cov_h = _choose_and_shrink(
-            cells_res.cov_d_formal, cells_res.cov_d_blocks, cells_res.n_blocks, u_res
-        )
-        cov_hk, cov_fk = np.full((k, 3, 3), np.nan), np.full((k, 3, 3), np.nan)
-        cov_hk[at], cov_fk[at] = cov_h, cells_res.cov_d_formal
-        n_k = np.zeros(k, dtype=np.int64)
-        n_k[at] = cells_res.n
-
-        def weights(projection):
-            return cell_data_weights(
-                cells.row, cells.col, d, cov_hk, cov_fk, n_k, projection=projection,
-                usable=ok & converged & ~flagged_c, fitted=ok,
-            )[0]  # fmt: skip
-
+    fit_kw = dict(
+        report_xy=cells.centres[:, :2], report_pairs=near, smoothing=spline_kw["smoothing"],
+        gate_m=gate, opts=opts,
+    )  # fmt: skip
+    pg = outer if progress is not None else None
     try:
+        first, span = None, (0.55, 1.0)
+        if lines is None and spline_kw.get("detect"):
+            candidate, straight = _candidate_lines(
+                cells, d, usable & ~flagged_c, at, cells_res, lattice
+            )
+            if candidate is not None:  # as the one-file run: fit, confirm, refit
+                frame, run = fitter(candidate, 0.0, "candidate")
+                first = fit_spline_chunks(
+                    run, frame=frame, initial=start, progress=scaled(pg, 0.55, 0.75), **fit_kw
+                )
+                outer(0.75, "breaklines: the points near the candidates")
+                lines = _confirm_lines_tiled(
+                    first.field, straight, [blocks[i] for i in live], engine=engine,
+                    gate_m=gate, cell_m=cell, progress=cancel_only if progress else None,
+                )  # fmt: skip
+                lines_source = "none" if lines is None else "detected"
+                span = (0.8, 1.0)
+        weights = None
+        if math.isfinite(block_m) and cells_res.cov_d_blocks is not None:
+            # each cell's data weighed by its independent share, as the one-file run
+            weights = _cell_weights(cells, d, ok, converged, flagged_c, at, cells_res)
+        start_kw = dict(initial=start)
+        if first is not None:  # the refit starts where the candidate's fit ended
+            start_kw = dict(initial=first.field, smoothing_start=first.smoothing_estimate)
+        gap = DETECTED_GAP_CELLS * cell if lines_source == "detected" else 0.0
+        frame, run = fitter(lines, gap, "final")
         sfit = fit_spline_chunks(
-            run, frame=frame, initial=start, report_xy=cells.centres[:, :2], report_pairs=near,
-            smoothing=spline_kw["smoothing"], gate_m=gate, opts=opts,
-            progress=scaled(outer if progress is not None else None, 0.55, 1.0),
+            run, frame=frame, progress=scaled(pg, *span),
             block_m=float(block_m) if math.isfinite(block_m) else None, cell_weight=weights,
+            **start_kw, **fit_kw,
         )  # fmt: skip
     finally:
         _drop_chunks(token)
@@ -1353,6 +1537,6 @@ def _icp_spline_tiled(
         origin_xy=(float(x0), float(y0)), cell_m=cell, n_rows=n_rows, n_cols=n_cols,
         prealignment=None, t_start=0.0, cell_model=cells_res.cell_model,
         deform_passes=cells_res.deform_passes, field_model="spline", near=near,
-        pair_cov=sfit.pair_cov, lines=lines, lines_source="none" if lines is None else "given",
+        pair_cov=sfit.pair_cov, lines=lines, lines_source=lines_source,
         **sigma_kw, **blocks_kw,
     )  # fmt: skip

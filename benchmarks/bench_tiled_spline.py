@@ -10,9 +10,15 @@ memory (the largest of the process and its children: Dask's workers). Every colu
 tiled runs' icp.csv is compared with the one-file run's (largest absolute difference) and the
 lobe's RMSE at the cells with >= 500 points is printed for each run.
 
+``--case slab`` (or another case of benchmarks/validate_landslides.py: ``fault``, ``slump``,
+...) moves the after epoch by that landslide field instead, so that the default's breaklines
+are detected (on the tiles since stop 40); the record then gives the lines found, and the
+RMSE is over the moving cells with >= 500 points.
+
 Usage::
 
     python benchmarks/bench_tiled_spline.py [--seed 0] [--tile-size 20] [--workers 2]
+        [--case lobe]
 
 One JSON line per run; appended to benchmarks/results/tiled_spline.jsonl with ``--record``.
 """
@@ -90,6 +96,7 @@ def main(argv=None) -> int:
     ap.add_argument("--tile-size", type=float, default=20.0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--record", action="store_true")
+    ap.add_argument("--case", default="lobe", help="lobe, or a validate_landslides.py case")
     a = ap.parse_args(argv)
     sys.path.insert(0, str(ROOT.parent))
     from bench_fields import _icp_truth
@@ -97,9 +104,19 @@ def main(argv=None) -> int:
     from slipmap.core.io.las import read_las
     from slipmap.core.synthetic import make_lobe_pair
 
-    pair = make_lobe_pair(read_las(str(LONE_STAR)).xyz, seed=a.seed)
-    base = {"date": time.strftime("%Y-%m-%d"), "seed": a.seed, "points": len(pair.after),
-            "tile_size_m": a.tile_size, "load": round(os.getloadavg()[0], 1)}  # fmt: skip
+    pts = read_las(str(LONE_STAR)).xyz
+    if a.case == "lobe":
+        pair = make_lobe_pair(pts, seed=a.seed)
+    else:
+        from validate_landslides import fields
+
+        from slipmap.core.synthetic import make_landslide_pair
+
+        fld = fields(pts[:, :2].min(axis=0), pts[:, :2].max(axis=0))[a.case]
+        pair = make_landslide_pair(pts, fld, seed=a.seed)
+    base = {"date": time.strftime("%Y-%m-%d"), "case": a.case, "seed": a.seed,
+            "points": len(pair.after), "tile_size_m": a.tile_size,
+            "load": round(os.getloadavg()[0], 1)}  # fmt: skip
     lines = []
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
@@ -123,6 +140,8 @@ def main(argv=None) -> int:
             lobe = (rows["n"] >= 500) & (np.linalg.norm(truth, axis=1) > 0)
             rec["cells"] = len(rows["x"])
             rec["lobe_rmse_cm"] = round(100 * float(np.sqrt(np.mean(np.sum(err[lobe] ** 2, 1)))), 2)
+            doc = json.loads((out / "icp.json").read_text())["breaklines"]
+            rec["breaklines"] = {k: doc.get(k) for k in ("source", "count", "length_m")}
             if ref is None:
                 ref = rows
             else:

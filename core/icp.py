@@ -1021,6 +1021,10 @@ class WindowedICPResult:
         block size over the whole field (:func:`reblock`).
     n_blocks : (K, L) int64 or None
         Their block counts.
+    gradient : (K, 3, 3) float64 or None
+        The gradient of each cell's motion ``d(p)`` as fitted (dimensionless; a rigid cell's
+        ``I - R``): what the breaklines' detector reads, so that a tiled run detects them
+        from its cells as the one-file run does.
     """
 
     x: np.ndarray
@@ -1079,6 +1083,7 @@ class WindowedICPResult:
     cov_d_formal: Optional[np.ndarray] = None
     cov_d_blocks: Optional[np.ndarray] = None
     n_blocks: Optional[np.ndarray] = None
+    gradient: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -2282,39 +2287,20 @@ def windowed_icp(
         first = None  # the fit with candidate lines, when lines were detected
         if lines is None and detect_breaklines:
             # the formal covariances: the detection's threshold was set with them
-            lines = _detect_lines(
-                cells, d, usable & ~flagged, cov_formal, n_rows, n_cols, x0, y0, cell,
+            candidate, straight = candidate_lines(
+                cells, d, usable & ~flagged, cov_formal, (n_rows, n_cols, x0, y0, cell),
                 grad=grad, sig_grad=sig_rot,
             )  # fmt: skip
-            straight = None
-            if lines is None:  # a straight step the edge test misses (a fault across a lobe)
-                straight = _scan_line(cells, d, usable & ~flagged, n_rows, n_cols, x0, y0, cell)
-            candidate = lines if straight is None else straight.line
             if candidate is not None:
                 # one fit with the candidate lines, then the points confirm and place them
-                from .breaklines import DETECT_FLOOR_M
-
                 first = fit_spline_field(
                     a[cells.points], breaklines=candidate, progress=scaled(progress, 0.9, 0.95),
                     **spline_kw,
                 )  # fmt: skip
-                near_kw = dict(before=b, tree=tree, normals=normals, gate_m=gate, reach_m=cell)
-                if straight is not None:
-                    from .breakline_points import place_straight_line
-                    from .breaklines import SCAN_MAX_JUMP_STEPS, SCAN_MIN_JUMP_STEPS
-
-                    step_m = float(np.linalg.norm(straight.step_m))
-                    lines = place_straight_line(
-                        first.field, a[cells.points], station_jump_m=DETECT_FLOOR_M,
-                        min_jump_m=max(DETECT_FLOOR_M, SCAN_MIN_JUMP_STEPS * step_m),
-                        max_jump_m=SCAN_MAX_JUMP_STEPS * step_m, **near_kw,
-                    ).line  # fmt: skip
-                else:
-                    from .icp_spline import refine_breaklines
-
-                    lines = refine_breaklines(
-                        first.field, a[cells.points], min_jump_m=DETECT_FLOOR_M, **near_kw
-                    )
+                lines = confirm_lines(
+                    first.field, a[cells.points], straight, before=b, tree=tree,
+                    normals=normals, gate_m=gate, cell_m=cell,
+                )  # fmt: skip
                 lines_source = "none" if lines is None else "detected"
                 progress = scaled(progress, 0.95, 1.0)
         weights = None
@@ -2559,6 +2545,7 @@ def finish_cells(
         cov_d_formal=None if cov_formal is None else cov_formal[ok],
         cov_d_blocks=None if cov_d_blocks is None else cov_d_blocks[ok],
         n_blocks=None if n_blocks is None else n_blocks[ok],
+        gradient=grad[ok],
     )
     pairs = None
     if pair_cov is not None:  # the cells share one field: their errors are correlated
@@ -2632,6 +2619,47 @@ def _detect_lines(
             len(found), found.length_m(),
         )  # fmt: skip
     return found
+
+
+def candidate_lines(cells, d, usable, cov_formal, lattice, *, grad=None, sig_grad=None):
+    """The breaklines the cells' motions propose, for the points to confirm: the edges of
+    :func:`_detect_lines`, else the straight step of :func:`_scan_line` (a fault across a
+    lobe, which the edge test misses). ``lattice``: ``(n_rows, n_cols, x0, y0, cell_m)``.
+    Returns ``(lines or None, straight step or None)``; the one-file and the tiled run share
+    it."""
+    n_rows, n_cols, x0, y0, cell = lattice
+    lines = _detect_lines(
+        cells, d, usable, cov_formal, n_rows, n_cols, x0, y0, cell, grad=grad, sig_grad=sig_grad
+    )
+    straight = None
+    if lines is None:
+        straight = _scan_line(cells, d, usable, n_rows, n_cols, x0, y0, cell)
+    return (lines if straight is None else straight.line), straight
+
+
+def confirm_lines(field, after, straight, *, before, tree, normals, gate_m, cell_m):
+    """The candidate breaklines of a field fitted with them (``field.lines``), confirmed and
+    placed by the points within a cell of them (``after``: at least those):
+    :func:`~slipmap.core.breakline_points.place_straight_line` for a ``straight`` step
+    (:func:`candidate_lines`), else :func:`~slipmap.core.icp_spline.refine_breaklines`;
+    None when none is confirmed. ``before``, ``tree``, ``normals``: epoch 1 around them (the
+    one-file run's whole epoch, or a tiled run's corridor)."""
+    from .breaklines import DETECT_FLOOR_M
+
+    near_kw = dict(before=before, tree=tree, normals=normals, gate_m=gate_m, reach_m=cell_m)
+    if straight is not None:
+        from .breakline_points import place_straight_line
+        from .breaklines import SCAN_MAX_JUMP_STEPS, SCAN_MIN_JUMP_STEPS
+
+        step_m = float(np.linalg.norm(straight.step_m))
+        return place_straight_line(
+            field, after, station_jump_m=DETECT_FLOOR_M,
+            min_jump_m=max(DETECT_FLOOR_M, SCAN_MIN_JUMP_STEPS * step_m),
+            max_jump_m=SCAN_MAX_JUMP_STEPS * step_m, **near_kw,
+        ).line  # fmt: skip
+    from .icp_spline import refine_breaklines
+
+    return refine_breaklines(field, after, min_jump_m=DETECT_FLOOR_M, **near_kw)
 
 
 def _scan_line(cells, d, usable, n_rows, n_cols, x0, y0, cell):

@@ -221,3 +221,91 @@ def test_cli_breaklines_file_on_tiles_equals_the_one_file_run(slab, tmp_path, ca
     for key in want:
         assert np.max(np.abs(got[key] - want[key])) <= TOL, key
     assert "breaklines" in gpkg_layer_names(out / "icp.gpkg")
+
+
+def test_detected_breaklines_on_blocks_equal_the_one_file_run(slab, caplog):
+    """The default field on tiles (issue #29 item 4): the scarp is detected in the tiled
+    cells' motions, confirmed and placed by the points near it (each block sends its points
+    within reach of the candidate, each point once) and the field refitted with it, so the
+    tiled run equals the one-file run (1e-6 m), line included, and keeps the step."""
+    import logging
+
+    from slipmap.core.breaklines import breaklines, distance_m
+
+    before = open_collection(str(slab / "before_tiles"))
+    after = open_collection(str(slab / "after_tiles"))
+    kw = dict(cell_m=5.0, min_points=50, field_model="spline", spline_spacing_m=5.0,
+              detect_breaklines=True)  # fmt: skip
+    whole = windowed_icp(_whole(before), _whole(after), **kw)
+    with caplog.at_level(logging.INFO, logger="slipmap.app"):
+        tiled = tf.icp_tiled(before, after, tile_size_m=15.0, **kw)
+    assert whole.breaklines_source == "detected", "the one-file run must find the scarp"
+    _equal(tiled, whole, "detected breaklines")
+    assert tiled.breaklines_source == "detected"
+    assert len(tiled.breaklines) == len(whole.breaklines)
+    for p, q in zip(tiled.breaklines.parts, whole.breaklines.parts):
+        assert p.shape == q.shape and np.max(np.abs(p - q)) <= TOL
+    assert any("near the candidates" in r.getMessage() for r in caplog.records)
+    assert not any("gate somewhere" in r.getMessage() for r in caplog.records)
+    assert not tf._CHUNKS  # the blocks' cache is emptied
+    # the line lies on the scarp where there are points (0 <= y <= 40 m) and the far cells
+    # keep the step
+    line = tiled.breaklines.parts[0] - ORIGIN[:2]
+    ys = np.linspace(0.0, 40.0, 41)
+    xs = np.interp(ys, line[::-1, 1] if line[0, 1] > line[-1, 1] else line[:, 1],
+                   line[::-1, 0] if line[0, 1] > line[-1, 1] else line[:, 0])  # fmt: skip
+    assert np.max(distance_m(np.c_[xs, ys], breaklines([SCARP]))) < 2.5
+    xy = np.c_[tiled.x, tiled.y] - ORIGIN[:2]
+    truth = _beyond(xy - SLAB[:2])[:, None] * SLAB
+    far = distance_m(xy, breaklines([SCARP])) >= 3.0
+    err = np.linalg.norm(np.c_[tiled.dx, tiled.dy, tiled.dz] - truth, axis=1)
+    assert far.sum() >= 40 and float(np.sqrt(np.mean(err[far] ** 2))) < 0.006
+
+
+def test_cli_default_on_tiles_detects_the_scarp_as_one_file(slab, tmp_path, capsys):
+    """``slipmap icp TILES TILES`` with the model options at their defaults: the breaklines
+    are detected on the tiles as in one file (the same cells within 1e-6 m), and icp.json
+    and the GeoPackage say so."""
+    import json
+
+    from slipmap.core.io.vector import gpkg_layer_names
+
+    extra = ["--cell", "5", "--min-points", "50", "--spline-spacing", "5"]
+    ref, out = tmp_path / "one", tmp_path / "tiled"
+    rc, err = _cli(["icp", str(slab / "before.laz"), str(slab / "after.laz"), *extra,
+                    "--out", str(ref)], capsys)  # fmt: skip
+    assert rc == 0, err
+    try:  # the corridor's blocks on Dask workers, when Dask is here
+        import distributed  # noqa: F401
+
+        engine = ["--workers", "2"]
+    except ImportError:
+        engine = []
+    rc, err = _cli(["icp", str(slab / "before_tiles"), str(slab / "after_tiles"), *extra,
+                    "--tile-size", "20", *engine, "--out", str(out)], capsys)  # fmt: skip
+    assert rc == 0, err
+    want, got = _rows(ref / "icp.csv"), _rows(out / "icp.csv")
+    assert set(got) == set(want) and len(got["x"]) == len(want["x"]) > 60
+    for key in want:
+        assert np.max(np.abs(got[key] - want[key])) <= TOL, key
+    docs = [json.loads((d / "icp.json").read_text())["breaklines"] for d in (ref, out)]
+    assert docs[0]["source"] == docs[1]["source"] == "detected", docs
+    assert docs[0]["count"] == docs[1]["count"] >= 1
+    assert "breaklines" in gpkg_layer_names(out / "icp.gpkg")
+
+
+def test_the_gate_warning_reads_the_field_at_the_cells_not_stray_knots():
+    """A knot copy no point uses may stray in an iteration: the tiled run's warning that the
+    field moves further than the gate reads the field at the cell centres."""
+    from slipmap.core.breaklines import breaklines
+    from slipmap.core.icp_spline import knot_frame
+
+    line = breaklines([np.array([[10.0, -5.0], [10.0, 25.0]])])
+    centres = np.array([[2.5, 2.5], [17.5, 17.5], [2.5, 17.5], [17.5, 2.5]])
+    frame = knot_frame(np.zeros(2), np.array([20.0, 20.0]), centres, 5.0, lines=line)
+    n_grid = (frame.n_x + 3) * (frame.n_y + 3)
+    n_k = n_grid + int(np.count_nonzero(frame.copy_index >= 0))
+    c = np.tile([0.3, -0.1, 0.0], (n_k, 1))
+    assert tf._largest_motion(frame, c, n_grid, centres) == pytest.approx(np.hypot(0.3, 0.1))
+    c[n_grid:] = 13.0  # the copies far off: the cells west of the line do not see them
+    assert tf._largest_motion(frame, c, n_grid, centres[:1]) == pytest.approx(np.hypot(0.3, 0.1))

@@ -29,19 +29,42 @@ def _ground(rng, n):
 def epochs(tmp_path_factory):
     """Two samplings of rough ground, the second moved 4 cm east, as one LAS per epoch and as
     17 m / 13 m tiles."""
-    from slipmap.core.io.las import PointCloud, write_las
-
     root = tmp_path_factory.mktemp("q_tiled_fields")
     rng = np.random.default_rng(5)
     for name, shift, edge in (("before", 0.0, 17.0), ("after", 0.04, 13.0)):
-        pts = _ground(rng, 43_000) + ORIGIN + [shift, 0.0, 0.0]
-        write_las(root / f"{name}.las", PointCloud(pts, {}, UTM11))
-        folder = root / f"{name}_tiles"
-        folder.mkdir()
-        k = np.floor((pts[:, :2] - pts[:, :2].min(0) + 2.0) / edge).astype(int)
-        for key in np.unique(k, axis=0):
-            m = np.all(k == key, axis=1)
-            write_las(folder / f"t_{key[0]}_{key[1]}.las", PointCloud(pts[m], {}, UTM11))
+        _write_epoch(root, name, _ground(rng, 43_000) + ORIGIN + [shift, 0.0, 0.0], edge)
+    return root
+
+
+def _write_epoch(root, name, pts, edge):
+    """``pts`` as ``root/name.las`` and as tiles of ``edge`` metres in ``root/name_tiles``."""
+    from slipmap.core.io.las import PointCloud, write_las
+
+    write_las(root / f"{name}.las", PointCloud(pts, {}, UTM11))
+    folder = root / f"{name}_tiles"
+    folder.mkdir()
+    k = np.floor((pts[:, :2] - pts[:, :2].min(0) + 2.0) / edge).astype(int)
+    for key in np.unique(k, axis=0):
+        m = np.all(k == key, axis=1)
+        write_las(folder / f"t_{key[0]}_{key[1]}.las", PointCloud(pts[m], {}, UTM11))
+
+
+#: a slab moved beyond a straight scarp (local metres: the ground east of the line)
+SCARP = np.array([[27.0, -3.0], [33.0, 51.0]])
+SLAB = np.array([0.05, -0.25, -0.06])
+
+
+@pytest.fixture(scope="module")
+def slab(tmp_path_factory):
+    """Two samplings of the rough ground, the second with a slab moved beyond SCARP, as one
+    LAS per epoch and as 17 m / 13 m tiles."""
+    root = tmp_path_factory.mktemp("q_tiled_slab")
+    rng = np.random.default_rng(9)
+    _write_epoch(root, "before", _ground(rng, 43_000) + ORIGIN, 17.0)
+    after = _ground(rng, 43_000)
+    (xa, ya), (xb, yb) = SCARP
+    east = (xb - xa) * (after[:, 1] - ya) - (yb - ya) * (after[:, 0] - xa) < 0
+    _write_epoch(root, "after", after + east[:, None] * SLAB + ORIGIN, 13.0)
     return root
 
 
@@ -165,5 +188,38 @@ def test_breaklines_layer_with_tiles_reaches_the_tiled_spline_field(provider, ep
         layer = QgsVectorLayer(res["CELLS"], "cells", "ogr")
         cells[name] = np.array(sorted((g["x"], g["y"], g["dx"], g["sigma_dx"])
                                       for g in layer.getFeatures()))  # fmt: skip
+    assert len(cells["tiles"]) == len(cells["file"]) > 40
+    assert np.max(np.abs(cells["tiles"] - cells["file"])) <= 1e-6
+
+
+def test_breaklines_detected_on_tiles_as_in_one_file(provider, slab, tmp_path):
+    """The default windowed ICP of tile globs with no breaklines layer: the scarp is detected
+    on the tiles as in the one file (the same cells within 1e-6 m, the same number and length
+    of lines) and the summary says it was detected."""
+    import json
+
+    from qgis.core import QgsVectorLayer
+
+    cells, found = {}, {}
+    for name, b, a in (
+        ("file", slab / "before.las", slab / "after.las"),
+        ("tiles", slab / "before_tiles" / "t_*.las", slab / "after_tiles" / "t_*.las"),
+    ):
+        summary = tmp_path / f"{name}_icp.json"
+        res = _run(
+            "windowedicp",
+            {"BEFORE": str(b), "AFTER": str(a), "CELL": 6.0, "MIN_POINTS": 50,
+             "SPLINE_SPACING": 6.0, "TILE_SIZE": 12.0,
+             "CELLS": str(tmp_path / f"{name}_cells.gpkg"), "VECTORS": "memory:",
+             "SUMMARY": str(summary)},
+        )  # fmt: skip
+        doc = json.loads(summary.read_text())
+        assert doc["breaklines"]["source"] == "detected", (name, doc["breaklines"])
+        found[name] = (doc["breaklines"]["count"], doc["breaklines"]["length_m"])
+        layer = QgsVectorLayer(res["CELLS"], "cells", "ogr")
+        cells[name] = np.array(sorted((g["x"], g["y"], g["dx"], g["dy"], g["sigma_dy"])
+                                      for g in layer.getFeatures()))  # fmt: skip
+    assert found["tiles"][0] == found["file"][0] >= 1
+    assert found["tiles"][1] == pytest.approx(found["file"][1], abs=1e-3)
     assert len(cells["tiles"]) == len(cells["file"]) > 40
     assert np.max(np.abs(cells["tiles"] - cells["file"])) <= 1e-6
