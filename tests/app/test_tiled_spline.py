@@ -309,3 +309,22 @@ def test_the_gate_warning_reads_the_field_at_the_cells_not_stray_knots():
     assert tf._largest_motion(frame, c, n_grid, centres) == pytest.approx(np.hypot(0.3, 0.1))
     c[n_grid:] = 13.0  # the copies far off: the cells west of the line do not see them
     assert tf._largest_motion(frame, c, n_grid, centres[:1]) == pytest.approx(np.hypot(0.3, 0.1))
+
+
+def test_a_breakline_corridor_too_large_is_refused_naming_the_option(
+    slab, tmp_path, capsys, monkeypatch
+):
+    """The points near candidate lines are counted on the blocks before any is sent: when
+    they would not fit in the driver's memory the run stops naming --detect-breaklines and
+    writes nothing."""
+    monkeypatch.setattr(tf, "CORRIDOR_POINT_BYTES", 1e15)
+    out = tmp_path / "out"
+    rc, err = _cli(["icp", str(slab / "before_tiles"), str(slab / "after_tiles"), "--cell", "5",
+                    "--min-points", "50", "--spline-spacing", "5", "--tile-size", "20",
+                    "--out", str(out)], capsys)  # fmt: skip
+    assert rc == 2
+    msg = " ".join(err)
+    assert "--detect-breaklines" in msg and "near the candidate breaklines" in msg, err
+    assert "give the breaklines instead" in msg
+    assert not out.exists()
+    assert not tf._CHUNKS
