@@ -383,6 +383,17 @@ class SplineField:
 
 
 @dataclass(frozen=True)
+class DeferredFit:
+    """A spline fit whose report (covariances, block sums, sigma0) is not made yet: its
+    ``field``, its ``smoothing_estimate`` (as :class:`SplineFit`'s) and ``finish()``, which
+    makes the :class:`SplineFit` exactly as the fit would have returned it."""
+
+    field: SplineField
+    smoothing_estimate: Optional[np.ndarray]
+    finish: Callable[[], SplineFit]
+
+
+@dataclass(frozen=True)
 class SplineFit:
     """A :class:`SplineField` fitted by :func:`fit_spline_field`, with what it reports at
     the requested positions.
@@ -1413,7 +1424,8 @@ def fit_spline_chunks(
     cell_weight=None,
     penalty_width_knots: Optional[float] = None,
     smoothing_start: Optional[np.ndarray] = None,
-) -> SplineFit:
+    defer_report: bool = False,
+):
     """:func:`fit_spline_field` over chunks of points: the Gauss-Newton normal equations,
     the weights' scale and the final sums are sums (or quantiles) over the after-points, so
     each chunk (:class:`SplineChunk`) gives its share and this driver adds them, solves once
@@ -1448,13 +1460,13 @@ def fit_spline_chunks(
         first = fit_spline_chunks(
             run, frame=frame, initial=initial, report_xy=report_xy, report_pairs=report_pairs,
             smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress, block_m=block_m,
-            smoothing_start=smoothing_start,
+            smoothing_start=smoothing_start, defer_report=True,
         )  # fmt: skip
         c1 = first.field.all_coefficients()
         wgt1 = Weighting.of(np.concatenate([np.asarray(p) for p in run("residuals", c1)]), opts)
         cell_weight = cell_weight(rigid_projection(run, c1, wgt1, report_xy))
         if cell_weight is None:  # no model of the cells' shared error: the unweighted fit
-            return first
+            return first.finish()
         cell_weight = np.asarray(cell_weight, dtype=np.float64)
         initial = first.field
     lam = _check_smoothing(smoothing)
@@ -1599,109 +1611,115 @@ def fit_spline_chunks(
                 "spline field: local penalty of %.2f m (restricted likelihood: %s)",
                 width, ", ".join(f"{t[0]:g} m {t[-2]:.1f}" for t in tried),
             )  # fmt: skip
-    # final residuals, sigma0 and the report
-    wgt = weighting_at(c)
-    bm = None if block_m is None else float(block_m)
-    parts = run("report", c, wgt, bm, cell_weight)
-    ss = float(sum(p.ss_psi for p in parts))
-    used = int(sum(p.used for p in parts))
-    n_ok = int(sum(p.n_ok for p in parts))
-    data_knots = np.unique(np.concatenate([p.knots for p in parts])).size
-    dof = max(used - 3 * data_knots, 1)
-    mean_dpsi = float(sum(p.sum_dpsi for p in parts)) / n_ok if n_ok else 1.0
-    # points sharing a target point share its error, as in the cells' sigma0; a target is
-    # known by its coordinates (chunks of tile blocks share the targets of their halos)
-    targets = np.concatenate([p.targets for p in parts]).reshape(-1, 3)
-    t_psi = np.concatenate([p.target_psi for p in parts])
-    _, tid = np.unique(targets, axis=0, return_inverse=True)
-    tid = tid.reshape(-1)
-    one = np.zeros(t_psi.size, dtype=np.int64)
-    every = np.ones(t_psi.size, dtype=bool)
-    inflation = float(_shared_target_inflation(t_psi, every, one, tid, np.array([ss]))[0])
-    s0sq = ss / dof / max(mean_dpsi, 1e-12) ** 2 * inflation
     field = SplineField(
         field.origin_xy, h, n_x, n_y, c[:n_grid].reshape(ky, kx, 3), lines=bl,
         copy_coefficients=c[n_grid:] if n_k > n_grid else None,
     )  # fmt: skip
-    ridx, rw, rwx, rwy = field._basis(rxy, slopes=True, copy_index=copy_index)
-    k = len(rxy)
-    # rows of (d, d/dx, d/dy) x 3 components against the component-major coefficients
-    g = np.zeros((k, 9, 3, 16))
-    for comp in range(3):
-        g[:, comp, comp] = rw
-        g[:, 3 + comp, comp] = rwx
-        g[:, 6 + comp, comp] = rwy
-    cols = (np.arange(3)[:, None] * n_k + ridx[:, None, :]).reshape(k, 48)
-    cov = np.zeros((k, 9, 9))
-    pairs = None if report_pairs is None else np.asarray(report_pairs, np.int64).reshape(-1, 2)
-    pair_cov = None if pairs is None else np.full((len(pairs), 3), np.nan)
-    chunk = 64
-    for s0 in range(0, k, chunk):
-        part = slice(s0, min(s0 + chunk, k))
-        kk = part.stop - part.start
-        rows_g = sp.csr_matrix(
-            (g[part].reshape(kk * 9, 48).ravel(), np.repeat(cols[part], 9, axis=0).ravel(),
-             np.arange(0, kk * 9 * 48 + 1, 48)),
-            shape=(kk * 9, 3 * n_k),
-        )  # fmt: skip
-        sol = factor.solve(np.asarray(rows_g.T.todense()))  # (3K, kk*9)
-        full = np.asarray(rows_g @ sol).reshape(kk, 9, kk, 9)
-        cov[part] = s0sq * full[np.arange(kk), :, np.arange(kk), :]
-        if pairs is not None:  # g_d(j) A^-1 g_d(i)' for the pairs whose first cell is here
-            sel = np.flatnonzero((pairs[:, 0] >= part.start) & (pairs[:, 0] < part.stop))
-            pj = pairs[sel, 1]
-            for comp in range(3):
-                column = (pairs[sel, 0] - part.start) * 9 + comp
-                vals = sol[comp * n_k + ridx[pj], column[:, None]]  # (S, 16)
-                pair_cov[sel, comp] = s0sq * np.sum(vals * rw[pj], axis=1)
-    cov_blocks = n_blocks = None
-    if block_m is not None:  # the residuals' spatial correlation (issue #29, icp_blocks)
-        from .icp_blocks import spline_block_covariance
 
-        c_scale = (
-            float(sum(p.sum_w for p in parts)) / max(n_ok, 1) / max(mean_dpsi, 1e-12) ** 2
-            * used / dof
+    def finish() -> SplineFit:
+        # final residuals, sigma0 and the report
+        wgt = weighting_at(c)
+        bm = None if block_m is None else float(block_m)
+        parts = run("report", c, wgt, bm, cell_weight)
+        ss = float(sum(p.ss_psi for p in parts))
+        used = int(sum(p.used for p in parts))
+        n_ok = int(sum(p.n_ok for p in parts))
+        data_knots = np.unique(np.concatenate([p.knots for p in parts])).size
+        dof = max(used - 3 * data_knots, 1)
+        mean_dpsi = float(sum(p.sum_dpsi for p in parts)) / n_ok if n_ok else 1.0
+        # points sharing a target point share its error, as in the cells' sigma0; a target is
+        # known by its coordinates (chunks of tile blocks share the targets of their halos)
+        targets = np.concatenate([p.targets for p in parts]).reshape(-1, 3)
+        t_psi = np.concatenate([p.target_psi for p in parts])
+        _, tid = np.unique(targets, axis=0, return_inverse=True)
+        tid = tid.reshape(-1)
+        one = np.zeros(t_psi.size, dtype=np.int64)
+        every = np.ones(t_psi.size, dtype=bool)
+        inflation = float(_shared_target_inflation(t_psi, every, one, tid, np.array([ss]))[0])
+        s0sq = ss / dof / max(mean_dpsi, 1e-12) ** 2 * inflation
+        ridx, rw, rwx, rwy = field._basis(rxy, slopes=True, copy_index=copy_index)
+        k = len(rxy)
+        # rows of (d, d/dx, d/dy) x 3 components against the component-major coefficients
+        g = np.zeros((k, 9, 3, 16))
+        for comp in range(3):
+            g[:, comp, comp] = rw
+            g[:, 3 + comp, comp] = rwx
+            g[:, 6 + comp, comp] = rwy
+        cols = (np.arange(3)[:, None] * n_k + ridx[:, None, :]).reshape(k, 48)
+        cov = np.zeros((k, 9, 9))
+        pairs = None if report_pairs is None else np.asarray(report_pairs, np.int64).reshape(-1, 2)
+        pair_cov = None if pairs is None else np.full((len(pairs), 3), np.nan)
+        chunk = 64
+        for s0 in range(0, k, chunk):
+            part = slice(s0, min(s0 + chunk, k))
+            kk = part.stop - part.start
+            rows_g = sp.csr_matrix(
+                (g[part].reshape(kk * 9, 48).ravel(), np.repeat(cols[part], 9, axis=0).ravel(),
+                 np.arange(0, kk * 9 * 48 + 1, 48)),
+                shape=(kk * 9, 3 * n_k),
+            )  # fmt: skip
+            sol = factor.solve(np.asarray(rows_g.T.todense()))  # (3K, kk*9)
+            full = np.asarray(rows_g @ sol).reshape(kk, 9, kk, 9)
+            cov[part] = s0sq * full[np.arange(kk), :, np.arange(kk), :]
+            if pairs is not None:  # g_d(j) A^-1 g_d(i)' for the pairs whose first cell is here
+                sel = np.flatnonzero((pairs[:, 0] >= part.start) & (pairs[:, 0] < part.stop))
+                pj = pairs[sel, 1]
+                for comp in range(3):
+                    column = (pairs[sel, 0] - part.start) * 9 + comp
+                    vals = sol[comp * n_k + ridx[pj], column[:, None]]  # (S, 16)
+                    pair_cov[sel, comp] = s0sq * np.sum(vals * rw[pj], axis=1)
+        cov_blocks = n_blocks = None
+        if block_m is not None:  # the residuals' spatial correlation (issue #29, icp_blocks)
+            from .icp_blocks import spline_block_covariance
+
+            c_scale = (
+                float(sum(p.sum_w for p in parts)) / max(n_ok, 1) / max(mean_dpsi, 1e-12) ** 2
+                * used / dof
+            )  # fmt: skip
+            cov_blocks, n_blocks = spline_block_covariance(
+                [p.block_scores for p in parts], rows=g.reshape(k, 9, 48), cols=cols,
+                factor=factor, penalty=penalty, s0sq=s0sq, scale=c_scale,
+            )  # fmt: skip
+        projection = None
+        if cell_weight is not None:
+            # what each cell would measure as a rigid cell if the ground moved as this field:
+            # the rigid cells' motions less it are the field's misfit (honest sigma, icp.py)
+            projection = rigid_projection(run, c, wgt, rxy)
+        n_used = np.zeros(k, dtype=np.int64)
+        ss_cell = np.zeros(k)
+        for p in parts:
+            np.add.at(n_used, p.cells, p.cell_n)
+            np.add.at(ss_cell, p.cells, p.cell_ss)
+        rmse = np.where(n_used > 0, np.sqrt(ss_cell / np.maximum(n_used, 1)), np.nan)
+        log.info(
+            "spline field: %d knots of %.2f m, %d iterations%s, sigma0 %.4f m (shared-target "
+            "inflation %.2f)",
+            data_knots, h, it, "" if converged else " (not converged)", np.sqrt(s0sq), inflation,
         )  # fmt: skip
-        cov_blocks, n_blocks = spline_block_covariance(
-            [p.block_scores for p in parts], rows=g.reshape(k, 9, 48), cols=cols,
-            factor=factor, penalty=penalty, s0sq=s0sq, scale=c_scale,
-        )  # fmt: skip
-    projection = None
-    if cell_weight is not None:
-        # what each cell would measure as a rigid cell if the ground moved as this field:
-        # the rigid cells' motions less it are the field's misfit (honest sigma, icp.py)
-        projection = rigid_projection(run, c, wgt, rxy)
-    n_used = np.zeros(k, dtype=np.int64)
-    ss_cell = np.zeros(k)
-    for p in parts:
-        np.add.at(n_used, p.cells, p.cell_n)
-        np.add.at(ss_cell, p.cells, p.cell_ss)
-    rmse = np.where(n_used > 0, np.sqrt(ss_cell / np.maximum(n_used, 1)), np.nan)
-    log.info(
-        "spline field: %d knots of %.2f m, %d iterations%s, sigma0 %.4f m (shared-target "
-        "inflation %.2f)",
-        data_knots, h, it, "" if converged else " (not converged)", np.sqrt(s0sq), inflation,
-    )  # fmt: skip
-    return SplineFit(
-        field=field,
-        d=field(rxy),
-        gradient=field.gradient(rxy),
-        cov=cov,
-        rmse=rmse,
-        n=n_used,
-        sigma0_m=float(np.sqrt(s0sq)),
-        iterations=it,
-        converged=converged,
-        n_coefficients=3 * data_knots,
-        pair_cov=pair_cov,
-        cov_blocks=cov_blocks,
-        n_blocks=n_blocks,
-        data_weight=cell_weight,
-        projection=projection,
-        penalty_width_m=width,
-        restricted_score=score,
-        smoothing_estimate=estimate,
-    )
+        return SplineFit(
+            field=field,
+            d=field(rxy),
+            gradient=field.gradient(rxy),
+            cov=cov,
+            rmse=rmse,
+            n=n_used,
+            sigma0_m=float(np.sqrt(s0sq)),
+            iterations=it,
+            converged=converged,
+            n_coefficients=3 * data_knots,
+            pair_cov=pair_cov,
+            cov_blocks=cov_blocks,
+            n_blocks=n_blocks,
+            data_weight=cell_weight,
+            projection=projection,
+            penalty_width_m=width,
+            restricted_score=score,
+            smoothing_estimate=estimate,
+        )
+
+    if defer_report:
+        return DeferredFit(field, estimate, finish)
+    return finish()
 
 
 def nearest_plane_residuals(
