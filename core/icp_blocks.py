@@ -611,6 +611,23 @@ def spline_block_scores(
     return BlockScores(keys, p_idx[first].astype(np.int64), vals, cell_blocks)
 
 
+def solve_report_rows(factor, rows: np.ndarray, cols: np.ndarray, n3: int):
+    """The report rows of ``kk`` positions (``rows`` (kk, 9, 48): value, x- and y-slope of
+    each component against their 48 coefficients ``cols`` (kk, 48)) as a sparse
+    (kk * 9, n3) matrix ``G``, and ``A⁻¹ Gᵀ`` from the normal matrix's LU ``factor``
+    (dense, (n3, kk * 9)): the spline field's covariances at those positions are
+    ``G A⁻¹ Gᵀ``."""
+    import scipy.sparse as sp
+
+    kk = len(rows)
+    rows_g = sp.csr_matrix(
+        (np.asarray(rows).reshape(kk * 9, 48).ravel(), np.repeat(cols, 9, axis=0).ravel(),
+         np.arange(0, kk * 9 * 48 + 1, 48)),
+        shape=(kk * 9, n3),
+    )  # fmt: skip
+    return rows_g, factor.solve(np.asarray(rows_g.T.todense()))
+
+
 def spline_block_covariance(
     scores,
     *,
@@ -677,12 +694,7 @@ def spline_block_covariance(
     for s0 in range(0, k, chunk):
         part = slice(s0, min(s0 + chunk, k))
         kk = part.stop - part.start
-        rows_g = sp.csr_matrix(
-            (rows[part].reshape(kk * 9, 48).ravel(), np.repeat(cols[part], 9, axis=0).ravel(),
-             np.arange(0, kk * 9 * 48 + 1, 48)),
-            shape=(kk * 9, n3),
-        )  # fmt: skip
-        sol = factor.solve(np.asarray(rows_g.T.todense()))  # (3 n_k, kk * 9)
+        _, sol = solve_report_rows(factor, rows[part], cols[part], n3)  # (3 n_k, kk * 9)
         z = np.asarray(S @ sol).reshape(nb, kk, 9)
         ps = np.asarray(penalty @ sol).reshape(n3, kk, 9)
         sr = sol.reshape(n3, kk, 9)

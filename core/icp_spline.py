@@ -1649,16 +1649,13 @@ def fit_spline_chunks(
         cov = np.zeros((k, 9, 9))
         pairs = None if report_pairs is None else np.asarray(report_pairs, np.int64).reshape(-1, 2)
         pair_cov = None if pairs is None else np.full((len(pairs), 3), np.nan)
+        from .icp_blocks import solve_report_rows
+
         chunk = 64
         for s0 in range(0, k, chunk):
             part = slice(s0, min(s0 + chunk, k))
             kk = part.stop - part.start
-            rows_g = sp.csr_matrix(
-                (g[part].reshape(kk * 9, 48).ravel(), np.repeat(cols[part], 9, axis=0).ravel(),
-                 np.arange(0, kk * 9 * 48 + 1, 48)),
-                shape=(kk * 9, 3 * n_k),
-            )  # fmt: skip
-            sol = factor.solve(np.asarray(rows_g.T.todense()))  # (3K, kk*9)
+            rows_g, sol = solve_report_rows(factor, g[part], cols[part], 3 * n_k)  # (3K, kk*9)
             full = np.asarray(rows_g @ sol).reshape(kk, 9, kk, 9)
             cov[part] = s0sq * full[np.arange(kk), :, np.arange(kk), :]
             if pairs is not None:  # g_d(j) A^-1 g_d(i)' for the pairs whose first cell is here

@@ -155,11 +155,38 @@ def test_moving_area_layer_refused_for_tiles(provider, epochs, tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def _file_and_tiles(root, tmp_path, extra):
+    """The windowed ICP (6 m cells and knots, tiles in blocks of 12 m) of ``root``'s one LAS
+    per epoch and of its tile globs, with the ``extra`` parameters: each run's icp.json and
+    its cells' ``(x, y, dx, dy, sigma_dx, sigma_dy)`` sorted, by "file" and "tiles"."""
+    import json
+
+    from qgis.core import QgsVectorLayer
+
+    docs, cells = {}, {}
+    for name, b, a in (
+        ("file", root / "before.las", root / "after.las"),
+        ("tiles", root / "before_tiles" / "t_*.las", root / "after_tiles" / "t_*.las"),
+    ):
+        summary = tmp_path / f"{name}_icp.json"
+        res = _run(
+            "windowedicp",
+            {"BEFORE": str(b), "AFTER": str(a), "CELL": 6.0, "MIN_POINTS": 50,
+             "SPLINE_SPACING": 6.0, "TILE_SIZE": 12.0, **extra,
+             "CELLS": str(tmp_path / f"{name}_cells.gpkg"), "VECTORS": "memory:",
+             "SUMMARY": str(summary)},
+        )  # fmt: skip
+        docs[name] = json.loads(summary.read_text())
+        layer = QgsVectorLayer(res["CELLS"], "cells", "ogr")
+        cells[name] = np.array(sorted((g["x"], g["y"], g["dx"], g["dy"], g["sigma_dx"],
+                                       g["sigma_dy"]) for g in layer.getFeatures()))  # fmt: skip
+    return docs, cells
+
+
 def test_breaklines_layer_with_tiles_reaches_the_tiled_spline_field(provider, epochs, tmp_path):
     """A BREAKLINES line layer with tile globs (refused before stop 39): the default spline
     field of the tiles takes the line, as the one-file run does (the same cells within
     1e-6 m), and the summary says the line was given."""
-    import json
 
     from qgis.core import QgsFeature, QgsGeometry, QgsPointXY, QgsVectorLayer
 
@@ -169,25 +196,10 @@ def test_breaklines_layer_with_tiles_reaches_the_tiled_spline_field(provider, ep
     f.setGeometry(QgsGeometry.fromPolylineXY([QgsPointXY(x0 + 27.0, y0 - 3.0),
                                               QgsPointXY(x0 + 33.0, y0 + 51.0)]))  # fmt: skip
     line.dataProvider().addFeatures([f])
-    cells = {}
-    for name, b, a in (
-        ("file", epochs / "before.las", epochs / "after.las"),
-        ("tiles", epochs / "before_tiles" / "t_*.las", epochs / "after_tiles" / "t_*.las"),
-    ):
-        summary = tmp_path / f"{name}_icp.json"
-        res = _run(
-            "windowedicp",
-            {"BEFORE": str(b), "AFTER": str(a), "CELL": 6.0, "MIN_POINTS": 50,
-             "SPLINE_SPACING": 6.0, "TILE_SIZE": 12.0, "BREAKLINES": line,
-             "CELLS": str(tmp_path / f"{name}_cells.gpkg"), "VECTORS": "memory:",
-             "SUMMARY": str(summary)},
-        )  # fmt: skip
-        doc = json.loads(summary.read_text())
+    docs, cells = _file_and_tiles(epochs, tmp_path, {"BREAKLINES": line})
+    for name, doc in docs.items():
         assert doc["model"]["field"] == "spline", name
         assert doc["breaklines"]["source"] == "given" and doc["breaklines"]["count"] == 1, name
-        layer = QgsVectorLayer(res["CELLS"], "cells", "ogr")
-        cells[name] = np.array(sorted((g["x"], g["y"], g["dx"], g["sigma_dx"])
-                                      for g in layer.getFeatures()))  # fmt: skip
     assert len(cells["tiles"]) == len(cells["file"]) > 40
     assert np.max(np.abs(cells["tiles"] - cells["file"])) <= 1e-6
 
@@ -196,29 +208,11 @@ def test_breaklines_detected_on_tiles_as_in_one_file(provider, slab, tmp_path):
     """The default windowed ICP of tile globs with no breaklines layer: the scarp is detected
     on the tiles as in the one file (the same cells within 1e-6 m, the same number and length
     of lines) and the summary says it was detected."""
-    import json
-
-    from qgis.core import QgsVectorLayer
-
-    cells, found = {}, {}
-    for name, b, a in (
-        ("file", slab / "before.las", slab / "after.las"),
-        ("tiles", slab / "before_tiles" / "t_*.las", slab / "after_tiles" / "t_*.las"),
-    ):
-        summary = tmp_path / f"{name}_icp.json"
-        res = _run(
-            "windowedicp",
-            {"BEFORE": str(b), "AFTER": str(a), "CELL": 6.0, "MIN_POINTS": 50,
-             "SPLINE_SPACING": 6.0, "TILE_SIZE": 12.0,
-             "CELLS": str(tmp_path / f"{name}_cells.gpkg"), "VECTORS": "memory:",
-             "SUMMARY": str(summary)},
-        )  # fmt: skip
-        doc = json.loads(summary.read_text())
+    docs, cells = _file_and_tiles(slab, tmp_path, {})
+    found = {}
+    for name, doc in docs.items():
         assert doc["breaklines"]["source"] == "detected", (name, doc["breaklines"])
         found[name] = (doc["breaklines"]["count"], doc["breaklines"]["length_m"])
-        layer = QgsVectorLayer(res["CELLS"], "cells", "ogr")
-        cells[name] = np.array(sorted((g["x"], g["y"], g["dx"], g["dy"], g["sigma_dy"])
-                                      for g in layer.getFeatures()))  # fmt: skip
     assert found["tiles"][0] == found["file"][0] >= 1
     assert found["tiles"][1] == pytest.approx(found["file"][1], abs=1e-3)
     assert len(cells["tiles"]) == len(cells["file"]) > 40
