@@ -1421,16 +1421,11 @@ def _icp_spline_tiled(
     at = np.searchsorted(keys, done)
     if not (np.all(at < k) and np.array_equal(keys[np.minimum(at, k - 1)], done)):
         raise InputDataError("the tiled cell pass and the spline blocks disagree on the cells")
-    ok = np.zeros(k, dtype=bool)
-    ok[at] = True
-    d = np.full((k, 3), np.nan)
-    d[at] = np.column_stack([cells_res.dx, cells_res.dy, cells_res.dz])
-    iterations = np.zeros(k, dtype=np.int64)
-    iterations[at] = cells_res.iterations
-    converged = np.zeros(k, dtype=bool)
-    converged[at] = np.asarray(cells_res.converged, dtype=bool)
-    flagged_c = np.zeros(k, dtype=bool)
-    flagged_c[at] = np.asarray(cells_res.flagged, dtype=bool)
+    ok = _on_cells(k, at, np.ones(len(at), dtype=bool), fill=False)
+    d = _on_cells(k, at, np.column_stack([cells_res.dx, cells_res.dy, cells_res.dz]))
+    iterations = _on_cells(k, at, np.asarray(cells_res.iterations, dtype=np.int64), fill=0)
+    converged = _on_cells(k, at, np.asarray(cells_res.converged, dtype=bool), fill=False)
+    flagged_c = _on_cells(k, at, np.asarray(cells_res.flagged, dtype=bool), fill=False)
     blocks_model = kw.pop("sigma_model", "blocks")
     block_m = cells_res.sigma_block_m if blocks_model == "blocks" else math.nan
     usable = ok & np.all(np.isfinite(d), axis=1)
@@ -1456,8 +1451,13 @@ def _icp_spline_tiled(
         n_grid = (frame.n_x + 3) * (frame.n_y + 3)
 
         def run(stage, *args):
-            c = np.asarray(args[0])
-            if not warned and _largest_motion(frame, c, n_grid, cells.centres[:, :2]) > reach:
+            # every new set of coefficients goes through "residuals" first: checked there once
+            if (
+                stage == "residuals"
+                and not warned
+                and _largest_motion(frame, np.asarray(args[0]), n_grid, cells.centres[:, :2])
+                > reach
+            ):
                 warned.append(True)
                 log.warning(
                     "the spline field moves by more than the %.2f m gate somewhere: tiled "
@@ -1490,8 +1490,9 @@ def _icp_spline_tiled(
             if candidate is not None:  # as the one-file run: fit, confirm, refit
                 frame, run = fitter(candidate, 0.0, "candidate")
                 first = fit_spline_chunks(
-                    run, frame=frame, initial=start, progress=scaled(pg, 0.55, 0.75), **fit_kw
-                )
+                    run, frame=frame, initial=start, progress=scaled(pg, 0.55, 0.75),
+                    defer_report=True, **fit_kw,
+                )  # fmt: skip
                 outer(0.75, "breaklines: the points near the candidates")
                 lines = _confirm_lines_tiled(
                     first.field, straight, [blocks[i] for i in live], engine=engine,

@@ -2295,7 +2295,7 @@ def windowed_icp(
                 # one fit with the candidate lines, then the points confirm and place them
                 first = fit_spline_field(
                     a[cells.points], breaklines=candidate, progress=scaled(progress, 0.9, 0.95),
-                    **spline_kw,
+                    defer_report=True, **spline_kw,
                 )  # fmt: skip
                 lines = confirm_lines(
                     first.field, a[cells.points], straight, before=b, tree=tree,

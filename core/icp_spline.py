@@ -1282,7 +1282,8 @@ def fit_spline_field(
     block_m: Optional[float] = None,
     cell_weight: Optional[np.ndarray] = None,
     smoothing_start: Optional[np.ndarray] = None,
-) -> SplineFit:
+    defer_report: bool = False,
+):
     """Fit a bicubic B-spline displacement field to two epochs by point-to-plane ICP.
 
     One chunk of all the points through :func:`fit_spline_chunks` (a tiled run gives it one
@@ -1361,10 +1362,13 @@ def fit_spline_field(
         field, a refit (other breaklines) starts where the first one ended and needs a
         few iterations instead of its own 20-odd (issue #29 item 5). The weighted fits'
         local weights start at :data:`AUTO_START` as before.
+    defer_report : bool
+        As :func:`fit_spline_chunks`: a :class:`DeferredFit` (e.g. the fit with candidate
+        breaklines, whose field alone is used).
 
     Returns
     -------
-    SplineFit
+    SplineFit or DeferredFit
 
     Raises
     ------
@@ -1389,7 +1393,7 @@ def fit_spline_field(
     return fit_spline_chunks(
         run, frame=frame, initial=initial, report_xy=report_xy, report_pairs=report_pairs,
         smoothing=smoothing, gate_m=gate_m, opts=opts, progress=progress, block_m=block_m,
-        cell_weight=cell_weight, smoothing_start=smoothing_start,
+        cell_weight=cell_weight, smoothing_start=smoothing_start, defer_report=defer_report,
     )  # fmt: skip
 
 
@@ -1715,6 +1719,10 @@ def fit_spline_chunks(
         )
 
     if defer_report:
+        log.info(
+            "spline field: %d iterations%s (its report not made: the field alone is used)",
+            it, "" if converged else " (not converged)",
+        )  # fmt: skip
         return DeferredFit(field, estimate, finish)
     return finish()
 
