@@ -219,6 +219,18 @@ SPEC = JobSpec(
             advanced=True,
         ),
         _opt(
+            "cell_choice",
+            "bool",
+            "with the spline field: a cell whose own rigid fit explains its points better "
+            "than the field (its point-to-plane cost lower by more than two standard errors) "
+            "reports that fit, and the from_cell column says so; where the ground moves in a "
+            "way the field cannot follow and no breakline was found (a rotating slump block), "
+            "the field smooths and the cells do not",
+            "Cells keep their own fit where it fits better",
+            default=True,
+            advanced=True,
+        ),
+        _opt(
             "median_threshold",
             "float",
             "normalised median test of each cell against its 8 neighbours (Westerweel & "
@@ -367,6 +379,7 @@ def core_kwargs(opts: Mapping[str, Any]) -> Dict[str, Any]:
     kw["field_model"] = field_model_of(opts)
     if kw["field_model"] == "spline":
         kw["detect_breaklines"] = bool(opts.get("detect_breaklines", True))
+        kw["cell_choice"] = bool(opts.get("cell_choice", True))
     regions = int(opts.get("sigma_regions") or 1)
     if opts.get("formal_sigma"):
         kw["sigma_scaling"] = "formal"
@@ -561,6 +574,7 @@ def run(
                 kw.update(field_model="cells")
                 kw.pop("breaklines", None)
                 kw.pop("detect_breaklines", None)
+                kw.pop("cell_choice", None)
                 res = windowed_icp(before, after, **run_kw, **kw)
         comparison = None
         if control is not None:

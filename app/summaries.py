@@ -104,6 +104,11 @@ def icp_summary(res) -> Dict[str, Any]:
             "cell": res.cell_model,
             "field": res.field_model,
             "deform_passes": res.deform_passes,
+            # spline field: cells that report their own rigid fit, which fits their points
+            # better (core.icp_choice)
+            "cells_from_own_fit": int(np.count_nonzero(res.from_cell))
+            if res.from_cell is not None
+            else 0,
         },
         "n_cells": len(res),
         "skipped": dict(res.skipped),

@@ -768,6 +768,7 @@ def icp_tiled(
         "lines": given_breaklines(icp_kw.pop("breaklines", None)) if spline else None,
     }
     spline_kw["detect"] = bool(icp_kw.pop("detect_breaklines", False)) and spline
+    spline_kw["cell_choice"] = bool(icp_kw.pop("cell_choice", False)) and spline
     cell = float(cell_m)
     if not (math.isfinite(cell) and cell > 0):
         raise InvalidParameterError(f"cell_m must be a positive number, got {cell_m!r}")
@@ -1276,6 +1277,25 @@ def _spline_corridor(call: _SplineCall):
     return pa, b[mine]
 
 
+def _spline_choice(call: _SplineCall):
+    """The block's cells' costs under the fitted field and under their own motion
+    (:func:`~slipmap.core.icp_choice.choice_costs` on the one-file run's objects; ``args``:
+    the field and the cell pass's ``d`` (K, 3) and gradient (K, 3, 3) on the run's cells).
+    Returns the run's index of each of the block's cells and their
+    :class:`~slipmap.core.icp_choice.ChoiceCosts`."""
+    from ..core.icp_choice import choice_costs
+
+    field, d, grad = call.args
+    cells, a, b, tree, normals, _ = _block_data(call.block)
+    idx = np.asarray(call.cell_index)
+    costs = choice_costs(
+        a[cells.points], cells.seg, len(idx), cells.centres, field, d[idx], grad[idx],
+        cell_m=call.block.lattice[4], tree=tree, normals=normals, gate=call.block.gate_m,
+        n_targets=len(b),
+    )  # fmt: skip
+    return idx, costs
+
+
 def _keep(key, value, size: float) -> None:
     """Keep ``value`` in this process's cache of spline blocks (an earlier run's entries and
     the least recently used dropped to stay within :data:`SPLINE_CACHE_BYTES`)."""
@@ -1294,6 +1314,8 @@ def _spline_block(call: _SplineCall):
             return _spline_survey(call.block)
         if call.stage == "corridor":
             return _spline_corridor(call)
+        if call.stage == "choice":
+            return _spline_choice(call)
         chunk = _spline_chunk(call)
         return getattr(chunk, call.stage)(*call.args)
 
@@ -1338,7 +1360,9 @@ def _icp_spline_tiled(
         _spline_blocks,
         finish_cells,
         spline_cells,
+        take_own_fits,
     )
+    from ..core.icp_choice import ChoiceCosts, choose_cells
     from ..core.icp_spline import MIN_SPLINE_CELLS, SplineCellsError, fit_spline_chunks, knot_frame
 
     x0, y0, n_rows, n_cols, cell = lattice
@@ -1514,6 +1538,21 @@ def _icp_spline_tiled(
             block_m=float(block_m) if math.isfinite(block_m) else None, cell_weight=weights,
             **start_kw, **fit_kw,
         )  # fmt: skip
+        # each cell's points choose between the field and the cell's own fit (icp_choice)
+        own_grad = (
+            np.full((k, 3, 3), np.nan) if cells_res.gradient is None
+            else _on_cells(k, at, cells_res.gradient)
+        )  # fmt: skip
+        costs = ChoiceCosts.empty(k)
+        if spline_kw.get("cell_choice"):
+            for idx, part in _engine(engine).map(
+                _spline_block,
+                [_SplineCall(blocks[i], "choice", (sfit.field, d, own_grad), None, index_of[i])
+                 for i in live],
+                names=names, what="block",
+                progress=cancel_only if progress is not None else None,
+            ):  # fmt: skip
+                costs.put(idx, part)
     finally:
         _drop_chunks(token)
     # the block covariances and the cells' floor share, as the one-file run (core.icp)
@@ -1530,6 +1569,23 @@ def _icp_spline_tiled(
     )  # fmt: skip
     sp = spline_cells(sfit, cells, ok, min_points=minp, median_threshold=med_thr,
                       median_eps_m=med_eps, n_rows=n_rows, n_cols=n_cols)  # fmt: skip
+    n_own = _on_cells(k, at, cells_res.n, fill=0)
+    own = dict(
+        d=d, grad=own_grad, cov_d=_on_cells(k, at, cells_res.cov_d),
+        rmse=_on_cells(k, at, cells_res.rmse), n=n_own, sigma0=_on_cells(k, at, cells_res.sigma0),
+        sig_rot=_on_cells(
+            k, at, np.column_stack([cells_res.sigma_rx, cells_res.sigma_ry, cells_res.sigma_rz])
+        ),
+    )  # fmt: skip
+    take = choose_cells(costs, ok & converged & (n_own >= minp))
+    sp, blocks_kw, pair_cov = take_own_fits(
+        sp, take, own, blocks_kw, sfit.pair_cov, near, cells=cells,
+        floor_cells=(cells_res.row, cells_res.col,
+                     np.column_stack([cells_res.dx, cells_res.dy, cells_res.dz]),
+                     cells_res.cov_d, cells_res.n, c_all, c_ok),
+        flag_kw=dict(n_rows=n_rows, n_cols=n_cols, eps_m=med_eps, threshold=med_thr),
+        unexplained=costs.unexplained,
+    )  # fmt: skip
     return finish_cells(
         cells, ok=sp["ok"], d=sp["d"], cov_d=sp["cov_d"], grad=sp["grad"], rot=None,
         sig_rot=sp["sig_rot"], rmse=sp["rmse"], sigma0=sp["sigma0"], n_used=sp["n"],
@@ -1538,6 +1594,6 @@ def _icp_spline_tiled(
         origin_xy=(float(x0), float(y0)), cell_m=cell, n_rows=n_rows, n_cols=n_cols,
         prealignment=None, t_start=0.0, cell_model=cells_res.cell_model,
         deform_passes=cells_res.deform_passes, field_model="spline", near=near,
-        pair_cov=sfit.pair_cov, lines=lines, lines_source=lines_source,
+        pair_cov=pair_cov, lines=lines, lines_source=lines_source, from_cell=sp["from_cell"],
         **sigma_kw, **blocks_kw,
     )  # fmt: skip

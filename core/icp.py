@@ -1084,6 +1084,7 @@ class WindowedICPResult:
     cov_d_blocks: Optional[np.ndarray] = None
     n_blocks: Optional[np.ndarray] = None
     gradient: Optional[np.ndarray] = None
+    from_cell: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         return int(self.x.size)
@@ -1092,7 +1093,7 @@ class WindowedICPResult:
         """Per-cell columns: ``x, y, z, dx, dy, dz, sigma_dx, sigma_dy, sigma_dz, rmse, n``
         (the CLI's CSV columns, in this order) then ``rx, ry, rz, sigma_rx, sigma_ry,
         sigma_rz, sigma0, n_after, n_before, iterations, converged (0/1), row, col, exx, eyy,
-        exy, flagged (0/1)``."""
+        exy, flagged (0/1), from_cell (0/1)``."""
         names = ["x", "y", "z", "dx", "dy", "dz", "sigma_dx", "sigma_dy", "sigma_dz", "rmse"]
         cols: Dict[str, np.ndarray] = {k: getattr(self, k) for k in names}
         cols["n"] = self.n
@@ -1107,6 +1108,9 @@ class WindowedICPResult:
             cols[k] = v if v.size == self.x.size else np.zeros(self.x.size)
         fl = self.flagged if self.flagged.size == self.x.size else np.zeros(self.x.size, bool)
         cols["flagged"] = fl.astype(np.int64)
+        fc = self.from_cell
+        fc = fc if fc is not None and fc.size == self.x.size else np.zeros(self.x.size, bool)
+        cols["from_cell"] = fc.astype(np.int64)
         return cols
 
     def to_grid(self, name: str) -> np.ndarray:
@@ -1816,6 +1820,7 @@ def windowed_icp(
     spline_smoothing: Optional[float] = None,
     breaklines=None,
     detect_breaklines: bool = False,
+    cell_choice: bool = False,
     engine: str = "batched",
     backend: str = "auto",
     median_threshold: float = 2.0,
@@ -1959,6 +1964,13 @@ def windowed_icp(
         chained into lines), place them on the points (each point near a line goes to the
         side whose field fits it: :func:`slipmap.core.icp_spline.refine_breaklines`), and fit
         the field smooth on each side. The result's ``breaklines`` holds what was found.
+    cell_choice : bool
+        With ``field_model="spline"``: a cell whose own rigid (or affine) fit explains its
+        points better than the field (:mod:`slipmap.core.icp_choice`: its mean truncated
+        point-to-plane cost lower by more than two standard errors) reports that fit, with
+        its block covariance and the cells' cell-wide floor; the result's ``from_cell``
+        marks them. Where the ground moves in a way the field cannot follow and no line was
+        found (a rotating slump block), the field smooths and the cells do not.
     median_threshold : float
         Wrong-minimum test (0: off): a cell whose motion differs from the median of its
         8-neighbours by more than this many times their median spread (plus
@@ -2248,7 +2260,7 @@ def windowed_icp(
             )
     rmse, sigma0, n_used = fits.rmse, fits.sigma0, fits.n
     ok, rot, sig_rot = fits.ok, fits.rotation, fits.sigma_rotation
-    near = pair_src = None
+    near = pair_src = from_cell = None
     sigma_formal = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
     cov_formal = cov_d
     block, rot_scale = None, np.ones(len(sel))
@@ -2337,9 +2349,27 @@ def windowed_icp(
         )  # fmt: skip
         sp = spline_cells(sfit, cells, fits.ok, min_points=minp, median_threshold=med_thr,
                           median_eps_m=med_eps, n_rows=n_rows, n_cols=n_cols)  # fmt: skip
+        from .icp_choice import choice_costs, choose_cells
+
+        # each cell's points choose between the field and the cell's own fit (icp_choice)
+        own = dict(d=d, grad=grad, cov_d=cov_d, rmse=fits.rmse, n=fits.n, sigma0=fits.sigma0,
+                   sig_rot=sig_rot * rot_scale[:, None])  # fmt: skip
+        take = np.zeros(len(sel), dtype=bool)
+        if cell_choice:
+            costs = choice_costs(
+                a[cells.points], cells.seg, len(sel), cells.centres, sfit.field, d, grad,
+                cell_m=cell, tree=tree, normals=normals, gate=gate, n_targets=len(b),
+            )  # fmt: skip
+            take = choose_cells(costs, fits.ok & fits.converged & (fits.n >= minp))
+        sp, blocks_kw, pair_src = take_own_fits(
+            sp, take, own, blocks_kw, sfit.pair_cov, near, cells=cells,
+            floor_cells=(cells.row, cells.col, own["d"], cov_d, fits.n, fits.ok, cu),
+            flag_kw=dict(n_rows=n_rows, n_cols=n_cols, eps_m=med_eps, threshold=med_thr),
+            unexplained=costs.unexplained if cell_choice else None,
+        )  # fmt: skip
         d, grad, cov_d, rmse, n_used = sp["d"], sp["grad"], sp["cov_d"], sp["rmse"], sp["n"]
         sigma0, sig_rot, ok, flagged = sp["sigma0"], sp["sig_rot"], sp["ok"], sp["flagged"]
-        pair_src = sfit.pair_cov
+        from_cell = sp["from_cell"]
     else:  # the blocks' ratio of the translation, for the rotations
         sig_rot = sig_rot * rot_scale[:, None]
         blocks_kw["sigma_formal"] = sigma_formal
@@ -2353,7 +2383,7 @@ def windowed_icp(
         prealignment=pre, t_start=t_start, cell_model=model, deform_passes=passes,
         field_model=field_model, near=near, pair_cov=pair_src, sigma_scaling=sigma_scaling,
         sigma_regions=n_regions, sigma_region_by=sigma_region_by, lines=lines,
-        lines_source=lines_source, **blocks_kw,
+        lines_source=lines_source, from_cell=from_cell, **blocks_kw,
     )  # fmt: skip
 
 
@@ -2455,6 +2485,63 @@ def spline_cells(sfit, cells: _Cells, cells_ok, *, min_points, median_threshold,
                 flagged=flagged)  # fmt: skip
 
 
+def take_own_fits(sp, take, own, blocks_kw, pair_cov, near, *, cells, floor_cells, flag_kw,
+                  unexplained):  # fmt: skip
+    """The cells ``take`` (K,) of a spline field reporting their own rigid or affine fit.
+
+    ``sp``: :func:`spline_cells`' values; ``own``: the cell pass's ``d``, ``grad``, ``cov_d``
+    (block covariances), ``rmse``, ``n``, ``sigma0``, ``sig_rot`` on the same K cells. Of the
+    cells ``take`` (their points chose), only those whose own value differs from the field's
+    beyond the two covariances report it (:func:`~slipmap.core.icp_choice.differ`). A taken
+    cell's covariance is its block covariance times the rigid cells' cell-wide floor (what
+    the cells model reports before the field's factor; ``floor_cells``: ``(row, col, d,
+    cov_d, n, ok, usable)`` of the cell pass, as :func:`_spline_blocks` takes them), and its
+    error is not the field's (``pair_cov`` zero on its pairs ``near``). Its model error
+    (``blocks_kw["model_var"]``, added after the floor) is the pull of the points its fit
+    leaves ``unexplained`` (K,), a share ``u`` of them: where a cell holds part of another
+    motion (beside a scarp or a block's outline), its fit is pulled towards it by about ``u``
+    times the jump, measured by the fit's difference from the field, ``(u (d_own -
+    d_field))²`` per component; about nothing where the cell holds one motion. The median test
+    runs again on the values reported (``flag_kw``: :func:`_median_flags`' ``n_rows,
+    n_cols, eps_m, threshold``). Returns ``sp`` (with ``from_cell``), ``blocks_kw``,
+    ``pair_cov``; the one-file and the tiled run share this (:mod:`slipmap.core.icp_choice`
+    chooses)."""
+    from .icp_blocks import cell_floor
+    from .icp_choice import differ
+
+    sp = dict(sp, from_cell=np.asarray(take, dtype=bool))
+    if not take.any():
+        return sp, blocks_kw, pair_cov
+    u = np.where(np.isfinite(unexplained), unexplained, 1.0)
+    pull = (u[:, None] * (own["d"] - sp["d"])) ** 2
+    row, col, d_c, cov_c, n_c, ok_c, cu_c = floor_cells[:7]
+    sd_c = np.sqrt(np.diagonal(cov_c, axis1=1, axis2=2))
+    fl = cell_floor(row[ok_c], col[ok_c], d_c[ok_c], sd_c[ok_c], n_c[ok_c], usable=cu_c[ok_c])
+    g = fl.scale(own["n"]) if math.isfinite(fl.factor) else np.ones(len(take))
+    # only where the two values differ beyond their uncertainty (icp_choice.differ)
+    take = take & differ(own["d"], sp["d"], own["cov_d"] * g[:, None, None] + sp["cov_d"])
+    sp["from_cell"] = take
+    if not take.any():
+        return sp, blocks_kw, pair_cov
+    for key in ("d", "grad", "rmse", "n", "sigma0", "sig_rot"):
+        t = take.reshape((-1,) + (1,) * (np.ndim(own[key]) - 1))
+        sp[key] = np.where(t, own[key], sp[key])
+    sp["cov_d"] = np.where(take[:, None, None], own["cov_d"] * g[:, None, None], sp["cov_d"])
+    sp["ok"] = sp["ok"] | take
+    if flag_kw["threshold"] > 0:
+        sp["flagged"] = _median_flags(cells, sp["d"], sp["ok"], flag_kw["n_rows"],
+                                      flag_kw["n_cols"], flag_kw["eps_m"],
+                                      flag_kw["threshold"])[0]  # fmt: skip
+    mv = blocks_kw.get("model_var")
+    mv = np.zeros((len(take), 3)) if mv is None else mv
+    blocks_kw = dict(blocks_kw, model_var=np.where(take[:, None], pull, mv))
+    if pair_cov is not None:
+        pair_cov = np.where((take[near[:, 0]] | take[near[:, 1]])[:, None], 0.0, pair_cov)
+    log.info("%d of %d cells report their own fit: it fits their points better than the field",
+             int(take.sum()), int(sp["ok"].sum()))  # fmt: skip
+    return sp, blocks_kw, pair_cov
+
+
 def finish_cells(
     cells: _Cells, *, ok, d, cov_d, grad, rot, sig_rot, rmse, sigma0, n_used, iterations,
     converged, flagged, skipped, min_points, max_iterations, origin_xy, cell_m, n_rows,
@@ -2462,7 +2549,7 @@ def finish_cells(
     pair_cov=None, sigma_scaling="field", sigma_regions=3, sigma_region_by="roughness",
     lines=None, lines_source="none", sigma_model="independent", sigma_block_m=math.nan,
     sigma_block_ratio=math.nan, sigma_formal=None, cov_formal=None, cov_d_blocks=None,
-    n_blocks=None, cells_floor=None, model_var=None,
+    n_blocks=None, cells_floor=None, model_var=None, from_cell=None,
 ) -> WindowedICPResult:  # fmt: skip
     """The result of a windowed-ICP run from its cells' values (``rot`` None: the
     antisymmetric part of ``grad``), the cells not ``ok`` left out and counted, the sigmas
@@ -2472,7 +2559,8 @@ def finish_cells(
     cell, ``cov_formal`` the formal covariances of rigid or affine cells), ``cells_floor``
     the rigid cells' :class:`~slipmap.core.icp_blocks.CellFloor` of a spline field,
     ``model_var`` (K, 3) the variance of a weighted spline field's misfit to the rigid cells
-    (:func:`spline_model_variance`), added after the floor."""
+    (:func:`spline_model_variance`), added after the floor; ``from_cell`` (K,) bool the
+    cells of a spline field that report their own fit (:func:`take_own_fits`)."""
     skipped = dict(skipped)
     skipped["icp_failed"] = int(np.count_nonzero(~ok))
     n_ok = int(np.count_nonzero(ok))
@@ -2546,6 +2634,7 @@ def finish_cells(
         cov_d_blocks=None if cov_d_blocks is None else cov_d_blocks[ok],
         n_blocks=None if n_blocks is None else n_blocks[ok],
         gradient=grad[ok],
+        from_cell=None if from_cell is None else np.asarray(from_cell, dtype=bool)[ok],
     )
     pairs = None
     if pair_cov is not None:  # the cells share one field: their errors are correlated

@@ -48,6 +48,8 @@ __all__ = [
     "START_EPS_M",
     "SWITCH_Z",
     "choose_zero_start",
+    "paired_means",
+    "point_costs",
     "point_residuals",
     "transformed",
     "tree_points",
@@ -102,6 +104,53 @@ def _costs(v: np.ndarray, c: float) -> np.ndarray:
     return np.where(np.isfinite(v), u, 1.0)
 
 
+def point_costs(v_a: np.ndarray, v_b: np.ndarray, seg: np.ndarray, k: int):
+    """Per-point truncated costs ``min(v², c²) / c²`` (P,) of two residual sets of the same
+    points (1 where a point has no target), ``c = TUKEY_C * MAD_TO_SIGMA * median |v|`` of
+    both sets of each cell pooled (one scale for both); see :func:`truncated_costs`."""
+    seg = np.asarray(seg, dtype=np.int64)
+    # the pooled robust scale per cell: median |v| of both residual sets (sorted per cell)
+    av = np.abs(np.concatenate([v_a, v_b]))
+    sg2 = np.concatenate([seg, seg])
+    fin = np.isfinite(av)
+    av, sg2 = av[fin], sg2[fin]
+    order = np.lexsort((av, sg2))
+    av, sg2 = av[order], sg2[order]
+    cnt = np.bincount(sg2, minlength=k)
+    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    med = np.zeros(k)
+    has = cnt > 0
+    lo = start + (cnt - 1) // 2
+    hi = start + cnt // 2
+    med[has] = 0.5 * (av[lo[has]] + av[hi[has]])
+    c = TUKEY_C * MAD_TO_SIGMA * med
+    cp = c[seg]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ua = np.where(cp > 0, np.minimum((v_a / cp) ** 2, 1.0), (v_a != 0).astype(np.float64))
+        ub = np.where(cp > 0, np.minimum((v_b / cp) ** 2, 1.0), (v_b != 0).astype(np.float64))
+    return np.where(np.isfinite(v_a), ua, 1.0), np.where(np.isfinite(v_b), ub, 1.0)
+
+
+def paired_means(u_a: np.ndarray, u_b: np.ndarray, seg: np.ndarray, k: int, where=None):
+    """Per-cell means (K,) of two per-point cost sets ``u_a``, ``u_b`` (P,) over the points
+    where ``where`` (P,) bool holds (default: all), and the standard error of the mean of
+    their paired differences; NaN for a cell without such points."""
+    seg = np.asarray(seg, dtype=np.int64)
+    w = np.ones(seg.size) if where is None else np.asarray(where, dtype=np.float64)
+    cost_a, cost_b, se = np.full(k, np.nan), np.full(k, np.nan), np.full(k, np.nan)
+    n = np.bincount(seg, weights=w, minlength=k)
+    some = n > 0
+    nn = np.where(some, n, 1.0)
+    cost_a[some] = (np.bincount(seg, weights=w * u_a, minlength=k) / nn)[some]
+    cost_b[some] = (np.bincount(seg, weights=w * u_b, minlength=k) / nn)[some]
+    dd = u_a - u_b
+    mean_d = np.bincount(seg, weights=w * dd, minlength=k) / nn
+    ss = np.bincount(seg, weights=w * (dd - mean_d[seg]) ** 2, minlength=k)
+    var = ss / np.maximum(n - 1.0, 1.0) / nn
+    se[some] = np.sqrt(var[some])
+    return cost_a, cost_b, se
+
+
 def truncated_costs(v_a: np.ndarray, v_b: np.ndarray, seg: np.ndarray, k: int):
     """Mean truncated costs of two transforms per cell and the standard error of their
     difference.
@@ -125,43 +174,9 @@ def truncated_costs(v_a: np.ndarray, v_b: np.ndarray, seg: np.ndarray, k: int):
         Standard error of the mean of the per-point differences ``cost_a - cost_b``.
     """
     seg = np.asarray(seg, dtype=np.int64)
-    cost_a = np.full(k, np.nan)
-    cost_b = np.full(k, np.nan)
-    se = np.full(k, np.nan)
     if seg.size == 0:
-        return cost_a, cost_b, se
-    # the pooled robust scale per cell: median |v| of both residual sets (sorted per cell)
-    av = np.abs(np.concatenate([v_a, v_b]))
-    sg2 = np.concatenate([seg, seg])
-    fin = np.isfinite(av)
-    av, sg2 = av[fin], sg2[fin]
-    order = np.lexsort((av, sg2))
-    av, sg2 = av[order], sg2[order]
-    cnt = np.bincount(sg2, minlength=k)
-    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-    med = np.zeros(k)
-    has = cnt > 0
-    lo = start + (cnt - 1) // 2
-    hi = start + cnt // 2
-    med[has] = 0.5 * (av[lo[has]] + av[hi[has]])
-    c = TUKEY_C * MAD_TO_SIGMA * med
-    cp = c[seg]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ua = np.where(cp > 0, np.minimum((v_a / cp) ** 2, 1.0), (v_a != 0).astype(np.float64))
-        ub = np.where(cp > 0, np.minimum((v_b / cp) ** 2, 1.0), (v_b != 0).astype(np.float64))
-    ua = np.where(np.isfinite(v_a), ua, 1.0)
-    ub = np.where(np.isfinite(v_b), ub, 1.0)
-    n = np.bincount(seg, minlength=k).astype(np.float64)
-    some = n > 0
-    nn = np.where(some, n, 1.0)
-    cost_a[some] = (np.bincount(seg, weights=ua, minlength=k) / nn)[some]
-    cost_b[some] = (np.bincount(seg, weights=ub, minlength=k) / nn)[some]
-    dd = ua - ub
-    mean_d = np.bincount(seg, weights=dd, minlength=k) / nn
-    ss = np.bincount(seg, weights=(dd - mean_d[seg]) ** 2, minlength=k)
-    var = ss / np.maximum(n - 1.0, 1.0) / nn
-    se[some] = np.sqrt(var[some])
-    return cost_a, cost_b, se
+        return np.full(k, np.nan), np.full(k, np.nan), np.full(k, np.nan)
+    return paired_means(*point_costs(v_a, v_b, seg, k), seg, k)
 
 
 def truncated_costs_reference(v_a: np.ndarray, v_b: np.ndarray, seg: np.ndarray, k: int):

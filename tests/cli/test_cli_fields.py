@@ -220,7 +220,7 @@ def test_icp_cli_equals_core_and_writes_layers(shifted_pair, tmp_path):
     # the job's defaults: the spline field, breaklines detected, 2000 points per cell
     core = windowed_icp(
         read_las(d / "b.las").xyz, read_las(d / "a.las").xyz, cell_m=5.0, coarse_to_fine=1,
-        field_model="spline", detect_breaklines=True,
+        field_model="spline", detect_breaklines=True, cell_choice=True,
         max_points_per_cell=DEFAULT_MAX_POINTS_PER_CELL,
     )  # fmt: skip
     cols = read_csv_columns(
@@ -248,7 +248,7 @@ def test_icp_cli_equals_core_and_writes_layers(shifted_pair, tmp_path):
     # reports it with that model; smaller than the default's honest sigmas
     core_formal = windowed_icp(
         read_las(d / "b.las").xyz, read_las(d / "a.las").xyz, cell_m=5.0, coarse_to_fine=1,
-        field_model="spline", detect_breaklines=True, sigma_model="independent",
+        field_model="spline", detect_breaklines=True, cell_choice=True, sigma_model="independent",
         sigma_scaling="formal", max_points_per_cell=DEFAULT_MAX_POINTS_PER_CELL,
     )  # fmt: skip
     np.testing.assert_array_equal(cols_formal["dx"], core_formal.dx)

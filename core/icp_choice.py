@@ -1,0 +1,207 @@
+"""The field or the cell, chosen per cell by its points (issue #29 item 1).
+
+The default field is one B-spline surface, smooth on each side of its breaklines. Where the
+ground moves in a way it cannot follow and no breakline was found, it smooths: on the
+landslide harness's rotational slump (docs/fields.md) no line is found around the rotating
+block, and the field spreads the block's motion into the stable ground beside it and flattens
+the block's rotation, decimetres off in cells whose own rigid fit is right to a centimetre.
+The rigid cell pass that starts the field has fitted every cell on its own points already.
+
+So each cell's points judge the two motions: the field's (each point moved by the field at
+its position) and the cell's rigid transform. Both are scored as the two starts of a seeded
+cell are (:mod:`slipmap.core.icp_starts`): the point-to-plane residual of each point against
+its nearest epoch-1 point within the gate, in the truncated quadratic
+``min(v², c²) / c²`` with one robust scale ``c`` for both, and the cell reports its rigid fit
+only when that fit's mean cost is lower by more than :data:`~slipmap.core.icp_starts.
+SWITCH_Z` standard errors of the paired differences. A field that follows its ground as well
+as the cell, or better (a straining lobe, which a rigid cell cannot follow), keeps the field.
+
+The rigid cell's motion there is a first-order map of its transform: a point ``p`` of the
+cell maps to ``p - d - G (p - c)`` (``d`` the motion at the centre ``c``, ``G`` the motion's
+gradient). For a rigid or affine cell without window deformation this is its fitted
+transform exactly (``linear = I - G``, ``t = -d``, :class:`~slipmap.core.icp_cells.CellFits`);
+the tiled run has only ``d`` and ``G`` of its cells, so both runs use this form and choose
+alike.
+
+A cell whose own fit and the field agree within their uncertainty keeps the field, however
+its costs compare: the choice only matters where the two values differ, and a test on
+thousands of points whose residuals are correlated finds "better" fits too readily (on a
+uniform shift of lone-star, cells that chose their own fits at 2.0-2.7 standard errors moved
+1-3 cm from a field right to 1 mm). They differ when ``(d_own - d_field)ᵀ (C_own +
+C_field)⁻¹ (d_own - d_field)`` exceeds :data:`DIFFER_CHI2` (χ²₃'s 95 % point).
+
+A cell reports its value at its centre. Where it straddles a scarp or the outline of a
+block, its points hold two motions and its rigid fit follows the larger part, which need not
+be the part its centre lies in: on the harness's slump such a cell fitted its points better
+than the field and was 0.55 m off at its centre with a sigma of 1.4 cm (seed 0, TLS,
+docs/fields.md). So the points around the centre, within :data:`CENTRE_SHARE_OF_CELL` of
+the cell's side, must agree: there the cell's own fit may not be clearly worse than the
+field (by more than :data:`CENTRE_Z` standard errors: the per-point standard errors ignore
+the residuals' correlation, and a field that is off along the surface can fit the points
+around the centre as well as a right cell), and it may leave at most
+:data:`MAX_UNEXPLAINED_SHARE` of them unexplained (beyond the truncation, or without a
+target). A cell with no points around
+its centre keeps the field. A straddling cell whose centre lies in the part its fit follows
+keeps its fit (a cell of the synthetic slump with a fifth of its points beyond the block's
+edge: right to 6 mm where the field was 0.8 m off).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from .icp_starts import SWITCH_Z, paired_means, point_costs, point_residuals
+
+__all__ = [
+    "CENTRE_SHARE_OF_CELL",
+    "CENTRE_Z",
+    "DIFFER_CHI2",
+    "MAX_UNEXPLAINED_SHARE",
+    "ChoiceCosts",
+    "choice_costs",
+    "choose_cells",
+    "differ",
+]
+
+#: a cell whose own fit leaves more than this share of the points around its centre
+#: unexplained keeps the field
+MAX_UNEXPLAINED_SHARE = 0.15
+#: the points around a cell's centre: within this share of the cell's side (horizontally)
+CENTRE_SHARE_OF_CELL = 0.25
+#: the cell's own fit and the field differ when their Mahalanobis distance² exceeds this
+#: (χ²₃'s 95 % point)
+DIFFER_CHI2 = 7.815
+#: around its centre the cell's own fit may be worse than the field by at most this many
+#: standard errors of the paired per-point cost differences
+CENTRE_Z = 3.0
+
+
+@dataclass(frozen=True)
+class ChoiceCosts:
+    """What each cell's points say of the field and of the cell's own motion (all (K,)
+    float64, NaN where a cell has no such points or no motion of its own).
+
+    Attributes
+    ----------
+    field, cell : mean truncated point-to-plane cost of the field and of the cell's motion
+        over the cell's points (:func:`~slipmap.core.icp_starts.point_costs`).
+    se : standard error of the mean of their paired per-point differences.
+    unexplained : share of the cell's points that the cell's motion leaves unexplained
+        (cost 1: beyond the truncation or without a target).
+    centre_field, centre_cell, centre_se : the same over the points around the centre.
+    centre_unexplained : share of the points around the centre that the cell's motion leaves
+        unexplained.
+    """
+
+    field: np.ndarray
+    cell: np.ndarray
+    se: np.ndarray
+    unexplained: np.ndarray
+    centre_field: np.ndarray
+    centre_cell: np.ndarray
+    centre_se: np.ndarray
+    centre_unexplained: np.ndarray
+
+    @classmethod
+    def empty(cls, k: int) -> ChoiceCosts:
+        """K cells with no costs (NaN), to be filled with :meth:`put`."""
+        return cls(*(np.full(int(k), np.nan) for _ in fields(cls)))
+
+    def put(self, idx: np.ndarray, part: ChoiceCosts) -> None:
+        """Copy ``part``'s cells into cells ``idx`` of this one (in place: a tiled run
+        assembles its blocks' costs)."""
+        for f in fields(self):
+            getattr(self, f.name)[idx] = getattr(part, f.name)
+
+
+def choice_costs(pts, seg, k, centres, field, d, grad, *, cell_m, tree, normals, gate,
+                 n_targets) -> ChoiceCosts:  # fmt: skip
+    """The costs of the field and of each cell's own motion on the cell's points.
+
+    Parameters
+    ----------
+    pts : (P, 3) float64
+        The cells' after-points (the sample the fits used), map coordinates, metres.
+    seg : (P,) int64
+        Cell of each point, 0 .. ``k`` - 1.
+    k : int
+        Number of cells.
+    centres : (k, 3) float64
+        Cell centres, metres.
+    field : callable
+        ``field(xy (N, 2)) -> (N, 3)`` ground motion of the field, metres (a
+        :class:`~slipmap.core.icp_spline.SplineField`).
+    d : (k, 3) float64
+        Each cell's own motion at its centre, metres (NaN: none).
+    grad : (k, 3, 3) float64
+        Its gradient (rigid cells: ``R - I``), dimensionless.
+    cell_m : float
+        The cells' side, metres (the points around a centre lie within
+        ``CENTRE_SHARE_OF_CELL * cell_m`` of it, horizontally).
+    tree, normals, gate, n_targets
+        The epoch-1 nearest-plane objects (:func:`~slipmap.core.icp_starts.point_residuals`).
+
+    Returns
+    -------
+    ChoiceCosts
+    """
+    pts = np.asarray(pts, dtype=np.float64)
+    seg = np.asarray(seg, dtype=np.int64)
+    k = int(k)
+    kw = dict(tree=tree, normals=normals, gate=gate, n_targets=n_targets)
+    own = np.all(np.isfinite(d), axis=1) & np.all(np.isfinite(grad), axis=(1, 2))
+    s = pts - centres[seg]
+    world_f = pts - np.asarray(field(pts[:, :2]), dtype=np.float64)
+    world_c = pts - d[seg] - np.einsum("pij,pj->pi", grad[seg], s)
+    keep = own[seg]
+    pts_own, seg_own = np.flatnonzero(keep), seg[keep]
+    out = ChoiceCosts.empty(k)
+    if pts_own.size == 0:
+        return out
+    u_f, u_c = point_costs(
+        point_residuals(world_f[pts_own], **kw), point_residuals(world_c[pts_own], **kw),
+        seg_own, k,
+    )  # fmt: skip
+    around = np.hypot(s[pts_own, 0], s[pts_own, 1]) <= CENTRE_SHARE_OF_CELL * float(cell_m)
+    out_c, none = (u_c >= 1.0).astype(np.float64), np.zeros(u_c.size)
+    return ChoiceCosts(
+        *paired_means(u_f, u_c, seg_own, k),
+        paired_means(out_c, none, seg_own, k)[0],
+        *paired_means(u_f, u_c, seg_own, k, where=around),
+        paired_means(out_c, none, seg_own, k, where=around)[0],
+    )  # fmt: skip
+
+
+def choose_cells(costs: ChoiceCosts, usable) -> np.ndarray:
+    """(K,) bool: the cell reports its own fit instead of the field's. It is ``usable``
+    (fitted, converged, enough points); its mean cost is lower than the field's by more than
+    :data:`~slipmap.core.icp_starts.SWITCH_Z` standard errors (and by more than rounding);
+    around its centre its cost is not higher than the field's by more than :data:`CENTRE_Z`
+    standard errors, and it leaves at most :data:`MAX_UNEXPLAINED_SHARE` of the points there
+    unexplained."""
+    c = costs
+    diff = c.field - c.cell
+    with np.errstate(invalid="ignore"):
+        better = np.isfinite(diff) & (diff > SWITCH_Z * c.se) & (diff > 1e-12)
+        centre_ok = (c.centre_cell - c.centre_field <= CENTRE_Z * c.centre_se) & (
+            c.centre_unexplained <= MAX_UNEXPLAINED_SHARE
+        )
+    return np.asarray(usable, dtype=bool) & better & centre_ok
+
+
+def differ(d_a: np.ndarray, d_b: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(K,) bool: two estimates ``d_a``, ``d_b`` (K, 3) of each cell's motion (metres)
+    differ, their difference's squared Mahalanobis distance under ``cov`` (K, 3, 3), the
+    covariance of the difference (m²), above :data:`DIFFER_CHI2`; False where any of them
+    is not finite or ``cov`` is singular."""
+    delta = np.asarray(d_a, dtype=np.float64) - np.asarray(d_b, dtype=np.float64)
+    cov = np.asarray(cov, dtype=np.float64)
+    out = np.zeros(len(delta), dtype=bool)
+    fin = np.all(np.isfinite(delta), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
+    fin &= np.linalg.det(np.where(fin[:, None, None], cov, np.eye(3))) > 0
+    if fin.any():
+        x = np.linalg.solve(cov[fin], delta[fin][:, :, None])[:, :, 0]
+        out[fin] = np.einsum("ki,ki->k", delta[fin], x) > DIFFER_CHI2
+    return out
