@@ -1643,7 +1643,7 @@ def _spline_blocks(sfit, usable: np.ndarray, near, blocks_kw, *, sigma_scaling, 
 
     Returns the new ``sfit`` and ``blocks_kw`` for :func:`finish_cells` (the one-file and the
     tiled run share this)."""
-    from .icp_blocks import cell_floor, shrink_covariance
+    from .icp_blocks import shrink_covariance
 
     kw = dict(blocks_kw, cov_formal=None, cov_d_blocks=None, n_blocks=None)
     kw["sigma_formal"] = np.sqrt(np.diagonal(sfit.cov[:, :3, :3], axis1=1, axis2=2))
@@ -1669,12 +1669,18 @@ def _spline_blocks(sfit, usable: np.ndarray, near, blocks_kw, *, sigma_scaling, 
             # the field's misfit to the rigid cells: what a smooth (per side) field misses
             kw["model_var"] = spline_model_variance(sfit, cells)
         if not weighted:  # the rigid cells' cell-wide error (icp_blocks)
-            row, col, d, cov_d, n, ok, cu = cells[:7]
-            sd_c = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
-            kw["cells_floor"] = cell_floor(
-                row[ok], col[ok], d[ok], sd_c[ok], n[ok], usable=cu[ok]
-            )  # fmt: skip
+            kw["cells_floor"] = _cells_floor(cells)
     return replace(sfit, cov=c9, pair_cov=pair), kw
+
+
+def _cells_floor(cells):
+    """The rigid (or affine) cells' cell-wide floor (:func:`~slipmap.core.icp_blocks.
+    cell_floor`) from the cell pass's ``(row, col, d, cov_d, n, ok, usable)``."""
+    from .icp_blocks import cell_floor
+
+    row, col, d, cov_d, n, ok, cu = cells[:7]
+    sd_c = np.sqrt(np.diagonal(cov_d, axis1=1, axis2=2))
+    return cell_floor(row[ok], col[ok], d[ok], sd_c[ok], n[ok], usable=cu[ok])
 
 
 def spline_model_variance(sfit, cells) -> np.ndarray:
@@ -1967,8 +1973,10 @@ def windowed_icp(
     cell_choice : bool
         With ``field_model="spline"``: a cell whose own rigid (or affine) fit explains its
         points better than the field (:mod:`slipmap.core.icp_choice`: its mean truncated
-        point-to-plane cost lower by more than two standard errors) reports that fit, with
-        its block covariance and the cells' cell-wide floor; the result's ``from_cell``
+        point-to-plane cost lower by more than two standard errors, not clearly worse around
+        its centre) and whose value differs from the field's beyond their covariances reports
+        that fit, with its block covariance and the cells' cell-wide floor; the result's
+        ``from_cell``
         marks them. Where the ground moves in a way the field cannot follow and no line was
         found (a rotating slump block), the field smooths and the cells do not.
     median_threshold : float
@@ -2506,23 +2514,21 @@ def take_own_fits(sp, take, own, blocks_kw, pair_cov, near, *, cells, floor_cell
     n_cols, eps_m, threshold``). Returns ``sp`` (with ``from_cell``), ``blocks_kw``,
     ``pair_cov``; the one-file and the tiled run share this (:mod:`slipmap.core.icp_choice`
     chooses)."""
-    from .icp_blocks import cell_floor
     from .icp_choice import differ
 
     sp = dict(sp, from_cell=np.asarray(take, dtype=bool))
     if not take.any():
         return sp, blocks_kw, pair_cov
-    u = np.where(np.isfinite(unexplained), unexplained, 1.0)
-    pull = (u[:, None] * (own["d"] - sp["d"])) ** 2
-    row, col, d_c, cov_c, n_c, ok_c, cu_c = floor_cells[:7]
-    sd_c = np.sqrt(np.diagonal(cov_c, axis1=1, axis2=2))
-    fl = cell_floor(row[ok_c], col[ok_c], d_c[ok_c], sd_c[ok_c], n_c[ok_c], usable=cu_c[ok_c])
+    fl = blocks_kw.get("cells_floor")  # an unweighted field's share came from it
+    fl = _cells_floor(floor_cells) if fl is None else fl
     g = fl.scale(own["n"]) if math.isfinite(fl.factor) else np.ones(len(take))
     # only where the two values differ beyond their uncertainty (icp_choice.differ)
     take = take & differ(own["d"], sp["d"], own["cov_d"] * g[:, None, None] + sp["cov_d"])
     sp["from_cell"] = take
     if not take.any():
         return sp, blocks_kw, pair_cov
+    u = np.where(np.isfinite(unexplained), unexplained, 1.0)
+    pull = (u[:, None] * (own["d"] - sp["d"])) ** 2
     for key in ("d", "grad", "rmse", "n", "sigma0", "sig_rot"):
         t = take.reshape((-1,) + (1,) * (np.ndim(own[key]) - 1))
         sp[key] = np.where(t, own[key], sp[key])

@@ -152,25 +152,23 @@ def choice_costs(pts, seg, k, centres, field, d, grad, *, cell_m, tree, normals,
     k = int(k)
     kw = dict(tree=tree, normals=normals, gate=gate, n_targets=n_targets)
     own = np.all(np.isfinite(d), axis=1) & np.all(np.isfinite(grad), axis=(1, 2))
+    keep = own[seg]  # the points of cells with a motion of their own
+    pts, seg = pts[keep], seg[keep]
+    if seg.size == 0:
+        return ChoiceCosts.empty(k)
     s = pts - centres[seg]
     world_f = pts - np.asarray(field(pts[:, :2]), dtype=np.float64)
     world_c = pts - d[seg] - np.einsum("pij,pj->pi", grad[seg], s)
-    keep = own[seg]
-    pts_own, seg_own = np.flatnonzero(keep), seg[keep]
-    out = ChoiceCosts.empty(k)
-    if pts_own.size == 0:
-        return out
     u_f, u_c = point_costs(
-        point_residuals(world_f[pts_own], **kw), point_residuals(world_c[pts_own], **kw),
-        seg_own, k,
+        point_residuals(world_f, **kw), point_residuals(world_c, **kw), seg, k
     )  # fmt: skip
-    around = np.hypot(s[pts_own, 0], s[pts_own, 1]) <= CENTRE_SHARE_OF_CELL * float(cell_m)
+    around = np.hypot(s[:, 0], s[:, 1]) <= CENTRE_SHARE_OF_CELL * float(cell_m)
     out_c, none = (u_c >= 1.0).astype(np.float64), np.zeros(u_c.size)
     return ChoiceCosts(
-        *paired_means(u_f, u_c, seg_own, k),
-        paired_means(out_c, none, seg_own, k)[0],
-        *paired_means(u_f, u_c, seg_own, k, where=around),
-        paired_means(out_c, none, seg_own, k, where=around)[0],
+        *paired_means(u_f, u_c, seg, k),
+        paired_means(out_c, none, seg, k)[0],
+        *paired_means(u_f, u_c, seg, k, where=around),
+        paired_means(out_c, none, seg, k, where=around)[0],
     )  # fmt: skip
 
 
