@@ -39,7 +39,7 @@ from .options import JobSpec, Option, OptionError
 from .outputs import OutputPlan
 from .planes import core_kwargs as plane_kwargs
 from .planes import plane_options
-from .stochasticmodel import check_stochastic, stochastic_options, units_for_job
+from .stochasticmodel import check_stochastic, random_tilt_of, stochastic_options, units_for_job
 from .summaries import json_safe, slip_summary_lines, stochastic_tables, strip_rows
 from .tiled import scale_options
 
@@ -417,6 +417,8 @@ def compute(
     unit_after: Optional[np.ndarray] = None,
     windows: bool = True,
     progress: Optional[Progress] = None,
+    unit_time_before: Optional[np.ndarray] = None,
+    unit_time_after: Optional[np.ndarray] = None,
 ) -> SlipRun:
     """The slip, strips and windows of two epochs' points.
 
@@ -433,6 +435,9 @@ def compute(
         :func:`point_accuracy` and :func:`.pointaccuracy.covariances`).
     unit_before, unit_after : (N1,), (N2,) int, optional
         Acquisition units (full model).
+    unit_time_before, unit_time_after : (N1,), (N2,) float64, optional
+        Their points' GpsTime (seconds): the units' error may drift along it
+        (:mod:`..core.unit_drift`).
     windows
         Compute the moving windows when ``window_size_m`` is set (QGIS only when its output
         is asked for).
@@ -445,6 +450,8 @@ def compute(
         sigma_after=sigma_after,
         unit_before=unit_before,
         unit_after=unit_after,
+        unit_time_before=unit_time_before,
+        unit_time_after=unit_time_after,
     )
     want_strips = opts.get("strip_width_m") is not None
     want_windows = windows and opts.get("window_size_m") is not None
@@ -468,7 +475,7 @@ def compute(
         components=fixed_components(opts),
         progress=next(parts),
         transfer_planes=bool(opts.get("transfer_planes")),
-        random_tilt=bool(opts.get("random_tilt")),
+        random_tilt=random_tilt_of(opts),
         **common,
     )
     tile_planes = None
@@ -481,7 +488,7 @@ def compute(
             combine="joint",
             components=fixed_components(opts),
             progress=next(parts),
-            random_tilt=bool(opts.get("random_tilt")),
+            random_tilt=random_tilt_of(opts),
             **common,
         )
         result = replace(
@@ -1044,6 +1051,8 @@ def _compute_whole(opts, trace, want_windows: bool, progress):
         sigma_after=sigma["after"],
         unit_before=units["before"].units,
         unit_after=units["after"].units,
+        unit_time_before=units["before"].time_s,
+        unit_time_after=units["after"].time_s,
         windows=want_windows,
         progress=progress,
     )
@@ -1108,6 +1117,8 @@ def _compute_tiled(opts, trace, progress):
 
     settings, sigma = check_tiled(opts)
     how = (opts.get("units") or "auto") if opts["stochastic_model"] == "full" else "none"
+    if how != "none" and opts.get("unit_drift", True):
+        log.info("tiled inputs: one rigid error per acquisition unit (no drift along GpsTime)")
     t0 = time.perf_counter()
     crs, fault, result = slip_for_job(
         opts,
@@ -1119,7 +1130,7 @@ def _compute_tiled(opts, trace, progress):
         combine=opts.get("combine") or "joint",
         units=how,
         components=fixed_components(opts),
-        random_tilt=bool(opts.get("random_tilt")),
+        random_tilt=random_tilt_of(opts),
         **core_options(opts),
     )
     runtime = time.perf_counter() - t0
@@ -1131,6 +1142,7 @@ def _compute_tiled(opts, trace, progress):
             for e in ("before", "after")
         },
         "tiled": True,
+        "unit_drift": False,
     }
     return crs, fault, SlipRun(result), settings, record, runtime
 

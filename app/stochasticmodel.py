@@ -143,17 +143,23 @@ class EpochUnits:
         Distinct units (0 for none).
     note : str
         Why (e.g. "auto: PointSourceId has a single value").
+    time_s : (N,) float64 or None
+        GpsTime of each point (seconds), for a unit error that drifts along time
+        (:mod:`slipmap.core.unit_drift`; the ``unit_drift`` option); None: rigid units.
     """
 
     units: Optional[np.ndarray]
     source: str
     n_units: int
     note: str = ""
+    time_s: Optional[np.ndarray] = None
 
     def to_dict(self) -> Dict[str, Any]:
         out: Dict[str, Any] = {"source": self.source, "n_units": int(self.n_units)}
         if self.note:
             out["note"] = self.note
+        if self.units is not None:
+            out["gps_time"] = self.time_s is not None
         return out
 
 
@@ -318,16 +324,28 @@ def stochastic_options(*, group: str = GROUP) -> tuple:
             metavar="S",
         ),
         Option(
+            "unit_drift",
+            "bool",
+            "each acquisition unit's error may drift along the points' GpsTime (a mobile "
+            "mapper's trajectory error over tens of seconds: one pass crossing the fault errs "
+            "differently on each side) instead of one rigid error per unit; the knot spacing "
+            "(3-24 s) or none is chosen by restricted likelihood per side and for both sides "
+            "together; needs GpsTime and units (full model); tiled inputs keep rigid units",
+            label="Unit errors drift along GpsTime",
+            default=True,
+            group=group,
+            advanced=True,
+        ),
+        Option(
             "random_tilt",
             "bool",
             "each plane is also tilted by the survey error (a random tilt per plane, its "
             "variance estimated per side), so the planes' tilts pin the rotation only as far as "
             "the survey allows: more accurate on airborne, mixed mobile/airborne and "
-            "short-wavelength drift pairs; off by default because under mobile-mapping "
-            'trajectory drift it can make the sigma too small (docs/accuracy.md, "The random '
-            'tilt on the current code"); plane and full models only',
+            'short-wavelength drift pairs (docs/accuracy.md, "Acquisition units that drift '
+            'along GpsTime"); plane and full models only (the white model ignores it)',
             label="Random tilt per plane",
-            default=False,
+            default=True,
             group=group,
             advanced=True,
         ),
@@ -346,6 +364,12 @@ def stochastic_options(*, group: str = GROUP) -> tuple:
             unset_text="none",
         ),
     )
+
+
+def random_tilt_of(opts: Mapping[str, Any]) -> bool:
+    """The ``random_tilt`` option as the core takes it: the white model has no plane level to
+    tilt, so it ignores the option (on by default)."""
+    return bool(opts.get("random_tilt", True)) and opts.get("stochastic_model") != "white"
 
 
 def check_stochastic(opts: Mapping[str, Any]) -> Dict[str, float]:
@@ -378,13 +402,6 @@ def check_stochastic(opts: Mapping[str, Any]) -> Dict[str, float]:
         warn_option(
             "{gps_gap_s} is set but {units} is not GpsTime: the GPS gap is not used; set "
             "{units} to GpsTime to split the epochs at GPS time gaps"
-        )
-    if opts.get("random_tilt") and opts.get("stochastic_model") == "white":
-        raise OptionError(
-            "random_tilt",
-            "the white model has no plane-level components to tilt; set {stochastic_model} to "
-            "plane or full, or turn {random_tilt} off",
-            also=("stochastic_model",),
         )
     if fixed and opts.get("stochastic_model") == "white":
         raise OptionError(
@@ -432,6 +449,7 @@ def units_for_job(opts: Mapping[str, Any], epochs: Mapping[str, Any]) -> tuple:
         return out, record
     if how == "GpsTime":
         record["gps_gap_s"] = opts.get("gps_gap_s", DEFAULT_GPS_GAP_S)
+    record["unit_drift"] = bool(opts.get("unit_drift", True))
     for epoch, (label, psid, gps) in epochs.items():
         try:
             u = epoch_units(
@@ -445,6 +463,10 @@ def units_for_job(opts: Mapping[str, Any], epochs: Mapping[str, Any]) -> tuple:
         except (InvalidParameterError, InputDataError) as exc:
             text = str(exc).removeprefix("{units} ")
             raise OptionError("units", text, also=("units",)) from None
+        if opts.get("unit_drift", True) and u.units is not None and gps is not None:
+            from dataclasses import replace
+
+            u = replace(u, time_s=np.asarray(gps, dtype=np.float64))
         log_units(label, u)
         out[epoch] = u
         record[epoch] = u.to_dict()

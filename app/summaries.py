@@ -171,9 +171,11 @@ def slip_model(payload: Dict[str, Any]) -> str:
     return str(model)
 
 
-def component_text(name: str, comp: Dict[str, Any], range_m=None) -> str:
+def component_text(name: str, comp: Dict[str, Any], range_m=None, drift_s=False) -> str:
     """One variance component for a console line, e.g. ``spatial 2.56 mm (sd 1.10, estimated,
-    range 27 m)``; ``unit_after off`` for a component that is not in the model."""
+    range 27 m)``; ``unit_after off`` for a component that is not in the model. ``drift_s``:
+    the units' drift along GpsTime (its knot spacing in seconds, None: rigid units; False:
+    no acquisition times)."""
     source = comp.get("source", "")
     if source == "off":
         return f"{name} off"
@@ -185,6 +187,12 @@ def component_text(name: str, comp: Dict[str, Any], range_m=None) -> str:
         extra.append(f"σ0² {float(comp['variance_factor']):.2f}")
     if name == "spatial" and range_m is not None and math.isfinite(float(range_m)):
         extra.append(f"range {float(range_m):.0f} m")
+    if name.startswith("unit_") and drift_s is not False:
+        extra.append(
+            "rigid per unit"
+            if drift_s is None
+            else f"drifting along GpsTime, knots every {float(drift_s):g} s"
+        )
     return f"{name} {_fmt_mm(comp.get('sigma_m'))} mm ({', '.join(e for e in extra if e)})"
 
 
@@ -198,8 +206,9 @@ def side_component_line(side: str, side_dict: Dict[str, Any]) -> Optional[str]:
     head = f"{side} side: {vc.get('n_planes', side_dict.get('n_planes'))} planes, n_eff " + (
         "n/a" if n_eff is None else f"{float(n_eff):.1f}"
     )
+    drift = vc["unit_drift_interval_s"] if "unit_drift_interval_s" in vc else False
     comps = [
-        component_text(name, c, vc.get("spatial_range_m"))
+        component_text(name, c, vc.get("spatial_range_m"), drift)
         for name, c in (vc.get("components") or {}).items()
     ]
     return head + "; " + "; ".join(comps)
@@ -291,6 +300,10 @@ def stochastic_tables(payload: Dict[str, Any]) -> Dict[str, Any]:
             head[f"{side}: planes"] = vc.get("n_planes")
             head[f"{side}: n_eff"] = vc.get("n_eff")
             head[f"{side}: spatial range (m)"] = vc.get("spatial_range_m")
+            if "unit_drift_interval_s" in vc:
+                head[f"{side}: unit drift knots (s; empty: rigid units)"] = vc[
+                    "unit_drift_interval_s"
+                ]
             if vc.get("notes"):
                 head[f"{side}: notes"] = "; ".join(vc["notes"])
             for name, c in (vc.get("components") or {}).items():

@@ -18,6 +18,11 @@ Usage::
     python benchmarks/accuracy_slip.py --cases issue30 --seeds 18 --first-seed 2000 \
         --no-peer --jobs 2 --random-tilt on
 
+    # units whose error drifts along GpsTime (on by default) against one rigid error per
+    # unit (docs/accuracy.md, "Acquisition units that drift along GpsTime")
+    python benchmarks/accuracy_slip.py --cases issue30 --seeds 18 --first-seed 2000 \
+        --no-peer --jobs 2 --unit-times off
+
 Each case draws ``--seeds`` synthetic fault pairs (18.1 mm of dextral slip, a town of 12
 buildings on 150 m, independent samplings of both epochs) with a correlated survey error of
 a kind and level (``core.synthetic.SurveyError``: MLS trajectory drift along the drive path,
@@ -204,7 +209,9 @@ LABELS = {
 }
 
 
-def one(case_name: str, seed: int, peer: bool, transfer=None, random_tilt=None) -> dict:
+def one(
+    case_name: str, seed: int, peer: bool, transfer=None, random_tilt=None, unit_times=True
+) -> dict:
     """One pair of one case: errors of every method (metres) and their σ."""
     c = CASES[case_name]
     rng = np.random.default_rng(seed + 77)
@@ -232,6 +239,8 @@ def one(case_name: str, seed: int, peer: bool, transfer=None, random_tilt=None) 
             unit_before=fp.source_before.astype(np.int64),
             unit_after=fp.source_after.astype(np.int64),
         )
+        if unit_times:  # the GpsTime a user's files carry: the units may drift along it
+            units.update(unit_time_before=fp.gps_time_before, unit_time_after=fp.gps_time_after)
     models = [("white", "white", {}), ("plane", "plane", {}), ("full", "full", units)]
     if c["prior"] is not None:
         fixed = {k: v for k, v in zip(("unit_before", "unit_after"), c["prior"]) if v}
@@ -260,6 +269,12 @@ def one(case_name: str, seed: int, peer: bool, transfer=None, random_tilt=None) 
                       "rejected": [len(res.left.rigid.rejected_planes),
                                    len(res.right.rigid.rejected_planes)]}  # fmt: skip
         if model != "white":
+            # the units' drift along GpsTime: knot spacing per side and joint (None: rigid)
+            jc = getattr(res, "joint_components", None)
+            row[label]["unit_interval_s"] = [
+                _finite(getattr(res, s).rigid.variance_components.unit_interval_s)
+                for s in ("left", "right")
+            ] + [_finite(jc.unit_interval_s) if jc is not None else None]
             row[label]["components"] = {
                 s: {k.name: k.sigma_m for k in getattr(res, s).rigid.variance_components.components}
                 for s in ("left", "right")
@@ -288,6 +303,10 @@ def one(case_name: str, seed: int, peer: bool, transfer=None, random_tilt=None) 
         except RuntimeError as exc:
             row["icp"] = {"failed": str(exc)[:300]}
     return row
+
+
+def _finite(v):
+    return float(v) if v == v and math.isfinite(v) else None
 
 
 def _truth(fp, sides, centres, truth, strike) -> dict:
@@ -453,6 +472,14 @@ def main(argv=None):
         "(estimate_slip(random_tilt=...); default: the library's default, "
         "core.stochastic.RANDOM_TILT)",
     )
+    ap.add_argument(
+        "--unit-times",
+        choices=("on", "off"),
+        default="on",
+        help="give the full model each point's GpsTime beside its unit, so that a unit's error "
+        "may drift along time (estimate_slip(unit_time_*), core.unit_drift; default on, as "
+        "the slip job does with files that carry GpsTime); off: one rigid error per unit",
+    )
     args = ap.parse_args(argv)
     cases = [k for c in args.cases.split(",") if c for k in PRESETS.get(c, (c,))]
     for c in cases:
@@ -471,6 +498,7 @@ def main(argv=None):
             peer,
             {"on": True, "off": False}.get(args.transfer),
             {"on": True, "off": False}.get(args.random_tilt),
+            args.unit_times == "on",
         )
         for c in cases
         for s in range(args.first_seed, args.first_seed + args.seeds)

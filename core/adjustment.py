@@ -61,6 +61,7 @@ from .progress import ProgressCallback, report
 from .rotation import rotation_matrix, rotation_vector
 from .rotation import skew as _skew
 from .stochastic import PlaneModel, VarianceComponents
+from .unit_drift import UNIT_INTERVALS_S, check_unit_time, hat_unit_shares
 
 log = logging.getLogger(__name__)
 
@@ -610,6 +611,10 @@ class _StochasticConfig:
         self.gain_idx = np.zeros(0, dtype=np.int64)
         self.small = 1.0
         self.gain_extra: dict = {}
+        #: the units' drift along GpsTime: its options (see _solve) and the knot spacing in
+        #: force (inf: the rigid unit; NaN: no times)
+        self.unit_drift: Optional[dict] = None
+        self.unit_interval = float("nan")
 
     def v_matrix(self, active: np.ndarray, p: np.ndarray) -> np.ndarray:
         idx = np.flatnonzero(active)
@@ -910,6 +915,8 @@ def _run(
     unit_after=None,
     components=None,
     random_tilt=None,
+    unit_time_before=None,
+    unit_time_after=None,
 ):
     before, before_plane = _check_points(before, before_plane, "before")
     after, after_plane = _check_points(after, after_plane, "after")
@@ -919,6 +926,10 @@ def _run(
     units = [
         _stoch.check_units(unit_before, before_plane.shape[0], "unit_before"),
         _stoch.check_units(unit_after, after_plane.shape[0], "unit_after"),
+    ]
+    times = [
+        check_unit_time(unit_time_before, before_plane.shape[0], "unit_time_before"),
+        check_unit_time(unit_time_after, after_plane.shape[0], "unit_time_after"),
     ]
     b = int(max(before_plane.max(initial=-1), after_plane.max(initial=-1))) + 1
     if centre is None:
@@ -937,28 +948,34 @@ def _run(
         _Epoch(before, before_plane, sigma_before, b, centre, "before"),
         _Epoch(after, after_plane, sigma_after, b, centre, "after"),
     )
-    shares = codes = None
+    shares = codes = drift = None
     if model != "white":
         pairs = [_unit_shares(ep, u, b) for ep, u in zip(epochs, units)]
         shares = [p_[0] for p_ in pairs]
         codes = [p_[1] for p_ in pairs]
+        if model == "full":
+            drift = _unit_drift_options(epochs, units, times, b)
     return _solve(
         epochs, b, centre, shares, dense=dense, model=model, fixed=fixed,
         max_iterations=max_iterations, tolerance=tolerance, alpha=alpha, min_planes=min_planes,
         reject_outlier_planes=reject_outlier_planes, progress=progress,
         labels=(before_plane, after_plane), unit_codes=codes, random_tilt=random_tilt,
+        unit_drift=drift,
     )  # fmt: skip
 
 
 def _solve(
     epochs, b, centre, shares, *, dense, model, fixed, max_iterations, tolerance, alpha,
     min_planes, reject_outlier_planes, progress, labels, unit_codes=None, random_tilt=None,
+    unit_drift=None,
 ):  # fmt: skip
     """The adjustment of two epochs (:class:`_Epoch` or :class:`_MomentEpoch`); ``shares``:
     each epoch's (b, U) acquisition-unit shares or None (stochastic models only);
     ``unit_codes``: each epoch's (U,) unit ids of the shares' columns, or None (unknown:
     the result's :class:`.stochastic.PlaneGain` then has no units to share); ``random_tilt``:
-    estimate a random tilt per plane (None: :data:`.stochastic.RANDOM_TILT`)."""
+    estimate a random tilt per plane (None: :data:`.stochastic.RANDOM_TILT`); ``unit_drift``:
+    ``{interval_s: ((shares_b, shares_a), (codes_b, codes_a))}`` of the units' drift along
+    GpsTime (:func:`_unit_drift_options`), or None."""
     before_plane, after_plane = labels
     if dense and (float(fixed.get("tilt_rad", 0.0)) > 0 or random_tilt):
         raise InvalidParameterError(
@@ -1001,8 +1018,15 @@ def _solve(
     else:
         gc = _both_epochs_centroids(epochs)
         samples, weights = _plane_samples(epochs, gc, b)
-        plane_model = PlaneModel(gc, n0.copy(), shares[0], shares[1], samples, weights)
+        options = None
+        if unit_drift:
+            options = {dt: sh for dt, (sh, _) in unit_drift.items()}
+            options[math.inf] = (shares[0], shares[1])
+        plane_model = PlaneModel(
+            gc, n0.copy(), shares[0], shares[1], samples, weights, unit_options=options
+        )
         cfg = _StochasticConfig(plane_model, b)
+        cfg.unit_drift = unit_drift
         tilt = _stoch.RANDOM_TILT if random_tilt is None else bool(random_tilt)
         out, stoch = _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit,
                                  rejected, reject_outlier_planes, min_planes, opts,
@@ -1014,6 +1038,28 @@ def _solve(
         state, epochs, active, b, centre, it, converged, nred, qxx, s0, redundancy, n_cond,
         rejected, n0, d0, before_plane, after_plane, progress, cov, model, stoch,
     )  # fmt: skip
+
+
+def _unit_drift_options(epochs, units, times, b: int):
+    """``{interval_s: ((shares_b, shares_a), (codes_b, codes_a))}`` of the units' drift along
+    GpsTime (:func:`.unit_drift.hat_unit_shares`) for each knot spacing of
+    :data:`.unit_drift.UNIT_INTERVALS_S`, when an epoch has both units and times; an epoch
+    without them keeps its rigid shares. None when neither has them."""
+    if not any(u is not None and t is not None for u, t in zip(units, times)):
+        return None
+    out = {}
+    for dt in UNIT_INTERVALS_S:
+        sh, cd = [], []
+        for ep, u, t in zip(epochs, units, times):
+            if u is None or t is None:
+                s_, c_ = _unit_shares(ep, u, b)
+            else:
+                uu, tt = (u, t) if ep.all_valid else (u[ep.valid], t[ep.valid])
+                s_, c_ = hat_unit_shares(ep.idx, uu, tt, ep.count, interval_s=dt)
+            sh.append(s_)
+            cd.append(c_)
+        out[dt] = (tuple(sh), tuple(cd))
+    return out
 
 
 def _unit_shares(ep: _Epoch, unit, b: int):
@@ -1039,6 +1085,19 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
     def sub(shares):
         return None if shares is None else shares[idx]
 
+    drift = None
+    if cfg.unit_drift:
+        drift = {
+            dt: (sub(sh[0]), sub(sh[1]), cd[0], cd[1]) for dt, (sh, cd) in cfg.unit_drift.items()
+        }
+        drift[math.inf] = (
+            sub(m.unit_options[math.inf][0]),
+            sub(m.unit_options[math.inf][1]),
+            codes[0],
+            codes[1],
+        )
+        if cfg.unit_interval in cfg.unit_drift:
+            codes = cfg.unit_drift[cfg.unit_interval][1]
     return _stoch.PlaneGain(
         gain=cfg.gain,
         centroids=m.centroids[idx] + np.asarray(centre, dtype=np.float64),
@@ -1053,6 +1112,8 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         range_m=float(cfg.kernel.range_m),
         family=cfg.kernel.family,
         small_sample_factor=float(cfg.small),
+        unit_options=drift,
+        unit_interval_s=float(cfg.unit_interval),
         **cfg.gain_extra,
     )
 
@@ -1220,6 +1281,8 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         )  # fmt: skip
         cfg.theta = {n: v for n, v in est.theta.items() if v > 0}
         cfg.kernel = est.kernel
+        cfg.unit_interval = est.unit_interval_s
+        cfg.model = cfg.model.with_unit_interval(est.unit_interval_s)
         tilt_moved = False
         if tilt_free:
             # the tilts' misclosures against their point noise, with the offsets' model as
@@ -1382,6 +1445,7 @@ def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, not
         small_sample_factor=float(small),
         notes=tuple(all_notes),
         tilt=tilt if tilt is not None else _stoch.TiltEstimate(),
+        unit_interval_s=float(cfg.unit_interval),
     )
     delta_out = np.where(active, delta, np.nan)
     return vc, weights, wstat, delta_out, mis
@@ -1491,6 +1555,8 @@ def adjust_rigid(
     unit_after: Optional[np.ndarray] = None,
     components: Optional[dict] = None,
     random_tilt: Optional[bool] = None,
+    unit_time_before: Optional[np.ndarray] = None,
+    unit_time_after: Optional[np.ndarray] = None,
 ) -> RigidResult:
     """Estimate the rigid motion before -> after from points on matched planes.
 
@@ -1533,6 +1599,10 @@ def adjust_rigid(
     unit_before, unit_after : (N1,), (N2,) int, optional
         Acquisition unit of each point (PointSourceId of ALS strips or MLS passes, trajectory
         segments, TLS setups), for the "full" model.
+    unit_time_before, unit_time_after : (N1,), (N2,) float64, optional
+        Acquisition time of each point (GpsTime, seconds), with the units: each unit's error
+        may then drift along time (:mod:`.unit_drift`; the knot spacing, or none, chosen by
+        restricted likelihood). None: one rigid error per unit.
     components : dict, optional
         Plane-level components to hold fixed instead of estimating them, as standard
         deviations in metres: ``plane``, ``spatial``, ``unit_before``, ``unit_after`` and
@@ -1564,7 +1634,8 @@ def adjust_rigid(
         tolerance=tolerance, reject_outlier_planes=reject_outlier_planes, alpha=alpha,
         min_planes=min_planes, progress=progress, dense=False,
         stochastic_model=stochastic_model, unit_before=unit_before, unit_after=unit_after,
-        components=components, random_tilt=random_tilt,
+        components=components, random_tilt=random_tilt, unit_time_before=unit_time_before,
+        unit_time_after=unit_time_after,
     )  # fmt: skip
 
 
@@ -1588,6 +1659,8 @@ def adjust_rigid_dense(
     unit_after: Optional[np.ndarray] = None,
     components: Optional[dict] = None,
     random_tilt: Optional[bool] = None,
+    unit_time_before: Optional[np.ndarray] = None,
+    unit_time_after: Optional[np.ndarray] = None,
 ) -> RigidResult:
     """Reference solver: :func:`adjust_rigid` with the full Gauss-Helmert matrices.
 
@@ -1602,5 +1675,6 @@ def adjust_rigid_dense(
         tolerance=tolerance, reject_outlier_planes=reject_outlier_planes, alpha=alpha,
         min_planes=min_planes, progress=progress, dense=True,
         stochastic_model=stochastic_model, unit_before=unit_before, unit_after=unit_after,
-        components=components, random_tilt=random_tilt,
+        components=components, random_tilt=random_tilt, unit_time_before=unit_time_before,
+        unit_time_after=unit_time_after,
     )  # fmt: skip

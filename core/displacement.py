@@ -36,6 +36,7 @@ from .stochastic import (
     cross_covariance,
     joint_covariance,
 )
+from .unit_drift import check_unit_time
 
 log = logging.getLogger(__name__)
 
@@ -611,13 +612,16 @@ def _stochastic_kw(stochastic: Optional[dict]) -> dict:
         "unit_before": st.get("unit_before"),
         "unit_after": st.get("unit_after"),
         "random_tilt": st.get("random_tilt"),
+        "unit_time_before": st.get("unit_time_before"),
+        "unit_time_after": st.get("unit_time_after"),
     }
 
 
 def _sub_stochastic(stochastic: Optional[dict], mb, ma, components=None) -> dict:
     """The stochastic options of a subset of points (masks or indices ``mb``, ``ma``)."""
     st = dict(stochastic or {})
-    for name, m in (("unit_before", mb), ("unit_after", ma)):
+    for name, m in (("unit_before", mb), ("unit_after", ma), ("unit_time_before", mb),
+                    ("unit_time_after", ma)):  # fmt: skip
         if st.get(name) is not None:
             st[name] = np.asarray(st[name])[m]
     if components is not None:
@@ -1069,6 +1073,8 @@ def estimate_slip(
     components: Optional[dict] = None,
     transfer_planes: bool = DEFAULT_TRANSFER_PLANES,
     random_tilt: Optional[bool] = None,
+    unit_time_before: Optional[np.ndarray] = None,
+    unit_time_after: Optional[np.ndarray] = None,
 ) -> SlipResult:
     """Relative displacement across ``trace`` between two epochs.
 
@@ -1098,7 +1104,12 @@ def estimate_slip(
         The stochastic model of each side's adjustment (:mod:`.stochastic`; default "full").
     unit_before, unit_after : (N1,), (N2,) int, optional
         Acquisition unit of each point (PointSourceId, trajectory segment, TLS setup), for
-        the "full" model's rigid error per unit.
+        the "full" model's error per unit.
+    unit_time_before, unit_time_after : (N1,), (N2,) float64, optional
+        Acquisition time of each point (GpsTime, seconds), with the units: a unit's error
+        may then drift along time, the knot spacing (or one rigid error) chosen by
+        restricted likelihood (:mod:`.unit_drift`; :func:`.adjustment.adjust_rigid`).
+        Strips and windows hold the side's choice; tiles keep rigid units.
     components : dict, optional
         Plane-level components held fixed instead of estimated (sigmas in metres, see
         :func:`.adjustment.adjust_rigid`), for both sides.
@@ -1109,7 +1120,7 @@ def estimate_slip(
     random_tilt : bool, optional
         Each plane is also tilted by the survey error, with a variance estimated per side
         (:func:`.adjustment.adjust_rigid`); strips, windows and tiles hold the side's value.
-        None: :data:`.stochastic.RANDOM_TILT` (off). Not with the white model.
+        None: :data:`.stochastic.RANDOM_TILT` (on). Not with the white model.
 
     Returns
     -------
@@ -1127,8 +1138,9 @@ def estimate_slip(
     if tile_size_m is not None:
         tile_size_m = _positive("tile_size_m", tile_size_m)
     stochastic = _stochastic_options(
-        before, after, stochastic_model, unit_before, unit_after, components, random_tilt
-    )
+        before, after, stochastic_model, unit_before, unit_after, components, random_tilt,
+        unit_time_before, unit_time_after,
+    )  # fmt: skip
     _, _, masks = _side_points(before, after, trace, buffer_m)
     sigma_before = _packed(sigma_before, "sigma_before")
     sigma_after = _packed(sigma_after, "sigma_after")
@@ -1254,16 +1266,20 @@ def _relative_covariance(left: SideResult, right: SideResult):
 
 
 def _stochastic_options(
-    before, after, model, unit_before, unit_after, components, random_tilt=None
-) -> dict:
+    before, after, model, unit_before, unit_after, components, random_tilt=None,
+    unit_time_before=None, unit_time_after=None,
+) -> dict:  # fmt: skip
     """Validated stochastic-model options of a whole run."""
     check_stochastic_model(model)
+    n_b, n_a = np.asarray(before).shape[0], np.asarray(after).shape[0]
     return {
         "random_tilt": check_random_tilt(random_tilt, model),
         "stochastic_model": model,
         "components": check_components(components),
-        "unit_before": check_units(unit_before, np.asarray(before).shape[0], "unit_before"),
-        "unit_after": check_units(unit_after, np.asarray(after).shape[0], "unit_after"),
+        "unit_before": check_units(unit_before, n_b, "unit_before"),
+        "unit_after": check_units(unit_after, n_a, "unit_after"),
+        "unit_time_before": check_unit_time(unit_time_before, n_b, "unit_time_before"),
+        "unit_time_after": check_unit_time(unit_time_after, n_a, "unit_time_after"),
     }
 
 
@@ -1354,6 +1370,8 @@ def strip_profile(
     stochastic_model: Optional[str] = None,
     unit_before: Optional[np.ndarray] = None,
     unit_after: Optional[np.ndarray] = None,
+    unit_time_before: Optional[np.ndarray] = None,
+    unit_time_after: Optional[np.ndarray] = None,
 ) -> Tuple[StripResult, ...]:
     """Slip profile along the trace from strips of each side (Kusari et al. 2019, Fig. 5).
 
@@ -1375,7 +1393,7 @@ def strip_profile(
     buffer_m, sigma_before, sigma_after, plane_options, match_options
         As :func:`estimate_slip`.
     progress : callable, optional
-    stochastic_model, unit_before, unit_after
+    stochastic_model, unit_before, unit_after, unit_time_before, unit_time_after
         As :func:`estimate_slip` (default: the model of ``slip``). A strip holds its side's
         global plane-level components fixed (a strip has too few planes to estimate them).
         A strip of the LEFT side shares its data with the left side's global estimate that
@@ -1392,8 +1410,9 @@ def strip_profile(
     """
     w = _positive("strip_width_m", strip_width_m)
     stochastic = _stochastic_options(
-        before, after, stochastic_model or _model_of(slip), unit_before, unit_after, None
-    )
+        before, after, stochastic_model or _model_of(slip), unit_before, unit_after, None,
+        None, unit_time_before, unit_time_after,
+    )  # fmt: skip
     gb, ga, masks = _side_points(before, after, trace, buffer_m)
     sigma_before = _packed(sigma_before, "sigma_before")
     sigma_after = _packed(sigma_after, "sigma_after")
@@ -1603,6 +1622,8 @@ def window_field(
     stochastic_model: Optional[str] = None,
     unit_before: Optional[np.ndarray] = None,
     unit_after: Optional[np.ndarray] = None,
+    unit_time_before: Optional[np.ndarray] = None,
+    unit_time_after: Optional[np.ndarray] = None,
 ) -> WindowField:
     """Moving-window displacement maps relative to the left side's global motion.
 
@@ -1629,7 +1650,7 @@ def window_field(
     min_planes : int
         Fewest matched planes for a window to be adjusted (>= 3).
     progress : callable, optional
-    stochastic_model, unit_before, unit_after
+    stochastic_model, unit_before, unit_after, unit_time_before, unit_time_after
         As :func:`strip_profile`: windows hold their side's global components fixed, and a
         left-side window's σ accounts for its correlation with the left global estimate.
 
@@ -1643,8 +1664,9 @@ def window_field(
         raise InvalidParameterError(f"min_planes must be an integer >= 3, got {min_planes!r}")
     min_planes = int(min_planes)
     stochastic = _stochastic_options(
-        before, after, stochastic_model or _model_of(slip), unit_before, unit_after, None
-    )
+        before, after, stochastic_model or _model_of(slip), unit_before, unit_after, None,
+        None, unit_time_before, unit_time_after,
+    )  # fmt: skip
     _, _, masks = _side_points(before, after, trace, buffer_m)
     sigma_before = _packed(sigma_before, "sigma_before")
     sigma_after = _packed(sigma_after, "sigma_after")

@@ -49,7 +49,7 @@ the information on the motion that the plane's tilt gives whatever its offset. E
 
 With ``Σ_δ = 0`` this is the white model's reduced system exactly.
 
-A random tilt per plane (:data:`RANDOM_TILT`, off by default). ``T`` is a sum over planes of
+A random tilt per plane (:data:`RANDOM_TILT`, on by default). ``T`` is a sum over planes of
 rank-2 blocks on the rotation, ``T_j = E_j C_j⁻¹ E_jᵀ`` (``C_j`` the point-noise covariance of
 the plane's tilt on two axes ``E_j`` in the plane; the translation is not in it: with the
 offset free a translation only moves a plane along its normal). A survey-error field tilts
@@ -112,6 +112,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.spatial import cKDTree
 
 from .errors import InputDataError, InvalidParameterError
+from .unit_drift import UNIT_INTERVAL_MARGIN
 
 log = logging.getLogger(__name__)
 
@@ -161,17 +162,20 @@ N_RANGES = 6  # spatial ranges tried by profile REML
 #: vertical right (1.98 -> 0.33 mm) but makes the σ too small on trajectory drift (the
 #: renovated kind pooled RMS(err/σ) 0.81 -> 1.85 in sample; docs/accuracy.md, "Spatial
 #: correlation family and range chosen by the data"); the random tilt per plane
-#: (:data:`RANDOM_TILT`) that was to reconcile both is built but not the default either (it
-#: narrows the σ under trajectory drift the same way; docs/accuracy.md, "A random tilt per
-#: plane")
+#: (:data:`RANDOM_TILT`) reconciles both, with the units' drift along GpsTime
+#: (:mod:`.unit_drift`) for the σ under trajectory drift (docs/accuracy.md)
 REML_TILT_SHARE = 1.0
 _FLOOR = 1e-14  # m², numerical floor of a variance component
 #: a random tilt per plane (:func:`tilt_information`, :func:`estimate_tilt_variance`): the
 #: survey-error field tilts each plane, so its tilt information is not point-noise precise;
 #: when True the adjustment estimates the tilt variance σ_t² (rad²) from the planes' tilt
 #: misclosures and weighs each plane's tilt by ``(C_j + σ_t² I₂)⁻¹`` (docs/accuracy.md,
-#: "A random tilt per plane")
-RANDOM_TILT = False
+#: "A random tilt per plane"). The default since the units' drift along GpsTime
+#: (:mod:`.unit_drift`) keeps the σ honest under trajectory drift: on 30 pairs of each of
+#: issue #30's kinds it is within sampling of ICP's error or better on all seven, and no
+#: pair's σ is 8 times too small any more (docs/accuracy.md, "Acquisition units that drift
+#: along GpsTime")
+RANDOM_TILT = True
 #: whether the plane-level components (REML) and the plane tests use the tilts weighed by
 #: the random tilt (True) or point-noise precise (False: the random tilt in the motion only)
 REML_RANDOM_TILT = True
@@ -216,6 +220,17 @@ def check_components(components: Optional[Mapping[str, float]], *, option: str =
     out = {}
     names = COMPONENT_NAMES + ("spatial_range_m", "spatial_family", "tilt_rad")
     for k, v in dict(components).items():
+        if k == "unit_interval_s":  # a side's drift held by its strips / windows / tiles
+            try:
+                f = float(v)
+            except (TypeError, ValueError):
+                f = float("nan")
+            if not f > 0:
+                raise InvalidParameterError(
+                    f"{option}: unit_interval_s must be > 0 seconds (inf: rigid units); got {v!r}"
+                )
+            out[k] = f
+            continue
         if k not in names:
             raise InvalidParameterError(
                 f"{option}: unknown component {k!r}; use {', '.join(names)}"
@@ -566,6 +581,14 @@ class PlaneGain:
         of support of the spatial term (:class:`PlaneModel`); None: the centroids.
     sample_weights : (k, S) float64, optional
         Their weights (shares of the plane's points; rows sum to 1).
+    unit_options : dict, optional
+        ``{interval_s: (shares_before, shares_after, units_before, units_after)}`` of the
+        units' drift along GpsTime (:mod:`.unit_drift`; ``math.inf``: the rigid unit), for the
+        joint estimate of two sides (:func:`joint_covariance`) to choose the knot spacing on
+        both; None without acquisition times.
+    unit_interval_s : float
+        The knot spacing this side's adjustment chose (inf: rigid; NaN: no times); the
+        shares and units above are its.
     """
 
     gain: np.ndarray
@@ -591,6 +614,8 @@ class PlaneGain:
     samples: Optional[np.ndarray] = None
     sample_weights: Optional[np.ndarray] = None
     family: str = "spherical"
+    unit_options: Optional[Dict[float, tuple]] = None
+    unit_interval_s: float = float("nan")
 
     def support(self):
         """(k, S, 3) samples, (k, S) weights and (k,) radii (see :class:`PlaneModel`)."""
@@ -606,6 +631,23 @@ def _union_shares(a: PlaneGain, b: PlaneGain, epoch: str) -> Optional[np.ndarray
     """(ka + kb, U) shares of both adjustments' planes over the union of their unit ids."""
     ua, ub = getattr(a, "units_" + epoch), getattr(b, "units_" + epoch)
     sa, sb = getattr(a, "shares_" + epoch), getattr(b, "shares_" + epoch)
+    return _union_of(sa, ua, sb, ub)
+
+
+def _union_options(a: PlaneGain, b: PlaneGain):
+    """``{interval_s: (shares_before, shares_after)}`` over both adjustments' planes of each
+    drift both have (:attr:`PlaneGain.unit_options`), or None."""
+    if not a.unit_options or not b.unit_options:
+        return None
+    out = {}
+    for dt in set(a.unit_options) & set(b.unit_options):
+        sa_b, sa_a, ua_b, ua_a = a.unit_options[dt]
+        sb_b, sb_a, ub_b, ub_a = b.unit_options[dt]
+        out[dt] = (_union_of(sa_b, ua_b, sb_b, ub_b), _union_of(sa_a, ua_a, sb_a, ub_a))
+    return out if math.inf in out else None
+
+
+def _union_of(sa, ua, sb, ub) -> Optional[np.ndarray]:
     if ua is None or ub is None or sa is None or sb is None:
         return None
     codes = np.union1d(ua, ub)
@@ -635,6 +677,9 @@ class JointComponents:
     small_sample_factor : float
         ``ν/(ν − 2)`` with ``ν`` the fewer of ``planes − 12`` and the Satterthwaite degrees
         of freedom of the slip's variance, at least 3 (1 when every component was fixed).
+    unit_interval_s : float
+        Knot spacing of the units' drift along GpsTime chosen on both sides' planes together,
+        seconds (inf: rigid units; NaN: no acquisition times).
     """
 
     theta: Dict[str, float]
@@ -643,9 +688,15 @@ class JointComponents:
     n_planes: int
     small_sample_factor: float
     family: str = "spherical"
+    unit_interval_s: float = float("nan")
 
     def to_dict(self) -> Dict[str, object]:
         return {
+            **(
+                {"unit_drift_interval_s": _num(self.unit_interval_s)}
+                if self.unit_interval_s == self.unit_interval_s
+                else {}
+            ),
             "components": {
                 n: {
                     "sigma_m": math.sqrt(max(self.theta.get(n, 0.0), 0.0)),
@@ -708,13 +759,15 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
         ns = max(sa.shape[1], sb.shape[1])
         samples = np.concatenate([_pad(sa, ns, a.centroids), _pad(sb, ns, b.centroids)])
         weights = np.concatenate([_pad(wa, ns), _pad(wb, ns)])
+    options = _union_options(a, b)
     model = PlaneModel(
         np.concatenate([a.centroids, b.centroids]),
         np.concatenate([a.normals, b.normals]),
-        _union_shares(a, b, "before"),
-        _union_shares(a, b, "after"),
+        options[math.inf][0] if options else _union_shares(a, b, "before"),
+        options[math.inf][1] if options else _union_shares(a, b, "after"),
         samples=samples,
         sample_weights=weights,
+        unit_options=options,
     )
     idx = np.arange(k)
     x = np.zeros((k, 12))
@@ -731,6 +784,7 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
         seed=seed, prior_plane_var=max(a.prior_plane_var, b.prior_plane_var), rt=rt,
     )  # fmt: skip
     theta = {n: v for n, v in est.theta.items() if v > 0}
+    model = model.with_unit_interval(est.unit_interval_s)
     v = covariance(model, idx, p, theta, est.kernel, infl)
     kj = np.zeros((12, k))
     kj[:6, :ka], kj[6:, ka:] = a.gain, b.gain
@@ -746,6 +800,7 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
     joint = JointComponents(
         theta=dict(est.theta), source=dict(est.source), range_m=float(est.range_m),
         n_planes=int(k), small_sample_factor=float(small), family=est.kernel.family,
+        unit_interval_s=float(est.unit_interval_s),
     )  # fmt: skip
     return small * 0.5 * (cov + cov.T), joint
 
@@ -947,6 +1002,9 @@ class VarianceComponents:
         Family of the spatial correlation (:class:`SpatialKernel`, chosen by REML).
     tilt : TiltEstimate
         The random tilt per plane (:data:`RANDOM_TILT`; source "off" when not modelled).
+    unit_interval_s : float
+        Knot spacing of the units' drift along GpsTime, seconds (:mod:`.unit_drift`, chosen by
+        REML); ``math.inf``: one rigid error per unit; NaN: no acquisition times.
     """
 
     model: str
@@ -960,6 +1018,12 @@ class VarianceComponents:
     notes: Tuple[str, ...] = ()
     spatial_family: str = "spherical"
     tilt: TiltEstimate = field(default_factory=lambda: TiltEstimate())
+    unit_interval_s: float = float("nan")
+
+    @property
+    def unit_drift(self) -> bool:
+        """Whether the units' error drifts along GpsTime (a finite knot spacing chosen)."""
+        return bool(math.isfinite(self.unit_interval_s))
 
     @property
     def sigma_white_m(self) -> np.ndarray:
@@ -986,6 +1050,8 @@ class VarianceComponents:
                 out["spatial_family"] = self.spatial_family
         if self.tilt.source != "off":
             out["tilt_rad"] = float(self.tilt.sigma_rad)
+        if self.unit_interval_s == self.unit_interval_s:
+            out["unit_interval_s"] = float(self.unit_interval_s)
         return out
 
     def to_dict(self) -> Dict[str, object]:
@@ -1001,6 +1067,11 @@ class VarianceComponents:
             "small_sample_factor": _num(self.small_sample_factor),
             "notes": list(self.notes),
             **({"random_tilt": self.tilt.to_dict()} if self.tilt.source != "off" else {}),
+            **(
+                {"unit_drift_interval_s": _num(self.unit_interval_s)}
+                if self.unit_interval_s == self.unit_interval_s
+                else {}
+            ),
         }
 
 
@@ -1025,6 +1096,27 @@ class PlaneModel:
     shares_after: Optional[np.ndarray] = None
     samples: Optional[np.ndarray] = None
     sample_weights: Optional[np.ndarray] = None
+    #: the unit shares of each drift along GpsTime REML may choose: ``{interval_s:
+    #: (shares_before, shares_after)}`` (:mod:`.unit_drift`; ``math.inf``: the rigid unit,
+    #: whose shares are the ones above); None: the rigid unit only
+    unit_options: Optional[Dict[float, Tuple[Optional[np.ndarray], Optional[np.ndarray]]]] = None
+
+    @property
+    def unit_intervals(self) -> Tuple[float, ...]:
+        """The finite knot spacings of a drift the units may take (seconds), or ()."""
+        return tuple(sorted(k for k in (self.unit_options or {}) if math.isfinite(k)))
+
+    def with_unit_interval(self, interval_s: float) -> PlaneModel:
+        """The model with the unit shares of the drift of knot spacing ``interval_s``
+        (``math.inf``: the rigid unit); the same arrays otherwise (the normals are shared, so
+        the adjustment's updates reach every variant)."""
+        opts = self.unit_options or {}
+        if interval_s not in opts:
+            return self
+        sb, sa = opts[interval_s]
+        from dataclasses import replace
+
+        return replace(self, shares_before=sb, shares_after=sa)
 
     def support(self, idx: np.ndarray):
         """(k, S, 3) samples, (k, S) weights and (k,) radii of the planes ``idx``."""
@@ -1252,6 +1344,9 @@ class Estimate:
     kernel: SpatialKernel = field(default_factory=SpatialKernel)
     #: −2 log L (REML) of the best range of each family tried, for the report
     family_m2ll: Dict[str, float] = field(default_factory=dict)
+    #: knot spacing of the units' drift along GpsTime, seconds (:mod:`.unit_drift`;
+    #: ``math.inf``: the rigid unit; NaN: no acquisition times)
+    unit_interval_s: float = float("nan")
 
 
 def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
@@ -1518,6 +1613,15 @@ def estimate_components(
         theta[n] = v
         source[n] = "fixed"
     free = [n for n in which if n not in fixed_var]
+    # the units' drift along GpsTime (unit_drift): the rigid unit first, a knot spacing
+    # profiled below; a fixed "unit_interval_s" (a strip or window of a side) is held
+    base_model = model
+    interval = math.inf if model.unit_options else float("nan")
+    if "unit_interval_s" in fixed and model.unit_options:
+        interval = float(fixed["unit_interval_s"])
+        model = model.with_unit_interval(interval)
+    elif model.unit_options:
+        model = model.with_unit_interval(math.inf)
     # units: estimable only with at least two units holding planes
     for n in ("unit_before", "unit_after"):
         if n in free and model.n_units(n, ids) < 2:
@@ -1532,6 +1636,13 @@ def estimate_components(
                 "side like the motion and cannot be estimated; give it as a fixed component"
             )
     few = k < MIN_PLANES_VCE
+    drift = ()
+    if (
+        "unit_interval_s" not in fixed
+        and not few
+        and any(n in free for n in ("unit_before", "unit_after"))
+    ):
+        drift = model.unit_intervals
     start_var = max(float(np.mean(es * es) - np.mean(ps)), float(np.median(ps)), _FLOOR)
     # a cold start every time: warm starts from the adjustment's last round settled on worse
     # fixed points in the calibration (a spatial component of 25 mm where this found 4 mm)
@@ -1545,28 +1656,47 @@ def estimate_components(
             free = [n for n in free if n != "spatial"]
             theta["spatial"], source["spatial"] = 0.0, "off"
             notes["spatial"] = "fewer than 3 planes"
-    # each fit keeps its kernel's bases: the chosen one's serve the refit with the tilts and
-    # the test of the components below (a spatial basis is the costly part of a fit)
-    fits: Dict[str, tuple] = {}
-    for kern in kernels:
-        bases = model.bases(ids, kern)
+
+    def fit(mdl, kern):
+        bases = mdl.bases(ids, kern)
         bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
         fx = {n: fixed_var[n] for n in fixed_var if n in bases}
         th, sd, it, conv, m2ll, pc = _reml_fixed_point(
             es, xs, ts, ps, bases, theta0, fx, inf_s, rts
         )
         log.debug("REML %s %.3g m: %s, -2logL %.6g", kern.family, kern.range_m, th, m2ll)
-        if kern.family not in fits or m2ll < fits[kern.family][4]:
-            fits[kern.family] = (th, sd, it, conv, m2ll, kern, pc, bases, fx)
-    best = min(fits.values(), key=lambda f: f[4])
-    sph = fits.get("spherical")
-    if sph is not None and best[4] > sph[4] - FAMILY_MARGIN:
-        best = sph
-    th, sd, it, conv, m2ll_best, kern, pc, bases, fx = best
-    if len(fits) > 1:
+        return (th, sd, it, conv, m2ll, kern, pc, bases, fx)
+
+    def profile(mdl):
+        # each fit keeps its kernel's bases: the chosen one's serve the refit with the tilts
+        # and the test of the components below (a spatial basis is the costly part of a fit)
+        fits: Dict[str, tuple] = {}
+        for kern in kernels:
+            f = fit(mdl, kern)
+            if kern.family not in fits or f[4] < fits[kern.family][4]:
+                fits[kern.family] = f
+        best = min(fits.values(), key=lambda f: f[4])
+        sph = fits.get("spherical")
+        if sph is not None and best[4] > sph[4] - FAMILY_MARGIN:
+            best = sph
         # a spatial component that REML set to zero says nothing of the family
-        if th.get("spatial", 0.0) <= 0 and sph is not None:
-            th, sd, it, conv, m2ll_best, kern, pc, bases, fx = sph
+        if len(fits) > 1 and best[0].get("spatial", 0.0) <= 0 and sph is not None:
+            best = sph
+        return best, fits
+
+    best, fits = profile(model)
+    if drift:
+        # the units' drift along GpsTime (unit_drift): each knot spacing at the kernel just
+        # chosen, the likeliest taken when it beats the rigid unit by UNIT_INTERVAL_MARGIN,
+        # and the kernel profiled again under it
+        trials = [(fit(base_model.with_unit_interval(dt), best[5]), dt) for dt in drift]
+        f_dt, dt = min(trials, key=lambda t: t[0][4])
+        log.debug("REML unit drift: %s", {d: round(f[4], 2) for f, d in trials})
+        if f_dt[4] < best[4] - UNIT_INTERVAL_MARGIN:
+            interval = dt
+            model = base_model.with_unit_interval(dt)
+            best, fits = profile(model)
+    th, sd, it, conv, m2ll_best, kern, pc, bases, fx = best
     if REML_TILT_SHARE < 1.0 and np.any(ts_full) and (len(kernels) > 1 or REML_TILT_SHARE > 0):
         # the kernel is chosen from the offsets; the components' values are then estimated
         # with the tilts' information as the adjustment and its plane tests use it (else the
@@ -1616,7 +1746,23 @@ def estimate_components(
     kern = SpatialKernel(kern.family, float(rng_m))
     pc = {k: v for k, v in pc.items() if source.get(k[0]) == source.get(k[1]) == "estimated"}
     m2ll = {f: float(v[4]) for f, v in fits.items()}
-    return Estimate(theta, sds, source, notes, float(rng_m), int(it), bool(conv), pc, kern, m2ll)
+    if interval == interval and not any(
+        source.get(n) != "off" and theta.get(n, 0.0) > 0 for n in ("unit_before", "unit_after")
+    ):
+        interval = math.inf  # no unit component in force: nothing drifts
+    return Estimate(
+        theta,
+        sds,
+        source,
+        notes,
+        float(rng_m),
+        int(it),
+        bool(conv),
+        pc,
+        kern,
+        m2ll,
+        float(interval),
+    )
 
 
 # --------------------------------------------------------------------------- random tilt

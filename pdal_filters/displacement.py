@@ -176,6 +176,8 @@ def run(ins, outs, *, opts, inputs):
         sigma_after=sigma["after"],
         unit_before=units["before"].units,
         unit_after=units["after"].units,
+        unit_time_before=units["before"].time_s,
+        unit_time_after=units["after"].time_s,
     )
     res = slip.result
     for key, ix in idx.items():

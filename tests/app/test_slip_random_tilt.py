@@ -1,6 +1,7 @@
-"""The random tilt per plane (issue #30) as a user reaches it: ``--random-tilt`` on the
-command line reaches both sides' adjustments and is recorded in the summary; with the white
-model the option is refused, by its command-line name, before any point is read."""
+"""The random tilt per plane (issue #30) as a user reaches it: on by default since the units'
+drift along GpsTime, it reaches both sides' adjustments and is recorded in the summary;
+``--no-random-tilt`` turns it off; the white model, which has no plane level to tilt,
+ignores it."""
 
 import contextlib
 import io
@@ -44,11 +45,25 @@ def test_random_tilt_reaches_the_adjustment_and_the_summary(tmp_path, fault_pair
         assert tilt["source"] == "estimated" and tilt["sigma_rad"] >= 0.0
 
 
-def test_random_tilt_with_the_white_model_is_refused(tmp_path, fault_pair_files):
+def test_no_random_tilt_and_the_white_model(tmp_path, fault_pair_files):
     paths, fault = _files(tmp_path, fault_pair_files)
-    out = tmp_path / "out"
-    rc, console = _main(["displacement", *paths, "--fault", fault, "--out", str(out),
-                         "--stochastic-model", "white", "--random-tilt"])  # fmt: skip
-    assert rc != 0
-    assert "--random-tilt" in console and "--stochastic-model" in console
-    assert not out.exists() or not any(out.iterdir())
+    for name, extra in (("off", ["--no-random-tilt"]), ("white", ["--stochastic-model", "white"])):
+        out = tmp_path / name
+        rc, console = _main(["displacement", *paths, "--fault", fault, "--out", str(out),
+                             *extra])  # fmt: skip
+        assert rc == 0, console
+        payload = json.loads((out / "displacement.json").read_text())
+        assert payload["parameters"]["random_tilt"] is False
+        for side in ("left", "right"):
+            assert "random_tilt" not in (payload[side].get("variance_components") or {})
+
+
+def test_the_default_tilts_the_planes(tmp_path, fault_pair_files):
+    paths, fault = _files(tmp_path, fault_pair_files)
+    out = tmp_path / "default"
+    rc, console = _main(["displacement", *paths, "--fault", fault, "--out", str(out)])
+    assert rc == 0, console
+    payload = json.loads((out / "displacement.json").read_text())
+    assert payload["parameters"]["random_tilt"] is True
+    for side in ("left", "right"):
+        assert "random_tilt" in payload[side]["variance_components"]

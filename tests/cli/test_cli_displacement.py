@@ -1,6 +1,7 @@
 """``slipmap displacement`` and the default demo: outputs equal the core's, clear errors."""
 
 import json
+import math
 
 import numpy as np
 import pyproj
@@ -361,6 +362,13 @@ def _core_on_files(fault, paths, **kw):
     b, a = (read_las(p) for p in paths)
     kb, ka = b.attributes["Classification"] != 2, a.attributes["Classification"] != 2
     trace = read_fault_trace(fault, target_crs=b.crs)
+    if kw.get("unit_before") is not None and kw.pop("times", True):
+        # the job gives the full model the units' GpsTime (the unit_drift option, default on)
+        kw.update(
+            unit_time_before=b.attributes["GpsTime"][kb],
+            unit_time_after=a.attributes["GpsTime"][ka],
+        )
+    kw.pop("times", None)
     res = estimate_slip(b.xyz[kb], a.xyz[ka], trace, sigma_before=0.02, sigma_after=0.02, **kw)
     return res, b.attributes["PointSourceId"][kb], a.attributes["PointSourceId"][ka]
 
@@ -384,7 +392,10 @@ def test_units_auto_reads_point_source_id(drift_files, tmp_path, capsys):
         comp["sigma_fault_parallel_white"], rel=1e-6
     )
     acq = js["parameters"]["acquisition_unit_sources"]
-    assert acq["before"] == {"source": "PointSourceId", "n_units": 3, "note": "auto"}
+    assert acq["before"] == {
+        "source": "PointSourceId", "n_units": 3, "note": "auto", "gps_time": True
+    }  # fmt: skip
+    assert acq["unit_drift"] is True
     assert acq["after"]["n_units"] == int(np.unique(ua).size) == 3
     assert js["parameters"]["acquisition_units"] == {"before": 3, "after": 3}
     for side in ("left", "right"):
@@ -393,6 +404,9 @@ def test_units_auto_reads_point_source_id(drift_files, tmp_path, capsys):
             assert c["source"] in ("estimated", "prior", "fixed", "off"), name
             assert np.isfinite(c["sigma_m"]) and 0.0 <= c["sigma_m"] < 0.05, name
         assert vc["components"]["unit_before"]["source"] != "off"
+        # the knot spacing of the units' drift (null: rigid units), as the core chose it
+        spacing = getattr(core, side).rigid.variance_components.unit_interval_s
+        assert vc["unit_drift_interval_s"] == (spacing if math.isfinite(spacing) else None)
         assert np.isfinite(vc["n_eff"]) and 1.0 <= vc["n_eff"] <= vc["n_planes"]
         assert all(np.isfinite(v) for v in vc["sigma_white_m"])
     assert "before epoch (before.laz): 3 acquisition unit(s) from PointSourceId" in logs
@@ -431,12 +445,34 @@ def test_units_gps_time_segments_nest_in_the_passes(drift_files, tmp_path):
         assert all(np.unique(pss[seg == k]).size == 1 for k in np.unique(seg))
         assert np.unique(seg).size >= np.unique(pss).size
         segs.append(seg)
-    assert acq["before"] == {"source": "GpsTime", "n_units": int(np.unique(segs[0]).size)}
-    assert acq["after"] == {"source": "GpsTime", "n_units": int(np.unique(segs[1]).size)}
+    assert acq["before"] == {
+        "source": "GpsTime", "n_units": int(np.unique(segs[0]).size), "gps_time": True
+    }  # fmt: skip
+    assert acq["after"] == {
+        "source": "GpsTime", "n_units": int(np.unique(segs[1]).size), "gps_time": True
+    }  # fmt: skip
     core, _, _ = _core_on_files(fault, paths, unit_before=segs[0], unit_after=segs[1])
     assert js["relative"]["right_lateral_slip"] == pytest.approx(
         core.components()["right_lateral_slip"], abs=1e-9
     )
+
+
+def test_no_unit_drift_keeps_one_rigid_error_per_unit(drift_files, tmp_path):
+    """--no-unit-drift: the units' GpsTime is not used; the result is the core's with rigid
+    units (no times), the record says so and the report has no knot spacing."""
+    fp, paths, fault = drift_files
+    out = tmp_path / "rigid"
+    assert _run(paths, fault, out, "--no-unit-drift") == 0
+    js = json.loads((out / "displacement.json").read_text())
+    acq = js["parameters"]["acquisition_unit_sources"]
+    assert acq["unit_drift"] is False and acq["before"]["gps_time"] is False
+    _, ub, ua = _core_on_files(fault, paths)
+    core, _, _ = _core_on_files(fault, paths, unit_before=ub, unit_after=ua, times=False)
+    comp = core.components()
+    assert js["relative"]["sigma_right_lateral"] == pytest.approx(
+        comp["sigma_fault_parallel"], rel=1e-6
+    )
+    assert "unit_drift_interval_s" not in js["left"]["variance_components"]
 
 
 def test_units_none_and_white_model(drift_files, tmp_path, capsys):

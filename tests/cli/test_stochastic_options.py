@@ -88,7 +88,7 @@ def test_epoch_units_explicit(caplog):
     u = sm.epoch_units("GpsTime", gps_time=t, gap_s=1.0)
     assert u.source == "GpsTime" and u.n_units == 2
     np.testing.assert_array_equal(u.units, [0, 0, 1, 1])
-    assert u.to_dict() == {"source": "GpsTime", "n_units": 2}
+    assert u.to_dict() == {"source": "GpsTime", "n_units": 2, "gps_time": False}
     with caplog.at_level(logging.WARNING, logger="slipmap"):
         single = sm.epoch_units("PointSourceId", point_source_id=np.ones(4, np.uint16))
     assert single.n_units == 1 and "not estimable" in single.note

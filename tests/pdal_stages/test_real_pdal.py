@@ -370,11 +370,14 @@ def test_displacement_pipeline_command_equals_cli(same_python, demo_pair, tmp_pa
     assert stage["slipmap"] == "displacement"
     kids = stage["children"]
     _assert_cli_slip(kids, demo_pair)
+    # the view's GpsTime reaches the units' drift (the unit_drift option, on by default)
     assert kids["acquisition_units"]["before"] == {
         "source": "PointSourceId",
         "n_units": 5,
         "note": "auto",
+        "gps_time": True,
     }
+    assert kids["acquisition_units"]["unit_drift"] is True
     assert kids["summary"]["relative"]["right_lateral_slip"] == kids["right_lateral_slip"]
     assert kids["headline"].startswith("right-lateral slip ")
     out = _las(tmp_path / "slip.laz")
