@@ -691,9 +691,11 @@ def test_units_auto_and_components_equal_core(provider, drift_epochs, tmp_path):
     kb = np.asarray(cb.attributes["Classification"]) != 2
     ka = np.asarray(ca.attributes["Classification"]) != 2
     ub, ua = cb.attributes["PointSourceId"][kb], ca.attributes["PointSourceId"][ka]
+    # the units' GpsTime reaches the core too (the unit_drift option, on by default)
     ref = estimate_slip(
-        cb.xyz[kb], ca.xyz[ka], fault_trace([fp.trace_xy]), unit_before=ub, unit_after=ua
-    )
+        cb.xyz[kb], ca.xyz[ka], fault_trace([fp.trace_xy]), unit_before=ub, unit_after=ua,
+        unit_time_before=cb.attributes["GpsTime"][kb], unit_time_after=ca.attributes["GpsTime"][ka],
+    )  # fmt: skip
     comp = ref.components()
     assert res["RIGHT_LATERAL_SLIP"] == pytest.approx(comp["right_lateral_slip"], abs=1e-7)
     assert res["SIGMA_RIGHT_LATERAL"] == pytest.approx(comp["sigma_fault_parallel"], rel=1e-6)
