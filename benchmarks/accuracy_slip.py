@@ -209,10 +209,9 @@ LABELS = {
 }
 
 
-def one(
-    case_name: str, seed: int, peer: bool, transfer=None, random_tilt=None, unit_times=True
-) -> dict:
-    """One pair of one case: errors of every method (metres) and their σ."""
+def draw_pair(case_name: str, seed: int):
+    """The synthetic fault pair of one case and seed (``make_fault_pair``; the renovated
+    buildings' move drawn from ``seed + 77``), as every row of the harness draws it."""
     c = CASES[case_name]
     rng = np.random.default_rng(seed + 77)
     extra = {}
@@ -221,13 +220,21 @@ def one(
         mag = rng.uniform(0.35, 0.5)
         extra = dict(blunder_fraction=0.1, blunder_offset_m=(mag * math.sin(az),
                      mag * math.cos(az), 0.0))  # fmt: skip
-    t0 = time.perf_counter()
     with _als_facades(c["als_facades"]):
-        fp = make_fault_pair(
+        return make_fault_pair(
             c["profile"], seed=seed, origin=ORIGIN, right_offset_m=(0.0, -NLOD, 0.0),
             error_before=c["before"], error_after=c["after"], after_profile=c["after_profile"],
             **SCENE, **c["scene"], **extra,
         )  # fmt: skip
+
+
+def one(
+    case_name: str, seed: int, peer: bool, transfer=None, random_tilt=None, unit_times=True
+) -> dict:
+    """One pair of one case: errors of every method (metres) and their σ."""
+    c = CASES[case_name]
+    t0 = time.perf_counter()
+    fp = draw_pair(case_name, seed)
     trace = fault_trace([fp.trace_xy])
     truth = fp.relative_offset_m
     row = {"case": case_name, "seed": seed, "n_before": int(fp.before.n_points),

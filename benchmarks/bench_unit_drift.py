@@ -40,22 +40,6 @@ PAIRS = (
 )
 
 
-def _pair(case: str, seed: int):
-    c = A.CASES[case]
-    extra = {}
-    if c["blunder"]:  # as accuracy_slip.one draws the renovated buildings
-        r = np.random.default_rng(seed + 77)
-        az, mag = r.uniform(0, 2 * math.pi), r.uniform(0.35, 0.5)
-        extra = dict(
-            blunder_fraction=0.1, blunder_offset_m=(mag * math.sin(az), mag * math.cos(az), 0.0)
-        )
-    return A.make_fault_pair(
-        c["profile"], seed=seed, origin=A.ORIGIN, right_offset_m=(0.0, -A.NLOD, 0.0),
-        error_before=c["before"], error_after=c["after"], after_profile=c["after_profile"],
-        **A.SCENE, **c["scene"], **extra,
-    )  # fmt: skip
-
-
 def _spacing(v):
     return None if not math.isfinite(v) else float(v)
 
@@ -66,7 +50,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     rows = []
     for case, seed in PAIRS:
-        fp = _pair(case, seed)
+        fp = A.draw_pair(case, seed)
         trace = fault_trace([fp.trace_xy])
         base = dict(
             sigma_before=fp.before.noise_m, sigma_after=fp.after.noise_m,

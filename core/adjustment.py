@@ -954,7 +954,7 @@ def _run(
         shares = [p_[0] for p_ in pairs]
         codes = [p_[1] for p_ in pairs]
         if model == "full":
-            drift = _unit_drift_options(epochs, units, times, b)
+            drift = _unit_drift_options(epochs, units, times, pairs)
     return _solve(
         epochs, b, centre, shares, dense=dense, model=model, fixed=fixed,
         max_iterations=max_iterations, tolerance=tolerance, alpha=alpha, min_planes=min_planes,
@@ -975,7 +975,7 @@ def _solve(
     the result's :class:`.stochastic.PlaneGain` then has no units to share); ``random_tilt``:
     estimate a random tilt per plane (None: :data:`.stochastic.RANDOM_TILT`); ``unit_drift``:
     ``{interval_s: ((shares_b, shares_a), (codes_b, codes_a))}`` of the units' drift along
-    GpsTime (:func:`_unit_drift_options`), or None."""
+    GpsTime, ``math.inf`` the rigid unit (:func:`_unit_drift_options`), or None."""
     before_plane, after_plane = labels
     if dense and (float(fixed.get("tilt_rad", 0.0)) > 0 or random_tilt):
         raise InvalidParameterError(
@@ -1018,10 +1018,7 @@ def _solve(
     else:
         gc = _both_epochs_centroids(epochs)
         samples, weights = _plane_samples(epochs, gc, b)
-        options = None
-        if unit_drift:
-            options = {dt: sh for dt, (sh, _) in unit_drift.items()}
-            options[math.inf] = (shares[0], shares[1])
+        options = {dt: sh for dt, (sh, _) in unit_drift.items()} if unit_drift else None
         plane_model = PlaneModel(
             gc, n0.copy(), shares[0], shares[1], samples, weights, unit_options=options
         )
@@ -1040,20 +1037,19 @@ def _solve(
     )  # fmt: skip
 
 
-def _unit_drift_options(epochs, units, times, b: int):
+def _unit_drift_options(epochs, units, times, rigid):
     """``{interval_s: ((shares_b, shares_a), (codes_b, codes_a))}`` of the units' drift along
     GpsTime (:func:`.unit_drift.hat_unit_shares`) for each knot spacing of
-    :data:`.unit_drift.UNIT_INTERVALS_S`, when an epoch has both units and times; an epoch
-    without them keeps its rigid shares. None when neither has them."""
+    :data:`.unit_drift.UNIT_INTERVALS_S`, and ``math.inf``: the rigid unit, each epoch's
+    ``rigid`` (shares, codes) of :func:`_unit_shares`, which an epoch without units or times
+    also keeps at every spacing. None when neither epoch has both."""
     if not any(u is not None and t is not None for u, t in zip(units, times)):
         return None
-    out = {}
+    out = {math.inf: tuple(zip(*rigid))}
     for dt in UNIT_INTERVALS_S:
         sh, cd = [], []
-        for ep, u, t in zip(epochs, units, times):
-            if u is None or t is None:
-                s_, c_ = _unit_shares(ep, u, b)
-            else:
+        for ep, u, t, (s_, c_) in zip(epochs, units, times, rigid):
+            if u is not None and t is not None:
                 uu, tt = (u, t) if ep.all_valid else (u[ep.valid], t[ep.valid])
                 s_, c_ = hat_unit_shares(ep.idx, uu, tt, ep.count, interval_s=dt)
             sh.append(s_)
@@ -1064,16 +1060,14 @@ def _unit_drift_options(epochs, units, times, b: int):
 
 def _unit_shares(ep: _Epoch, unit, b: int):
     """(b, U) share of each plane's points of this epoch per acquisition unit and the (U,)
-    unit ids of its columns, or (None, None)."""
+    unit ids of its columns (:func:`.unit_drift.hat_unit_shares` with one knot per unit), or
+    (None, None)."""
     if unit is None:
         return None, None
     u = unit if ep.all_valid else unit[ep.valid]
-    codes, inv = np.unique(u, return_inverse=True)
-    nu = codes.size
-    if nu == 0:
+    if u.size == 0:
         return None, None
-    cnt = np.bincount(ep.idx * nu + inv.ravel(), minlength=b * nu).reshape(b, nu)
-    return cnt / np.maximum(ep.count, 1.0)[:, None], codes
+    return hat_unit_shares(ep.idx, u, None, ep.count, interval_s=math.inf)
 
 
 def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
@@ -1090,13 +1084,7 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         drift = {
             dt: (sub(sh[0]), sub(sh[1]), cd[0], cd[1]) for dt, (sh, cd) in cfg.unit_drift.items()
         }
-        drift[math.inf] = (
-            sub(m.unit_options[math.inf][0]),
-            sub(m.unit_options[math.inf][1]),
-            codes[0],
-            codes[1],
-        )
-        if cfg.unit_interval in cfg.unit_drift:
+        if cfg.unit_interval in cfg.unit_drift:  # NaN until a component estimate is made
             codes = cfg.unit_drift[cfg.unit_interval][1]
     return _stoch.PlaneGain(
         gain=cfg.gain,

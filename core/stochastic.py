@@ -104,7 +104,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
@@ -1021,11 +1021,6 @@ class VarianceComponents:
     unit_interval_s: float = float("nan")
 
     @property
-    def unit_drift(self) -> bool:
-        """Whether the units' error drifts along GpsTime (a finite knot spacing chosen)."""
-        return bool(math.isfinite(self.unit_interval_s))
-
-    @property
     def sigma_white_m(self) -> np.ndarray:
         """(3,) 1σ of the translation under the white model, metres."""
         return np.sqrt(np.clip(np.diag(self.covariance_white), 0.0, None))
@@ -1114,8 +1109,6 @@ class PlaneModel:
         if interval_s not in opts:
             return self
         sb, sa = opts[interval_s]
-        from dataclasses import replace
-
         return replace(self, shares_before=sb, shares_after=sa)
 
     def support(self, idx: np.ndarray):

@@ -105,8 +105,8 @@ def hat_unit_shares(
         Plane index of each point, 0 .. b-1 (``b = len(count)``).
     unit : (N,) int64
         Acquisition unit of each point.
-    time_s : (N,) float64
-        Its acquisition time, seconds (GpsTime).
+    time_s : (N,) float64 or None
+        Its acquisition time, seconds (GpsTime); not read for ``math.inf``.
     count : (b,) float64
         Points per plane (the denominator of the shares; at least the points given).
     interval_s : float

@@ -153,14 +153,7 @@ def test_renovated_mls_pair_no_longer_claims_eight_sigma():
     from slipmap.core.displacement import estimate_slip
     from slipmap.core.fault import fault_trace
 
-    c = A.CASES["mls-3mm-renovated"]
-    r = np.random.default_rng(2004 + 77)
-    az, mag = r.uniform(0, 2 * math.pi), r.uniform(0.35, 0.5)
-    fp = A.make_fault_pair(
-        c["profile"], seed=2004, origin=A.ORIGIN, right_offset_m=(0.0, -A.NLOD, 0.0),
-        error_before=c["before"], error_after=c["after"], **A.SCENE, **c["scene"],
-        blunder_fraction=0.1, blunder_offset_m=(mag * math.sin(az), mag * math.cos(az), 0.0),
-    )  # fmt: skip
+    fp = A.draw_pair("mls-3mm-renovated", 2004)
     res = estimate_slip(
         fp.before.points, fp.after.points, fault_trace([fp.trace_xy]),
         sigma_before=fp.before.noise_m, sigma_after=fp.after.noise_m, random_tilt=True,
