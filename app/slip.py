@@ -453,6 +453,7 @@ def compute(
         unit_time_before=unit_time_before,
         unit_time_after=unit_time_after,
     )
+    tied = bool(opts.get("unit_contrasts", True))  # the slip's adjustments only
     want_strips = opts.get("strip_width_m") is not None
     want_windows = windows and opts.get("window_size_m") is not None
     tile = opts.get("tile_size_m")
@@ -476,6 +477,7 @@ def compute(
         progress=next(parts),
         transfer_planes=bool(opts.get("transfer_planes")),
         random_tilt=random_tilt_of(opts),
+        unit_contrasts=tied,
         **common,
     )
     tile_planes = None
@@ -1119,6 +1121,11 @@ def _compute_tiled(opts, trace, progress):
     how = (opts.get("units") or "auto") if opts["stochastic_model"] == "full" else "none"
     if how != "none" and opts.get("unit_drift", True):
         log.info("tiled inputs: one rigid error per acquisition unit (no drift along GpsTime)")
+    if how != "none" and opts.get("unit_contrasts", True):
+        log.info(
+            "tiled inputs: the acquisition units are not tied by their planes' within-epoch "
+            "contrasts (plane moments carry no unit per point)"
+        )
     t0 = time.perf_counter()
     crs, fault, result = slip_for_job(
         opts,
@@ -1143,6 +1150,7 @@ def _compute_tiled(opts, trace, progress):
         },
         "tiled": True,
         "unit_drift": False,
+        "unit_contrasts": False,
     }
     return crs, fault, SlipRun(result), settings, record, runtime
 

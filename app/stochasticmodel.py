@@ -337,6 +337,20 @@ def stochastic_options(*, group: str = GROUP) -> tuple:
             advanced=True,
         ),
         Option(
+            "unit_contrasts",
+            "bool",
+            "planes seen by two acquisition units in one epoch (where two ALS strips overlap, a "
+            "wall seen from two streets) tie those units: their offset there identifies the unit "
+            "components, and each side's motion takes the units' errors it predicts off, over "
+            "every plane found on both sides (a strip adjustment inside the slip's; "
+            'docs/accuracy.md, "Units tied on the planes they share"); full model with units; '
+            "tiled inputs have none",
+            label="Tie units on the planes they share",
+            default=True,
+            group=group,
+            advanced=True,
+        ),
+        Option(
             "random_tilt",
             "bool",
             "each plane is also tilted by the survey error (a random tilt per plane, its "
@@ -450,6 +464,7 @@ def units_for_job(opts: Mapping[str, Any], epochs: Mapping[str, Any]) -> tuple:
     if how == "GpsTime":
         record["gps_gap_s"] = opts.get("gps_gap_s", DEFAULT_GPS_GAP_S)
     record["unit_drift"] = bool(opts.get("unit_drift", True))
+    record["unit_contrasts"] = bool(opts.get("unit_contrasts", True))
     for epoch, (label, psid, gps) in epochs.items():
         try:
             u = epoch_units(

@@ -211,6 +211,12 @@ def side_component_line(side: str, side_dict: Dict[str, Any]) -> Optional[str]:
         component_text(name, c, vc.get("spatial_range_m"), drift)
         for name, c in (vc.get("components") or {}).items()
     ]
+    tied = vc.get("unit_contrasts")
+    if tied:
+        head += (
+            f", units tied on {tied.get('before', 0)} / {tied.get('after', 0)} shared planes "
+            "(before / after)"
+        )
     return head + "; " + "; ".join(comps)
 
 
@@ -304,6 +310,11 @@ def stochastic_tables(payload: Dict[str, Any]) -> Dict[str, Any]:
                 head[f"{side}: unit drift knots (s; empty: rigid units)"] = vc[
                     "unit_drift_interval_s"
                 ]
+            if vc.get("unit_contrasts"):
+                tied = vc["unit_contrasts"]
+                head[f"{side}: unit contrasts (before / after)"] = (
+                    f"{tied.get('before', 0)} / {tied.get('after', 0)}"
+                )
             if vc.get("notes"):
                 head[f"{side}: notes"] = "; ".join(vc["notes"])
             for name, c in (vc.get("components") or {}).items():

@@ -23,6 +23,11 @@ Usage::
     python benchmarks/accuracy_slip.py --cases issue30 --seeds 18 --first-seed 2000 \
         --no-peer --jobs 2 --unit-times off
 
+    # units tied on the planes two of them see in one epoch (on by default) against untied
+    # units (docs/accuracy.md, "Units tied on the planes they share")
+    python benchmarks/accuracy_slip.py --cases issue30 --seeds 30 --first-seed 2000 \
+        --no-peer --jobs 2 --unit-contrasts off
+
 Each case draws ``--seeds`` synthetic fault pairs (18.1 mm of dextral slip, a town of 12
 buildings on 150 m, independent samplings of both epochs) with a correlated survey error of
 a kind and level (``core.synthetic.SurveyError``: MLS trajectory drift along the drive path,
@@ -229,7 +234,13 @@ def draw_pair(case_name: str, seed: int):
 
 
 def one(
-    case_name: str, seed: int, peer: bool, transfer=None, random_tilt=None, unit_times=True
+    case_name: str,
+    seed: int,
+    peer: bool,
+    transfer=None,
+    random_tilt=None,
+    unit_times=True,
+    unit_contrasts=True,
 ) -> dict:
     """One pair of one case: errors of every method (metres) and their σ."""
     c = CASES[case_name]
@@ -248,6 +259,8 @@ def one(
         )
         if unit_times:  # the GpsTime a user's files carry: the units may drift along it
             units.update(unit_time_before=fp.gps_time_before, unit_time_after=fp.gps_time_after)
+    if units:  # the units tied on the planes two of them see in one epoch, or not
+        units["unit_contrasts"] = bool(unit_contrasts)
     models = [("white", "white", {}), ("plane", "plane", {}), ("full", "full", units)]
     if c["prior"] is not None:
         fixed = {k: v for k, v in zip(("unit_before", "unit_after"), c["prior"]) if v}
@@ -487,6 +500,14 @@ def main(argv=None):
         "may drift along time (estimate_slip(unit_time_*), core.unit_drift; default on, as "
         "the slip job does with files that carry GpsTime); off: one rigid error per unit",
     )
+    ap.add_argument(
+        "--unit-contrasts",
+        choices=("on", "off"),
+        default="on",
+        help="tie the full model's units on the planes two of them see in one epoch "
+        "(estimate_slip(unit_contrasts=...), core.unit_contrasts; default on, as the slip "
+        "job); off: the units untied, as before stop 43",
+    )
     args = ap.parse_args(argv)
     cases = [k for c in args.cases.split(",") if c for k in PRESETS.get(c, (c,))]
     for c in cases:
@@ -506,6 +527,7 @@ def main(argv=None):
             {"on": True, "off": False}.get(args.transfer),
             {"on": True, "off": False}.get(args.random_tilt),
             args.unit_times == "on",
+            args.unit_contrasts == "on",
         )
         for c in cases
         for s in range(args.first_seed, args.first_seed + args.seeds)

@@ -61,6 +61,7 @@ from .progress import ProgressCallback, report
 from .rotation import rotation_matrix, rotation_vector
 from .rotation import skew as _skew
 from .stochastic import PlaneModel, VarianceComponents
+from .unit_contrasts import epoch_rows, screen_contrasts, unit_contrasts, with_contrast_units
 from .unit_drift import UNIT_INTERVALS_S, check_unit_time, hat_unit_shares
 
 log = logging.getLogger(__name__)
@@ -615,6 +616,32 @@ class _StochasticConfig:
         #: force (inf: the rigid unit; NaN: no times)
         self.unit_drift: Optional[dict] = None
         self.unit_interval = float("nan")
+        #: condition the units on the planes' within-epoch contrasts (unit_contrasts)
+        self.use_contrasts = True
+        self._cond_key = None
+        self._cond = None
+
+    def condition(self, active: np.ndarray) -> Optional[_stoch.ContrastCondition]:
+        """The units given the contrast rows of the active planes under the components in
+        force (:func:`.stochastic.condition_on_contrasts`), or None; cached."""
+        if not self.use_contrasts or self.model.contrasts is None:
+            return None
+        idx = np.flatnonzero(active)
+        key = (
+            idx.tobytes(),
+            tuple(sorted(self.theta.items())),
+            self.unit_interval,
+            id(self.model.shares_before),
+        )
+        if key != self._cond_key:
+            self._cond_key = key
+            self._cond = _stoch.condition_on_contrasts(self.model, idx, self.theta)
+        return self._cond
+
+    def shift(self, active: np.ndarray) -> np.ndarray:
+        """(k,) the misclosures' part the contrasts predict (0 without a condition)."""
+        c = self.condition(active)
+        return 0.0 if c is None else c.shift
 
     def v_matrix(self, active: np.ndarray, p: np.ndarray) -> np.ndarray:
         idx = np.flatnonzero(active)
@@ -629,8 +656,9 @@ class _StochasticConfig:
         idx = np.flatnonzero(active)
         infl = self.inflation[idx] if inflated else None
         return _stoch.CovarianceOperator(
-            self.model, idx, self.s0sq * p, self.theta, self.kernel, infl
-        )
+            self.model, idx, self.s0sq * p, self.theta, self.kernel, infl,
+            condition=self.condition(active),
+        )  # fmt: skip
 
 
 def _step_block(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
@@ -647,15 +675,16 @@ def _step_block(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
         vop = cfg.v_operator(active, pl.p)
         vih = vop.solve(pl.h)
         t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
+        shift = cfg.shift(active)  # the units' errors the contrasts predict
         nred = t_s + pl.h.T @ vih
-        rred = rt_s + vih.T @ pl.y
+        rred = rt_s + vih.T @ (pl.y - shift)
     nred = 0.5 * (nred + nred.T)
     _check_singular(nred)
     qxx = np.linalg.inv(nred)
     d1 = qxx @ rred
     if cfg is not None:
-        e = pl.y - pl.h @ d1
-        delta = e - cfg.s0sq * pl.p * vop.solve(e)  # Σ_δ V⁻¹ e
+        e = pl.y - pl.h @ d1 - shift
+        delta = shift + e - cfg.s0sq * pl.p * vop.solve(e)  # Σ_δ V⁻¹ e
     d2 = x[:, :4, 7] - np.einsum("kij,j->ki", x[:, :4, :6], d1) - x[:, :4, 6] * delta[:, None]
     state.delta = np.zeros(b)
     state.delta[active] = delta
@@ -917,6 +946,7 @@ def _run(
     random_tilt=None,
     unit_time_before=None,
     unit_time_after=None,
+    unit_contrasts=None,
 ):
     before, before_plane = _check_points(before, before_plane, "before")
     after, after_plane = _check_points(after, after_plane, "after")
@@ -948,26 +978,35 @@ def _run(
         _Epoch(before, before_plane, sigma_before, b, centre, "before"),
         _Epoch(after, after_plane, sigma_after, b, centre, "after"),
     )
-    shares = codes = drift = None
+    shares = codes = drift = contrasts = None
     if model != "white":
         pairs = [_unit_shares(ep, u, b) for ep, u in zip(epochs, units)]
-        shares = [p_[0] for p_ in pairs]
-        codes = [p_[1] for p_ in pairs]
         if model == "full":
             drift = _unit_drift_options(epochs, units, times, pairs)
+            if unit_contrasts is None and not dense:
+                unit_contrasts = _own_contrasts(epochs, units, times, b)
+            if unit_contrasts and any(c is not None and c.size for c in unit_contrasts):
+                # the units the contrasts see widen the shares' columns (zero on the planes)
+                pairs, drift = with_contrast_units(unit_contrasts, pairs, drift)
+                contrasts = epoch_rows(
+                    unit_contrasts, tuple(p_[1] for p_ in pairs),
+                    {dt: (sh, cd) for dt, (sh, cd) in drift.items()} if drift else None,
+                )  # fmt: skip
+        shares = [p_[0] for p_ in pairs]
+        codes = [p_[1] for p_ in pairs]
     return _solve(
         epochs, b, centre, shares, dense=dense, model=model, fixed=fixed,
         max_iterations=max_iterations, tolerance=tolerance, alpha=alpha, min_planes=min_planes,
         reject_outlier_planes=reject_outlier_planes, progress=progress,
         labels=(before_plane, after_plane), unit_codes=codes, random_tilt=random_tilt,
-        unit_drift=drift,
+        unit_drift=drift, contrasts=contrasts,
     )  # fmt: skip
 
 
 def _solve(
     epochs, b, centre, shares, *, dense, model, fixed, max_iterations, tolerance, alpha,
     min_planes, reject_outlier_planes, progress, labels, unit_codes=None, random_tilt=None,
-    unit_drift=None,
+    unit_drift=None, contrasts=None,
 ):  # fmt: skip
     """The adjustment of two epochs (:class:`_Epoch` or :class:`_MomentEpoch`); ``shares``:
     each epoch's (b, U) acquisition-unit shares or None (stochastic models only);
@@ -975,7 +1014,8 @@ def _solve(
     the result's :class:`.stochastic.PlaneGain` then has no units to share); ``random_tilt``:
     estimate a random tilt per plane (None: :data:`.stochastic.RANDOM_TILT`); ``unit_drift``:
     ``{interval_s: ((shares_b, shares_a), (codes_b, codes_a))}`` of the units' drift along
-    GpsTime, ``math.inf`` the rigid unit (:func:`_unit_drift_options`), or None."""
+    GpsTime, ``math.inf`` the rigid unit (:func:`_unit_drift_options`), or None;
+    ``contrasts``: the planes' within-epoch unit contrasts (:func:`_contrast_rows`) or None."""
     before_plane, after_plane = labels
     if dense and (float(fixed.get("tilt_rad", 0.0)) > 0 or random_tilt):
         raise InvalidParameterError(
@@ -1020,8 +1060,9 @@ def _solve(
         samples, weights = _plane_samples(epochs, gc, b)
         options = {dt: sh for dt, (sh, _) in unit_drift.items()} if unit_drift else None
         plane_model = PlaneModel(
-            gc, n0.copy(), shares[0], shares[1], samples, weights, unit_options=options
-        )
+            gc, n0.copy(), shares[0], shares[1], samples, weights, unit_options=options,
+            contrasts=contrasts,
+        )  # fmt: skip
         cfg = _StochasticConfig(plane_model, b)
         cfg.unit_drift = unit_drift
         tilt = _stoch.RANDOM_TILT if random_tilt is None else bool(random_tilt)
@@ -1056,6 +1097,20 @@ def _unit_drift_options(epochs, units, times, rigid):
             cd.append(c_)
         out[dt] = (tuple(sh), tuple(cd))
     return out
+
+
+def _own_contrasts(epochs, units, times, b):
+    """Each epoch's within-epoch unit contrasts of the adjustment's own planes
+    (:func:`.unit_contrasts.unit_contrasts`), or None."""
+    out = []
+    for ep, u, t in zip(epochs, units, times):
+        if u is None or not ep.idx.size:
+            out.append(None)
+            continue
+        u = u if ep.all_valid else u[ep.valid]
+        t = None if t is None else (t if ep.all_valid else t[ep.valid])
+        out.append(screen_contrasts(unit_contrasts(ep.idx, ep.u, u, b, time_s=t)))
+    return tuple(out)
 
 
 def _unit_shares(ep: _Epoch, unit, b: int):
@@ -1102,8 +1157,18 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         small_sample_factor=float(cfg.small),
         unit_options=drift,
         unit_interval_s=float(cfg.unit_interval),
+        contrasts=_gain_contrasts(m.contrasts, cfg.unit_interval),
+        contrast_gain=getattr(cfg, "contrast_gain", None),
         **cfg.gain_extra,
     )
+
+
+def _gain_contrasts(rows, interval_s):
+    """The contrast rows with the drift's shares in force (each drift's options in
+    :attr:`.stochastic.PlaneGain.unit_options`' columns)."""
+    if rows is None:
+        return None
+    return rows.with_interval(interval_s) if interval_s == interval_s else rows
 
 
 def _white(state, epochs, active, b, step, z_crit, rejected, reject, min_planes, opts):
@@ -1278,8 +1343,9 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             vop = cfg.v_operator(active, pl.p)
             vih = vop.solve(xd)
             tilt_est = _stoch.estimate_tilt_variance(
-                pl.tr / cfg.s0sq, pl.rtr / cfg.s0sq, xd.T @ vih, vih.T @ e, start=cfg.tilt_var
-            )
+                pl.tr / cfg.s0sq, pl.rtr / cfg.s0sq, xd.T @ vih, vih.T @ (e - cfg.shift(active)),
+                start=cfg.tilt_var,
+            )  # fmt: skip
             old_tv, cfg.tilt_var = cfg.tilt_var, tilt_est.var
             tilt_moved = abs(cfg.tilt_var - old_tv) > 0.02 * max(cfg.tilt_var, old_tv)
             keep = np.ones(idx.size, dtype=bool) if tilt_est.keep is None else tilt_est.keep
@@ -1292,10 +1358,11 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         if reject and idx.size > min_planes:
             # the test is against the model, not the last weights
             vop = cfg.v_operator(active, pl.p, inflated=False)
+            e_c = e - cfg.shift(active)
             if vop.sparse:
-                w = _stoch.w_statistics_large(vop, e, xd, t_s, rt_s)
+                w = _stoch.w_statistics_large(vop, e_c, xd, t_s, rt_s)
             else:
-                w = _stoch.w_statistics(_stoch.PlaneGLS(vop.v, xd, t_s, rt_s), e)
+                w = _stoch.w_statistics(_stoch.PlaneGLS(vop.v, xd, t_s, rt_s), e_c)
             dv = vop.diag()
             wstat[:] = np.nan
             wstat[idx] = w
@@ -1355,6 +1422,9 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     q_fin = np.linalg.inv(0.5 * (n_fin + n_fin.T))
     cfg.gain = q_fin @ vih.T
     cfg.gain_idx = idx
+    cond = cfg.condition(active)
+    # the motion's gain on the contrast rows: x̂ takes Q Hᵀ V⁻¹ (y − Z g c)
+    cfg.contrast_gain = None if cond is None else -cfg.gain @ cond.z @ cond.g
     cfg.gain_extra = dict(
         model=model, fixed=dict(fixed), e=pl.y.copy(), p=cfg.s0sq * pl.p, h=pl.h.copy(),
         inflation=cfg.inflation[idx].copy(), t=t_fin, rt=rt_fin,
@@ -1434,6 +1504,16 @@ def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, not
         notes=tuple(all_notes),
         tilt=tilt if tilt is not None else _stoch.TiltEstimate(),
         unit_interval_s=float(cfg.unit_interval),
+        n_contrasts=(
+            (0, 0)
+            if cfg.model.contrasts is None or cfg.condition(active) is None
+            else cfg.model.contrasts.counts
+        ),
+        contrast_misfit_m=(
+            math.sqrt(max(est.theta[_stoch.CONTRAST_NUGGET], 0.0))
+            if est is not None and _stoch.CONTRAST_NUGGET in est.theta
+            else float("nan")
+        ),
     )
     delta_out = np.where(active, delta, np.nan)
     return vc, weights, wstat, delta_out, mis
@@ -1545,6 +1625,7 @@ def adjust_rigid(
     random_tilt: Optional[bool] = None,
     unit_time_before: Optional[np.ndarray] = None,
     unit_time_after: Optional[np.ndarray] = None,
+    unit_contrasts: Optional[tuple] = None,
 ) -> RigidResult:
     """Estimate the rigid motion before -> after from points on matched planes.
 
@@ -1603,6 +1684,13 @@ def adjust_rigid(
         (:func:`.stochastic.estimate_tilt_variance`), so the tilts inform the rotation only as
         far as the survey lets them (docs/accuracy.md, "A random tilt per plane"). None: the
         default, :data:`.stochastic.RANDOM_TILT`. Not with :func:`adjust_rigid_dense`.
+    unit_contrasts : (2,) tuple of UnitContrasts or None, optional
+        The "full" model with units: each epoch's within-epoch unit contrasts
+        (:mod:`.unit_contrasts`; the two units' offset on a plane both see), which identify
+        the unit components and take the units' errors they predict off the misclosures
+        (a strip adjustment inside this one). None (default): those of this adjustment's own
+        planes; give a survey's (both sides of a fault, every plane found) to tie the units
+        across it; ``(None, None)``: none.
 
     Returns
     -------
@@ -1623,7 +1711,7 @@ def adjust_rigid(
         min_planes=min_planes, progress=progress, dense=False,
         stochastic_model=stochastic_model, unit_before=unit_before, unit_after=unit_after,
         components=components, random_tilt=random_tilt, unit_time_before=unit_time_before,
-        unit_time_after=unit_time_after,
+        unit_time_after=unit_time_after, unit_contrasts=unit_contrasts,
     )  # fmt: skip
 
 

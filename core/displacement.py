@@ -147,6 +147,10 @@ _FRAME_KEYS = (
 #: their plane: leaves at edges and corners hold points of the adjoining surface, whose
 #: one-sided offsets would bias the plane (a 3-sigma band holds 99.7 % of Gaussian noise)
 CLEAN_LEAF_RATIO = 0.97
+#: the "full" model with units: planes seen by two units in one epoch tie the units
+#: (:mod:`.unit_contrasts`): on by default (docs/accuracy.md, "Units tied on the planes they
+#: share")
+DEFAULT_UNIT_CONTRASTS = True
 
 #: unmatched planes of each epoch are observed by the other epoch's points (:mod:`.transfer`);
 #: on: a sparse airborne epoch beside a mobile one gains the walls it cannot segment (10 pairs:
@@ -483,6 +487,7 @@ def register_side(
     progress: Optional[ProgressCallback] = None,
     stochastic: Optional[dict] = None,
     transfer_planes: bool = DEFAULT_TRANSFER_PLANES,
+    planes: Optional[Tuple[PlaneSet, PlaneSet]] = None,
 ) -> SideResult:
     """Planes, matches and the rigid adjustment for the points of one side.
 
@@ -498,10 +503,14 @@ def register_side(
     transfer_planes : bool
         Also adjust the unmatched planes of each epoch observed by the other epoch's points
         (:mod:`.transfer`; :func:`_with_transferred`).
+    planes : (PlaneSet, PlaneSet), optional
+        The side's planes of each epoch when already segmented (:func:`_segment_side`).
     """
-    opts = dict(plane_options or {})
-    pb = _segment_epoch(before, side, "before", progress=scaled(progress, 0.0, 0.35), **opts)
-    pa = _segment_epoch(after, side, "after", progress=scaled(progress, 0.35, 0.7), **opts)
+    pb, pa = (
+        planes
+        if planes is not None
+        else _segment_side(before, after, side=side, plane_options=plane_options, progress=progress)
+    )
     m = match_planes(pb, pa, quiet=True, **(match_options or {}))
     log.info("%s", side_summary(side, pb, pa, len(m)))
     if len(m) < 3:
@@ -531,6 +540,50 @@ def register_side(
         matches=m,
         plane_mean_residual_m=mean_res,
     )
+
+
+def _segment_side(before, after, *, side, plane_options=None, progress=None):
+    """The planes (PlaneSet, PlaneSet) of one side's two epochs."""
+    opts = dict(plane_options or {})
+    pb = _segment_epoch(before, side, "before", progress=scaled(progress, 0.0, 0.35), **opts)
+    pa = _segment_epoch(after, side, "after", progress=scaled(progress, 0.35, 0.7), **opts)
+    return pb, pa
+
+
+def _survey_contrasts(sides, stochastic):
+    """Each epoch's within-epoch unit contrasts over every plane found on both sides
+    (:func:`.unit_contrasts.unit_contrasts` on the clean planar points of each side,
+    joined): what ties the acquisition units across the fault (an ALS strip's overlaps with
+    its neighbours, a pass seen on a wall from two streets). ``sides``: per side the points
+    (before, after), their index into the epochs and their planes (pb, pa). None without
+    the "full" model and units."""
+    from .unit_contrasts import concat_contrasts, screen_contrasts, unit_contrasts
+
+    st = stochastic or {}
+    if st.get("stochastic_model") != "full":
+        return None
+    out = []
+    for e, name in enumerate(("before", "after")):
+        unit, time = st.get(f"unit_{name}"), st.get(f"unit_time_{name}")
+        if unit is None:
+            out.append(None)
+            continue
+        parts = []
+        for pts, index, planes in sides:
+            ps = planes[e]
+            keep = (ps.labels >= 0) & (np.asarray(ps.planarity) >= CLEAN_LEAF_RATIO)
+            rows = index[e][keep]
+            parts.append(
+                unit_contrasts(
+                    ps.labels[keep].astype(np.int64),
+                    pts[e][keep],
+                    np.asarray(unit)[rows].astype(np.int64),
+                    int(ps.normals.shape[0]),
+                    time_s=None if time is None else np.asarray(time)[rows],
+                )  # fmt: skip
+            )
+        out.append(screen_contrasts(concat_contrasts(parts)))
+    return tuple(out) if any(c is not None for c in out) else None
 
 
 class _Rows:
@@ -614,6 +667,7 @@ def _stochastic_kw(stochastic: Optional[dict]) -> dict:
         "random_tilt": st.get("random_tilt"),
         "unit_time_before": st.get("unit_time_before"),
         "unit_time_after": st.get("unit_time_after"),
+        "unit_contrasts": st.get("unit_contrasts"),
     }
 
 
@@ -1075,6 +1129,7 @@ def estimate_slip(
     random_tilt: Optional[bool] = None,
     unit_time_before: Optional[np.ndarray] = None,
     unit_time_after: Optional[np.ndarray] = None,
+    unit_contrasts: bool = DEFAULT_UNIT_CONTRASTS,
 ) -> SlipResult:
     """Relative displacement across ``trace`` between two epochs.
 
@@ -1110,6 +1165,13 @@ def estimate_slip(
         may then drift along time, the knot spacing (or one rigid error) chosen by
         restricted likelihood (:mod:`.unit_drift`; :func:`.adjustment.adjust_rigid`).
         Strips and windows hold the side's choice; tiles keep rigid units.
+    unit_contrasts : bool
+        With units ("full" model): each plane seen by two units in one epoch ties them
+        (:mod:`.unit_contrasts`, a strip adjustment inside the slip's): the unit components
+        are identified from those within-epoch offsets, and each side's motion takes the
+        units' errors they predict off its misclosures, over every plane found on both
+        sides (default :data:`DEFAULT_UNIT_CONTRASTS`). Strips and windows hold the side's
+        components without them (:func:`strip_profile`, :func:`window_field`); tiles none.
     components : dict, optional
         Plane-level components held fixed instead of estimated (sigmas in metres, see
         :func:`.adjustment.adjust_rigid`), for both sides.
@@ -1139,7 +1201,7 @@ def estimate_slip(
         tile_size_m = _positive("tile_size_m", tile_size_m)
     stochastic = _stochastic_options(
         before, after, stochastic_model, unit_before, unit_after, components, random_tilt,
-        unit_time_before, unit_time_after,
+        unit_time_before, unit_time_after, bool(unit_contrasts),
     )  # fmt: skip
     _, _, masks = _side_points(before, after, trace, buffer_m)
     sigma_before = _packed(sigma_before, "sigma_before")
@@ -1147,6 +1209,32 @@ def estimate_slip(
 
     results = {}
     tiles: List[TileResult] = []
+    planes = {}
+    if (
+        tile_size_m is None
+        and unit_contrasts
+        and stochastic.get("stochastic_model") == "full"
+        and any(stochastic.get(f"unit_{e}") is not None for e in ("before", "after"))
+    ):
+        # every plane of both sides first: their unit contrasts tie the units across the
+        # fault in each side's adjustment (a strip adjustment inside the slip's)
+        for k, side in enumerate(SIDES):
+            mb, ma = masks[side]
+            planes[side] = _segment_side(
+                before[mb], after[ma], side=side, plane_options=plane_options,
+                progress=scaled(scaled(progress, 0.5 * k, 0.5 * (k + 1)), 0.0, 1.0),
+            )  # fmt: skip
+        contrasts = _survey_contrasts(
+            [((before[masks[s][0]], after[masks[s][1]]),
+              (np.flatnonzero(masks[s][0]), np.flatnonzero(masks[s][1])), planes[s])
+             for s in SIDES],
+            stochastic,
+        )  # fmt: skip
+        if contrasts is not None:
+            stochastic = dict(stochastic, unit_contrasts=contrasts)
+    elif tile_size_m is not None:
+        # tiles as the tiled run (plane moments, app/tiled.py) adjusts them: untied units
+        stochastic = dict(stochastic, unit_contrasts=(None, None))
     for k, side in enumerate(SIDES):
         mb, ma = masks[side]
         sub = scaled(progress, 0.5 * k, 0.5 * (k + 1))
@@ -1161,8 +1249,9 @@ def estimate_slip(
         )
         if tile_size_m is None:
             results[side] = register_side(
-                before[mb], after[ma], transfer_planes=transfer_planes, **kw
-            )
+                before[mb], after[ma], transfer_planes=transfer_planes,
+                planes=planes.get(side), **kw,
+            )  # fmt: skip
         else:
             results[side], tl = _register_side_tiled(
                 before[mb], after[ma], tile_size_m=tile_size_m, combine=combine, **kw
@@ -1267,12 +1356,14 @@ def _relative_covariance(left: SideResult, right: SideResult):
 
 def _stochastic_options(
     before, after, model, unit_before, unit_after, components, random_tilt=None,
-    unit_time_before=None, unit_time_after=None,
+    unit_time_before=None, unit_time_after=None, unit_contrasts=DEFAULT_UNIT_CONTRASTS,
 ) -> dict:  # fmt: skip
     """Validated stochastic-model options of a whole run."""
     check_stochastic_model(model)
     n_b, n_a = np.asarray(before).shape[0], np.asarray(after).shape[0]
     return {
+        # off: no contrast rows in any adjustment (None: each adjustment's own planes')
+        **({} if unit_contrasts else {"unit_contrasts": (None, None)}),
         "random_tilt": check_random_tilt(random_tilt, model),
         "stochastic_model": model,
         "components": check_components(components),
@@ -1411,7 +1502,7 @@ def strip_profile(
     w = _positive("strip_width_m", strip_width_m)
     stochastic = _stochastic_options(
         before, after, stochastic_model or _model_of(slip), unit_before, unit_after, None,
-        None, unit_time_before, unit_time_after,
+        None, unit_time_before, unit_time_after, False,
     )  # fmt: skip
     gb, ga, masks = _side_points(before, after, trace, buffer_m)
     sigma_before = _packed(sigma_before, "sigma_before")
@@ -1665,7 +1756,7 @@ def window_field(
     min_planes = int(min_planes)
     stochastic = _stochastic_options(
         before, after, stochastic_model or _model_of(slip), unit_before, unit_after, None,
-        None, unit_time_before, unit_time_after,
+        None, unit_time_before, unit_time_after, False,
     )  # fmt: skip
     _, _, masks = _side_points(before, after, trace, buffer_m)
     sigma_before = _packed(sigma_before, "sigma_before")

@@ -112,6 +112,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.spatial import cKDTree
 
 from .errors import InputDataError, InvalidParameterError
+from .unit_contrasts import ContrastRows, union_rows
 from .unit_drift import UNIT_INTERVAL_MARGIN
 
 log = logging.getLogger(__name__)
@@ -149,6 +150,10 @@ DEFAULT_STOCHASTIC_MODEL = "full"
 COMPONENT_NAMES = ("plane", "spatial", "unit_before", "unit_after")
 DENSE_MAX_PLANES = 1500  # dense V (Cholesky) up to this many planes, sparse + Woodbury beyond
 VCE_MAX_PLANES = 200  # REML on a spatially contiguous subset of planes beyond this
+VCE_MAX_CONTRASTS = 300  # REML on a seeded subset of the unit contrast rows beyond this
+#: the variance (m²) of the unit contrast rows' own misfit, estimated by REML beside the
+#: components when the rows are there (:mod:`.unit_contrasts`); not a survey component
+CONTRAST_NUGGET = "contrast"
 MIN_PLANES_VCE = 15  # fewer planes than this cannot pin the plane component down
 K_WEIGHT = 3.0  # |w| above which a plane is down-weighted (IGG-III)
 K_REJECT_MIN = 4.0  # |w| above which a plane is rejected (at least; Bonferroni may raise it)
@@ -616,6 +621,13 @@ class PlaneGain:
     family: str = "spherical"
     unit_options: Optional[Dict[float, tuple]] = None
     unit_interval_s: float = float("nan")
+    #: the side's within-epoch unit contrasts (:mod:`.unit_contrasts`), planes numbered as
+    #: the ``k`` above and shares in the columns of ``units_before`` / ``units_after`` (of
+    #: each drift of ``unit_options``); None: none
+    contrasts: Optional[ContrastRows] = None
+    #: (6, m) ``∂ params / ∂ c`` of the contrast rows (the motion takes the units' errors
+    #: they predict off the misclosures, :class:`ContrastCondition`); None: not used
+    contrast_gain: Optional[np.ndarray] = None
 
     def support(self):
         """(k, S, 3) samples, (k, S) weights and (k,) radii (see :class:`PlaneModel`)."""
@@ -645,6 +657,28 @@ def _union_options(a: PlaneGain, b: PlaneGain):
         sb_b, sb_a, ub_b, ub_a = b.unit_options[dt]
         out[dt] = (_union_of(sa_b, ua_b, sb_b, ub_b), _union_of(sa_a, ua_a, sb_a, ub_a))
     return out if math.inf in out else None
+
+
+def _union_contrasts(a: PlaneGain, b: PlaneGain):
+    """Both adjustments' contrast rows over the union of their unit ids (one copy when both
+    hold the same survey's rows, else ``a``'s then ``b``'s): (rows or None, shared)."""
+    if a.contrasts is None and b.contrasts is None:
+        return None, False
+
+    def codes(g, which, interval_s):
+        if interval_s is None or not g.unit_options or interval_s not in g.unit_options:
+            return getattr(g, "units_" + which)
+        return g.unit_options[interval_s][2 if which == "before" else 3]
+
+    def union(which, sa, sb, interval_s):
+        ua, ub = codes(a, which, interval_s), codes(b, which, interval_s)
+        if ua is None or ub is None:
+            return None
+        sa = np.zeros((0, ua.size)) if sa is None else sa
+        sb = np.zeros((0, ub.size)) if sb is None else sb
+        return _union_of(sa, ua, sb, ub)
+
+    return union_rows(a.contrasts, b.contrasts, union)
 
 
 def _union_of(sa, ua, sb, ub) -> Optional[np.ndarray]:
@@ -769,6 +803,9 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
         sample_weights=weights,
         unit_options=options,
     )
+    joint_rows, shared_rows = _union_contrasts(a, b)
+    if joint_rows is not None:
+        model = replace(model, contrasts=joint_rows)
     idx = np.arange(k)
     x = np.zeros((k, 12))
     x[:ka, :6], x[ka:, 6:] = a.h, b.h
@@ -785,15 +822,29 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
     )  # fmt: skip
     theta = {n: v for n, v in est.theta.items() if v > 0}
     model = model.with_unit_interval(est.unit_interval_s)
-    v = covariance(model, idx, p, theta, est.kernel, infl)
-    kj = np.zeros((12, k))
-    kj[:6, :ka], kj[6:, ka:] = a.gain, b.gain
+    rows = model.contrasts
+    if rows is not None and (a.contrast_gain is not None or b.contrast_gain is not None):
+        # each side's motion takes the units' errors its contrast rows predict off its
+        # misclosures: its gain runs over the planes and the rows (a's rows, then b's)
+        ma = 0 if shared_rows or a.contrasts is None else a.contrasts.size
+        v = covariance_with_contrasts(model, idx, p, theta, est.kernel, infl, rows)
+        kj = np.zeros((12, k + rows.size))
+        kj[:6, :ka], kj[6:, ka:k] = a.gain, b.gain
+        if a.contrast_gain is not None:
+            kj[:6, k : k + a.contrast_gain.shape[1]] = a.contrast_gain
+        if b.contrast_gain is not None:
+            kj[6:, k + ma :] = b.contrast_gain
+    else:
+        rows = None
+        v = covariance(model, idx, p, theta, est.kernel, infl)
+        kj = np.zeros((12, k))
+        kj[:6, :ka], kj[6:, ka:] = a.gain, b.gain
     cov = kj @ v @ kj.T
     cov[:6, :6] += a.q @ a.t @ a.q
     cov[6:, 6:] += b.q @ b.t @ b.q
     nu = max(k - 12.0, 3.0)
     if any(src == "estimated" for src in est.source.values()):
-        nu = min(nu, _satterthwaite_dof(model, idx, est, kj, cov))
+        nu = min(nu, _satterthwaite_dof(model, idx, est, kj, cov, rows))
         small = nu / (nu - 2.0)
     else:
         small = 1.0
@@ -817,7 +868,7 @@ def _pad(arr, ns, centroids=None):
     return np.concatenate([arr, fill], axis=1)
 
 
-def _satterthwaite_dof(model, idx, est, kj, cov) -> float:
+def _satterthwaite_dof(model, idx, est, kj, cov, rows=None) -> float:
     """Satterthwaite's degrees of freedom of the variance of ``params_a − params_b``'s
     translation (the slip), the fewest over its principal directions, at least 3.
 
@@ -832,6 +883,8 @@ def _satterthwaite_dof(model, idx, est, kj, cov) -> float:
     kd = kj[3:6] - kj[9:12]
     rel = cov[3:6, 3:6] + cov[9:12, 9:12] - cov[3:6, 9:12] - cov[9:12, 3:6]
     bases = model.bases(idx, est.kernel)
+    if rows is not None:  # the gains run over the contrast rows too
+        bases = model.contrast_bases(idx, rows, bases)
     free = [n for n in COMPONENT_NAMES if (n, n) in est.cov and n in bases]
     if not free:
         return float("inf")
@@ -1005,6 +1058,12 @@ class VarianceComponents:
     unit_interval_s : float
         Knot spacing of the units' drift along GpsTime, seconds (:mod:`.unit_drift`, chosen by
         REML); ``math.inf``: one rigid error per unit; NaN: no acquisition times.
+    n_contrasts : (int, int)
+        The within-epoch unit contrasts (before, after) that tie the units in this
+        adjustment (:mod:`.unit_contrasts`; (0, 0): none, or no unit component in force).
+    contrast_misfit_m : float
+        The contrasts' own misfit beside their point noise (1σ, metres; REML), NaN when not
+        estimated.
     """
 
     model: str
@@ -1019,6 +1078,8 @@ class VarianceComponents:
     spatial_family: str = "spherical"
     tilt: TiltEstimate = field(default_factory=lambda: TiltEstimate())
     unit_interval_s: float = float("nan")
+    n_contrasts: Tuple[int, int] = (0, 0)
+    contrast_misfit_m: float = float("nan")
 
     @property
     def sigma_white_m(self) -> np.ndarray:
@@ -1067,6 +1128,17 @@ class VarianceComponents:
                 if self.unit_interval_s == self.unit_interval_s
                 else {}
             ),
+            **(
+                {
+                    "unit_contrasts": {
+                        "before": int(self.n_contrasts[0]),
+                        "after": int(self.n_contrasts[1]),
+                        "misfit_m": _num(self.contrast_misfit_m),
+                    }
+                }
+                if any(self.n_contrasts)
+                else {}
+            ),
         }
 
 
@@ -1095,6 +1167,9 @@ class PlaneModel:
     #: (shares_before, shares_after)}`` (:mod:`.unit_drift`; ``math.inf``: the rigid unit,
     #: whose shares are the ones above); None: the rigid unit only
     unit_options: Optional[Dict[float, Tuple[Optional[np.ndarray], Optional[np.ndarray]]]] = None
+    #: the planes' within-epoch unit contrasts (:mod:`.unit_contrasts`), rows beside the
+    #: misclosures in the REML of the unit components; None: none
+    contrasts: Optional[ContrastRows] = None
 
     @property
     def unit_intervals(self) -> Tuple[float, ...]:
@@ -1109,7 +1184,41 @@ class PlaneModel:
         if interval_s not in opts:
             return self
         sb, sa = opts[interval_s]
-        return replace(self, shares_before=sb, shares_after=sa)
+        con = None if self.contrasts is None else self.contrasts.with_interval(interval_s)
+        return replace(self, shares_before=sb, shares_after=sa, contrasts=con)
+
+    def contrast_rows(self, idx: np.ndarray) -> Optional[ContrastRows]:
+        """The contrast rows beside the planes ``idx`` (all of them: a within-epoch contrast
+        is not tied to a plane of the adjustment), or None when there are none."""
+        if self.contrasts is None or not self.contrasts.size:
+            return None
+        return self.contrasts
+
+    def contrast_bases(self, idx: np.ndarray, rows: ContrastRows, bases: Dict[str, np.ndarray]):
+        """``bases`` (k, k) of the planes ``idx`` extended by the contrast rows ``rows``
+        (k + m, k + m): the unit components' over both (the misclosures' and the contrasts'
+        shares in the same columns), the others nil on the contrast rows."""
+        k, m = idx.size, rows.size
+        out = {}
+        for name, b in bases.items():
+            ext = np.zeros((k + m, k + m))
+            if name in ("unit_before", "unit_after"):
+                s = self.shares_before if name == "unit_before" else self.shares_after
+                c = rows.shares_before if name == "unit_before" else rows.shares_after
+                if s is None or c is None:
+                    ext[:k, :k] = b
+                else:
+                    # a unit error moves a misclosure by +nᵀs (before) or −nᵀs (after),
+                    # a contrast of either epoch by +nᵀs (unit_contrasts)
+                    full = np.vstack([s[idx], c if name == "unit_before" else -c])
+                    full = full[:, np.any(full != 0.0, axis=0)]
+                    nrm = np.vstack([self.normals[idx], rows.normal])
+                    z = (full[:, :, None] * nrm[:, None, :]).reshape(k + m, -1)
+                    ext = z @ z.T
+            else:
+                ext[:k, :k] = b
+            out[name] = ext
+        return out
 
     def support(self, idx: np.ndarray):
         """(k, S, 3) samples, (k, S) weights and (k,) radii of the planes ``idx``."""
@@ -1183,6 +1292,104 @@ class PlaneModel:
         return out
 
 
+@dataclass(frozen=True)
+class ContrastCondition:
+    """The acquisition units' errors given the planes' within-epoch unit contrasts
+    (:mod:`.unit_contrasts`), for the GLS of the motion.
+
+    The misclosures and the contrast rows, stacked, are one GLS problem with no motion in the
+    contrast rows; eliminating them (a Schur complement) leaves the misclosures with the
+    units' predicted errors taken off (``shift``) and the units' covariance ``Λ`` replaced by
+    their covariance given the contrasts ``Λ' = (Λ⁻¹ + Z_cᵀ P_c⁻¹ Z_c)⁻¹``: a strip
+    adjustment of the units inside the slip's. The motion is then the stacked GLS exactly.
+
+    Attributes
+    ----------
+    z : (k, r) float64
+        The units' design in the misclosures (``+nᵀ`` share for the before epoch, ``−nᵀ``
+        for the after epoch; r = 3 × the virtual units of both epochs with a component).
+    info : (r, r) float64
+        ``Λ'⁻¹ = Λ⁻¹ + Z_cᵀ P_c⁻¹ Z_c``.
+    lam : (r, r) float64
+        ``Λ'``, m².
+    g : (r, m) float64
+        The units' prediction from the contrast values, ``Λ' Z_cᵀ P_c⁻¹``.
+    shift : (k,) float64
+        ``z g c``: the misclosures' part the contrasts predict (m).
+    rows : ContrastRows
+        The contrast rows of the planes (numbered as positions among them).
+    """
+
+    z: np.ndarray
+    info: np.ndarray
+    lam: np.ndarray
+    g: np.ndarray
+    shift: np.ndarray
+    rows: ContrastRows
+
+
+def condition_on_contrasts(
+    model: PlaneModel, idx: np.ndarray, theta: Mapping[str, float]
+) -> Optional[ContrastCondition]:
+    """The :class:`ContrastCondition` of the planes ``idx`` (sorted) under the components
+    ``theta`` (variances, m²), or None (no contrast row, or no unit component in force)."""
+    rows = model.contrast_rows(idx)
+    if rows is None:
+        return None
+    k, m = idx.size, rows.size
+    zm, zc, lam = [], [], []
+    for name, sign in (("unit_before", 1.0), ("unit_after", -1.0)):
+        t = float(theta.get(name, 0.0))
+        s = model.shares_before if name == "unit_before" else model.shares_after
+        c = rows.shares_before if name == "unit_before" else rows.shares_after
+        if not t > 0 or s is None or c is None:
+            continue
+        sm = s[idx]
+        keep = np.any(sm != 0.0, axis=0) | np.any(c != 0.0, axis=0)
+        if not np.any(keep):
+            continue
+        zm.append(sign * (sm[:, keep][:, :, None] * model.normals[idx][:, None, :]).reshape(k, -1))
+        zc.append((c[:, keep][:, :, None] * rows.normal[:, None, :]).reshape(m, -1))
+        lam.append(np.full(zm[-1].shape[1], t))
+    if not zm:
+        return None
+    z, zcm, lam_d = np.hstack(zm), np.hstack(zc), np.concatenate(lam)
+    pinv = 1.0 / (rows.var + max(float(theta.get(CONTRAST_NUGGET, 0.0)), 0.0))
+    info = np.diag(1.0 / lam_d) + zcm.T @ (zcm * pinv[:, None])
+    info = 0.5 * (info + info.T)
+    cf = cho_factor(info, lower=True, check_finite=False)
+    lam_p = cho_solve(cf, np.eye(info.shape[0]), check_finite=False)
+    lam_p = 0.5 * (lam_p + lam_p.T)
+    g = lam_p @ (zcm.T * pinv[None, :])
+    return ContrastCondition(z, info, lam_p, g, z @ (g @ rows.value), rows)
+
+
+def covariance_with_contrasts(
+    model: PlaneModel,
+    idx: np.ndarray,
+    p: np.ndarray,
+    theta: Mapping[str, float],
+    range_m,
+    inflation: Optional[np.ndarray],
+    rows: ContrastRows,
+) -> np.ndarray:
+    """``V`` (k + m, k + m) of the misclosures of the planes ``idx`` and their contrast
+    rows ``rows`` stacked (m²): :func:`covariance` on the planes, the contrasts' white
+    variance, and the unit components over both."""
+    k = idx.size
+    bases = model.bases(idx, range_m if theta.get("spatial", 0.0) > 0 else float("nan"))
+    bases = model.contrast_bases(idx, rows, bases)
+    v = np.zeros((k + rows.size, k + rows.size))
+    for name, b in bases.items():
+        t = float(theta.get(name, 0.0))
+        if t > 0:
+            v += t * b
+    nug = max(float(theta.get(CONTRAST_NUGGET, 0.0)), 0.0)
+    d = np.concatenate([p + (0.0 if inflation is None else inflation), rows.var + nug])
+    v[np.diag_indices_from(v)] += d
+    return v
+
+
 def covariance(
     model: PlaneModel,
     idx: np.ndarray,
@@ -1215,13 +1422,19 @@ class CovarianceOperator:
     are then linear in planes for a fixed density of planes within the range.
     """
 
-    def __init__(self, model, idx, p, theta, range_m, inflation=None):
+    def __init__(self, model, idx, p, theta, range_m, inflation=None, condition=None):
+        if condition is not None:
+            # the units' covariance given the contrasts replaces their own (ContrastCondition)
+            theta = {n: v for n, v in theta.items() if n not in ("unit_before", "unit_after")}
         self.k = idx.size
         diag = p + (0.0 if inflation is None else inflation) + float(theta.get("plane", 0.0))
         self.sparse = self.k > DENSE_MAX_PLANES
         self._diag_v = diag.copy()
         if not self.sparse:
             self.v = covariance(model, idx, p, theta, range_m, inflation)
+            if condition is not None:
+                self.v += condition.z @ condition.lam @ condition.z.T
+                self.v = 0.5 * (self.v + self.v.T)
             self.cf = cho_factor(self.v, lower=True, check_finite=False)
             self._diag_v = np.diag(self.v).copy()
             return
@@ -1246,7 +1459,14 @@ class CovarianceOperator:
                 lam.append(np.full(z.shape[1], t))
                 self._diag_v += t * (z * z).sum(axis=1)
         self.z = np.hstack(zs) if zs else None
-        if self.z is not None:
+        if condition is not None:
+            # Woodbury with the units' full covariance given the contrasts: Λ'⁻¹ = info
+            self.z = condition.z
+            self._diag_v += np.einsum("ij,jk,ik->i", self.z, condition.lam, self.z)
+            self.aiz = self.lu.solve(self.z)
+            cap = condition.info + self.z.T @ self.aiz
+            self.cap = cho_factor(0.5 * (cap + cap.T), lower=True, check_finite=False)
+        elif self.z is not None:
             lam = np.concatenate(lam)
             self.aiz = self.lu.solve(self.z)
             cap = np.diag(1.0 / lam) + self.z.T @ self.aiz
@@ -1650,9 +1870,46 @@ def estimate_components(
             theta["spatial"], source["spatial"] = 0.0, "off"
             notes["spatial"] = "fewer than 3 planes"
 
-    def fit(mdl, kern):
+    # the planes' within-epoch unit contrasts (unit_contrasts): rows beside the misclosures,
+    # no motion in them, their unit shares beside the planes'
+    rows = (
+        model.contrast_rows(ids) if any(n in free for n in ("unit_before", "unit_after")) else None
+    )
+    sel_rows = None
+    if rows is not None and rows.size > VCE_MAX_CONTRASTS:
+        # a seeded subset keeps REML's matrices small; the motion uses every row
+        sel_rows = np.sort(
+            np.random.default_rng(seed).choice(rows.size, VCE_MAX_CONTRASTS, replace=False)
+        )
+        rows = rows.take(sel_rows)
+    planes_only = (es, xs, ps, inf_s)
+    es_planes = es
+    if rows is not None:
+        # their own misfit (a unit's error is no translation: a TLS setup turns about the
+        # instrument, an ALS strip rolls) is a nugget of the rows, estimated beside the units
+        # and carried to the motion's conditioning (condition_on_contrasts)
+        theta0[CONTRAST_NUGGET] = max(float(np.median(rows.var)), _FLOOR)
+        m_rows = rows.size
+        es = np.concatenate([es, rows.value])
+        xs = np.vstack([xs, np.zeros((m_rows, xs.shape[1]))])
+        ps = np.concatenate([ps, rows.var])
+        if inf_s is not None:
+            inf_s = np.concatenate([inf_s, np.zeros(m_rows)])
+
+    def fit(mdl, kern, with_rows=True):
         bases = mdl.bases(ids, kern)
         bases = {n: b for n, b in bases.items() if n in free or n in fixed_var}
+        if rows is None or not with_rows:
+            fx = {n: fixed_var[n] for n in fixed_var if n in bases}
+            e_, x_, p_, i_ = planes_only
+            th0 = {n: v for n, v in theta0.items() if n != CONTRAST_NUGGET}
+            th, sd, it, conv, m2ll, pc = _reml_fixed_point(e_, x_, ts, p_, bases, th0, fx, i_, rts)
+            return (th, sd, it, conv, m2ll, kern, pc, bases, fx)
+        if rows is not None:
+            rr = mdl.contrast_rows(ids)
+            rr = rr if sel_rows is None else rr.take(sel_rows)
+            bases = mdl.contrast_bases(ids, rr, bases)
+            bases[CONTRAST_NUGGET] = np.diag(np.concatenate([np.zeros(ids.size), np.ones(rr.size)]))
         fx = {n: fixed_var[n] for n in fixed_var if n in bases}
         th, sd, it, conv, m2ll, pc = _reml_fixed_point(
             es, xs, ts, ps, bases, theta0, fx, inf_s, rts
@@ -1682,10 +1939,16 @@ def estimate_components(
         # the units' drift along GpsTime (unit_drift): each knot spacing at the kernel just
         # chosen, the likeliest taken when it beats the rigid unit by UNIT_INTERVAL_MARGIN,
         # and the kernel profiled again under it
-        trials = [(fit(base_model.with_unit_interval(dt), best[5]), dt) for dt in drift]
+        # chosen on the misclosures alone: the contrast rows see a unit's error within one
+        # epoch, where a TLS setup's turn about the instrument reads as a drift along the
+        # scan's time (docs/accuracy.md, "Units tied on the planes they share")
+        ref = best if rows is None else fit(model, best[5], with_rows=False)
+        trials = [
+            (fit(base_model.with_unit_interval(dt), best[5], with_rows=False), dt) for dt in drift
+        ]
         f_dt, dt = min(trials, key=lambda t: t[0][4])
         log.debug("REML unit drift: %s", {d: round(f[4], 2) for f, d in trials})
-        if f_dt[4] < best[4] - UNIT_INTERVAL_MARGIN:
+        if f_dt[4] < ref[4] - UNIT_INTERVAL_MARGIN:
             interval = dt
             model = base_model.with_unit_interval(dt)
             best, fits = profile(model)
@@ -1717,11 +1980,14 @@ def estimate_components(
         theta[n] = float(th.get(n, 0.0))
         source[n] = "estimated"
         sds[n] = float(sd.get(n, float("nan")))
+    if rows is not None:
+        theta[CONTRAST_NUGGET] = float(th.get(CONTRAST_NUGGET, 0.0))
+        source[CONTRAST_NUGGET] = "estimated"
     if few and "plane" in free:
         # a handful of planes cannot pin the plane component down: take the conservative
         # mean square misclosure (white part included) or the caller's floor, unless REML
         # found more
-        prior = max(float(np.mean(es * es)), theta.get("plane", 0.0), float(prior_plane_var))
+        prior = max(float(np.mean(es_planes**2)), theta.get("plane", 0.0), float(prior_plane_var))
         theta["plane"] = prior
         source["plane"] = "prior"
         notes["plane"] = (

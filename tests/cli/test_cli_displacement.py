@@ -475,6 +475,37 @@ def test_no_unit_drift_keeps_one_rigid_error_per_unit(drift_files, tmp_path):
     assert "unit_drift_interval_s" not in js["left"]["variance_components"]
 
 
+def test_no_unit_contrasts_leaves_the_units_untied(drift_files, tmp_path):
+    """--no-unit-contrasts: no plane ties two units in one epoch; the result is the core's
+    with unit_contrasts=False and the record says so. By default the report says how many
+    shared planes tied the units, as the core counted them."""
+    fp, paths, fault = drift_files
+    out = tmp_path / "untied"
+    assert _run(paths, fault, out, "--no-unit-contrasts") == 0
+    js = json.loads((out / "displacement.json").read_text())
+    assert js["parameters"]["acquisition_unit_sources"]["unit_contrasts"] is False
+    _, ub, ua = _core_on_files(fault, paths)
+    core, _, _ = _core_on_files(fault, paths, unit_before=ub, unit_after=ua, unit_contrasts=False)
+    comp = core.components()
+    assert js["relative"]["right_lateral_slip"] == pytest.approx(
+        comp["right_lateral_slip"], abs=1e-9
+    )
+    assert js["relative"]["sigma_right_lateral"] == pytest.approx(
+        comp["sigma_fault_parallel"], rel=1e-6
+    )
+    for side in ("left", "right"):
+        assert "unit_contrasts" not in js[side]["variance_components"]
+    out = tmp_path / "tied"
+    assert _run(paths, fault, out) == 0
+    js = json.loads((out / "displacement.json").read_text())
+    assert js["parameters"]["acquisition_unit_sources"]["unit_contrasts"] is True
+    core, _, _ = _core_on_files(fault, paths, unit_before=ub, unit_after=ua)
+    for side in ("left", "right"):
+        n = getattr(core, side).rigid.variance_components.n_contrasts
+        got = js[side]["variance_components"].get("unit_contrasts")
+        assert min(n) > 0 and (got["before"], got["after"]) == n  # walls seen from two passes
+
+
 def test_units_none_and_white_model(drift_files, tmp_path, capsys):
     fp, paths, fault = drift_files
     out = tmp_path / "none"
