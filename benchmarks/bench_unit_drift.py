@@ -1,16 +1,25 @@
-"""Cost of the units' drift along GpsTime (issue #30, ``core.unit_drift``) in a slip run.
+"""Cost of the units' drift along GpsTime (``core.unit_drift``) or of tying the units on the
+planes they share (``core.unit_contrasts``) in a slip run (issue #30).
 
 For one pair of each of four survey kinds of ``accuracy_slip.py`` (MLS drift with renovated
-buildings, MLS lever arm on crossing streets, TLS setups, ALS strips with a boresight roll),
-times :func:`slipmap.core.displacement.estimate_slip` with the job's defaults and the pair's
-acquisition units, with and without their GpsTime (the drift profiled by REML, or one rigid
-error per unit), alternated, ``--repeat`` times each; CPU seconds of the process (run with
-``OMP_NUM_THREADS=1`` for one core), the fastest of the repeats, and the knot spacing each
-side and the joint estimate chose.
+buildings, MLS lever arm on crossing streets, TLS setups, ALS strips with a boresight roll;
+with ``--compare contrasts`` also MLS before and ALS after), times
+:func:`slipmap.core.displacement.estimate_slip` with the job's defaults and the pair's
+acquisition units, alternated, ``--repeat`` times each:
+
+- ``--compare drift`` (default): with and without the units' GpsTime (the drift profiled by
+  REML, or one rigid error per unit), with the contrasts off as before stop 43; reports the
+  knot spacing each side and the joint estimate chose;
+- ``--compare contrasts``: with the GpsTime, with and without the within-epoch unit
+  contrasts; reports the contrast rows each side used (before, after).
+
+CPU seconds of the process (run with ``OMP_NUM_THREADS=1`` for one core), the fastest of the
+repeats.
 
 Usage::
 
-    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_unit_drift.py [--repeat 3]
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_unit_drift.py \\
+        [--compare drift|contrasts] [--repeat 3]
 
 The last line is JSON.
 """
@@ -38,18 +47,35 @@ PAIRS = (
     ("tls-6-setups", 2002),
     ("als-1cm-roll", 2003),
 )
+#: ``--compare contrasts`` adds a mixed pair (an ALS epoch's strips tied to an MLS epoch's passes)
+MIXED = (("mls-als", 2001),)
 
 
 def _spacing(v):
     return None if not math.isfinite(v) else float(v)
 
 
+def _what(res, compare):
+    """What the run chose: the knot spacings (left, right, joint) or the contrast rows."""
+    if compare == "contrasts":
+        return [
+            list(getattr(res, s).rigid.variance_components.n_contrasts) for s in ("left", "right")
+        ]
+    jc = res.joint_components
+    return [
+        _spacing(getattr(res, s).rigid.variance_components.unit_interval_s)
+        for s in ("left", "right")
+    ] + [_spacing(jc.unit_interval_s) if jc is not None else None]
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--compare", choices=("drift", "contrasts"), default="drift")
     args = ap.parse_args(argv)
+    names = ("rigid", "drift") if args.compare == "drift" else ("untied", "tied")
     rows = []
-    for case, seed in PAIRS:
+    for case, seed in PAIRS + (MIXED if args.compare == "contrasts" else ()):
         fp = A.draw_pair(case, seed)
         trace = fault_trace([fp.trace_xy])
         base = dict(
@@ -58,35 +84,44 @@ def main(argv=None) -> int:
             unit_after=fp.source_after.astype(np.int64),
         )  # fmt: skip
         times = dict(unit_time_before=fp.gps_time_before, unit_time_after=fp.gps_time_after)
-        cpu = {"rigid": [], "drift": []}
+        if args.compare == "drift":
+            runs = {"rigid": {"unit_contrasts": False},
+                    "drift": dict(times, unit_contrasts=False)}  # fmt: skip
+        else:
+            runs = {"untied": dict(times, unit_contrasts=False),
+                    "tied": dict(times, unit_contrasts=True)}  # fmt: skip
+        cpu = {n: [] for n in names}
         chosen = None
         for _ in range(args.repeat):
-            for name, kw in (("rigid", {}), ("drift", times)):
+            for name in names:
                 t0 = time.process_time()
-                res = estimate_slip(fp.before.points, fp.after.points, trace, **base, **kw)
+                res = estimate_slip(fp.before.points, fp.after.points, trace, **base, **runs[name])
                 cpu[name].append(time.process_time() - t0)
-                if name == "drift":
-                    jc = res.joint_components
-                    chosen = [
-                        _spacing(getattr(res, s).rigid.variance_components.unit_interval_s)
-                        for s in ("left", "right")
-                    ] + [_spacing(jc.unit_interval_s) if jc is not None else None]
+                if name == names[1]:
+                    chosen = _what(res, args.compare)
+        a, b = (min(cpu[n]) for n in names)
         row = {
             "case": case,
             "seed": seed,
             "points": [int(fp.before.n_points), int(fp.after.n_points)],
-            "cpu_s_rigid": round(min(cpu["rigid"]), 2),
-            "cpu_s_drift": round(min(cpu["drift"]), 2),
-            "ratio": round(min(cpu["drift"]) / min(cpu["rigid"]), 2),
-            "spacing_s_left_right_joint": chosen,
-        }
+            f"cpu_s_{names[0]}": round(a, 2),
+            f"cpu_s_{names[1]}": round(b, 2),
+            "ratio": round(b / a, 2),
+            ("spacing_s_left_right_joint" if args.compare == "drift"
+             else "contrasts_left_right"): chosen,
+        }  # fmt: skip
         rows.append(row)
+        what = (
+            "spacing left/right/joint"
+            if args.compare == "drift"
+            else "contrast rows (before, after) left / right"
+        )
         print(
-            f"{case} seed {seed}: {row['cpu_s_rigid']} s rigid units, {row['cpu_s_drift']} s "
-            f"drifting ({row['ratio']}x); spacing left/right/joint {chosen}",
+            f"{case} seed {seed}: {a:.2f} s {names[0]}, {b:.2f} s {names[1]} ({row['ratio']}x); "
+            f"{what} {chosen}",
             flush=True,
         )
-    print(json.dumps({"rows": rows}))
+    print(json.dumps({"compare": args.compare, "rows": rows}))
     return 0
 
 
