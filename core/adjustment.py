@@ -243,6 +243,11 @@ class _Epoch:
         if self.var is not None:
             self.U1, self.U2 = _moments(self.idx, self.u, None, b)
 
+    def of_valid(self, a):
+        """A per-point array of the epoch's input restricted to its valid points (None
+        passes)."""
+        return a if a is None or self.all_valid else a[self.valid]
+
     def weighted(self, bvec: np.ndarray, b: int):
         """Weighted moments S0 (b,), S1 (b, 3), S2 (b, 3, 3) for condition directions bvec."""
         if self.var is not None:
@@ -618,8 +623,7 @@ class _StochasticConfig:
         self.unit_interval = float("nan")
         #: condition the units on the planes' within-epoch contrasts (unit_contrasts)
         self.use_contrasts = True
-        self._cond_key = None
-        self._cond = None
+        self._cond_key = self._cond_model = self._cond = None
 
     def condition(self, active: np.ndarray) -> Optional[_stoch.ContrastCondition]:
         """The units given the contrast rows of the active planes under the components in
@@ -627,14 +631,9 @@ class _StochasticConfig:
         if not self.use_contrasts or self.model.contrasts is None:
             return None
         idx = np.flatnonzero(active)
-        key = (
-            idx.tobytes(),
-            tuple(sorted(self.theta.items())),
-            self.unit_interval,
-            id(self.model.shares_before),
-        )
-        if key != self._cond_key:
-            self._cond_key = key
+        key = (idx.tobytes(), tuple(sorted(self.theta.items())))
+        if key != self._cond_key or self._cond_model is not self.model:
+            self._cond_key, self._cond_model = key, self.model
             self._cond = _stoch.condition_on_contrasts(self.model, idx, self.theta)
         return self._cond
 
@@ -988,10 +987,7 @@ def _run(
             if unit_contrasts and any(c is not None and c.size for c in unit_contrasts):
                 # the units the contrasts see widen the shares' columns (zero on the planes)
                 pairs, drift = with_contrast_units(unit_contrasts, pairs, drift)
-                contrasts = epoch_rows(
-                    unit_contrasts, tuple(p_[1] for p_ in pairs),
-                    {dt: (sh, cd) for dt, (sh, cd) in drift.items()} if drift else None,
-                )  # fmt: skip
+                contrasts = epoch_rows(unit_contrasts, tuple(p_[1] for p_ in pairs), drift)
         shares = [p_[0] for p_ in pairs]
         codes = [p_[1] for p_ in pairs]
     return _solve(
@@ -1091,8 +1087,9 @@ def _unit_drift_options(epochs, units, times, rigid):
         sh, cd = [], []
         for ep, u, t, (s_, c_) in zip(epochs, units, times, rigid):
             if u is not None and t is not None:
-                uu, tt = (u, t) if ep.all_valid else (u[ep.valid], t[ep.valid])
-                s_, c_ = hat_unit_shares(ep.idx, uu, tt, ep.count, interval_s=dt)
+                s_, c_ = hat_unit_shares(
+                    ep.idx, ep.of_valid(u), ep.of_valid(t), ep.count, interval_s=dt
+                )
             sh.append(s_)
             cd.append(c_)
         out[dt] = (tuple(sh), tuple(cd))
@@ -1107,9 +1104,8 @@ def _own_contrasts(epochs, units, times, b):
         if u is None or not ep.idx.size:
             out.append(None)
             continue
-        u = u if ep.all_valid else u[ep.valid]
-        t = None if t is None else (t if ep.all_valid else t[ep.valid])
-        out.append(screen_contrasts(unit_contrasts(ep.idx, ep.u, u, b, time_s=t)))
+        con = unit_contrasts(ep.idx, ep.u, ep.of_valid(u), b, time_s=ep.of_valid(t))
+        out.append(screen_contrasts(con))
     return tuple(out)
 
 
@@ -1119,7 +1115,7 @@ def _unit_shares(ep: _Epoch, unit, b: int):
     (None, None)."""
     if unit is None:
         return None, None
-    u = unit if ep.all_valid else unit[ep.valid]
+    u = ep.of_valid(unit)
     if u.size == 0:
         return None, None
     return hat_unit_shares(ep.idx, u, None, ep.count, interval_s=math.inf)
@@ -1157,18 +1153,10 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         small_sample_factor=float(cfg.small),
         unit_options=drift,
         unit_interval_s=float(cfg.unit_interval),
-        contrasts=_gain_contrasts(m.contrasts, cfg.unit_interval),
+        contrasts=m.contrasts,  # already the drift's in force (cfg.model)
         contrast_gain=getattr(cfg, "contrast_gain", None),
         **cfg.gain_extra,
     )
-
-
-def _gain_contrasts(rows, interval_s):
-    """The contrast rows with the drift's shares in force (each drift's options in
-    :attr:`.stochastic.PlaneGain.unit_options`' columns)."""
-    if rows is None:
-        return None
-    return rows.with_interval(interval_s) if interval_s == interval_s else rows
 
 
 def _white(state, epochs, active, b, step, z_crit, rejected, reject, min_planes, opts):

@@ -1187,12 +1187,31 @@ class PlaneModel:
         con = None if self.contrasts is None else self.contrasts.with_interval(interval_s)
         return replace(self, shares_before=sb, shares_after=sa, contrasts=con)
 
-    def contrast_rows(self, idx: np.ndarray) -> Optional[ContrastRows]:
-        """The contrast rows beside the planes ``idx`` (all of them: a within-epoch contrast
+    def contrast_rows(self) -> Optional[ContrastRows]:
+        """The contrast rows beside any of the planes (all of them: a within-epoch contrast
         is not tied to a plane of the adjustment), or None when there are none."""
         if self.contrasts is None or not self.contrasts.size:
             return None
         return self.contrasts
+
+    def unit_designs(self, which: str, idx: np.ndarray, rows: ContrastRows):
+        """The unit component ``which``'s design in the misclosures of the planes ``idx``
+        (k, r) and in the contrast rows (m, r), over the units either sees (r = 3 × them),
+        or None. A unit error moves a misclosure by ``+nᵀs`` (before) or ``−nᵀs`` (after), a
+        contrast of either epoch by ``+nᵀs`` (:mod:`.unit_contrasts`)."""
+        s = self.shares_before if which == "unit_before" else self.shares_after
+        c = rows.shares_before if which == "unit_before" else rows.shares_after
+        if s is None or c is None:
+            return None
+        sm = s[idx]
+        keep = np.any(sm != 0.0, axis=0) | np.any(c != 0.0, axis=0)
+        if not np.any(keep):
+            return None
+        sign = 1.0 if which == "unit_before" else -1.0
+        return (
+            sign * _share_design(sm[:, keep], self.normals[idx]),
+            _share_design(c[:, keep], rows.normal),
+        )
 
     def contrast_bases(self, idx: np.ndarray, rows: ContrastRows, bases: Dict[str, np.ndarray]):
         """``bases`` (k, k) of the planes ``idx`` extended by the contrast rows ``rows``
@@ -1201,22 +1220,17 @@ class PlaneModel:
         k, m = idx.size, rows.size
         out = {}
         for name, b in bases.items():
-            ext = np.zeros((k + m, k + m))
-            if name in ("unit_before", "unit_after"):
-                s = self.shares_before if name == "unit_before" else self.shares_after
-                c = rows.shares_before if name == "unit_before" else rows.shares_after
-                if s is None or c is None:
-                    ext[:k, :k] = b
-                else:
-                    # a unit error moves a misclosure by +nᵀs (before) or −nᵀs (after),
-                    # a contrast of either epoch by +nᵀs (unit_contrasts)
-                    full = np.vstack([s[idx], c if name == "unit_before" else -c])
-                    full = full[:, np.any(full != 0.0, axis=0)]
-                    nrm = np.vstack([self.normals[idx], rows.normal])
-                    z = (full[:, :, None] * nrm[:, None, :]).reshape(k + m, -1)
-                    ext = z @ z.T
-            else:
+            zz = (
+                self.unit_designs(name, idx, rows)
+                if name in ("unit_before", "unit_after")
+                else None
+            )
+            if zz is None:
+                ext = np.zeros((k + m, k + m))
                 ext[:k, :k] = b
+            else:
+                z = np.vstack(zz)
+                ext = z @ z.T
             out[name] = ext
         return out
 
@@ -1269,9 +1283,7 @@ class PlaneModel:
         keep = sub.sum(axis=0) > 0
         if not np.any(keep):
             return None
-        sub = sub[:, keep]
-        z = sub[:, :, None] * self.normals[idx][:, None, :]
-        return z.reshape(idx.size, -1)
+        return _share_design(sub[:, keep], self.normals[idx])
 
     def n_units(self, which: str, idx: np.ndarray) -> int:
         s = self.shares_before if which == "unit_before" else self.shares_after
@@ -1333,24 +1345,18 @@ def condition_on_contrasts(
 ) -> Optional[ContrastCondition]:
     """The :class:`ContrastCondition` of the planes ``idx`` (sorted) under the components
     ``theta`` (variances, m²), or None (no contrast row, or no unit component in force)."""
-    rows = model.contrast_rows(idx)
+    rows = model.contrast_rows()
     if rows is None:
         return None
-    k, m = idx.size, rows.size
     zm, zc, lam = [], [], []
-    for name, sign in (("unit_before", 1.0), ("unit_after", -1.0)):
+    for name in ("unit_before", "unit_after"):
         t = float(theta.get(name, 0.0))
-        s = model.shares_before if name == "unit_before" else model.shares_after
-        c = rows.shares_before if name == "unit_before" else rows.shares_after
-        if not t > 0 or s is None or c is None:
+        zz = model.unit_designs(name, idx, rows) if t > 0 else None
+        if zz is None:
             continue
-        sm = s[idx]
-        keep = np.any(sm != 0.0, axis=0) | np.any(c != 0.0, axis=0)
-        if not np.any(keep):
-            continue
-        zm.append(sign * (sm[:, keep][:, :, None] * model.normals[idx][:, None, :]).reshape(k, -1))
-        zc.append((c[:, keep][:, :, None] * rows.normal[:, None, :]).reshape(m, -1))
-        lam.append(np.full(zm[-1].shape[1], t))
+        zm.append(zz[0])
+        zc.append(zz[1])
+        lam.append(np.full(zz[0].shape[1], t))
     if not zm:
         return None
     z, zcm, lam_d = np.hstack(zm), np.hstack(zc), np.concatenate(lam)
@@ -1388,6 +1394,12 @@ def covariance_with_contrasts(
     d = np.concatenate([p + (0.0 if inflation is None else inflation), rows.var + nug])
     v[np.diag_indices_from(v)] += d
     return v
+
+
+def _share_design(shares: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(n, 3V) design of V units' 3-D errors along each row's normal: ``shares`` (n, V)
+    times ``normals`` (n, 3), the columns (unit, axis)."""
+    return (shares[:, :, None] * normals[:, None, :]).reshape(shares.shape[0], -1)
 
 
 def covariance(
@@ -1872,9 +1884,7 @@ def estimate_components(
 
     # the planes' within-epoch unit contrasts (unit_contrasts): rows beside the misclosures,
     # no motion in them, their unit shares beside the planes'
-    rows = (
-        model.contrast_rows(ids) if any(n in free for n in ("unit_before", "unit_after")) else None
-    )
+    rows = model.contrast_rows() if any(n in free for n in ("unit_before", "unit_after")) else None
     sel_rows = None
     if rows is not None and rows.size > VCE_MAX_CONTRASTS:
         # a seeded subset keeps REML's matrices small; the motion uses every row
@@ -1906,7 +1916,7 @@ def estimate_components(
             th, sd, it, conv, m2ll, pc = _reml_fixed_point(e_, x_, ts, p_, bases, th0, fx, i_, rts)
             return (th, sd, it, conv, m2ll, kern, pc, bases, fx)
         if rows is not None:
-            rr = mdl.contrast_rows(ids)
+            rr = mdl.contrast_rows()
             rr = rr if sel_rows is None else rr.take(sel_rows)
             bases = mdl.contrast_bases(ids, rr, bases)
             bases[CONTRAST_NUGGET] = np.diag(np.concatenate([np.zeros(ids.size), np.ones(rr.size)]))

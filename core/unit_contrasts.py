@@ -86,7 +86,7 @@ class UnitContrasts:
     #: :meth:`shares` per knot spacing, computed once (every side's adjustment and every
     #: transfer round of a slip asks for the same survey's rows)
     _shares: Dict[float, Tuple[np.ndarray, np.ndarray]] = field(
-        default_factory=dict, repr=False, compare=False
+        default_factory=dict, init=False, repr=False, compare=False
     )
 
     @property
@@ -128,11 +128,9 @@ def screen_contrasts(con: Optional[UnitContrasts], *, k_gross: float = GROSS_CON
         "unit contrasts: %d of %d left out as gross (more than %.0f robust std from the "
         "median offset %.1f mm)", int((~keep).sum()), con.size, k_gross, med * 1000.0,
     )  # fmt: skip
-    return UnitContrasts(
-        plane=con.plane[keep], value=con.value[keep], var=con.var[keep],
+    return replace(
+        con, plane=con.plane[keep], value=con.value[keep], var=con.var[keep],
         normal=con.normal[keep], row_groups=con.row_groups[keep],
-        point_index=con.point_index, point_group=con.point_group,
-        point_unit=con.point_unit, point_time=con.point_time,
     )  # fmt: skip
 
 
