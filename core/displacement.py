@@ -1218,11 +1218,12 @@ def estimate_slip(
     ):
         # every plane of both sides first: their unit contrasts tie the units across the
         # fault in each side's adjustment (a strip adjustment inside the slip's)
+        # (the progress in order: both sides' planes to 0.7, then their adjustments)
         for k, side in enumerate(SIDES):
             mb, ma = masks[side]
             planes[side] = _segment_side(
                 before[mb], after[ma], side=side, plane_options=plane_options,
-                progress=scaled(scaled(progress, 0.5 * k, 0.5 * (k + 1)), 0.0, 1.0),
+                progress=scaled(progress, 0.35 * k, 0.35 * k + 0.5),
             )  # fmt: skip
         contrasts = _survey_contrasts(
             [((before[masks[s][0]], after[masks[s][1]]),
@@ -1238,6 +1239,10 @@ def estimate_slip(
     for k, side in enumerate(SIDES):
         mb, ma = masks[side]
         sub = scaled(progress, 0.5 * k, 0.5 * (k + 1))
+        if planes:
+            # segmented above: register_side's own 0.7 - 1 (its adjustment) falls on this
+            # side's share of 0.7 - 1 of the whole
+            sub = scaled(progress, 0.35 + 0.15 * k, 0.85 + 0.15 * k)
         kw = dict(
             side=side,
             sigma_before=_per_point(sigma_before, mb),
