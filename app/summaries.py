@@ -171,11 +171,14 @@ def slip_model(payload: Dict[str, Any]) -> str:
     return str(model)
 
 
-def component_text(name: str, comp: Dict[str, Any], range_m=None, drift_s=False) -> str:
+def component_text(
+    name: str, comp: Dict[str, Any], range_m=None, drift_s=False, lever_m=None
+) -> str:
     """One variance component for a console line, e.g. ``spatial 2.56 mm (sd 1.10, estimated,
     range 27 m)``; ``unit_after off`` for a component that is not in the model. ``drift_s``:
     the units' drift along GpsTime (its knot spacing in seconds, None: rigid units; False:
-    no acquisition times)."""
+    no acquisition times); ``lever_m``: the lever of the units' turn (None: they do not
+    turn), shown as the turn's 1σ per axis."""
     source = comp.get("source", "")
     if source == "off":
         return f"{name} off"
@@ -193,6 +196,9 @@ def component_text(name: str, comp: Dict[str, Any], range_m=None, drift_s=False)
             if drift_s is None
             else f"drifting along GpsTime, knots every {float(drift_s):g} s"
         )
+    if name.startswith("unit_") and lever_m is not None and _mm(comp.get("sigma_m")) is not None:
+        turn = float(comp["sigma_m"]) / float(lever_m) * 1000.0
+        extra.append(f"turning {turn:.3f} mrad about its origin (lever {float(lever_m):g} m)")
     return f"{name} {_fmt_mm(comp.get('sigma_m'))} mm ({', '.join(e for e in extra if e)})"
 
 
@@ -207,8 +213,9 @@ def side_component_line(side: str, side_dict: Dict[str, Any]) -> Optional[str]:
         "n/a" if n_eff is None else f"{float(n_eff):.1f}"
     )
     drift = vc["unit_drift_interval_s"] if "unit_drift_interval_s" in vc else False
+    lever = vc.get("unit_turn_lever_m")
     comps = [
-        component_text(name, c, vc.get("spatial_range_m"), drift)
+        component_text(name, c, vc.get("spatial_range_m"), drift, lever)
         for name, c in (vc.get("components") or {}).items()
     ]
     tied = vc.get("unit_contrasts")
@@ -309,6 +316,10 @@ def stochastic_tables(payload: Dict[str, Any]) -> Dict[str, Any]:
             if "unit_drift_interval_s" in vc:
                 head[f"{side}: unit drift knots (s; empty: rigid units)"] = vc[
                     "unit_drift_interval_s"
+                ]
+            if vc.get("unit_turn_lever_m") is not None:
+                head[f"{side}: unit turn lever (m; empty: units translate only)"] = vc[
+                    "unit_turn_lever_m"
                 ]
             if vc.get("unit_contrasts"):
                 tied = vc["unit_contrasts"]

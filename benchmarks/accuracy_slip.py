@@ -27,6 +27,10 @@ Usage::
     # units (docs/accuracy.md, "Units tied on the planes they share")
     python benchmarks/accuracy_slip.py --cases issue30 --seeds 30 --first-seed 2000 \
         --no-peer --jobs 2 --unit-contrasts off
+    # units that turn about their origins as well as translate (on by default) against
+    # translations only (docs/accuracy.md, "Units that turn")
+    python benchmarks/accuracy_slip.py --cases issue30 --seeds 30 --first-seed 2000 \
+        --no-peer --jobs 2 --unit-turn off
 
 Each case draws ``--seeds`` synthetic fault pairs (18.1 mm of dextral slip, a town of 12
 buildings on 150 m, independent samplings of both epochs) with a correlated survey error of
@@ -241,8 +245,13 @@ def one(
     random_tilt=None,
     unit_times=True,
     unit_contrasts=True,
+    unit_turn=True,
 ) -> dict:
     """One pair of one case: errors of every method (metres) and their σ."""
+    import slipmap.core.stochastic as stochastic
+
+    # the units' turn (a module switch: a benchmark device, set in this worker process)
+    stochastic.UNIT_TURN = bool(unit_turn)
     c = CASES[case_name]
     t0 = time.perf_counter()
     fp = draw_pair(case_name, seed)
@@ -295,6 +304,11 @@ def one(
                 _finite(getattr(res, s).rigid.variance_components.unit_interval_s)
                 for s in ("left", "right")
             ] + [_finite(jc.unit_interval_s) if jc is not None else None]
+            # the units' turn: its lever per side and joint (None: translations only)
+            row[label]["unit_lever_m"] = [
+                _finite(getattr(res, s).rigid.variance_components.unit_lever_m)
+                for s in ("left", "right")
+            ] + [_finite(jc.unit_lever_m) if jc is not None else None]
             row[label]["components"] = {
                 s: {k.name: k.sigma_m for k in getattr(res, s).rigid.variance_components.components}
                 for s in ("left", "right")
@@ -508,6 +522,14 @@ def main(argv=None):
         "(estimate_slip(unit_contrasts=...), core.unit_contrasts; default on, as the slip "
         "job); off: the units untied, as before stop 43",
     )
+    ap.add_argument(
+        "--unit-turn",
+        choices=("on", "off"),
+        default="on",
+        help="let the full model's units turn about their origins as well as translate "
+        "(core.stochastic.UNIT_TURN, the lever chosen by REML; default on, as the slip job); "
+        "off: translations only, as before stop 44",
+    )
     args = ap.parse_args(argv)
     cases = [k for c in args.cases.split(",") if c for k in PRESETS.get(c, (c,))]
     for c in cases:
@@ -528,6 +550,7 @@ def main(argv=None):
             {"on": True, "off": False}.get(args.random_tilt),
             args.unit_times == "on",
             args.unit_contrasts == "on",
+            args.unit_turn == "on",
         )
         for c in cases
         for s in range(args.first_seed, args.first_seed + args.seeds)

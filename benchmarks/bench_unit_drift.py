@@ -1,5 +1,6 @@
-"""Cost of the units' drift along GpsTime (``core.unit_drift``) or of tying the units on the
-planes they share (``core.unit_contrasts``) in a slip run (issue #30).
+"""Cost of the units' drift along GpsTime (``core.unit_drift``), of tying the units on the
+planes they share (``core.unit_contrasts``) or of letting them turn (``core.stochastic``
+``UNIT_TURN``) in a slip run (issue #30).
 
 For one pair of each of four survey kinds of ``accuracy_slip.py`` (MLS drift with renovated
 buildings, MLS lever arm on crossing streets, TLS setups, ALS strips with a boresight roll;
@@ -11,7 +12,10 @@ acquisition units, alternated, ``--repeat`` times each:
   REML, or one rigid error per unit), with the contrasts off as before stop 43; reports the
   knot spacing each side and the joint estimate chose;
 - ``--compare contrasts``: with the GpsTime, with and without the within-epoch unit
-  contrasts; reports the contrast rows each side used (before, after).
+  contrasts; reports the contrast rows each side used (before, after);
+- ``--compare turn``: with the GpsTime and the contrasts (the job's defaults), with and
+  without the units' turn (``UNIT_TURN``, the lever profiled by REML); reports the lever each
+  side and the joint estimate chose.
 
 CPU seconds of the process (run with ``OMP_NUM_THREADS=1`` for one core), the fastest of the
 repeats.
@@ -19,7 +23,7 @@ repeats.
 Usage::
 
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_unit_drift.py \\
-        [--compare drift|contrasts] [--repeat 3]
+        [--compare drift|contrasts|turn] [--repeat 3]
 
 The last line is JSON.
 """
@@ -38,6 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_slip as A  # noqa: E402
 
+from slipmap.core import stochastic  # noqa: E402
 from slipmap.core.displacement import estimate_slip  # noqa: E402
 from slipmap.core.fault import fault_trace  # noqa: E402
 
@@ -56,7 +61,14 @@ def _spacing(v):
 
 
 def _what(res, compare):
-    """What the run chose: the knot spacings (left, right, joint) or the contrast rows."""
+    """What the run chose: the knot spacings or levers (left, right, joint), or the contrast
+    rows."""
+    if compare == "turn":
+        jc = res.joint_components
+        return [
+            _spacing(getattr(res, s).rigid.variance_components.unit_lever_m)
+            for s in ("left", "right")
+        ] + [_spacing(jc.unit_lever_m) if jc is not None else None]
     if compare == "contrasts":
         return [
             list(getattr(res, s).rigid.variance_components.n_contrasts) for s in ("left", "right")
@@ -71,11 +83,12 @@ def _what(res, compare):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--compare", choices=("drift", "contrasts"), default="drift")
+    ap.add_argument("--compare", choices=("drift", "contrasts", "turn"), default="drift")
     args = ap.parse_args(argv)
-    names = ("rigid", "drift") if args.compare == "drift" else ("untied", "tied")
+    names = {"drift": ("rigid", "drift"), "contrasts": ("untied", "tied"),
+             "turn": ("translating", "turning")}[args.compare]  # fmt: skip
     rows = []
-    for case, seed in PAIRS + (MIXED if args.compare == "contrasts" else ()):
+    for case, seed in PAIRS + (MIXED if args.compare != "drift" else ()):
         fp = A.draw_pair(case, seed)
         trace = fault_trace([fp.trace_xy])
         base = dict(
@@ -87,18 +100,22 @@ def main(argv=None) -> int:
         if args.compare == "drift":
             runs = {"rigid": {"unit_contrasts": False},
                     "drift": dict(times, unit_contrasts=False)}  # fmt: skip
-        else:
+        elif args.compare == "contrasts":
             runs = {"untied": dict(times, unit_contrasts=False),
                     "tied": dict(times, unit_contrasts=True)}  # fmt: skip
+        else:
+            runs = {"translating": dict(times), "turning": dict(times)}
         cpu = {n: [] for n in names}
         chosen = None
         for _ in range(args.repeat):
             for name in names:
+                stochastic.UNIT_TURN = name != "translating"  # a benchmark device
                 t0 = time.process_time()
                 res = estimate_slip(fp.before.points, fp.after.points, trace, **base, **runs[name])
                 cpu[name].append(time.process_time() - t0)
                 if name == names[1]:
                     chosen = _what(res, args.compare)
+        stochastic.UNIT_TURN = True
         a, b = (min(cpu[n]) for n in names)
         row = {
             "case": case,
@@ -107,15 +124,15 @@ def main(argv=None) -> int:
             f"cpu_s_{names[0]}": round(a, 2),
             f"cpu_s_{names[1]}": round(b, 2),
             "ratio": round(b / a, 2),
-            ("spacing_s_left_right_joint" if args.compare == "drift"
-             else "contrasts_left_right"): chosen,
+            {"drift": "spacing_s_left_right_joint", "contrasts": "contrasts_left_right",
+             "turn": "lever_m_left_right_joint"}[args.compare]: chosen,
         }  # fmt: skip
         rows.append(row)
-        what = (
-            "spacing left/right/joint"
-            if args.compare == "drift"
-            else "contrast rows (before, after) left / right"
-        )
+        what = {
+            "drift": "spacing left/right/joint",
+            "contrasts": "contrast rows (before, after) left / right",
+            "turn": "lever (m) left/right/joint",
+        }[args.compare]
         print(
             f"{case} seed {seed}: {a:.2f} s {names[0]}, {b:.2f} s {names[1]} ({row['ratio']}x); "
             f"{what} {chosen}",

@@ -48,7 +48,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from statistics import NormalDist
 from typing import List, Optional, Tuple
 
@@ -621,6 +621,8 @@ class _StochasticConfig:
         #: force (inf: the rigid unit; NaN: no times)
         self.unit_drift: Optional[dict] = None
         self.unit_interval = float("nan")
+        #: the lever of the units' turn in force (inf: they translate only)
+        self.unit_lever = math.inf
         #: condition the units on the planes' within-epoch contrasts (unit_contrasts)
         self.use_contrasts = True
         self._cond_key = self._cond_model = self._cond = None
@@ -982,12 +984,16 @@ def _run(
         pairs = [_unit_shares(ep, u, b) for ep, u in zip(epochs, units)]
         if model == "full":
             drift = _unit_drift_options(epochs, units, times, pairs)
+            # rows given are in the frame of the points given; the own rows in the model's
+            given = None if unit_contrasts is None else centre
             if unit_contrasts is None and not dense:
                 unit_contrasts = _own_contrasts(epochs, units, times, b)
             if unit_contrasts and any(c is not None and c.size for c in unit_contrasts):
                 # the units the contrasts see widen the shares' columns (zero on the planes)
                 pairs, drift = with_contrast_units(unit_contrasts, pairs, drift)
-                contrasts = epoch_rows(unit_contrasts, tuple(p_[1] for p_ in pairs), drift)
+                contrasts = epoch_rows(
+                    unit_contrasts, tuple(p_[1] for p_ in pairs), drift, centre=given
+                )
         shares = [p_[0] for p_ in pairs]
         codes = [p_[1] for p_ in pairs]
     return _solve(
@@ -1105,6 +1111,9 @@ def _own_contrasts(epochs, units, times, b):
             out.append(None)
             continue
         con = unit_contrasts(ep.idx, ep.u, ep.of_valid(u), b, time_s=ep.of_valid(t))
+        # the points are each plane's less its centroid: the rows' positions in the
+        # centred frame (the model's) are those plus the plane's centroid
+        con = replace(con, position=con.position + ep.g[con.plane])
         out.append(screen_contrasts(con))
     return tuple(out)
 
@@ -1153,8 +1162,10 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         small_sample_factor=float(cfg.small),
         unit_options=drift,
         unit_interval_s=float(cfg.unit_interval),
-        contrasts=m.contrasts,  # already the drift's in force (cfg.model)
+        # already the drift's in force (cfg.model); positions in the input frame
+        contrasts=None if m.contrasts is None else m.contrasts.shifted(centre),
         contrast_gain=getattr(cfg, "contrast_gain", None),
+        unit_lever_m=float(cfg.unit_lever),
         **cfg.gain_extra,
     )
 
@@ -1323,7 +1334,10 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         cfg.theta = {n: v for n, v in est.theta.items() if v > 0}
         cfg.kernel = est.kernel
         cfg.unit_interval = est.unit_interval_s
-        cfg.model = cfg.model.with_unit_interval(est.unit_interval_s)
+        cfg.unit_lever = est.unit_lever_m
+        cfg.model = cfg.model.with_unit_interval(est.unit_interval_s).with_unit_lever(
+            est.unit_lever_m
+        )
         tilt_moved = False
         if tilt_free:
             # the tilts' misclosures against their point noise, with the offsets' model as
@@ -1492,6 +1506,7 @@ def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, not
         notes=tuple(all_notes),
         tilt=tilt if tilt is not None else _stoch.TiltEstimate(),
         unit_interval_s=float(cfg.unit_interval),
+        unit_lever_m=float(cfg.unit_lever),
         n_contrasts=(
             (0, 0)
             if cfg.model.contrasts is None or cfg.condition(active) is None

@@ -35,7 +35,12 @@ field along the normals would not be physical: the sign of a normal is a convent
 ``Z_e`` (planes × 3·units) holds,
 for plane ``j`` and unit ``u`` of epoch ``e``, the share of the plane's epoch-``e`` points from
 that unit times the plane normal: a random rigid translation ``s_u ~ N(0, σ_e² I₃)`` per unit
-and epoch moves the plane along its normal by ``n_jᵀ s_u``.
+and epoch moves the plane along its normal by ``n_jᵀ s_u``. A unit's error is a rigid motion:
+a TLS setup registered to 2 mm and 0.05 mrad also turns about the instrument, moving a
+facade 40 m away by 2 mm more. With a lever ``L`` (:attr:`PlaneModel.unit_lever_m`, chosen
+by REML from :data:`UNIT_LEVERS_M` or none) each unit also turns, ``ω_u ~ N(0, (σ_e/L)²
+I₃)`` about its origin ``o_u`` (the centroid of the planes and contrast rows it holds),
+and ``Z_e`` gains three columns per unit, the share times ``(c_j − o_u) × n_j / L``.
 
 Reduction to a plane-level GLS. :mod:`.adjustment` carries ``δ_j`` as an eleventh column of
 the after-epoch rows and eliminates each plane's own parameters (``a, b, c, d`` with the unit
@@ -154,6 +159,17 @@ VCE_MAX_CONTRASTS = 300  # REML on a seeded subset of the unit contrast rows bey
 #: the variance (m²) of the unit contrast rows' own misfit, estimated by REML beside the
 #: components when the rows are there (:mod:`.unit_contrasts`); not a survey component
 CONTRAST_NUGGET = "contrast"
+#: levers (metres) of a unit's turn about its origin that REML may choose
+#: (:attr:`PlaneModel.unit_lever_m`): a unit's error is a rigid motion, a translation ``s``
+#: and a turn ``ω`` about the unit's points' centroid ``o``, moving a plane at ``c`` by
+#: ``nᵀ(s + ω × (c − o))`` with ``ω ~ N(0, (σ_e / L)² I₃)``: a TLS setup registered to
+#: 2 mm and 0.05 mrad has ``L`` = 40 m, an ALS strip of 1 cm with a 0.17 mrad roll 60 m.
+#: The likeliest is taken when it beats the translation alone by
+#: :data:`.unit_drift.UNIT_INTERVAL_MARGIN` in −2 log L (docs/accuracy.md, "Units that
+#: turn")
+UNIT_LEVERS_M: Tuple[float, ...] = (15.0, 30.0, 60.0, 120.0)
+#: whether REML may choose a lever (False: the units translate only, as before stop 44)
+UNIT_TURN = True
 MIN_PLANES_VCE = 15  # fewer planes than this cannot pin the plane component down
 K_WEIGHT = 3.0  # |w| above which a plane is down-weighted (IGG-III)
 K_REJECT_MIN = 4.0  # |w| above which a plane is rejected (at least; Bonferroni may raise it)
@@ -225,15 +241,18 @@ def check_components(components: Optional[Mapping[str, float]], *, option: str =
     out = {}
     names = COMPONENT_NAMES + ("spatial_range_m", "spatial_family", "tilt_rad")
     for k, v in dict(components).items():
-        if k == "unit_interval_s":  # a side's drift held by its strips / windows / tiles
+        if k in ("unit_interval_s", "unit_lever_m"):
+            # a side's drift and turn held by its strips / windows / tiles
             try:
                 f = float(v)
             except (TypeError, ValueError):
                 f = float("nan")
             if not f > 0:
-                raise InvalidParameterError(
-                    f"{option}: unit_interval_s must be > 0 seconds (inf: rigid units); got {v!r}"
-                )
+                what = (
+                    "seconds (inf: rigid units)" if k == "unit_interval_s"
+                    else "metres (inf: units that translate only)"
+                )  # fmt: skip
+                raise InvalidParameterError(f"{option}: {k} must be > 0 {what}; got {v!r}")
             out[k] = f
             continue
         if k not in names:
@@ -628,6 +647,8 @@ class PlaneGain:
     #: (6, m) ``∂ params / ∂ c`` of the contrast rows (the motion takes the units' errors
     #: they predict off the misclosures, :class:`ContrastCondition`); None: not used
     contrast_gain: Optional[np.ndarray] = None
+    #: the lever of the units' turn the adjustment chose (:data:`UNIT_LEVERS_M`; inf: none)
+    unit_lever_m: float = math.inf
 
     def support(self):
         """(k, S, 3) samples, (k, S) weights and (k,) radii (see :class:`PlaneModel`)."""
@@ -714,6 +735,9 @@ class JointComponents:
     unit_interval_s : float
         Knot spacing of the units' drift along GpsTime chosen on both sides' planes together,
         seconds (inf: rigid units; NaN: no acquisition times).
+    unit_lever_m : float
+        Lever of the units' turn chosen on both sides together, metres (inf: none;
+        :data:`UNIT_LEVERS_M`).
     """
 
     theta: Dict[str, float]
@@ -723,12 +747,18 @@ class JointComponents:
     small_sample_factor: float
     family: str = "spherical"
     unit_interval_s: float = float("nan")
+    unit_lever_m: float = math.inf
 
     def to_dict(self) -> Dict[str, object]:
         return {
             **(
                 {"unit_drift_interval_s": _num(self.unit_interval_s)}
                 if self.unit_interval_s == self.unit_interval_s
+                else {}
+            ),
+            **(
+                {"unit_turn_lever_m": _num(self.unit_lever_m)}
+                if math.isfinite(self.unit_lever_m)
                 else {}
             ),
             "components": {
@@ -821,7 +851,7 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
         seed=seed, prior_plane_var=max(a.prior_plane_var, b.prior_plane_var), rt=rt,
     )  # fmt: skip
     theta = {n: v for n, v in est.theta.items() if v > 0}
-    model = model.with_unit_interval(est.unit_interval_s)
+    model = model.with_unit_interval(est.unit_interval_s).with_unit_lever(est.unit_lever_m)
     rows = model.contrasts
     if rows is not None and (a.contrast_gain is not None or b.contrast_gain is not None):
         # each side's motion takes the units' errors its contrast rows predict off its
@@ -851,7 +881,7 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
     joint = JointComponents(
         theta=dict(est.theta), source=dict(est.source), range_m=float(est.range_m),
         n_planes=int(k), small_sample_factor=float(small), family=est.kernel.family,
-        unit_interval_s=float(est.unit_interval_s),
+        unit_interval_s=float(est.unit_interval_s), unit_lever_m=float(est.unit_lever_m),
     )  # fmt: skip
     return small * 0.5 * (cov + cov.T), joint
 
@@ -919,7 +949,13 @@ def cross_covariance(a: PlaneGain, b: PlaneGain) -> np.ndarray:
       independent fields (no cross term);
     * acquisition units: a unit present on both sides (the same id in the same epoch) has one
       rigid translation ``ξ_u ~ N(0, I₃)``, seen scaled by each side's ``σ_e``:
-      ``σ_e,a σ_e,b Z_a,u Z_b,uᵀ``;
+      ``σ_e,a σ_e,b G_a,u G_b,uᵀ`` with ``G = K Z + K_c Z_c``, the side's gain on the unit
+      through its misclosures and through the contrast rows its motion is conditioned on
+      (:class:`ContrastCondition`); when both sides' units turn (:data:`UNIT_LEVERS_M`), one
+      turn per unit about one origin (:func:`_common_origins`) beside it, scaled by each
+      side's ``σ_e / L``;
+    * the contrast rows, when both sides hold the same survey's rows: their own noise once,
+      ``K_c,a diag(var + √(ν_a ν_b)) K_c,bᵀ`` (``ν`` each side's nugget of the rows);
     * the plane component (nugget) and the point noise: independent, no cross term.
 
     Why combine the two sides' estimates rather than estimate one set on both sides: each
@@ -959,6 +995,9 @@ def cross_covariance(a: PlaneGain, b: PlaneGain) -> np.ndarray:
             val = math.sqrt(ta * tb) * rho
             val = val * np.einsum("ij,ij->i", a.normals[i], b.normals[j])
             out += (a.gain[:, i] * val) @ b.gain[:, j].T
+    rows_a = a.contrasts if a.contrast_gain is not None else None
+    rows_b = b.contrasts if b.contrast_gain is not None else None
+    shared_rows = rows_a is not None and rows_a.same_rows(rows_b)
     for name in ("unit_before", "unit_after"):
         epoch = name.split("_")[1]
         ta, tb = float(a.theta.get(name, 0.0)), float(b.theta.get(name, 0.0))
@@ -969,11 +1008,68 @@ def cross_covariance(a: PlaneGain, b: PlaneGain) -> np.ndarray:
         common, ia, ib = np.intersect1d(ua, ub, return_indices=True)
         if common.size == 0:
             continue
-        # gain Z of each side for the shared units: (6, units, 3)
-        ga = np.einsum("pk,km,kd->pmd", a.gain, sa[:, ia], a.normals)
-        gb = np.einsum("pk,km,kd->pmd", b.gain, sb[:, ib], b.normals)
-        out += math.sqrt(ta * tb) * np.einsum("pmd,qmd->pq", ga, gb)
+        sign = 1.0 if epoch == "before" else -1.0
+        turn = math.isfinite(a.unit_lever_m) and math.isfinite(b.unit_lever_m)
+        origins = _common_origins(a, b, epoch, ia, ib, shared_rows) if turn else None
+        # ∂x̂/∂(unit errors) of each side for the shared units, through its misclosures and
+        # through the contrast rows its motion is conditioned on: (6, units, 3 or 6)
+        ga = _unit_gain(a, epoch, ia, sign, rows_a, origins)
+        gb = _unit_gain(b, epoch, ib, sign, rows_b, origins)
+        scale = np.ones(ga.shape[2])
+        if turn:  # the turn's columns carry σ_e / L of each side
+            scale[3:] = 1.0 / (a.unit_lever_m * b.unit_lever_m)
+        out += math.sqrt(ta * tb) * np.einsum("pmd,qmd,d->pq", ga, gb, scale)
+    if shared_rows:
+        # one survey's rows in both motions: their own noise once
+        na = max(float(a.theta.get(CONTRAST_NUGGET, 0.0)), 0.0)
+        nb = max(float(b.theta.get(CONTRAST_NUGGET, 0.0)), 0.0)
+        d = rows_a.var + math.sqrt(na * nb)
+        out += (a.contrast_gain * d) @ b.contrast_gain.T
     return math.sqrt(a.small_sample_factor * b.small_sample_factor) * out
+
+
+def _common_origins(a: PlaneGain, b: PlaneGain, epoch: str, ia, ib, shared_rows) -> np.ndarray:
+    """(units, 3) origins of the units shared by two sides (their columns ``ia`` of ``a`` and
+    ``ib`` of ``b``): the centroid of both sides' planes and contrast rows (once when they
+    hold the same survey's rows), weighed by the shares (:meth:`PlaneModel.unit_origins` over
+    the union; one origin for both, so the two sides' turns and translations are one
+    unit's)."""
+    w, c = [], []
+    for g, cols in ((a, ia), (b, ib)):
+        w.append(np.abs(getattr(g, "shares_" + epoch)[:, cols]))
+        c.append(g.centroids)
+        rows = None if (g is b and shared_rows) else g.contrasts
+        rs = None if rows is None else getattr(rows, "shares_" + epoch)
+        if rs is not None and rows.position is not None:
+            w.append(np.abs(rs[:, cols]))
+            c.append(rows.position)
+    w, c = np.vstack(w), np.vstack(c)
+    tot = w.sum(axis=0)
+    return (w.T @ c) / np.where(tot > 0, tot, 1.0)[:, None]
+
+
+def _unit_gain(g: PlaneGain, epoch: str, cols, sign: float, rows, origins) -> np.ndarray:
+    """(6, units, q) ``K Z`` of the unit columns ``cols`` of one side: its gain on the
+    misclosures times their unit design (``sign``: + before, − after), plus its gain on the
+    contrast rows ``rows`` (None: not conditioned) times theirs; q = 3 (translations) or 6
+    with ``origins`` (units, 3): the turn's columns, unscaled by the lever."""
+
+    def design(shares, normals, where):
+        tr = shares[:, :, None] * normals[:, None, :]
+        if origins is None:
+            return tr
+        arm = where[:, None, :] - origins[None, :, :]
+        return np.concatenate([tr, shares[:, :, None] * np.cross(arm, normals[:, None, :])], axis=2)
+
+    out = sign * np.einsum(
+        "pk,kmd->pmd", g.gain, design(getattr(g, "shares_" + epoch)[:, cols], g.normals,
+                                      g.centroids)
+    )  # fmt: skip
+    rs = None if rows is None else getattr(rows, "shares_" + epoch)
+    if rs is not None and (origins is None or rows.position is not None):
+        out += np.einsum("pr,rmd->pmd", g.contrast_gain, design(rs[:, cols], rows.normal,
+                                                                 rows.position))  # fmt: skip
+    return out
 
 
 @dataclass(frozen=True)
@@ -1064,6 +1160,10 @@ class VarianceComponents:
     contrast_misfit_m : float
         The contrasts' own misfit beside their point noise (1σ, metres; REML), NaN when not
         estimated.
+    unit_lever_m : float
+        Lever of the units' turn about their origins, metres (:data:`UNIT_LEVERS_M`, chosen
+        by REML): the turn's 1σ per axis is the unit component's over it; ``math.inf``:
+        the units translate only.
     """
 
     model: str
@@ -1080,6 +1180,7 @@ class VarianceComponents:
     unit_interval_s: float = float("nan")
     n_contrasts: Tuple[int, int] = (0, 0)
     contrast_misfit_m: float = float("nan")
+    unit_lever_m: float = math.inf
 
     @property
     def sigma_white_m(self) -> np.ndarray:
@@ -1108,6 +1209,8 @@ class VarianceComponents:
             out["tilt_rad"] = float(self.tilt.sigma_rad)
         if self.unit_interval_s == self.unit_interval_s:
             out["unit_interval_s"] = float(self.unit_interval_s)
+        if math.isfinite(self.unit_lever_m):
+            out["unit_lever_m"] = float(self.unit_lever_m)
         return out
 
     def to_dict(self) -> Dict[str, object]:
@@ -1137,6 +1240,11 @@ class VarianceComponents:
                     }
                 }
                 if any(self.n_contrasts)
+                else {}
+            ),
+            **(
+                {"unit_turn_lever_m": _num(self.unit_lever_m)}
+                if math.isfinite(self.unit_lever_m)
                 else {}
             ),
         }
@@ -1170,6 +1278,9 @@ class PlaneModel:
     #: the planes' within-epoch unit contrasts (:mod:`.unit_contrasts`), rows beside the
     #: misclosures in the REML of the unit components; None: none
     contrasts: Optional[ContrastRows] = None
+    #: the lever (metres) of the units' turn about their origins (:data:`UNIT_LEVERS_M`;
+    #: ``math.inf``: translations only)
+    unit_lever_m: float = math.inf
 
     @property
     def unit_intervals(self) -> Tuple[float, ...]:
@@ -1186,6 +1297,44 @@ class PlaneModel:
         sb, sa = opts[interval_s]
         con = None if self.contrasts is None else self.contrasts.with_interval(interval_s)
         return replace(self, shares_before=sb, shares_after=sa, contrasts=con)
+
+    def with_unit_lever(self, lever_m: float) -> PlaneModel:
+        """The model whose units turn with lever ``lever_m`` (``math.inf``: they do not)."""
+        if lever_m == self.unit_lever_m or not lever_m == lever_m:
+            return self
+        return replace(self, unit_lever_m=float(lever_m))
+
+    def unit_origins(self, which: str) -> Optional[np.ndarray]:
+        """(U, 3) each unit column's origin: the centroid of the planes and contrast rows it
+        holds, weighed by its shares (a TLS setup's points lie around the instrument, an ALS
+        strip's along its flight line); None without shares."""
+        s = self.shares_before if which == "unit_before" else self.shares_after
+        if s is None:
+            return None
+        w, c = np.abs(s), self.centroids
+        rows = self.contrasts
+        if rows is not None and rows.position is not None:
+            rs = rows.shares_before if which == "unit_before" else rows.shares_after
+            if rs is not None:
+                w = np.vstack([w, np.abs(rs)])
+                c = np.vstack([c, rows.position])
+        ok = np.all(np.isfinite(c), axis=1)
+        w, c = w[ok], c[ok]
+        tot = w.sum(axis=0)
+        return (w.T @ c) / np.where(tot > 0, tot, 1.0)[:, None]
+
+    def _unit_design(self, which, shares, normals, positions, keep):
+        """:func:`_share_design` of the unit columns ``keep`` with the units' turn when the
+        model has a lever and every row of it a position (rows without: translations)."""
+        rows = self.contrasts
+        if (
+            not math.isfinite(self.unit_lever_m)
+            or positions is None
+            or (rows is not None and rows.position is None)
+        ):
+            return _share_design(shares, normals)
+        origins = self.unit_origins(which)[keep]
+        return _share_design(shares, normals, positions, origins, self.unit_lever_m)
 
     def contrast_rows(self) -> Optional[ContrastRows]:
         """The contrast rows beside any of the planes (all of them: a within-epoch contrast
@@ -1208,10 +1357,14 @@ class PlaneModel:
         if not np.any(keep):
             return None
         sign = 1.0 if which == "unit_before" else -1.0
+        turn = rows.position is not None  # rows without positions: translations only
         return (
-            sign * _share_design(sm[:, keep], self.normals[idx]),
-            _share_design(c[:, keep], rows.normal),
-        )
+            sign * self._unit_design(
+                which, sm[:, keep], self.normals[idx], self.centroids[idx] if turn else None,
+                keep,
+            ),
+            self._unit_design(which, c[:, keep], rows.normal, rows.position, keep),
+        )  # fmt: skip
 
     def contrast_bases(self, idx: np.ndarray, rows: ContrastRows, bases: Dict[str, np.ndarray]):
         """``bases`` (k, k) of the planes ``idx`` extended by the contrast rows ``rows``
@@ -1283,7 +1436,7 @@ class PlaneModel:
         keep = sub.sum(axis=0) > 0
         if not np.any(keep):
             return None
-        return _share_design(sub[:, keep], self.normals[idx])
+        return self._unit_design(which, sub[:, keep], self.normals[idx], self.centroids[idx], keep)
 
     def n_units(self, which: str, idx: np.ndarray) -> int:
         s = self.shares_before if which == "unit_before" else self.shares_after
@@ -1396,10 +1549,24 @@ def covariance_with_contrasts(
     return v
 
 
-def _share_design(shares: np.ndarray, normals: np.ndarray) -> np.ndarray:
+def _share_design(
+    shares: np.ndarray,
+    normals: np.ndarray,
+    positions: Optional[np.ndarray] = None,
+    origins: Optional[np.ndarray] = None,
+    lever_m: float = math.inf,
+) -> np.ndarray:
     """(n, 3V) design of V units' 3-D errors along each row's normal: ``shares`` (n, V)
-    times ``normals`` (n, 3), the columns (unit, axis)."""
-    return (shares[:, :, None] * normals[:, None, :]).reshape(shares.shape[0], -1)
+    times ``normals`` (n, 3), the columns (unit, axis). With a finite ``lever_m`` and the
+    rows' ``positions`` (n, 3) and the units' ``origins`` (V, 3) (metres, one frame), (n, 6V):
+    each unit's columns are its translation then its turn scaled by the lever,
+    ``((c − o_v) × n) / L`` (:data:`UNIT_LEVERS_M`)."""
+    tr = shares[:, :, None] * normals[:, None, :]
+    if not math.isfinite(lever_m) or positions is None or origins is None:
+        return tr.reshape(shares.shape[0], -1)
+    arm = positions[:, None, :] - origins[None, :, :]  # (n, V, 3)
+    turn = shares[:, :, None] * np.cross(arm, normals[:, None, :]) / float(lever_m)
+    return np.concatenate([tr, turn], axis=2).reshape(shares.shape[0], -1)
 
 
 def covariance(
@@ -1572,6 +1739,9 @@ class Estimate:
     #: knot spacing of the units' drift along GpsTime, seconds (:mod:`.unit_drift`;
     #: ``math.inf``: the rigid unit; NaN: no acquisition times)
     unit_interval_s: float = float("nan")
+    #: lever of the units' turn about their origins, metres (:data:`UNIT_LEVERS_M`;
+    #: ``math.inf``: translations only)
+    unit_lever_m: float = math.inf
 
 
 def _reml_fixed_point(e, x, t, p, bases, theta0, fixed, inflation, rt=None):
@@ -1840,6 +2010,8 @@ def estimate_components(
     free = [n for n in which if n not in fixed_var]
     # the units' drift along GpsTime (unit_drift): the rigid unit first, a knot spacing
     # profiled below; a fixed "unit_interval_s" (a strip or window of a side) is held
+    lever = float(fixed["unit_lever_m"]) if "unit_lever_m" in fixed else math.inf
+    model = model.with_unit_lever(lever)  # held, or chosen below after the drift
     base_model = model
     interval = math.inf if model.unit_options else float("nan")
     if "unit_interval_s" in fixed and model.unit_options:
@@ -1861,6 +2033,12 @@ def estimate_components(
                 "side like the motion and cannot be estimated; give it as a fixed component"
             )
     few = k < MIN_PLANES_VCE
+    turn = (
+        UNIT_TURN
+        and "unit_lever_m" not in fixed
+        and not few
+        and any(n in free for n in ("unit_before", "unit_after"))
+    )
     drift = ()
     if (
         "unit_interval_s" not in fixed
@@ -1962,6 +2140,20 @@ def estimate_components(
             interval = dt
             model = base_model.with_unit_interval(dt)
             best, fits = profile(model)
+    if turn and not math.isfinite(interval):
+        # the units' turn about their origins (UNIT_LEVERS_M), for rigid units (a drift
+        # along GpsTime is the trajectory's own model; on MLS pairs a turn of each knot's
+        # stretch was taken where none was drawn, docs/accuracy.md "Units that turn"): each
+        # lever at the kernel chosen, with the contrast rows (a turn moves two units' points
+        # on one plane apart by what their positions say), the likeliest taken when it beats
+        # translations alone
+        trials = [(fit(model.with_unit_lever(lv), best[5]), lv) for lv in UNIT_LEVERS_M]
+        f_lv, lv = min(trials, key=lambda t: t[0][4])
+        log.debug("REML unit lever: %s", {d: round(f[4], 2) for f, d in trials})
+        if f_lv[4] < best[4] - UNIT_INTERVAL_MARGIN:
+            lever = lv
+            model = model.with_unit_lever(lv)
+            best, fits = profile(model)
     th, sd, it, conv, m2ll_best, kern, pc, bases, fx = best
     if REML_TILT_SHARE < 1.0 and np.any(ts_full) and (len(kernels) > 1 or REML_TILT_SHARE > 0):
         # the kernel is chosen from the offsets; the components' values are then estimated
@@ -2019,6 +2211,7 @@ def estimate_components(
         source.get(n) != "off" and theta.get(n, 0.0) > 0 for n in ("unit_before", "unit_after")
     ):
         interval = math.inf  # no unit component in force: nothing drifts
+        lever = math.inf
     return Estimate(
         theta,
         sds,
@@ -2031,6 +2224,7 @@ def estimate_components(
         kern,
         m2ll,
         float(interval),
+        float(lever),
     )
 
 

@@ -72,6 +72,10 @@ class UnitContrasts:
         Their group and acquisition unit.
     point_time : (n_g,) float64 or None
         Their acquisition time (GpsTime, seconds), for the drift's shares.
+    position : (m, 3) float64 or None
+        Where each row is measured: the mean of its two groups' centroids, in the frame of
+        the points given (metres); a unit's turn about its origin moves the row by
+        ``nᵀ(ω × (position − origin))`` (:attr:`.stochastic.PlaneModel.unit_lever_m`).
     """
 
     plane: np.ndarray
@@ -83,6 +87,7 @@ class UnitContrasts:
     point_group: np.ndarray
     point_unit: np.ndarray
     point_time: Optional[np.ndarray] = None
+    position: Optional[np.ndarray] = None
     #: :meth:`shares` per knot spacing, computed once (every side's adjustment and every
     #: transfer round of a slip asks for the same survey's rows)
     _shares: Dict[float, Tuple[np.ndarray, np.ndarray]] = field(
@@ -131,6 +136,7 @@ def screen_contrasts(con: Optional[UnitContrasts], *, k_gross: float = GROSS_CON
     return replace(
         con, plane=con.plane[keep], value=con.value[keep], var=con.var[keep],
         normal=con.normal[keep], row_groups=con.row_groups[keep],
+        position=None if con.position is None else con.position[keep],
     )  # fmt: skip
 
 
@@ -143,6 +149,7 @@ def concat_contrasts(parts) -> Optional[UnitContrasts]:
         return None
     offs = np.cumsum([0] + [int(p.point_group.max(initial=-1)) + 1 for p in parts])
     times = [p.point_time for p in parts]
+    where = [p.position for p in parts]
     return UnitContrasts(
         plane=np.concatenate([p.plane for p in parts]),
         value=np.concatenate([p.value for p in parts]),
@@ -153,6 +160,7 @@ def concat_contrasts(parts) -> Optional[UnitContrasts]:
         point_group=np.concatenate([p.point_group + o for p, o in zip(parts, offs)]),
         point_unit=np.concatenate([p.point_unit for p in parts]),
         point_time=None if any(t is None for t in times) else np.concatenate(times),
+        position=None if any(w is None for w in where) else np.vstack(where),
     )
 
 
@@ -193,7 +201,7 @@ def unit_contrasts(
     empty = UnitContrasts(
         np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros((0, 3)),
         np.zeros((0, 2), np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
-        np.zeros(0, np.int64), None if time_s is None else np.zeros(0),
+        np.zeros(0, np.int64), None if time_s is None else np.zeros(0), np.zeros((0, 3)),
     )  # fmt: skip
     if n == 0:
         return empty
@@ -266,6 +274,7 @@ def unit_contrasts(
         1.0 / n_g[ga] + 1.0 / n_g[gb] + np.einsum("ri,rij,rj->r", dm, minv[rows_plane], dm)
     )
     value = off[ga] - off[gb]
+    x_g = np.stack([np.bincount(gp, x[:, k], ng) for k in range(3)], axis=1) / n_g[:, None]
     # the groups' ids renumbered to the rows' groups only
     used = np.unique(np.concatenate([ga, gb]))
     remap = np.full(ng, -1, np.int64)
@@ -283,6 +292,7 @@ def unit_contrasts(
         point_group=pg[inrow],
         point_unit=unit[sel][inrow],
         point_time=None if time_s is None else np.asarray(time_s, dtype=np.float64)[sel][inrow],
+        position=0.5 * (x_g[ga] + x_g[gb]),
     )
 
 
@@ -349,6 +359,9 @@ class ContrastRows:
     options : dict or None
         ``{interval_s: (shares_before, shares_after)}`` for each drift along GpsTime of the
         model's ``unit_options``, in its columns.
+    position : (m, 3) float64 or None
+        Where each row is measured (:attr:`UnitContrasts.position`), in the frame of the
+        model's centroids; None: not known (the units' turn is then not seen in the rows).
     """
 
     value: np.ndarray
@@ -359,6 +372,7 @@ class ContrastRows:
     options: Optional[Dict[float, Tuple[Optional[np.ndarray], Optional[np.ndarray]]]] = None
     #: rows of each epoch (before, after), for the report
     counts: Tuple[int, int] = (0, 0)
+    position: Optional[np.ndarray] = None
 
     @property
     def size(self) -> int:
@@ -384,7 +398,14 @@ class ContrastRows:
             options=None if self.options is None
             else {dt: (cut(sb), cut(sa)) for dt, (sb, sa) in self.options.items()},
             counts=self.counts,  # the set's, for the report
+            position=cut(self.position),
         )  # fmt: skip
+
+    def shifted(self, offset: np.ndarray) -> ContrastRows:
+        """The rows with their positions moved by ``offset`` (3,) metres (another frame)."""
+        if self.position is None:
+            return self
+        return replace(self, position=self.position + np.asarray(offset, dtype=np.float64))
 
     def same_rows(self, other: Optional[ContrastRows]) -> bool:
         """Whether ``other`` holds the same contrasts (two sides given one survey's rows)."""
@@ -432,12 +453,13 @@ def with_contrast_units(contrasts, pairs, drift):
     return pairs, drift
 
 
-def epoch_rows(contrasts, codes, drift=None) -> Optional[ContrastRows]:
+def epoch_rows(contrasts, codes, drift=None, centre=None) -> Optional[ContrastRows]:
     """Both epochs' contrasts (before, after: :class:`UnitContrasts` or None) as one
     :class:`ContrastRows`, their shares in the columns ``codes`` of each epoch's rigid unit
     shares and, for each drift of ``drift`` (``{interval_s: (shares, codes)}``), in that
-    drift's columns (an epoch without times keeps its rigid shares). None when neither epoch
-    has a contrast (or the epoch's model has no unit columns)."""
+    drift's columns (an epoch without times keeps its rigid shares); their positions less
+    ``centre`` (3,) (the model's frame; None: as given). None when neither epoch has a
+    contrast (or the epoch's model has no unit columns)."""
     parts = [(e, c) for e, c in enumerate(contrasts) if c is not None and c.size]
     parts = [(e, c) for e, c in parts if codes[e] is not None]
     if not parts:
@@ -463,6 +485,11 @@ def epoch_rows(contrasts, codes, drift=None) -> Optional[ContrastRows]:
     options = None
     if drift:
         options = {dt: shares_for(dt, cd) for dt, (_, cd) in drift.items()}
+    where = None
+    if all(c.position is not None for _, c in parts):
+        where = np.vstack([c.position for _, c in parts])
+        if centre is not None:
+            where = where - np.asarray(centre, dtype=np.float64)
     return ContrastRows(
         value=np.concatenate([c.value for _, c in parts]),
         var=np.concatenate([c.var for _, c in parts]),
@@ -471,6 +498,7 @@ def epoch_rows(contrasts, codes, drift=None) -> Optional[ContrastRows]:
         shares_after=sa,
         options=options,
         counts=tuple(sum(c.size for e, c in parts if e == w) for w in (0, 1)),
+        position=where,
     )
 
 
@@ -508,5 +536,8 @@ def union_rows(a: Optional[ContrastRows], b: Optional[ContrastRows], union):
         shares_after=both("after", None),
         options=opts,
         counts=tuple(sum(r.counts[w] for r in rows) for w in (0, 1)),
+        position=None
+        if any(r.position is None for r in rows)
+        else np.vstack([r.position for r in rows]),
     )
     return out, shared

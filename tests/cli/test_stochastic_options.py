@@ -211,3 +211,24 @@ def test_stochastic_tables_and_html(tmp_path):
     white = stochastic_tables(_payload("white"))
     assert "Stochastic model: components per side" not in white
     assert "σ right-lateral, white noise only (mm)" not in white["Stochastic model"]
+
+
+def test_a_turning_unit_is_named_with_its_turn_and_lever():
+    """A unit component with a lever (core.stochastic UNIT_LEVERS_M) says how much the unit
+    turns: 4 mm over a 40 m lever is 0.1 mrad per axis; the table names the lever."""
+    from slipmap.app.summaries import component_text, side_component_line, stochastic_tables
+
+    comp = {"sigma_m": 0.004, "source": "estimated"}
+    assert component_text("unit_before", comp, lever_m=40.0) == (
+        "unit_before 4.00 mm (estimated, turning 0.100 mrad about its origin (lever 40 m))"
+    )
+    assert "turning" not in component_text("unit_before", comp)
+    assert "turning" not in component_text("plane", comp, lever_m=40.0)
+    payload = _payload()
+    payload["left"]["variance_components"]["unit_turn_lever_m"] = 60.0
+    line = side_component_line("left", payload["left"])
+    assert "unit_before 4.00 mm (prior, turning 0.067 mrad about its origin (lever 60 m))" in line
+    head = stochastic_tables(payload)["Stochastic model"]
+    assert head["left: unit turn lever (m; empty: units translate only)"] == 60.0
+    head = stochastic_tables(_payload())["Stochastic model"]
+    assert "left: unit turn lever (m; empty: units translate only)" not in head
