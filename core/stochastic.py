@@ -1924,6 +1924,16 @@ def _candidate_kernels(c, subset, fixed, families):
             for r in _candidate_ranges(c, subset, f)]  # fmt: skip
 
 
+def _likelier(candidates, fit_at, ref, what: str):
+    """The candidate shape (a knot spacing, a lever) whose REML fit ``fit_at(candidate)``
+    (a tuple whose [4] is −2 log L) is the likeliest and beats ``ref`` by
+    :data:`UNIT_INTERVAL_MARGIN`, or None."""
+    trials = [(fit_at(c), c) for c in candidates]
+    f, c = min(trials, key=lambda t: t[0][4])
+    log.debug("REML %s: %s", what, {d: round(t[4], 2) for t, d in trials})
+    return c if f[4] < ref[4] - UNIT_INTERVAL_MARGIN else None
+
+
 def estimate_components(
     model: PlaneModel,
     idx: np.ndarray,
@@ -2131,12 +2141,14 @@ def estimate_components(
         # epoch, where a TLS setup's turn about the instrument reads as a drift along the
         # scan's time (docs/accuracy.md, "Units tied on the planes they share")
         ref = best if rows is None else fit(model, best[5], with_rows=False)
-        trials = [
-            (fit(base_model.with_unit_interval(dt), best[5], with_rows=False), dt) for dt in drift
-        ]
-        f_dt, dt = min(trials, key=lambda t: t[0][4])
-        log.debug("REML unit drift: %s", {d: round(f[4], 2) for f, d in trials})
-        if f_dt[4] < ref[4] - UNIT_INTERVAL_MARGIN:
+        kern = best[5]
+        dt = _likelier(
+            drift,
+            lambda d: fit(base_model.with_unit_interval(d), kern, with_rows=False),
+            ref,
+            "unit drift",
+        )  # fmt: skip
+        if dt is not None:
             interval = dt
             model = base_model.with_unit_interval(dt)
             best, fits = profile(model)
@@ -2147,10 +2159,9 @@ def estimate_components(
         # lever at the kernel chosen, with the contrast rows (a turn moves two units' points
         # on one plane apart by what their positions say), the likeliest taken when it beats
         # translations alone
-        trials = [(fit(model.with_unit_lever(lv), best[5]), lv) for lv in UNIT_LEVERS_M]
-        f_lv, lv = min(trials, key=lambda t: t[0][4])
-        log.debug("REML unit lever: %s", {d: round(f[4], 2) for f, d in trials})
-        if f_lv[4] < best[4] - UNIT_INTERVAL_MARGIN:
+        kern = best[5]
+        lv = _likelier(UNIT_LEVERS_M, lambda v: fit(model.with_unit_lever(v), kern), best, "lever")
+        if lv is not None:
             lever = lv
             model = model.with_unit_lever(lv)
             best, fits = profile(model)

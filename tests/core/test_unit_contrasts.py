@@ -243,12 +243,11 @@ def test_conditioned_gls_is_the_stacked_gls(sparse, monkeypatch):
     np.testing.assert_allclose(-gain @ cond.z @ cond.g, k_ref[:, k:], rtol=1e-7, atol=1e-9)
 
 
-def _strip_scene(seed, offsets_m, n=30):
-    """``n`` planes over 100 m seen by four 25 m strips with 5 m overlaps; the after epoch's
-    strips offset by ``offsets_m`` (4, 3); no ground motion."""
-    rng = np.random.default_rng(seed)
-    pts, lab, unit = [], [], []
-    for j in range(n):
+def random_planes(rng, n=30, per=600):
+    """``n`` square planes of 8 m (``per`` points each, no noise) of random upward-facing
+    normals, their centres over 100 × 40 × 10 m."""
+    out = []
+    for _ in range(n):
         nrm = rng.normal(size=3)
         nrm[2] = abs(nrm[2]) + 0.5
         nrm /= np.linalg.norm(nrm)
@@ -256,8 +255,17 @@ def _strip_scene(seed, offsets_m, n=30):
         t1 /= np.linalg.norm(t1)
         t2 = np.cross(nrm, t1)
         c = np.array([rng.uniform(5, 95), rng.uniform(0, 40), rng.uniform(0, 10)])
-        a, b = rng.uniform(-4, 4, (2, 600))
-        x = c + a[:, None] * t1 + b[:, None] * t2
+        a, b = rng.uniform(-4, 4, (2, per))
+        out.append(c + a[:, None] * t1 + b[:, None] * t2)
+    return out
+
+
+def _strip_scene(seed, offsets_m, n=30):
+    """``n`` planes over 100 m seen by four 25 m strips with 5 m overlaps; the after epoch's
+    strips offset by ``offsets_m`` (4, 3); no ground motion."""
+    rng = np.random.default_rng(seed)
+    pts, lab, unit = [], [], []
+    for j, x in enumerate(random_planes(rng, n)):
         u = np.clip(np.floor(x[:, 0] / 25.0), 0, 3).astype(int)
         edge = np.abs(x[:, 0] - 25.0 * np.round(x[:, 0] / 25.0)) < 2.5
         near = np.clip(np.round(x[:, 0] / 25.0).astype(int), 1, 3)

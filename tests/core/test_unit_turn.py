@@ -156,6 +156,18 @@ def test_a_held_lever_is_kept_and_checked():
         sto.check_components({"unit_lever_m": 0})
 
 
+def _strip_planes(rng, n, per, jitter_m):
+    """:func:`random_planes` seen by four 25 m strips along x whose edges are blurred by
+    ``jitter_m``: the points (N, 3), their planes and their strips (0-3)."""
+    from test_unit_contrasts import random_planes
+
+    planes = random_planes(rng, n, per)
+    p = np.vstack(planes)
+    lab = np.repeat(np.arange(n), per)
+    unit = np.clip(np.floor((p[:, 0] + rng.normal(0, jitter_m, p.shape[0])) / 25.0), 0, 3)
+    return p, lab, unit.astype(np.int64)
+
+
 def test_own_and_given_contrasts_are_one_model_in_the_adjustment():
     """The adjustment's own rows (positions in its centred frame) and the same rows given
     in the points' frame (the survey's, estimate_slip) make the same model: the same lever
@@ -163,21 +175,7 @@ def test_own_and_given_contrasts_are_one_model_in_the_adjustment():
     from slipmap.core.adjustment import adjust_rigid
 
     rng = np.random.default_rng(5)
-    pts, lab, unit = [], [], []
-    for j in range(30):
-        nrm = rng.normal(size=3)
-        nrm[2] = abs(nrm[2]) + 0.5
-        nrm /= np.linalg.norm(nrm)
-        t1 = np.cross(nrm, [0.0, 0.0, 1.0])
-        t1 /= np.linalg.norm(t1)
-        t2 = np.cross(nrm, t1)
-        c = np.array([rng.uniform(5, 95), rng.uniform(0, 40), rng.uniform(0, 10)])
-        a, b = rng.uniform(-4, 4, (2, 600))
-        x = c + a[:, None] * t1 + b[:, None] * t2
-        pts.append(x)
-        lab.append(np.full(x.shape[0], j))
-        unit.append(np.clip(np.floor((x[:, 0] + rng.normal(0, 2, x.shape[0])) / 25.0), 0, 3))
-    p, lab, unit = np.vstack(pts), np.concatenate(lab), np.concatenate(unit).astype(np.int64)
+    p, lab, unit = _strip_planes(rng, 30, 600, 2.0)
     w = rng.normal(0, 2e-4, (4, 3))
     turn = np.cross(w[unit], p - np.array([[12.5 + 25 * u, 20, 5] for u in range(4)])[unit])
     before = p + rng.normal(0, 0.004, p.shape) + [500000.0, 4200000.0, 10.0]
@@ -198,22 +196,7 @@ def _strips_two_sides(seed, turn_rad=2e-4):
     """Planes over 100 m seen by four 25 m strips with overlaps, split at x = 50 m into two
     sides; the after epoch's strips offset by 1 cm and turned by ``turn_rad`` per axis."""
     rng = np.random.default_rng(seed)
-    pts, lab, unit = [], [], []
-    for j in range(40):
-        nrm = rng.normal(size=3)
-        nrm[2] = abs(nrm[2]) + 0.5
-        nrm /= np.linalg.norm(nrm)
-        t1 = np.cross(nrm, [0.0, 0.0, 1.0])
-        t1 /= np.linalg.norm(t1)
-        t2 = np.cross(nrm, t1)
-        c = np.array([rng.uniform(5, 95), rng.uniform(0, 40), rng.uniform(0, 10)])
-        a, b = rng.uniform(-4, 4, (2, 500))
-        x = c + a[:, None] * t1 + b[:, None] * t2
-        pts.append(x)
-        lab.append(np.full(x.shape[0], j))
-        unit.append(np.clip(np.floor((x[:, 0] + rng.normal(0, 3, x.shape[0])) / 25.0), 0, 3))
-    p, lab = np.vstack(pts), np.concatenate(lab)
-    unit = np.concatenate(unit).astype(np.int64)
+    p, lab, unit = _strip_planes(rng, 40, 500, 3.0)
     origin = np.array([[12.5 + 25 * u, 20.0, 5.0] for u in range(4)])
     s, w = rng.normal(0, 0.01, (4, 3)), rng.normal(0, turn_rad, (4, 3))
     off = [500000.0, 4200000.0, 10.0]
