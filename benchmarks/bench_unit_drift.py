@@ -56,37 +56,41 @@ PAIRS = (
 MIXED = (("mls-als", 2001),)
 
 
+#: per ``--compare``: the two runs' names, the JSON key and the console label of what the
+#: second run chose, and the attribute of the side's and the joint components that holds it
+#: (None: the contrast rows each side used)
+COMPARE = {
+    "drift": (("rigid", "drift"), "spacing_s_left_right_joint", "spacing left/right/joint",
+              "unit_interval_s"),
+    "contrasts": (("untied", "tied"), "contrasts_left_right",
+                  "contrast rows (before, after) left / right", None),
+    "turn": (("translating", "turning"), "lever_m_left_right_joint",
+             "lever (m) left/right/joint", "unit_lever_m"),
+}  # fmt: skip
+
+
 def _spacing(v):
     return None if not math.isfinite(v) else float(v)
 
 
-def _what(res, compare):
-    """What the run chose: the knot spacings or levers (left, right, joint), or the contrast
-    rows."""
-    if compare == "turn":
-        jc = res.joint_components
-        return [
-            _spacing(getattr(res, s).rigid.variance_components.unit_lever_m)
-            for s in ("left", "right")
-        ] + [_spacing(jc.unit_lever_m) if jc is not None else None]
-    if compare == "contrasts":
-        return [
-            list(getattr(res, s).rigid.variance_components.n_contrasts) for s in ("left", "right")
-        ]
+def _what(res, attr):
+    """What the run chose: the components' ``attr`` (a knot spacing or a lever) left, right
+    and joint, or (``attr`` None) the contrast rows each side used."""
+    vcs = [getattr(res, s).rigid.variance_components for s in ("left", "right")]
+    if attr is None:
+        return [list(vc.n_contrasts) for vc in vcs]
     jc = res.joint_components
-    return [
-        _spacing(getattr(res, s).rigid.variance_components.unit_interval_s)
-        for s in ("left", "right")
-    ] + [_spacing(jc.unit_interval_s) if jc is not None else None]
+    return [_spacing(getattr(vc, attr)) for vc in vcs] + [
+        _spacing(getattr(jc, attr)) if jc is not None else None
+    ]
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--compare", choices=("drift", "contrasts", "turn"), default="drift")
+    ap.add_argument("--compare", choices=tuple(COMPARE), default="drift")
     args = ap.parse_args(argv)
-    names = {"drift": ("rigid", "drift"), "contrasts": ("untied", "tied"),
-             "turn": ("translating", "turning")}[args.compare]  # fmt: skip
+    names, key, what, attr = COMPARE[args.compare]
     rows = []
     for case, seed in PAIRS + (MIXED if args.compare != "drift" else ()):
         fp = A.draw_pair(case, seed)
@@ -114,7 +118,7 @@ def main(argv=None) -> int:
                 res = estimate_slip(fp.before.points, fp.after.points, trace, **base, **runs[name])
                 cpu[name].append(time.process_time() - t0)
                 if name == names[1]:
-                    chosen = _what(res, args.compare)
+                    chosen = _what(res, attr)
         stochastic.UNIT_TURN = True
         a, b = (min(cpu[n]) for n in names)
         row = {
@@ -124,15 +128,9 @@ def main(argv=None) -> int:
             f"cpu_s_{names[0]}": round(a, 2),
             f"cpu_s_{names[1]}": round(b, 2),
             "ratio": round(b / a, 2),
-            {"drift": "spacing_s_left_right_joint", "contrasts": "contrasts_left_right",
-             "turn": "lever_m_left_right_joint"}[args.compare]: chosen,
-        }  # fmt: skip
+            key: chosen,
+        }
         rows.append(row)
-        what = {
-            "drift": "spacing left/right/joint",
-            "contrasts": "contrast rows (before, after) left / right",
-            "turn": "lever (m) left/right/joint",
-        }[args.compare]
         print(
             f"{case} seed {seed}: {a:.2f} s {names[0]}, {b:.2f} s {names[1]} ({row['ratio']}x); "
             f"{what} {chosen}",

@@ -621,8 +621,6 @@ class _StochasticConfig:
         #: force (inf: the rigid unit; NaN: no times)
         self.unit_drift: Optional[dict] = None
         self.unit_interval = float("nan")
-        #: the lever of the units' turn in force (inf: they translate only)
-        self.unit_lever = math.inf
         #: condition the units on the planes' within-epoch contrasts (unit_contrasts)
         self.use_contrasts = True
         self._cond_key = self._cond_model = self._cond = None
@@ -1165,7 +1163,7 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         # already the drift's in force (cfg.model); positions in the input frame
         contrasts=None if m.contrasts is None else m.contrasts.shifted(centre),
         contrast_gain=getattr(cfg, "contrast_gain", None),
-        unit_lever_m=float(cfg.unit_lever),
+        unit_lever_m=float(m.unit_lever_m),
         **cfg.gain_extra,
     )
 
@@ -1334,7 +1332,6 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         cfg.theta = {n: v for n, v in est.theta.items() if v > 0}
         cfg.kernel = est.kernel
         cfg.unit_interval = est.unit_interval_s
-        cfg.unit_lever = est.unit_lever_m
         cfg.model = cfg.model.with_unit_interval(est.unit_interval_s).with_unit_lever(
             est.unit_lever_m
         )
@@ -1506,7 +1503,7 @@ def _components_result(model, est, epochs, active, cfg, k, n_eff, sig_white, not
         notes=tuple(all_notes),
         tilt=tilt if tilt is not None else _stoch.TiltEstimate(),
         unit_interval_s=float(cfg.unit_interval),
-        unit_lever_m=float(cfg.unit_lever),
+        unit_lever_m=float(cfg.model.unit_lever_m),
         n_contrasts=(
             (0, 0)
             if cfg.model.contrasts is None or cfg.condition(active) is None

@@ -1036,14 +1036,22 @@ def _common_origins(a: PlaneGain, b: PlaneGain, epoch: str, ia, ib, shared_rows)
     unit's)."""
     w, c = [], []
     for g, cols in ((a, ia), (b, ib)):
-        w.append(np.abs(getattr(g, "shares_" + epoch)[:, cols]))
+        w.append(getattr(g, "shares_" + epoch)[:, cols])
         c.append(g.centroids)
         rows = None if (g is b and shared_rows) else g.contrasts
         rs = None if rows is None else getattr(rows, "shares_" + epoch)
         if rs is not None and rows.position is not None:
-            w.append(np.abs(rs[:, cols]))
+            w.append(rs[:, cols])
             c.append(rows.position)
-    w, c = np.vstack(w), np.vstack(c)
+    return _share_centroids(np.vstack(w), np.vstack(c))
+
+
+def _share_centroids(w: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(U, 3) the centroid of the points ``c`` (n, 3) weighed by each column of the shares
+    ``w`` (n, U) taken absolute (a contrast row's shares are signed); rows of ``c`` that are
+    not finite (a plane without points) left out."""
+    ok = np.all(np.isfinite(c), axis=1)
+    w, c = np.abs(w[ok]), c[ok]
     tot = w.sum(axis=0)
     return (w.T @ c) / np.where(tot > 0, tot, 1.0)[:, None]
 
@@ -1053,13 +1061,11 @@ def _unit_gain(g: PlaneGain, epoch: str, cols, sign: float, rows, origins) -> np
     misclosures times their unit design (``sign``: + before, − after), plus its gain on the
     contrast rows ``rows`` (None: not conditioned) times theirs; q = 3 (translations) or 6
     with ``origins`` (units, 3): the turn's columns, unscaled by the lever."""
+    lever = math.inf if origins is None else 1.0
 
-    def design(shares, normals, where):
-        tr = shares[:, :, None] * normals[:, None, :]
-        if origins is None:
-            return tr
-        arm = where[:, None, :] - origins[None, :, :]
-        return np.concatenate([tr, shares[:, :, None] * np.cross(arm, normals[:, None, :])], axis=2)
+    def design(shares, normals, where):  # (n, units, q): the columns of each unit together
+        z = _share_design(shares, normals, where, origins, lever)
+        return z.reshape(shares.shape[0], shares.shape[1], -1)
 
     out = sign * np.einsum(
         "pk,kmd->pmd", g.gain, design(getattr(g, "shares_" + epoch)[:, cols], g.normals,
@@ -1311,17 +1317,14 @@ class PlaneModel:
         s = self.shares_before if which == "unit_before" else self.shares_after
         if s is None:
             return None
-        w, c = np.abs(s), self.centroids
+        w, c = s, self.centroids
         rows = self.contrasts
         if rows is not None and rows.position is not None:
             rs = rows.shares_before if which == "unit_before" else rows.shares_after
             if rs is not None:
-                w = np.vstack([w, np.abs(rs)])
+                w = np.vstack([w, rs])
                 c = np.vstack([c, rows.position])
-        ok = np.all(np.isfinite(c), axis=1)
-        w, c = w[ok], c[ok]
-        tot = w.sum(axis=0)
-        return (w.T @ c) / np.where(tot > 0, tot, 1.0)[:, None]
+        return _share_centroids(w, c)
 
     def _unit_design(self, which, shares, normals, positions, keep):
         """:func:`_share_design` of the unit columns ``keep`` with the units' turn when the
