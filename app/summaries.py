@@ -171,11 +171,16 @@ def slip_model(payload: Dict[str, Any]) -> str:
     return str(model)
 
 
+#: how the console names the spatial term's families whose range is a wavelength
+WAVE_FAMILIES = {"wave": "3-D waves", "wave_h": "waves of the map position"}
+
+
 def component_text(
-    name: str, comp: Dict[str, Any], range_m=None, drift_s=False, lever_m=None
+    name: str, comp: Dict[str, Any], range_m=None, drift_s=False, lever_m=None, family=None
 ) -> str:
     """One variance component for a console line, e.g. ``spatial 2.56 mm (sd 1.10, estimated,
-    range 27 m)``; ``unit_after off`` for a component that is not in the model. ``drift_s``:
+    range 27 m)``, or ``(…, waves of the map position, wavelength 45 m)`` for the hole-effect
+    families (``family``); ``unit_after off`` for a component that is not in the model. ``drift_s``:
     the units' drift along GpsTime (its knot spacing in seconds, None: rigid units; False:
     no acquisition times); ``lever_m``: the lever of the units' turn (None: they do not
     turn), shown as the turn's 1σ per axis."""
@@ -189,7 +194,10 @@ def component_text(
     if name == "white" and comp.get("variance_factor") is not None:
         extra.append(f"σ0² {float(comp['variance_factor']):.2f}")
     if name == "spatial" and range_m is not None and math.isfinite(float(range_m)):
-        extra.append(f"range {float(range_m):.0f} m")
+        if family in WAVE_FAMILIES:
+            extra.append(f"{WAVE_FAMILIES[family]}, wavelength {float(range_m):.0f} m")
+        else:
+            extra.append(f"range {float(range_m):.0f} m")
     if name.startswith("unit_") and drift_s is not False:
         extra.append(
             "rigid per unit"
@@ -215,7 +223,7 @@ def side_component_line(side: str, side_dict: Dict[str, Any]) -> Optional[str]:
     drift = vc["unit_drift_interval_s"] if "unit_drift_interval_s" in vc else False
     lever = vc.get("unit_turn_lever_m")
     comps = [
-        component_text(name, c, vc.get("spatial_range_m"), drift, lever)
+        component_text(name, c, vc.get("spatial_range_m"), drift, lever, vc.get("spatial_family"))
         for name, c in (vc.get("components") or {}).items()
     ]
     tied = vc.get("unit_contrasts")
@@ -313,6 +321,8 @@ def stochastic_tables(payload: Dict[str, Any]) -> Dict[str, Any]:
             head[f"{side}: planes"] = vc.get("n_planes")
             head[f"{side}: n_eff"] = vc.get("n_eff")
             head[f"{side}: spatial range (m)"] = vc.get("spatial_range_m")
+            if vc.get("spatial_family") not in (None, "spherical"):
+                head[f"{side}: spatial family (range: its wavelength)"] = vc["spatial_family"]
             if "unit_drift_interval_s" in vc:
                 head[f"{side}: unit drift knots (s; empty: rigid units)"] = vc[
                     "unit_drift_interval_s"

@@ -246,12 +246,16 @@ def one(
     unit_times=True,
     unit_contrasts=True,
     unit_turn=True,
+    families=None,
 ) -> dict:
     """One pair of one case: errors of every method (metres) and their σ."""
     import slipmap.core.stochastic as stochastic
 
-    # the units' turn (a module switch: a benchmark device, set in this worker process)
+    # the units' turn and the spatial families REML chooses from (module switches: benchmark
+    # devices, set in this worker process)
     stochastic.UNIT_TURN = bool(unit_turn)
+    if families is not None:
+        stochastic.DEFAULT_FAMILIES = tuple(families)
     c = CASES[case_name]
     t0 = time.perf_counter()
     fp = draw_pair(case_name, seed)
@@ -309,6 +313,11 @@ def one(
                 _finite(getattr(res, s).rigid.variance_components.unit_lever_m)
                 for s in ("left", "right")
             ] + [_finite(jc.unit_lever_m) if jc is not None else None]
+            # the spatial term's family and range per side and joint
+            row[label]["spatial"] = [
+                [vc.spatial_family, _finite(vc.spatial_range_m)]
+                for vc in (getattr(res, s).rigid.variance_components for s in ("left", "right"))
+            ] + ([[jc.family, _finite(jc.range_m)]] if jc is not None else [])
             row[label]["components"] = {
                 s: {k.name: k.sigma_m for k in getattr(res, s).rigid.variance_components.components}
                 for s in ("left", "right")
@@ -530,6 +539,12 @@ def main(argv=None):
         "(core.stochastic.UNIT_TURN, the lever chosen by REML; default on, as the slip job); "
         "off: translations only, as before stop 44",
     )
+    ap.add_argument(
+        "--families",
+        default=None,
+        help="comma-separated spatial families REML chooses from (core.stochastic."
+        "DEFAULT_FAMILIES; default: the library's), e.g. spherical,wave_h",
+    )
     args = ap.parse_args(argv)
     cases = [k for c in args.cases.split(",") if c for k in PRESETS.get(c, (c,))]
     for c in cases:
@@ -551,6 +566,7 @@ def main(argv=None):
             args.unit_times == "on",
             args.unit_contrasts == "on",
             args.unit_turn == "on",
+            None if args.families is None else tuple(args.families.split(",")),
         )
         for c in cases
         for s in range(args.first_seed, args.first_seed + args.seeds)

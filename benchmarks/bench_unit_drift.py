@@ -1,6 +1,7 @@
 """Cost of the units' drift along GpsTime (``core.unit_drift``), of tying the units on the
-planes they share (``core.unit_contrasts``) or of letting them turn (``core.stochastic``
-``UNIT_TURN``) in a slip run (issue #30).
+planes they share (``core.unit_contrasts``), of letting them turn (``core.stochastic``
+``UNIT_TURN``) or of offering REML the horizontal wave family (``DEFAULT_FAMILIES``) in a
+slip run (issue #30).
 
 For one pair of each of four survey kinds of ``accuracy_slip.py`` (MLS drift with renovated
 buildings, MLS lever arm on crossing streets, TLS setups, ALS strips with a boresight roll;
@@ -15,7 +16,11 @@ acquisition units, alternated, ``--repeat`` times each:
   contrasts; reports the contrast rows each side used (before, after);
 - ``--compare turn``: with the GpsTime and the contrasts (the job's defaults), with and
   without the units' turn (``UNIT_TURN``, the lever profiled by REML); reports the lever each
-  side and the joint estimate chose.
+  side and the joint estimate chose;
+- ``--compare families``: the job's defaults with the spatial families REML chooses from
+  the spherical one alone (as before stop 45) or with the horizontal wave ("wave_h"); adds
+  a pair of the short-wavelength field kind; reports the family each side and the joint
+  estimate chose.
 
 CPU seconds of the process (run with ``OMP_NUM_THREADS=1`` for one core), the fastest of the
 repeats.
@@ -23,7 +28,7 @@ repeats.
 Usage::
 
     OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_unit_drift.py \\
-        [--compare drift|contrasts|turn] [--repeat 3]
+        [--compare drift|contrasts|turn|families] [--repeat 3]
 
 The last line is JSON.
 """
@@ -54,6 +59,8 @@ PAIRS = (
 )
 #: ``--compare contrasts`` adds a mixed pair (an ALS epoch's strips tied to an MLS epoch's passes)
 MIXED = (("mls-als", 2001),)
+#: ``--compare families`` adds a pair of the short-wavelength field (a field of the map position)
+FIELD = (("field-3mm-37-53m", 2002),)
 
 
 #: per ``--compare``: the two runs' names, the JSON key and the console label of what the
@@ -66,7 +73,11 @@ COMPARE = {
                   "contrast rows (before, after) left / right", None),
     "turn": (("translating", "turning"), "lever_m_left_right_joint",
              "lever (m) left/right/joint", "unit_lever_m"),
+    "families": (("spherical", "with_wave_h"), "family_left_right_joint",
+                 "family left/right/joint", "family"),
 }  # fmt: skip
+#: the families REML chooses from in each run of ``--compare families``
+FAMILIES = {"spherical": ("spherical",), "with_wave_h": ("spherical", "wave_h")}
 
 
 def _spacing(v):
@@ -80,6 +91,8 @@ def _what(res, attr):
     if attr is None:
         return [list(vc.n_contrasts) for vc in vcs]
     jc = res.joint_components
+    if attr == "family":
+        return [vc.spatial_family for vc in vcs] + [jc.family if jc is not None else None]
     return [_spacing(getattr(vc, attr)) for vc in vcs] + [
         _spacing(getattr(jc, attr)) if jc is not None else None
     ]
@@ -92,7 +105,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     names, key, what, attr = COMPARE[args.compare]
     rows = []
-    for case, seed in PAIRS + (MIXED if args.compare != "drift" else ()):
+    extra = {"drift": (), "families": MIXED + FIELD}.get(args.compare, MIXED)
+    for case, seed in PAIRS + extra:
         fp = A.draw_pair(case, seed)
         trace = fault_trace([fp.trace_xy])
         base = dict(
@@ -107,19 +121,23 @@ def main(argv=None) -> int:
         elif args.compare == "contrasts":
             runs = {"untied": dict(times, unit_contrasts=False),
                     "tied": dict(times, unit_contrasts=True)}  # fmt: skip
-        else:
+        elif args.compare == "turn":
             runs = {"translating": dict(times), "turning": dict(times)}
+        else:
+            runs = {n: dict(times) for n in names}
         cpu = {n: [] for n in names}
         chosen = None
         for _ in range(args.repeat):
             for name in names:
-                stochastic.UNIT_TURN = name != "translating"  # a benchmark device
+                stochastic.UNIT_TURN = name != "translating"  # benchmark devices
+                stochastic.DEFAULT_FAMILIES = FAMILIES.get(name, FAMILIES["with_wave_h"])
                 t0 = time.process_time()
                 res = estimate_slip(fp.before.points, fp.after.points, trace, **base, **runs[name])
                 cpu[name].append(time.process_time() - t0)
                 if name == names[1]:
                     chosen = _what(res, attr)
         stochastic.UNIT_TURN = True
+        stochastic.DEFAULT_FAMILIES = FAMILIES["with_wave_h"]
         a, b = (min(cpu[n]) for n in names)
         row = {
             "case": case,

@@ -17,8 +17,9 @@ difference of the two epochs' common errors along the plane normal)::
            + σ_b² Z_b Z_bᵀ + σ_a² Z_a Z_aᵀ               acquisition units, before / after
 
 ``ρ`` is a correlation family chosen by the data (:class:`SpatialKernel`: spherical,
-exponential, Gaussian or the "wave" hole effect with negative lobes; all positive definite
-in 3-D and of compact support, the long-tailed ones tapered), each at its range ``a``.
+exponential, Gaussian, the "wave" hole effect with negative lobes, or "wave_h", the hole
+effect of a field of the horizontal position; all positive definite in 3-D and of compact
+support, the long-tailed ones tapered), each at its range ``a``.
 The spatial part is a smooth 3-D error FIELD ``s(p)`` (trajectory drift:
 each axis a stationary process of variance ``σ_c²``) seen along each plane's normal and
 AVERAGED over the plane, ``δ_j = n_jᵀ mean_{p ∈ j} s(p)``: hence the factor ``n_jᵀ n_k`` (a
@@ -79,7 +80,8 @@ variances on their boundary, :data:`COMPONENT_TEST_ALPHA`) and all set to zero w
 misclosures show no error beyond the point noise. The standard deviation of each component
 is from ``F⁻¹``. The family and range ``a`` are chosen by profile REML over a geometric grid of
 ranges per family (least −2 log L; another family than the spherical one must beat it by
-:data:`FAMILY_MARGIN`; by default the spherical family only, :data:`DEFAULT_FAMILIES`).
+:data:`FAMILY_MARGIN`; by default the spherical family and the horizontal wave,
+:data:`DEFAULT_FAMILIES`).
 The profile can be made with the motion a free fixed effect of the offsets alone (the tilts'
 information left out, :data:`REML_TILT_SHARE` 0: the field tilts the planes, and tilts held
 as precise pin the rotation to a biased value whose lever-arm trend REML reads as a long
@@ -115,6 +117,7 @@ from typing import Dict, Mapping, Optional, Sequence, Tuple
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.spatial import cKDTree
+from scipy.special import j0
 
 from .errors import InputDataError, InvalidParameterError
 from .unit_contrasts import ContrastRows, union_rows
@@ -303,21 +306,24 @@ def spherical_correlation(h: np.ndarray, range_m: float) -> np.ndarray:
 
 
 #: families of the spatial correlation (:class:`SpatialKernel`)
-SPATIAL_FAMILIES = ("spherical", "exponential", "gaussian", "wave")
-#: the families REML chooses from by default: the spherical one (with the tilts in the profile
-#: the wave family is not chosen even for a wave field, docs/accuracy.md; pass
-#: ``families=("spherical", "wave")`` with :data:`REML_TILT_SHARE` 0 for the tilt-free choice
-#: measured there). The exponential and Gaussian ones differ from the spherical one in the
-#: shape near the origin only, which a few dozen planes hardly see; each family costs a
-#: profile of REML fits, so they are offered through ``families=`` and ``spatial_family``.
-DEFAULT_FAMILIES = ("spherical",)
+SPATIAL_FAMILIES = ("spherical", "exponential", "gaussian", "wave", "wave_h")
+#: the families REML chooses from by default: the spherical one and the horizontal wave
+#: ("wave_h", since stop 45: a field of the map position whose lobes cancel over large
+#: planes; on the short-wavelength kind RMS(err/σ) ∥ 0.63 → 0.84, docs/accuracy.md "A field
+#: of the horizontal position"). The 3-D "wave" is not chosen even for a wave field with the
+#: tilts in the profile (docs/accuracy.md); pass ``families=("spherical", "wave")`` with
+#: :data:`REML_TILT_SHARE` 0 for the tilt-free choice measured there. The exponential and
+#: Gaussian ones differ from the spherical one in the shape near the origin only, which a
+#: few dozen planes hardly see; each family costs a profile of REML fits, so they are
+#: offered through ``families=`` and ``spatial_family``.
+DEFAULT_FAMILIES = ("spherical", "wave_h")
 #: taper of the families without compact support, in units of their range (wavelength)
-TAPER_RANGES = {"spherical": 1.0, "exponential": 2.0, "gaussian": 2.0, "wave": 3.0}
+TAPER_RANGES = {"spherical": 1.0, "exponential": 2.0, "gaussian": 2.0, "wave": 3.0, "wave_h": 3.0}
 #: −2 log L by which another family must beat the spherical one to be chosen (a family with
 #: negative lobes averages a large plane's error away: it has to be seen in the data, not
 #: chosen by the noise of a few dozen planes)
 FAMILY_MARGIN = 2.0
-N_WAVELENGTHS = 8  # wavelengths tried by profile REML for the "wave" family
+N_WAVELENGTHS = 8  # wavelengths tried by profile REML for the "wave" and "wave_h" families
 
 
 @dataclass(frozen=True)
@@ -334,6 +340,7 @@ class SpatialKernel:
         exponential  exp(−3 h / a) · sph(h; 2a)          a: practical range (5 %)
         gaussian     exp(−3 (h / a)²) · sph(h; 2a)
         wave         sin(2π h / λ) / (2π h / λ) · sph(h; 3λ)      λ = range_m, a wavelength
+        wave_h       J0(2π h_xy / λ) · sph(h_xy; 3λ)              h_xy the horizontal distance
 
     The "wave" (hole-effect, cardinal sine) family is the correlation of a field made of
     plane waves of ONE wavelength λ in every 3-D direction (its spectrum is uniform on the
@@ -346,6 +353,17 @@ class SpatialKernel:
     over a plane several wavelengths across it nearly cancels, which a family without
     negative lobes cannot express (the spherical one then fits a long range, and a large
     ground plane keeps most of the field's variance).
+
+    The "wave_h" family is the correlation of a field of the HORIZONTAL position made of
+    plane waves of one wavelength in every horizontal direction (``J0``, lobe −0.40 at
+    0.61 λ): a function of the map distance only, so positive definite on 3-D points, and
+    the same error for a wall's foot and its top. A mobile or airborne survey's error is
+    where the platform was when it saw a point, and the points it sees at one moment lie on
+    one vertical more than on one sphere: averaged over a ground piece several wavelengths
+    across, such a field cancels far more than a 3-D one of the same wavelength would (the
+    3-D "wave" restricted to a plane keeps spectral power near zero wavenumber), and the
+    3-D families give that piece a σ two to three times too wide (docs/accuracy.md, "A field
+    of the horizontal position").
 
     Hand-written: scipy has no covariance families (scikit-learn's Gaussian-process kernels
     lack the hole effect and the taper, and would be a new dependency).
@@ -384,7 +402,14 @@ class SpatialKernel:
             return np.exp(-3.0 * h / a) * taper
         if self.family == "gaussian":
             return np.exp(-3.0 * (h / a) ** 2) * taper
+        if self.family == "wave_h":
+            return j0(2.0 * math.pi * h / a) * taper
         return np.sinc(2.0 * h / a) * taper  # numpy's sinc(x) = sin(πx)/(πx)
+
+    @property
+    def horizontal(self) -> bool:
+        """A correlation of the horizontal distance (the field does not vary with height)."""
+        return self.family == "wave_h"
 
 
 def as_kernel(kernel) -> SpatialKernel:
@@ -444,11 +469,12 @@ def block_correlation_reference(corr, sa, wa, sb, wb) -> np.ndarray:
     (m,) float64
     """
     out = np.zeros(sa.shape[0])
+    axes = 2 if getattr(corr, "horizontal", False) else 3  # a field of the horizontal position
     for m in range(sa.shape[0]):
         tot = 0.0
         for s in range(sa.shape[1]):
             for t in range(sb.shape[1]):
-                h = math.sqrt(float(((sa[m, s] - sb[m, t]) ** 2).sum()))
+                h = math.sqrt(float(((sa[m, s, :axes] - sb[m, t, :axes]) ** 2).sum()))
                 tot += float(wa[m, s]) * float(wb[m, t]) * float(corr(np.array(h)))
         out[m] = tot
     return out
@@ -541,6 +567,8 @@ def support_correlation(corr, base_m, a, b=None):
     """
     pa, oa, wa = a
     pb, ob, wb = a if b is None else b
+    if getattr(corr, "horizontal", False):
+        pa, pb = pa[:, :2], pb[:, :2]
     ta = cKDTree(pa)
     tb = ta if b is None else cKDTree(pb)
     pairs = ta.sparse_distance_matrix(tb, base_m, output_type="ndarray")
@@ -1902,7 +1930,7 @@ def _candidate_ranges(c: np.ndarray, subset: bool = False, family: str = "spheri
     ext = 2.0 * float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())  # rotation-invariant
     if subset:
         ext *= 0.5
-    if family == "wave":
+    if family in ("wave", "wave_h"):
         lo = max(2.0 * nn, 1.0)
         hi = 0.5 * ext
         if hi < 1.5 * lo:
@@ -1951,7 +1979,7 @@ def estimate_components(
     seed: int = 0,
     prior_plane_var: float = 0.0,
     rt: Optional[np.ndarray] = None,
-    families: Sequence[str] = DEFAULT_FAMILIES,
+    families: Optional[Sequence[str]] = None,
 ) -> Estimate:
     """REML estimates of the plane-level components ``which`` (see the module docstring).
 
@@ -2065,7 +2093,8 @@ def estimate_components(
     theta0 = {n: start_var / max(len(free), 1) for n in free}
     kernels = [SpatialKernel()]
     if "spatial" in free or "spatial" in fixed_var:
-        kernels = _candidate_kernels(model.centroids[ids], sub.size < k, fixed, families) or [
+        fams = DEFAULT_FAMILIES if families is None else families
+        kernels = _candidate_kernels(model.centroids[ids], sub.size < k, fixed, fams) or [
             SpatialKernel()
         ]
         if not kernels[0].active:

@@ -87,7 +87,9 @@ def _slip(data, which, engine=None, **kw):
 
 def _same_slip(got, ref, rel=1e-9):
     assert _rel(got.relative, ref.relative) < rel
-    assert _rel(got.relative_covariance, ref.relative_covariance) < rel
+    # the covariance goes through the REML profiles (two families since stop 45), whose
+    # iterations carry the sums' rounding (~1e-12) to ~1e-9
+    assert _rel(got.relative_covariance, ref.relative_covariance) < 10 * rel
     for g, r in ((got.left, ref.left), (got.right, ref.right)):
         assert g.rigid.n_planes == r.rigid.n_planes and g.rigid.n_points == r.rigid.n_points
         assert len(g.matches) == len(r.matches)

@@ -232,3 +232,28 @@ def test_a_turning_unit_is_named_with_its_turn_and_lever():
     assert head["left: unit turn lever (m; empty: units translate only)"] == 60.0
     head = stochastic_tables(_payload())["Stochastic model"]
     assert "left: unit turn lever (m; empty: units translate only)" not in head
+
+
+def test_a_wave_field_is_named_with_its_family_and_wavelength():
+    """The spatial term of the horizontal wave (core.stochastic "wave_h") reads as waves of
+    the map position and their wavelength, in the console line and the table; the spherical
+    one keeps its range and no family row."""
+    from slipmap.app.summaries import component_text, side_component_line, stochastic_tables
+
+    comp = {"sigma_m": 0.0042, "source": "estimated"}
+    assert component_text("spatial", comp, 45.0, family="wave_h") == (
+        "spatial 4.20 mm (estimated, waves of the map position, wavelength 45 m)"
+    )
+    assert component_text("spatial", comp, 45.0, family="spherical") == (
+        "spatial 4.20 mm (estimated, range 45 m)"
+    )
+    payload = _payload()
+    vc = payload["left"]["variance_components"]
+    vc.update(spatial_range_m=45.0, spatial_family="wave_h")
+    vc["components"]["spatial"] = dict(comp)
+    line = side_component_line("left", payload["left"])
+    assert "waves of the map position, wavelength 45 m" in line
+    head = stochastic_tables(payload)["Stochastic model"]
+    assert head["left: spatial family (range: its wavelength)"] == "wave_h"
+    head = stochastic_tables(_payload())["Stochastic model"]
+    assert "left: spatial family (range: its wavelength)" not in head
