@@ -255,6 +255,15 @@ def _scene(rng, n_ground=30, n_walls=30, extent=150.0):
     return sto.PlaneModel(c, n, samples=s, sample_weights=np.full(s.shape[:2], 1 / 64)), s
 
 
+def _scene_problem(seed):
+    """A :func:`_scene` and its REML problem: rng, model, samples, plane indices, design
+    (rotation, translation) and the planes' white variances."""
+    rng = np.random.default_rng(seed)
+    model, smp = _scene(rng)
+    k = model.centroids.shape[0]
+    return rng, model, smp, np.arange(k), _design(model), np.full(k, 1e-8)
+
+
 def test_gls_sigma_of_a_horizontal_wave_field_is_calibrated_and_the_spherical_too_wide():
     """A 3 mm field of the horizontal position, plane waves of 37-53 m (the harness's
     "field" kind) averaged over ground pieces and walls: over 16 draws the GLS translation
@@ -262,12 +271,8 @@ def test_gls_sigma_of_a_horizontal_wave_field_is_calibrated_and_the_spherical_to
     [0.75, 1.3] and takes "wave_h" on most draws; the spherical family alone gives a σ too
     wide (RMS(err/σ) below 0.8 and at least 15 % below the other), the defect this family
     mends (docs/accuracy.md, "A field of the horizontal position")."""
-    rng = np.random.default_rng(23)
-    model, smp = _scene(rng)
-    k = model.centroids.shape[0]
-    idx = np.arange(k)
-    x = _design(model)
-    p = np.full(k, 1e-8)
+    rng, model, smp, idx, x, p = _scene_problem(23)
+    k = idx.size
     z = {("spherical",): [], ("spherical", "wave_h"): []}
     chose = 0
     for _ in range(16):
@@ -298,12 +303,7 @@ def test_reml_does_not_take_a_spherical_field_for_a_horizontal_wave():
     not taken for a horizontal wave (at most 1 of 4 draws): the family must be seen in the
     data (FAMILY_MARGIN), a σ narrowed by a lobe the survey does not have would be a false
     claim."""
-    rng = np.random.default_rng(29)
-    model, _ = _scene(rng)
-    k = model.centroids.shape[0]
-    idx = np.arange(k)
-    x = _design(model)
-    p = np.full(k, 1e-8)
+    rng, model, _, idx, x, p = _scene_problem(29)
     taken = 0
     for _ in range(4):
         e, _ = _draw(rng, model, sto.SpatialKernel("spherical", 60.0), 3e-3, 3e-4, p)
