@@ -392,7 +392,8 @@ class SpatialKernel:
         return float(self.range_m)
 
     def __call__(self, h) -> np.ndarray:
-        """Correlation at distances ``h`` (any shape, metres)."""
+        """Correlation at distances ``h`` (any shape, metres; for a :attr:`horizontal` family
+        the horizontal distances, as :func:`support_correlation` measures them)."""
         h = np.asarray(h, dtype=np.float64)
         a = float(self.range_m)
         if self.family == "spherical":
