@@ -171,7 +171,8 @@ def slip_model(payload: Dict[str, Any]) -> str:
     return str(model)
 
 
-#: how the console names the spatial term's families whose range is a wavelength
+#: how the console names the spatial term's families whose range is a wavelength (every
+#: one of core.stochastic.WAVELENGTH_FAMILIES, tests/cli/test_stochastic_options.py)
 WAVE_FAMILIES = {"wave": "3-D waves", "wave_h": "waves of the map position"}
 
 
@@ -196,6 +197,8 @@ def component_text(
     if name == "spatial" and range_m is not None and math.isfinite(float(range_m)):
         if family in WAVE_FAMILIES:
             extra.append(f"{WAVE_FAMILIES[family]}, wavelength {float(range_m):.0f} m")
+        elif family not in (None, "spherical"):
+            extra.append(f"{family}, range {float(range_m):.0f} m")
         else:
             extra.append(f"range {float(range_m):.0f} m")
     if name.startswith("unit_") and drift_s is not False:
@@ -321,8 +324,11 @@ def stochastic_tables(payload: Dict[str, Any]) -> Dict[str, Any]:
             head[f"{side}: planes"] = vc.get("n_planes")
             head[f"{side}: n_eff"] = vc.get("n_eff")
             head[f"{side}: spatial range (m)"] = vc.get("spatial_range_m")
-            if vc.get("spatial_family") not in (None, "spherical"):
-                head[f"{side}: spatial family (range: its wavelength)"] = vc["spatial_family"]
+            fam = vc.get("spatial_family")
+            if fam in WAVE_FAMILIES:
+                head[f"{side}: spatial family (range: its wavelength)"] = fam
+            elif fam not in (None, "spherical"):
+                head[f"{side}: spatial family"] = fam
             if "unit_drift_interval_s" in vc:
                 head[f"{side}: unit drift knots (s; empty: rigid units)"] = vc[
                     "unit_drift_interval_s"

@@ -318,6 +318,9 @@ SPATIAL_FAMILIES = ("spherical", "exponential", "gaussian", "wave", "wave_h")
 #: few dozen planes hardly see; each family costs a profile of REML fits, so they are
 #: offered through ``families=`` and ``spatial_family``.
 DEFAULT_FAMILIES = ("spherical", "wave_h")
+#: the families whose range is a wavelength (their own grid of candidates,
+#: :func:`_candidate_ranges`; reports name it so)
+WAVELENGTH_FAMILIES = ("wave", "wave_h")
 #: taper of the families without compact support, in units of their range (wavelength)
 TAPER_RANGES = {"spherical": 1.0, "exponential": 2.0, "gaussian": 2.0, "wave": 3.0, "wave_h": 3.0}
 #: −2 log L by which another family must beat the spherical one to be chosen (a family with
@@ -1989,7 +1992,7 @@ def _candidate_ranges(c: np.ndarray, subset: bool = False, family: str = "spheri
     ext = 2.0 * float(np.linalg.norm(c - c.mean(axis=0), axis=1).max())  # rotation-invariant
     if subset:
         ext *= 0.5
-    if family in ("wave", "wave_h"):
+    if family in WAVELENGTH_FAMILIES:
         lo = max(2.0 * nn, 1.0)
         hi = 0.5 * ext
         if hi < 1.5 * lo:

@@ -257,3 +257,24 @@ def test_a_wave_field_is_named_with_its_family_and_wavelength():
     assert head["left: spatial family (range: its wavelength)"] == "wave_h"
     head = stochastic_tables(_payload())["Stochastic model"]
     assert "left: spatial family (range: its wavelength)" not in head
+
+
+def test_every_wavelength_family_has_a_name_and_the_others_keep_a_range():
+    """Every family whose range is a wavelength in core (WAVELENGTH_FAMILIES) has a console
+    name; an exponential field reads as its family and range, and its table row does not
+    call the range a wavelength."""
+    from slipmap.app.summaries import WAVE_FAMILIES, component_text, stochastic_tables
+    from slipmap.core.stochastic import SPATIAL_FAMILIES, WAVELENGTH_FAMILIES
+
+    assert set(WAVE_FAMILIES) == set(WAVELENGTH_FAMILIES) <= set(SPATIAL_FAMILIES)
+    comp = {"sigma_m": 0.0042, "source": "estimated"}
+    assert component_text("spatial", comp, 27.0, family="exponential") == (
+        "spatial 4.20 mm (estimated, exponential, range 27 m)"
+    )
+    payload = _payload()
+    payload["left"]["variance_components"].update(
+        spatial_range_m=27.0, spatial_family="exponential"
+    )
+    head = stochastic_tables(payload)["Stochastic model"]
+    assert head["left: spatial family"] == "exponential"
+    assert "left: spatial family (range: its wavelength)" not in head
