@@ -294,8 +294,14 @@ def one(
         comp = res.components()
         strike = res.strike_rad
         err = _errors(res.relative, truth, strike)
+        # the same motions at each side's information centre (information_centre_shift)
+        moved = []
+        for side in (res.left.rigid, res.right.rigid):
+            d = information_centre_shift(np.asarray(side.covariance))
+            moved.append(side.params[3:] + np.cross(side.params[:3], d))
         sig = [comp["sigma_fault_parallel"], comp["sigma_fault_normal"], comp["sigma_dz"]]
         row[label] = {"err": err, "sigma": sig, "s": round(time.perf_counter() - t0, 2),
+                      "err_info_centre": _errors(moved[1] - moved[0], truth, strike),
                       "planes": [res.left.rigid.n_planes, res.right.rigid.n_planes],
                       "transferred": [res.left.matches.n_transferred,
                                       res.right.matches.n_transferred],
@@ -346,6 +352,29 @@ def one(
         except RuntimeError as exc:
             row["icp"] = {"failed": str(exc)[:300]}
     return row
+
+
+def information_centre_shift(cov: np.ndarray) -> np.ndarray:
+    """(3,) shift (m) from a side's centre to the point where its translation's covariance
+    has the least trace, from the motion's (6, 6) covariance (rotation first, then
+    translation). The translation there is ``t + ω × d``; the trace is quadratic in ``d``, so
+    its gradient and Hessian from central differences are exact. An analysis of where the
+    slip is best determined (docs/accuracy.md, "The component test's level"), not a result
+    the library reports."""
+    cww, cwt, ctt = cov[:3, :3], cov[:3, 3:], cov[3:, 3:]
+    scale = float(np.trace(ctt)) or 1.0
+
+    def trace(d):
+        a = np.array([[0.0, d[2], -d[1]], [-d[2], 0.0, d[0]], [d[1], -d[0], 0.0]])  # ω ↦ ω × d
+        return float(np.trace(ctt + a @ cwt + cwt.T @ a.T + a @ cww @ a.T)) / scale
+
+    eye = np.eye(3)
+    grad = np.array([(trace(e) - trace(-e)) / 2.0 for e in eye])
+    hess = np.array(
+        [[(trace(ei + ej) - trace(ei) - trace(ej) + trace(np.zeros(3))) for ej in eye]
+         for ei in eye]
+    )  # fmt: skip
+    return -np.linalg.solve(hess, grad)
 
 
 def _finite(v):
