@@ -1905,14 +1905,14 @@ def search_p_value(lr: float, k: int, paths: Sequence[np.ndarray]) -> float:
     from scipy.special import gammaln
     from scipy.stats import chi2
 
-    u = max(float(lr), 0.0)
+    u = float(lr)
+    if u <= 0.0:
+        return 1.0
     best = min(float(np.min(p)) for p in paths)
     v = 0.0
     for p in paths:
         root = np.sqrt(np.clip(u - (np.asarray(p, dtype=float) - best), 0.0, None))
         v += float(np.abs(np.diff(root)).sum())
-    if u <= 0.0:
-        return 1.0
     log_term = (k - 1) / 2 * math.log(u) - u / 2 - k / 2 * math.log(2.0) - gammaln(k / 2)
     return float(min(1.0, len(paths) * chi2.sf(u, k) + v * math.exp(log_term)))
 
@@ -2209,7 +2209,9 @@ def estimate_components(
         log.debug("REML %s %.3g m: %s, -2logL %.6g", kern.family, kern.range_m, th, m2ll)
         return (th, sd, it, conv, m2ll, kern, pc, bases, fx)
 
-    trail: List[Tuple[str, float]] = []  # (family, -2 log L) of the last profile, in order
+    # -2 log L of each family's candidate ranges in the last profile, in grid order (the
+    # search the component test accounts for)
+    trail: Dict[str, List[float]] = {}
 
     def profile(mdl):
         # each fit keeps its kernel's bases: the chosen one's serve the refit with the tilts
@@ -2218,7 +2220,7 @@ def estimate_components(
         trail.clear()
         for kern in kernels:
             f = fit(mdl, kern)
-            trail.append((kern.family, float(f[4])))
+            trail.setdefault(kern.family, []).append(float(f[4]))
             if kern.family not in fits or f[4] < fits[kern.family][4]:
                 fits[kern.family] = f
         best = min(fits.values(), key=lambda f: f[4])
@@ -2272,13 +2274,11 @@ def estimate_components(
             es, xs, ts_full, ps, bases, theta0, fx, inf_s, rts_full
         )
     if COMPONENT_TEST_ALPHA is not None and not few:
-        # the profile's -2 log L per family along its ranges (the search the test accounts for)
-        paths = [np.array([m for f, m in trail if f == fam]) for fam in dict(trail)]
         th, sd, it, conv, pc, lr, zeroed = _test_plane_level(
             (es, xs, ts_full, ps, bases, fx, inf_s, rts_full),
             (th, sd, it, conv, m2ll_best, pc),
             theta0,
-            paths=paths if len(trail) > 1 else None,
+            paths=[np.array(v) for v in trail.values()] if len(kernels) > 1 else None,
         )
         if lr is not None:
             notes["plane_level"] = (
