@@ -517,6 +517,52 @@ def kinds_table(summary) -> str:
     return "\n".join(lines)
 
 
+def _ratio_interval(a, b, *, level=0.90, draws=4000, seed=0):
+    """Ratio of the RMS of ``a`` to that of ``b`` (paired rows, (n, k)), with a ``level``
+    percentile bootstrap over the rows (the pairs): ``(ratio, low, high)``."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(a), size=(draws, len(a)))
+    sa, sb = (a**2).reshape(len(a), -1).sum(axis=1), (b**2).reshape(len(b), -1).sum(axis=1)
+    boot = np.sqrt(sa[idx].sum(axis=1) / sb[idx].sum(axis=1))
+    lo, hi = np.quantile(boot, [(1 - level) / 2, (1 + level) / 2])
+    return float(np.sqrt(sa.sum() / sb.sum())), float(lo), float(hi)
+
+
+def peer_table(rows, model="full") -> str:
+    """Markdown table, one line per case, over the pairs that have both ``model`` and the ICP
+    peer: RMS error ∥ / ⟂ / z of each, the ratio of RMS errors to the peer's ∥ and in 3-D
+    with a 90 % bootstrap interval over the pairs, RMS(err/σ) ∥ / ⟂ / z and pooled, the
+    share within 2.5σ ∥ and the largest |err/σ|, the median σ ∥."""
+    lines = [
+        "| kind (pairs) | SlipMap ∥ / ⟂ / z (mm) | ICP ∥ / ⟂ / z (mm) | ratio ∥ to ICP, 90 % "
+        r"bootstrap | ratio 3-D | RMS(err/σ) ∥ / ⟂ / z (pooled) | ≤2.5σ ∥; max \|err/σ\| | "
+        "median σ ∥ (mm) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for case in dict.fromkeys(r["case"] for r in rows):
+        rs = [r for r in rows if r["case"] == case and "err" in r.get(model, {})
+              and "err" in r.get("icp", {})]  # fmt: skip
+        if not rs:
+            continue
+        e = np.array([r[model]["err"] for r in rs])
+        g = np.array([r["icp"]["err"] for r in rs])
+        sg = np.array([r[model]["sigma"] for r in rs])
+        z = e / sg
+        r1, l1, h1 = _ratio_interval(e[:, :1], g[:, :1])
+        r3, l3, h3 = _ratio_interval(e, g)
+        mm = lambda x: " / ".join(f"{1000 * v:.2f}" for v in np.sqrt((x**2).mean(axis=0)))  # noqa: E731
+        zs = " / ".join(f"{v:.2f}" for v in np.sqrt((z**2).mean(axis=0)))
+        lines.append(
+            f"| {LABELS.get(case, case)} ({len(rs)}) | {mm(e)} | {mm(g)} | "
+            f"{r1:.2f} [{l1:.2f}, {h1:.2f}] | {r3:.2f} [{l3:.2f}, {h3:.2f}] | "
+            f"{zs} ({float(np.sqrt((z**2).mean())):.2f}) | "
+            f"{100 * float((np.abs(z[:, 0]) <= 2.5).mean()):.0f} %; "
+            f"{float(np.abs(z).max()):.1f} | {1000 * float(np.median(sg[:, 0])):.3f} |"
+        )
+    return "\n".join(lines)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=25, help="pairs per case")
@@ -574,7 +620,29 @@ def main(argv=None):
         help="comma-separated spatial families REML chooses from (core.stochastic."
         "DEFAULT_FAMILIES; default: the library's), e.g. spherical,wave_h",
     )
+    ap.add_argument(
+        "--table",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="ROWS",
+        help="only print the tables of saved rows (JSON lines of --out), the peer's ratio "
+        "with a bootstrap interval among them; rows of the same case and seed in a later "
+        "file replace those of an earlier one",
+    )
     args = ap.parse_args(argv)
+    if args.table:
+        saved = {}
+        for path in args.table:
+            for line in path.read_text().splitlines():
+                if line.strip():
+                    row = json.loads(line)
+                    saved[(row["case"], row["seed"])] = row
+        rows = list(saved.values())
+        print(kinds_table(summarise(rows)))
+        print()
+        print(peer_table(rows))
+        return 0
     cases = [k for c in args.cases.split(",") if c for k in PRESETS.get(c, (c,))]
     for c in cases:
         if c not in CASES:
