@@ -223,8 +223,9 @@ SPEC = JobSpec(
             "bool",
             "with the spline field: a cell whose own rigid fit explains its points better "
             "than the field (its point-to-plane cost lower by more than two standard errors) "
-            "and differs from it beyond their sigmas reports that fit, and the from_cell "
-            "column says so; where the ground moves in a "
+            "and differs from it beyond their sigmas reports that fit, as does one that "
+            "explains them as well where the field is barely determined (its sigma over 4x "
+            "the cell's: a scan shadow); the from_cell column says so; where the ground moves in a "
             "way the field cannot follow and no breakline was found (a rotating slump block), "
             "the field smooths and the cells do not",
             "Cells keep their own fit where it fits better",

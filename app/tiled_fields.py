@@ -1362,7 +1362,7 @@ def _icp_spline_tiled(
         spline_cells,
         take_own_fits,
     )
-    from ..core.icp_choice import ChoiceCosts, choose_cells
+    from ..core.icp_choice import ChoiceCosts, choose_cells, no_worse
     from ..core.icp_spline import MIN_SPLINE_CELLS, SplineCellsError, fit_spline_chunks, knot_frame
 
     x0, y0, n_rows, n_cols, cell = lattice
@@ -1578,13 +1578,14 @@ def _icp_spline_tiled(
         ),
     )  # fmt: skip
     take = choose_cells(costs, ok & converged & (n_own >= minp))
+    level = no_worse(costs, ok & converged & (n_own >= minp))
     sp, blocks_kw, pair_cov = take_own_fits(
         sp, take, own, blocks_kw, sfit.pair_cov, near, cells=cells,
         floor_cells=(cells_res.row, cells_res.col,
                      np.column_stack([cells_res.dx, cells_res.dy, cells_res.dz]),
                      cells_res.cov_d, cells_res.n, c_all, c_ok),
         flag_kw=dict(n_rows=n_rows, n_cols=n_cols, eps_m=med_eps, threshold=med_thr),
-        unexplained=costs.unexplained,
+        unexplained=costs.unexplained, no_worse=level,
     )  # fmt: skip
     return finish_cells(
         cells, ok=sp["ok"], d=sp["d"], cov_d=sp["cov_d"], grad=sp["grad"], rot=None,

@@ -2357,7 +2357,7 @@ def windowed_icp(
         )  # fmt: skip
         sp = spline_cells(sfit, cells, fits.ok, min_points=minp, median_threshold=med_thr,
                           median_eps_m=med_eps, n_rows=n_rows, n_cols=n_cols)  # fmt: skip
-        from .icp_choice import choice_costs, choose_cells
+        from .icp_choice import choice_costs, choose_cells, no_worse
 
         # each cell's points choose between the field and the cell's own fit (icp_choice)
         own = dict(d=d, grad=grad, cov_d=cov_d, rmse=fits.rmse, n=fits.n, sigma0=fits.sigma0,
@@ -2369,11 +2369,13 @@ def windowed_icp(
                 cell_m=cell, tree=tree, normals=normals, gate=gate, n_targets=len(b),
             )  # fmt: skip
             take = choose_cells(costs, fits.ok & fits.converged & (fits.n >= minp))
+            level = no_worse(costs, fits.ok & fits.converged & (fits.n >= minp))
         sp, blocks_kw, pair_src = take_own_fits(
             sp, take, own, blocks_kw, sfit.pair_cov, near, cells=cells,
             floor_cells=(cells.row, cells.col, own["d"], cov_d, fits.n, fits.ok, cu),
             flag_kw=dict(n_rows=n_rows, n_cols=n_cols, eps_m=med_eps, threshold=med_thr),
             unexplained=costs.unexplained if cell_choice else None,
+            no_worse=level if cell_choice else None,
         )  # fmt: skip
         d, grad, cov_d, rmse, n_used = sp["d"], sp["grad"], sp["cov_d"], sp["rmse"], sp["n"]
         sigma0, sig_rot, ok, flagged = sp["sigma0"], sp["sig_rot"], sp["ok"], sp["flagged"]
@@ -2494,7 +2496,7 @@ def spline_cells(sfit, cells: _Cells, cells_ok, *, min_points, median_threshold,
 
 
 def take_own_fits(sp, take, own, blocks_kw, pair_cov, near, *, cells, floor_cells, flag_kw,
-                  unexplained):  # fmt: skip
+                  unexplained, no_worse=None):  # fmt: skip
     """The cells ``take`` (K,) of a spline field reporting their own rigid or affine fit.
 
     ``sp``: :func:`spline_cells`' values; ``own``: the cell pass's ``d``, ``grad``, ``cov_d``
@@ -2513,17 +2515,22 @@ def take_own_fits(sp, take, own, blocks_kw, pair_cov, near, *, cells, floor_cell
     runs again on the values reported (``flag_kw``: :func:`_median_flags`' ``n_rows,
     n_cols, eps_m, threshold``). Returns ``sp`` (with ``from_cell``), ``blocks_kw``,
     ``pair_cov``; the one-file and the tiled run share this (:mod:`slipmap.core.icp_choice`
-    chooses)."""
-    from .icp_choice import differ
+    chooses). ``no_worse`` (K,) bool, optional: the cells whose own fit is no worse than the
+    field (:func:`~slipmap.core.icp_choice.no_worse`); of them, those where the field's
+    covariance is far larger than the cell's report their fit as well, whether or not the two
+    values differ (:func:`~slipmap.core.icp_choice.more_precise`)."""
+    from .icp_choice import differ, more_precise
 
     sp = dict(sp, from_cell=np.asarray(take, dtype=bool))
-    if not take.any():
+    if not take.any() and (no_worse is None or not no_worse.any()):
         return sp, blocks_kw, pair_cov
     fl = blocks_kw.get("cells_floor")  # an unweighted field's share came from it
     fl = _cells_floor(floor_cells) if fl is None else fl
     g = fl.scale(own["n"]) if math.isfinite(fl.factor) else np.ones(len(take))
     # only where the two values differ beyond their uncertainty (icp_choice.differ)
     take = take & differ(own["d"], sp["d"], own["cov_d"] * g[:, None, None] + sp["cov_d"])
+    if no_worse is not None:  # or where the field is barely determined (more_precise)
+        take = take | more_precise(no_worse, own["cov_d"] * g[:, None, None], sp["cov_d"])
     sp["from_cell"] = take
     if not take.any():
         return sp, blocks_kw, pair_cov
@@ -2543,7 +2550,8 @@ def take_own_fits(sp, take, own, blocks_kw, pair_cov, near, *, cells, floor_cell
     blocks_kw = dict(blocks_kw, model_var=np.where(take[:, None], pull, mv))
     if pair_cov is not None:
         pair_cov = np.where((take[near[:, 0]] | take[near[:, 1]])[:, None], 0.0, pair_cov)
-    log.info("%d of %d cells report their own fit: it fits their points better than the field",
+    log.info("%d of %d cells report their own fit: it fits their points better than the field, "
+             "or as well where the field is barely determined",
              int(take.sum()), int(sp["ok"].sum()))  # fmt: skip
     return sp, blocks_kw, pair_cov
 

@@ -44,6 +44,16 @@ target). A cell with no points around
 its centre keeps the field. A straddling cell whose centre lies in the part its fit follows
 keeps its fit (a cell of the synthetic slump with a fifth of its points beyond the block's
 edge: right to 6 mm where the field was 0.8 m off).
+
+Where the points cannot tell the two apart (the cell's own fit no worse than the field, over
+the cell and around its centre) but the field is barely determined at the centre, the cell
+reports its own fit too: the field's covariance there has more than :data:`PRECISION_RATIO`
+times the trace of the cell's (:func:`more_precise`). That is a cell in a scan shadow or at
+the edge of the data, where the field's local penalty lets it bend freely and nothing holds
+its value at the centre, while the rigid cell's motion is held by all its points. On the
+harness's slump (TLS, seed 1) such a cell's field was 40 cm off vertically with a sigma of
+29 cm; its own fit 9 cm, sigma 2.4 cm. Of two fits that explain the points equally, the one
+that the data determine better is reported, with its own covariance.
 """
 
 from __future__ import annotations
@@ -59,10 +69,13 @@ __all__ = [
     "CENTRE_Z",
     "DIFFER_CHI2",
     "MAX_UNEXPLAINED_SHARE",
+    "PRECISION_RATIO",
     "ChoiceCosts",
     "choice_costs",
     "choose_cells",
     "differ",
+    "more_precise",
+    "no_worse",
 ]
 
 #: a cell whose own fit leaves more than this share of the points around its centre
@@ -73,6 +86,13 @@ CENTRE_SHARE_OF_CELL = 0.25
 #: the cell's own fit and the field differ when their Mahalanobis distance² exceeds this
 #: (χ²₃'s 95 % point)
 DIFFER_CHI2 = 7.815
+#: a cell whose own fit is no worse than the field (:func:`no_worse`) reports it when the
+#: field's covariance at its centre has more than this many times its own trace (the field's
+#: RMS sigma 4x the cell's): the field is then barely determined there (TLS slump: far cells
+#: 6.65 -> 4.24 cm on seeds 0-2, 6.23 -> 2.16 cm on seeds 3-5, no other case changed; a ratio
+#: of 4 cost the ALS cells' 2-sigma coverage 94 -> 92 %: docs/fields.md, "The more precise
+#: of two equal fits")
+PRECISION_RATIO = 16.0
 #: around its centre the cell's own fit may be worse than the field by at most this many
 #: standard errors of the paired per-point cost differences
 CENTRE_Z = 3.0
@@ -187,6 +207,34 @@ def choose_cells(costs: ChoiceCosts, usable) -> np.ndarray:
             c.centre_unexplained <= MAX_UNEXPLAINED_SHARE
         )
     return np.asarray(usable, dtype=bool) & better & centre_ok
+
+
+def no_worse(costs: ChoiceCosts, usable) -> np.ndarray:
+    """(K,) bool: the cell is ``usable`` and its own fit is no worse than the field: over its
+    points (by at most :data:`~slipmap.core.icp_starts.SWITCH_Z` standard errors) and around
+    its centre (:data:`CENTRE_Z`, :data:`MAX_UNEXPLAINED_SHARE`, as :func:`choose_cells`). A
+    cell with no points around its centre is not."""
+    c = costs
+    with np.errstate(invalid="ignore"):
+        ok = (
+            (c.cell - c.field <= SWITCH_Z * c.se)
+            & (c.centre_cell - c.centre_field <= CENTRE_Z * c.centre_se)
+            & (c.centre_unexplained <= MAX_UNEXPLAINED_SHARE)
+        )
+    return np.asarray(usable, dtype=bool) & ok
+
+
+def more_precise(candidates, cov_own, cov_field) -> np.ndarray:
+    """(K,) bool: of the cells ``candidates`` (K,) bool (:func:`no_worse`), those where the
+    field's covariance at the centre ``cov_field`` (K, 3, 3), m², has more than
+    :data:`PRECISION_RATIO` times the trace of the cell's own ``cov_own`` (K, 3, 3), m²;
+    False where either is not finite."""
+    to = np.trace(np.asarray(cov_own, dtype=np.float64), axis1=1, axis2=2)
+    tf = np.trace(np.asarray(cov_field, dtype=np.float64), axis1=1, axis2=2)
+    fin = np.isfinite(to) & np.isfinite(tf)
+    out = np.zeros(len(to), dtype=bool)
+    out[fin] = tf[fin] > PRECISION_RATIO * to[fin]
+    return np.asarray(candidates, dtype=bool) & out
 
 
 def differ(d_a: np.ndarray, d_b: np.ndarray, cov: np.ndarray) -> np.ndarray:

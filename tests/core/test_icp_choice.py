@@ -239,3 +239,69 @@ def test_differ_is_a_chi_square_test_of_the_two_values():
     assert differ(a, b, cov).tolist() == [False, False, True, True, False]
     cov[2] = 0.0  # singular: no claim
     assert not differ(a, b, cov)[2]
+
+
+def test_no_worse_and_more_precise_pick_cells_whose_field_is_barely_determined():
+    """Of the cells whose own fit is no worse than the field (over the cell and around its
+    centre), those where the field's covariance has more than PRECISION_RATIO times the
+    trace of the cell's report their fit (a scan shadow: the field free to bend, the rigid
+    cell held by its points)."""
+    from slipmap.core.icp_choice import (
+        PRECISION_RATIO,
+        ChoiceCosts,
+        more_precise,
+        no_worse,
+    )
+
+    nan = np.nan
+    # cells: equal costs; own 1 se worse; own 3 se worse; worse around the centre;
+    # too much unexplained around the centre; no points around the centre
+    c = ChoiceCosts(
+        field=np.array([0.10, 0.10, 0.10, 0.10, 0.10, 0.10]),
+        cell=np.array([0.10, 0.11, 0.13, 0.10, 0.10, 0.10]),
+        se=np.full(6, 0.01),
+        unexplained=np.zeros(6),
+        centre_field=np.array([0.10, 0.10, 0.10, 0.10, 0.10, nan]),
+        centre_cell=np.array([0.10, 0.10, 0.10, 0.20, 0.10, nan]),
+        centre_se=np.array([0.01, 0.01, 0.01, 0.01, 0.01, nan]),
+        centre_unexplained=np.array([0.0, 0.0, 0.0, 0.0, 0.5, nan]),
+    )
+    usable = np.ones(6, dtype=bool)
+    assert no_worse(c, usable).tolist() == [True, True, False, False, False, False]
+    usable[0] = False
+    assert not no_worse(c, usable)[0]
+
+    own = np.broadcast_to(np.diag([1e-4, 1e-4, 4e-4]), (4, 3, 3)).copy()
+    ratio = np.array([0.5, 0.99, 1.01, 1.01]) * PRECISION_RATIO
+    field = own * ratio[:, None, None]
+    cand = np.array([True, True, True, False])
+    assert more_precise(cand, own, field).tolist() == [False, False, True, False]
+    field[2, 0, 0] = np.nan  # no claim where a covariance is not finite
+    assert not more_precise(cand, own, field)[2]
+
+
+def test_cells_where_the_field_is_barely_determined_report_their_own_fits(monkeypatch):
+    """The rotating block of the test above: besides the cells whose fits explain their
+    points better, cells whose fits explain them as well while the field's covariance at
+    their centre has more than PRECISION_RATIO times their trace report their fits
+    (measured: 6 more cells; the field 1.2 cm RMS off there, their own fits 0.5 cm)."""
+    import slipmap.core.icp_choice as choice
+
+    fld = SlumpField((20.0, 20.0), azimuth_deg=180.0, head_m=8.0, toe_m=8.0, width_m=16.0)
+    before, after = _field_scene(fld, 1)
+    monkeypatch.setattr(choice, "PRECISION_RATIO", np.inf)  # the cost rule alone
+    costs_only = windowed_icp(before, after, cell_choice=True, **KW)
+    monkeypatch.undo()
+    both = windowed_icp(before, after, cell_choice=True, **KW)
+    assert np.array_equal(both.row, costs_only.row) and np.array_equal(both.col, costs_only.col)
+    assert not np.any(costs_only.from_cell & ~both.from_cell)
+    new = both.from_cell & ~costs_only.from_cell
+    assert 1 <= int(new.sum()) <= 15
+    truth = material_motion(fld, np.c_[both.x, both.y][new] - UTM[:2])
+    e_field = np.c_[costs_only.dx, costs_only.dy, costs_only.dz][new] - truth
+    e_own = np.c_[both.dx, both.dy, both.dz][new] - truth
+    rms = lambda e: float(np.sqrt(np.mean(np.sum(e**2, axis=1))))  # noqa: E731
+    assert rms(e_own) < 0.6 * rms(e_field), (rms(e_own), rms(e_field))
+    # their sigmas are their own fits': smaller than the field's there
+    var = lambda r: r.sigma_dx[new] ** 2 + r.sigma_dy[new] ** 2 + r.sigma_dz[new] ** 2  # noqa: E731
+    assert np.all(var(both) < var(costs_only))
