@@ -1577,8 +1577,8 @@ def _icp_spline_tiled(
             k, at, np.column_stack([cells_res.sigma_rx, cells_res.sigma_ry, cells_res.sigma_rz])
         ),
     )  # fmt: skip
-    take = choose_cells(costs, ok & converged & (n_own >= minp))
-    level = no_worse(costs, ok & converged & (n_own >= minp))
+    fitted = ok & converged & (n_own >= minp)
+    take, level = choose_cells(costs, fitted), no_worse(costs, fitted)
     sp, blocks_kw, pair_cov = take_own_fits(
         sp, take, own, blocks_kw, sfit.pair_cov, near, cells=cells,
         floor_cells=(cells_res.row, cells_res.col,

@@ -2362,20 +2362,20 @@ def windowed_icp(
         # each cell's points choose between the field and the cell's own fit (icp_choice)
         own = dict(d=d, grad=grad, cov_d=cov_d, rmse=fits.rmse, n=fits.n, sigma0=fits.sigma0,
                    sig_rot=sig_rot * rot_scale[:, None])  # fmt: skip
-        take = np.zeros(len(sel), dtype=bool)
+        take, level, unexplained = np.zeros(len(sel), dtype=bool), None, None
         if cell_choice:
             costs = choice_costs(
                 a[cells.points], cells.seg, len(sel), cells.centres, sfit.field, d, grad,
                 cell_m=cell, tree=tree, normals=normals, gate=gate, n_targets=len(b),
             )  # fmt: skip
-            take = choose_cells(costs, fits.ok & fits.converged & (fits.n >= minp))
-            level = no_worse(costs, fits.ok & fits.converged & (fits.n >= minp))
+            fitted = fits.ok & fits.converged & (fits.n >= minp)
+            take, level = choose_cells(costs, fitted), no_worse(costs, fitted)
+            unexplained = costs.unexplained
         sp, blocks_kw, pair_src = take_own_fits(
             sp, take, own, blocks_kw, sfit.pair_cov, near, cells=cells,
             floor_cells=(cells.row, cells.col, own["d"], cov_d, fits.n, fits.ok, cu),
             flag_kw=dict(n_rows=n_rows, n_cols=n_cols, eps_m=med_eps, threshold=med_thr),
-            unexplained=costs.unexplained if cell_choice else None,
-            no_worse=level if cell_choice else None,
+            unexplained=unexplained, no_worse=level,
         )  # fmt: skip
         d, grad, cov_d, rmse, n_used = sp["d"], sp["grad"], sp["cov_d"], sp["rmse"], sp["n"]
         sigma0, sig_rot, ok, flagged = sp["sigma0"], sp["sig_rot"], sp["ok"], sp["flagged"]
@@ -2527,10 +2527,11 @@ def take_own_fits(sp, take, own, blocks_kw, pair_cov, near, *, cells, floor_cell
     fl = blocks_kw.get("cells_floor")  # an unweighted field's share came from it
     fl = _cells_floor(floor_cells) if fl is None else fl
     g = fl.scale(own["n"]) if math.isfinite(fl.factor) else np.ones(len(take))
+    cov_own = own["cov_d"] * g[:, None, None]  # what a taken cell reports
     # only where the two values differ beyond their uncertainty (icp_choice.differ)
-    take = take & differ(own["d"], sp["d"], own["cov_d"] * g[:, None, None] + sp["cov_d"])
+    take = take & differ(own["d"], sp["d"], cov_own + sp["cov_d"])
     if no_worse is not None:  # or where the field is barely determined (more_precise)
-        take = take | more_precise(no_worse, own["cov_d"] * g[:, None, None], sp["cov_d"])
+        take = take | more_precise(no_worse, cov_own, sp["cov_d"])
     sp["from_cell"] = take
     if not take.any():
         return sp, blocks_kw, pair_cov
@@ -2539,7 +2540,7 @@ def take_own_fits(sp, take, own, blocks_kw, pair_cov, near, *, cells, floor_cell
     for key in ("d", "grad", "rmse", "n", "sigma0", "sig_rot"):
         t = take.reshape((-1,) + (1,) * (np.ndim(own[key]) - 1))
         sp[key] = np.where(t, own[key], sp[key])
-    sp["cov_d"] = np.where(take[:, None, None], own["cov_d"] * g[:, None, None], sp["cov_d"])
+    sp["cov_d"] = np.where(take[:, None, None], cov_own, sp["cov_d"])
     sp["ok"] = sp["ok"] | take
     if flag_kw["threshold"] > 0:
         sp["flagged"] = _median_flags(cells, sp["d"], sp["ok"], flag_kw["n_rows"],

@@ -203,10 +203,17 @@ def choose_cells(costs: ChoiceCosts, usable) -> np.ndarray:
     diff = c.field - c.cell
     with np.errstate(invalid="ignore"):
         better = np.isfinite(diff) & (diff > SWITCH_Z * c.se) & (diff > 1e-12)
-        centre_ok = (c.centre_cell - c.centre_field <= CENTRE_Z * c.centre_se) & (
+    return np.asarray(usable, dtype=bool) & better & _centre_ok(c)
+
+
+def _centre_ok(c: ChoiceCosts) -> np.ndarray:
+    """(K,) bool: around its centre the cell's own fit is not worse than the field by more
+    than :data:`CENTRE_Z` standard errors and leaves at most :data:`MAX_UNEXPLAINED_SHARE`
+    of the points there unexplained (False where it has no points there)."""
+    with np.errstate(invalid="ignore"):
+        return (c.centre_cell - c.centre_field <= CENTRE_Z * c.centre_se) & (
             c.centre_unexplained <= MAX_UNEXPLAINED_SHARE
         )
-    return np.asarray(usable, dtype=bool) & better & centre_ok
 
 
 def no_worse(costs: ChoiceCosts, usable) -> np.ndarray:
@@ -216,12 +223,8 @@ def no_worse(costs: ChoiceCosts, usable) -> np.ndarray:
     cell with no points around its centre is not."""
     c = costs
     with np.errstate(invalid="ignore"):
-        ok = (
-            (c.cell - c.field <= SWITCH_Z * c.se)
-            & (c.centre_cell - c.centre_field <= CENTRE_Z * c.centre_se)
-            & (c.centre_unexplained <= MAX_UNEXPLAINED_SHARE)
-        )
-    return np.asarray(usable, dtype=bool) & ok
+        level = c.cell - c.field <= SWITCH_Z * c.se
+    return np.asarray(usable, dtype=bool) & level & _centre_ok(c)
 
 
 def more_precise(candidates, cov_own, cov_field) -> np.ndarray:
