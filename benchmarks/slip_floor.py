@@ -362,6 +362,15 @@ def _read(paths):
     return rows
 
 
+def _features(count: int) -> None:
+    """In a worker: the synthetic MLS drift's number of random Fourier features (0: its
+    own). A benchmark device: the module constant is set in the worker process."""
+    if count > 0:
+        import slipmap.core.synthetic as synthetic
+
+        synthetic._N_FOURIER = int(count)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--case", default="tls-6-setups", choices=KINDS)
@@ -369,6 +378,13 @@ def main(argv=None) -> int:
     ap.add_argument("--first-seed", type=int, default=3000)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--out", type=Path, help="JSON lines, one per pair")
+    ap.add_argument(
+        "--fourier-features",
+        type=int,
+        default=0,
+        help="MLS drift drawn with this many random Fourier features instead of the "
+        "synthetic's 64 (a check of the floor's calibration: other pairs, the same kernel)",
+    )
     ap.add_argument("--table", type=Path, nargs="+", help="only print the table of these rows")
     ap.add_argument(
         "--against", type=Path, nargs="+", default=[], help="accuracy_slip.py rows to join"
@@ -379,7 +395,9 @@ def main(argv=None) -> int:
         return 0
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     rows = []
-    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+    with ProcessPoolExecutor(
+        max_workers=max(1, args.jobs), initializer=_features, initargs=(args.fourier_features,)
+    ) as pool:
         for row in pool.map(one, [args.case] * len(seeds), seeds):
             rows.append(row)
             print(json.dumps(row), flush=True)
