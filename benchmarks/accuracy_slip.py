@@ -331,14 +331,7 @@ def one(
     if strike is None:  # every model failed: the trace's own strike
         d = fp.trace_xy[1] - fp.trace_xy[0]
         strike = math.atan2(float(d[0]), float(d[1]))
-    gb = fault_geometry(fp.before.points[:, :2], trace)
-    ga = fault_geometry(fp.after.points[:, :2], trace)
-    sides = []
-    for g in (gb, ga):
-        lm, rm = side_masks(g, buffer_m=10.0)
-        sides.append(np.where(lm, -1, np.where(rm, 1, 0)).astype(np.int8))
-    pts = fp.before.points
-    centres = {-1: pts[sides[0] < 0].mean(axis=0), 1: pts[sides[0] > 0].mean(axis=0)}
+    sides, centres = sides_and_centres(fp, trace)
     row.update(_truth(fp, sides, centres, truth, strike))
     if peer:
         t0 = time.perf_counter()
@@ -352,6 +345,19 @@ def one(
         except RuntimeError as exc:
             row["icp"] = {"failed": str(exc)[:300]}
     return row
+
+
+def sides_and_centres(fp, trace):
+    """Each epoch's side of the trace per point (-1 left, 1 right, 0 within 10 m of it) and
+    each side's centre (the mean of its before-points): where the peer and the true-surface
+    fit report each side's motion."""
+    sides = []
+    for scene in (fp.before, fp.after):
+        lm, rm = side_masks(fault_geometry(scene.points[:, :2], trace), buffer_m=10.0)
+        sides.append(np.where(lm, -1, np.where(rm, 1, 0)).astype(np.int8))
+    pts = fp.before.points
+    centres = {-1: pts[sides[0] < 0].mean(axis=0), 1: pts[sides[0] > 0].mean(axis=0)}
+    return sides, centres
 
 
 def information_centre_shift(cov: np.ndarray) -> np.ndarray:

@@ -44,7 +44,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import accuracy_slip as harness  # noqa: E402
 
-from slipmap.core.fault import fault_geometry, fault_trace, side_masks  # noqa: E402
+from slipmap.core.fault import fault_trace  # noqa: E402
 
 KINDS = ("tls-6-setups", "mls-3mm-lever-crossing", "mls-3mm")
 
@@ -129,8 +129,11 @@ def _mls_basis(scene, model):
 
 
 def _joint(fp, sides, model_b, model_a, side_centres, min_points=10):
-    """Both epochs in one GLS, the planes' positions and tilts unknown: ``(cov, beta)`` of the
-    after-epoch's two rigid motions (12,), as :func:`_epoch` orders them.
+    """Both epochs in one GLS, the planes' positions and tilts unknown: ``(cov, beta,
+    planes, partial)``, ``cov`` (12, 12) and ``beta`` (12,) of the after-epoch's two rigid
+    motions (left rotation, left translation, right rotation, right translation; radians,
+    metres at ``side_centres``), ``planes`` how many planes, ``partial`` the motions'
+    covariance of the fit that models one kind of shared error only, per kind and "none".
 
     The floor for an estimator that knows which points lie on which plane and the survey's
     error model but not where the planes are: each true plane seen by both epochs (at least
@@ -177,7 +180,7 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10):
     effects = [_mls_basis(sc, model) if model.kind == "mls" else None for sc, _, _, model in scenes]
     xtx = sp.csr_matrix((n_fixed, n_fixed))
     xty = np.zeros(n_fixed)
-    xtz, ztz, zty = [], [], []
+    xtz, ztz, zty, kinds = [], [], [], []
     for e, ((sc, sd, src, model), keep) in enumerate(zip(scenes, keeps)):
         keep = keep[col[plane_of(sc, sd, keep)] >= 0]
         xtz_e = ztz_e = zty_e = None
@@ -222,27 +225,24 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10):
         xtz.append(xtz_e)
         ztz.append(ztz_e)
         zty.append(zty_e)
+        kinds.append(effects[e].kinds if effects[e] is not None else ["setups"] * zty_e.size)
     from scipy.linalg import block_diag
 
     xtz = np.hstack(xtz)
-    ztz_blocks = ztz
     ztz = block_diag(*ztz)
     zty = np.concatenate(zty)
+    kinds = np.concatenate(kinds)
+    xtx = xtx.toarray()
     inner = np.linalg.inv(np.eye(ztz.shape[0]) + w * ztz)
-    info = w * xtx.toarray() - w * w * xtz @ inner @ xtz.T
+    info = w * xtx - w * w * xtz @ inner @ xtz.T
     cov = np.linalg.inv(info)
     beta = cov @ (w * xty - w * w * xtz @ inner @ zty)
     sl = slice(3 * planes.size, n_fixed)
     # the same fit knowing only part of the error model, its covariance under the true one
-    kinds = np.concatenate(
-        [
-            eff.kinds if eff is not None else np.array(["setups"] * ztz_e.shape[0])
-            for eff, ztz_e in zip(effects, ztz_blocks)
-        ]
-    )
-    partial = {}
-    for name in sorted(set(kinds)) + ["none"]:
-        partial[name] = _misspecified(xtx.toarray(), xtz, ztz, w, kinds == name)[sl, sl]
+    partial = {
+        name: _misspecified(xtx, xtz, ztz, w, kinds == name)[sl, sl]
+        for name in sorted(set(kinds)) + ["none"]
+    }
     return cov[sl, sl], beta[sl], int(planes.size), partial
 
 
@@ -272,12 +272,7 @@ def one(case_name: str, seed: int) -> dict:
     truth = np.asarray(fp.relative_offset_m)
     d = fp.trace_xy[1] - fp.trace_xy[0]
     strike = math.atan2(float(d[0]), float(d[1]))
-    sides = []
-    for sc in (fp.before, fp.after):
-        lm, rm = side_masks(fault_geometry(sc.points[:, :2], trace), buffer_m=10.0)
-        sides.append(np.where(lm, -1, np.where(rm, 1, 0)).astype(np.int8))
-    pts = fp.before.points
-    centres = {-1: pts[sides[0] < 0].mean(axis=0), 1: pts[sides[0] > 0].mean(axis=0)}
+    sides, centres = harness.sides_and_centres(fp, trace)
     out = {"case": case_name, "seed": seed}
     # the planes unknown: both epochs at once; its motion is the after-epoch's (the
     # before-epoch defines the planes); the relative motion right - left
