@@ -51,6 +51,13 @@ log = logging.getLogger(__name__)
 #: residuals' robust spread, or stops falling for STALL_ITERATIONS iterations
 CHANGE_FLOOR = 0.02
 STALL_ITERATIONS = 3
+#: once a step is no smaller than the smallest so far (the nearest-neighbour pairs jitter as
+#: the field moves), the pairs and their robust weights are held and the iterations go on
+#: on that quadratic problem (:meth:`SplineChunk.held_normal_equations`); only once the
+#: step is below HOLD_SHARE of the residuals' robust spread (a field still moving towards a
+#: step or a lobe makes a larger step now and then, which is not the pairs' jitter)
+HOLD_PAIRS = True
+HOLD_SHARE = 0.25
 #: ``smoothing=None``: the penalty weights are estimated (variance components) from this start
 AUTO_START = 0.01
 TRACE_EXACT_MAX = 300
@@ -917,6 +924,10 @@ class Weighting:
             scale = MAD_TO_SIGMA * float(np.median(av[av <= thr]))
         return cls(thr, scale, opts.robust, float(np.median(av)))
 
+    def numbers(self) -> np.ndarray:
+        """(3,) its threshold, scale and median ``|v|`` (NaN scale without robust weights)."""
+        return np.array([self.threshold_m, self.scale_m, self.median_abs_m])
+
     def apply(self, v: np.ndarray):
         """Residuals ``v`` (N,) of a chunk -> (keep, w, psi'(v)), equal to
         :func:`~.icp_options._weights` of all chunks' residuals together."""
@@ -1079,6 +1090,8 @@ class SplineChunk:
             self._nearest = nearest
         self._at = None  # coefficients of the cached pairs
         self._pairs = None
+        self._held_key = None  # (pairs_at, weighting, cell_weight) of the held pairs
+        self._held = None
         import scipy.sparse as sp
 
         # the field at the points is basis @ c: a sparse product, 8x faster than gathering
@@ -1132,12 +1145,20 @@ class SplineChunk:
         return np.where(np.isfinite(dw) & (dw > 0), dw, 1.0)
 
     def normal_equations(
-        self, c: np.ndarray, weighting: Weighting, cell_weight: Optional[np.ndarray] = None
+        self,
+        c: np.ndarray,
+        weighting: Weighting,
+        cell_weight: Optional[np.ndarray] = None,
+        pairs_at: Optional[np.ndarray] = None,
     ) -> ChunkNormals:
         """The chunk's share of the normal equations at coefficients ``c``; with
         ``cell_weight`` (K,) each point's row weighed by its cell's data weight
         (:func:`cell_data_weights`), ``wvv`` still the unweighted ``sum w v²`` (the points'
-        own variance, for the variance components)."""
+        own variance, for the variance components). With ``pairs_at`` (K, 3) the pairs,
+        their target normals and the robust weights are those of the points moved by
+        ``pairs_at`` (:meth:`held_normal_equations`)."""
+        if pairs_at is not None:
+            return self.held_normal_equations(c, weighting, cell_weight, pairs_at)
         ok, nrm, v, _ = self.pairs(c)
         keep, wv, _ = weighting.apply(v[ok])
         wt = np.zeros(len(v))
@@ -1150,6 +1171,59 @@ class SplineChunk:
             self.bounds, self.idx16, self.w16, self._bu, self._bv, nrm, v, dw, self.n_k, ok,
             self._pattern,
         )  # fmt: skip
+        return ChunkNormals(
+            nmat, rhs, gram, float(np.sum(wt * v * v)), int(np.count_nonzero(wt)),
+            int(np.count_nonzero(ok)), float(np.sum(dw * v * v)),
+        )  # fmt: skip
+
+    def held_normal_equations(
+        self,
+        c: np.ndarray,
+        weighting: Weighting,
+        cell_weight: Optional[np.ndarray],
+        pairs_at: np.ndarray,
+    ) -> ChunkNormals:
+        """:meth:`normal_equations` at ``c`` with the pairs held: each point keeps the target
+        point, the normal and the robust weight it had at ``pairs_at`` (K, 3), and only its
+        residual ``v = n · (moved point - target)`` follows ``c``. The point-to-plane problem
+        is then quadratic in ``c``: the normal and Gram matrices are those of ``pairs_at``
+        (kept between calls with the same ``pairs_at``, ``weighting`` and ``cell_weight``;
+        a chunk made anew computes them again, the same), the right-hand side
+        ``sum w a (n · ...)`` one sparse product per component. The pairs do not jitter
+        with the field, so the fit converges where the nearest-neighbour pairs of a moving
+        field wander (docs/fields.md, "Pairs held once the steps stop shrinking")."""
+        pairs_at = np.asarray(pairs_at, dtype=np.float64)
+        cw = None if cell_weight is None else np.asarray(cell_weight, dtype=np.float64)
+        key = self._held_key
+        hit = (
+            key is not None
+            and np.array_equal(key[0], pairs_at)
+            and key[1].robust == weighting.robust
+            and np.array_equal(key[1].numbers(), weighting.numbers(), equal_nan=True)
+            and ((key[2] is None and cw is None) or (
+                key[2] is not None and cw is not None and np.array_equal(key[2], cw)))
+        )  # fmt: skip
+        if not hit:
+            ok, nrm, v0, j = self.pairs(pairs_at)
+            keep, wv, _ = weighting.apply(v0[ok])
+            wt = np.zeros(len(v0))
+            wt[ok] = np.where(keep, wv, 0.0)
+            wt[self.gap] = 0.0
+            dw = wt * self.data_weight(cw)
+            if self._pattern is None:
+                self._pattern = NormalPattern.of(self.bounds, self.idx16, self.n_k)
+            nmat, _, gram = _assemble_kron(
+                self.bounds, self.idx16, self.w16, self._bu, self._bv, nrm, v0, dw, self.n_k,
+                ok, self._pattern,
+            )  # fmt: skip
+            target = np.zeros((len(v0), 3))
+            target[ok] = self.before[j[ok]]
+            self._held_key = (pairs_at.copy(), weighting, None if cw is None else cw.copy())
+            self._held = (ok, nrm, target, wt, dw, nmat, gram)
+        ok, nrm, target, wt, dw, nmat, gram = self._held
+        v = np.einsum("ij,ij->i", nrm, self.moved(np.asarray(c, dtype=np.float64)) - target)
+        v[~ok] = 0.0
+        rhs = np.asarray(self._basis_pts.T @ ((dw * v)[:, None] * nrm)).T.reshape(-1)
         return ChunkNormals(
             nmat, rhs, gram, float(np.sum(wt * v * v)), int(np.count_nonzero(wt)),
             int(np.count_nonzero(ok)), float(np.sum(dw * v * v)),
@@ -1532,10 +1606,17 @@ def fit_spline_chunks(
         converged, it = False, 0
         factor = None
         best, since_best = np.inf, 0
+        held = None  # the coefficients whose pairs are held (HOLD_PAIRS)
+        wgt = None
         for it in range(1, opts.max_iterations + 1):
             report(progress, (it - 1) / opts.max_iterations, f"spline field: iteration {it}")
-            wgt = weighting_at(c)
-            parts = run("normal_equations", c, wgt, cell_weight)
+            if held is None:
+                wgt = weighting_at(c)
+                parts = run("normal_equations", c, wgt, cell_weight)
+            else:
+                if wgt is None:  # the robust weights of the held pairs
+                    wgt = weighting_at(held)
+                parts = run("normal_equations", c, wgt, cell_weight, held)
             nmat = _sum_sparse([p.nmat for p in parts], 3 * n_k)
             gram = _sum_sparse([p.gram for p in parts], n_k)
             rhs = np.sum([p.rhs for p in parts], axis=0)
@@ -1592,6 +1673,18 @@ def fit_spline_chunks(
             if rms_du < max(opts.tolerance_m, floor) or since_best >= STALL_ITERATIONS:
                 converged = True
                 break
+            if (
+                HOLD_PAIRS
+                and held is None
+                and since_best >= 1
+                and rms_du < HOLD_SHARE * (MAD_TO_SIGMA * wgt.median_abs_m)
+            ):
+                # the steps stopped shrinking: the pairs jitter as the field moves. Hold
+                # them (and their robust weights) from here, so that the penalty's weights
+                # settle on one quadratic problem instead of a wandering one
+                held, wgt = c.copy(), None
+                best, since_best = np.inf, 0
+                log.debug("spline field: pairs held from iteration %d", it + 1)
         score = _restricted_score(factor, penalty, c, wvv, wvv_weighted, n_obs) if local else None
         global_estimate = lam_abs / scale if smoothing is None and not local else None
         return c, factor, penalty, it, converged, score, global_estimate

@@ -168,3 +168,72 @@ def test_block_scores_equal_the_per_point_sums():
     want = {(int(seg[p]), *(int(np.floor((xy[p, k] - o) / bm)) for k, o in ((0, -3.2), (1, -2.9))))
             for p in range(n) if psi[p] != 0 and seg[p] >= 0}  # fmt: skip
     assert {tuple(r) for r in cb.tolist()} == want
+
+
+@pytest.mark.parametrize("robust", ["tukey", None])
+def test_held_pairs_give_the_normal_equations_of_those_pairs_at_any_field(robust):
+    """:meth:`SplineChunk.held_normal_equations`: at the coefficients whose pairs are
+    held it equals the live normal equations; at other coefficients its normal and Gram
+    matrices stay those of the held pairs and its right-hand side and ``wvv`` are the
+    obvious sums over the held pairs' residuals (a loop over points, written out here),
+    while the live pairs of the moved field differ."""
+    from scipy.spatial import cKDTree
+
+    from slipmap.core.icp import _NormalCache
+
+    rng = np.random.default_rng(3)
+    lobe = LobeField(centre_xy=(11.0, 12.0), radius_x_m=6.0, radius_y_m=6.0,
+                     max_d_m=(0.1, -0.3, -0.1))  # fmt: skip
+    before = cloud(rng, -3.0, 27.0, 25, 0.003)
+    after = cloud(rng, 0.0, 24.0, 25, 0.003)
+    after = after + lobe(after[:, :2])
+    tree = cKDTree(before)
+    g = np.arange(2.0, 24.0, 4.0)
+    rxy = np.array([(x, y) for y in g for x in g])
+    seg = (np.floor(after[:, 1] / 4.0) * 6 + np.floor(after[:, 0] / 4.0)).astype(np.int64)
+    frame = knot_frame(after[:, :2].min(axis=0), after[:, :2].max(axis=0), rxy, 4.0)
+    chunk = SplineChunk(after, frame=frame, before=before, tree=tree,
+                        normals=_NormalCache(before, tree, 12), gate_m=1.0, seg=seg)  # fmt: skip
+    n_k = chunk.n_k
+    c_held = rng.normal(0.0, 0.05, (n_k, 3))
+    c_new = c_held + rng.normal(0.0, 0.05, (n_k, 3))
+    opts = _options(robust=robust)
+    wgt = Weighting.of(chunk.residuals(c_held), opts)
+    cell_w = rng.uniform(0.2, 1.0, len(rxy))
+    live = chunk.normal_equations(c_held, wgt, cell_w)
+    held_here = chunk.normal_equations(c_held, wgt, cell_w, c_held)
+    np.testing.assert_allclose(held_here.nmat.toarray(), live.nmat.toarray(), rtol=1e-12,
+                               atol=1e-12 * abs(live.nmat).max())  # fmt: skip
+    np.testing.assert_allclose(held_here.rhs, live.rhs, rtol=1e-10, atol=1e-14)
+    assert held_here.wvv == pytest.approx(live.wvv, rel=1e-12)
+    assert held_here.wvv_weighted == pytest.approx(live.wvv_weighted, rel=1e-12)
+
+    kept = chunk._held
+    held = chunk.normal_equations(c_new, wgt, cell_w, c_held)
+    assert chunk._held is kept  # the held pairs' matrices are not made again
+    np.testing.assert_array_equal(held.nmat.toarray(), held_here.nmat.toarray())
+    np.testing.assert_array_equal(held.gram.toarray(), held_here.gram.toarray())
+    # the reference: the pairs, normals and weights of c_held, the residuals at c_new
+    ok, nrm, v0, j = chunk.pairs(c_held)
+    keep, wv, _ = wgt.apply(v0[ok])
+    w_all = np.zeros(len(v0))
+    w_all[ok] = np.where(keep, wv, 0.0)
+    dw = w_all * chunk.data_weight(cell_w)
+    basis = chunk._basis_pts.toarray()
+    moved = chunk.a - basis @ c_new
+    rhs = np.zeros(3 * n_k)
+    wvv = 0.0
+    for p in np.flatnonzero(ok):
+        v = float(nrm[p] @ (moved[p] - before[j[p]]))
+        wvv += w_all[p] * v * v
+        for comp in range(3):
+            rhs[comp * n_k : (comp + 1) * n_k] += dw[p] * v * nrm[p, comp] * basis[p]
+    np.testing.assert_allclose(held.rhs, rhs, rtol=1e-9, atol=1e-12 * np.abs(rhs).max())
+    assert held.wvv == pytest.approx(wvv, rel=1e-9)
+    # a chunk made anew (a tile block's cache dropped) gives the same
+    fresh = SplineChunk(after, frame=frame, before=before, tree=tree,
+                        normals=_NormalCache(before, tree, 12), gate_m=1.0, seg=seg)  # fmt: skip
+    again = fresh.normal_equations(c_new, wgt, cell_w, c_held)
+    np.testing.assert_array_equal(again.rhs, held.rhs)
+    # the live pairs of the moved field are not the held ones
+    assert not np.array_equal(chunk.pairs(c_new)[3], j)
