@@ -1159,7 +1159,16 @@ class SplineChunk:
         ``pairs_at`` (:meth:`held_normal_equations`)."""
         if pairs_at is not None:
             return self.held_normal_equations(c, weighting, cell_weight, pairs_at)
-        ok, nrm, v, _ = self.pairs(c)
+        ok, nrm, v, _, wt, dw, nmat, rhs, gram = self._assembled(c, weighting, cell_weight)
+        return ChunkNormals(
+            nmat, rhs, gram, float(np.sum(wt * v * v)), int(np.count_nonzero(wt)),
+            int(np.count_nonzero(ok)), float(np.sum(dw * v * v)),
+        )  # fmt: skip
+
+    def _assembled(self, c: np.ndarray, weighting: Weighting, cell_weight):
+        """``(ok, nrm, v, target index, robust weights, row weights, nmat, rhs, gram)`` of
+        the pairs at coefficients ``c`` (:meth:`pairs`, :func:`_assemble_kron`)."""
+        ok, nrm, v, j = self.pairs(c)
         keep, wv, _ = weighting.apply(v[ok])
         wt = np.zeros(len(v))
         wt[ok] = np.where(keep, wv, 0.0)
@@ -1171,10 +1180,7 @@ class SplineChunk:
             self.bounds, self.idx16, self.w16, self._bu, self._bv, nrm, v, dw, self.n_k, ok,
             self._pattern,
         )  # fmt: skip
-        return ChunkNormals(
-            nmat, rhs, gram, float(np.sum(wt * v * v)), int(np.count_nonzero(wt)),
-            int(np.count_nonzero(ok)), float(np.sum(dw * v * v)),
-        )  # fmt: skip
+        return ok, nrm, v, j, wt, dw, nmat, rhs, gram
 
     def held_normal_equations(
         self,
@@ -1204,18 +1210,7 @@ class SplineChunk:
                 key[2] is not None and cw is not None and np.array_equal(key[2], cw)))
         )  # fmt: skip
         if not hit:
-            ok, nrm, v0, j = self.pairs(pairs_at)
-            keep, wv, _ = weighting.apply(v0[ok])
-            wt = np.zeros(len(v0))
-            wt[ok] = np.where(keep, wv, 0.0)
-            wt[self.gap] = 0.0
-            dw = wt * self.data_weight(cw)
-            if self._pattern is None:
-                self._pattern = NormalPattern.of(self.bounds, self.idx16, self.n_k)
-            nmat, _, gram = _assemble_kron(
-                self.bounds, self.idx16, self.w16, self._bu, self._bv, nrm, v0, dw, self.n_k,
-                ok, self._pattern,
-            )  # fmt: skip
+            ok, nrm, v0, j, wt, dw, nmat, _, gram = self._assembled(pairs_at, weighting, cw)
             target = np.zeros((len(v0), 3))
             target[ok] = self.before[j[ok]]
             self._held_key = (pairs_at.copy(), weighting, None if cw is None else cw.copy())
