@@ -27,6 +27,10 @@ and its GLS fit's realised error. ``--table ROWS... --against KINDS_ROWS...`` jo
 with SlipMap's, the ICP peer's and the true-surface fit's errors of the same pairs
 (``accuracy_slip.py`` rows) and prints RMS over the pairs.
 
+``--patch-m S`` gives the same floor on other observations: each epoch's points of a plane
+averaged over cubes of side ``S`` metres, or (``plane``) each epoch's least-squares plane
+fits: what an estimator that observes patches, or planes, instead of points could reach.
+
 Run: ``python benchmarks/slip_floor.py --case tls-6-setups --seeds 30 --first-seed 3000``
 """
 
@@ -128,7 +132,41 @@ def _mls_basis(scene, model):
     return effects
 
 
-def _joint(fp, sides, model_b, model_a, side_centres, min_points=10):
+def _patch_means(x, z, y, group):
+    """Rows of each group replaced by their mean times ``sqrt(count)``: generalised least
+    squares on the groups' means (white noise ``σ² / count`` each) with the scalar weight
+    of single points. ``x`` sparse (m, p), ``z`` (m, q), ``y`` (m,), ``group`` (m,) int."""
+    import scipy.sparse as sp
+
+    _, g = np.unique(group, return_inverse=True)
+    g = g.reshape(-1)
+    count = np.bincount(g).astype(np.float64)
+    scale = 1.0 / np.sqrt(count)  # mean times sqrt(count): each row's sum / sqrt(count)
+    agg = sp.csr_matrix((scale[g], (g, np.arange(g.size))), shape=(count.size, g.size))
+    return agg @ x, agg @ z, agg @ y
+
+
+def _plane_fits(x, z, y, group, basis):
+    """Rows of each group replaced by their projections on an orthonormal basis of the
+    group's ``basis`` rows (m_g, 3): ``Qᵀ x, Qᵀ z, Qᵀ y``, three rows a group whose white
+    noise is still ``σ² I``. With ``basis`` a plane's offset and two tilts these are its
+    least-squares plane fit: the support of an estimator that observes each epoch's planes
+    (offset and normal) and not their points."""
+    import scipy.sparse as sp
+
+    xd = x.toarray()
+    rows_x, rows_z, rows_y = [], [], []
+    for g in np.unique(group):
+        m = np.flatnonzero(group == g)
+        q, r = np.linalg.qr(basis[m])
+        q = q[:, np.abs(np.diag(r)) > 1e-9 * np.abs(r).max()]
+        rows_x.append(q.T @ xd[m])
+        rows_z.append(q.T @ z[m])
+        rows_y.append(q.T @ y[m])
+    return sp.csr_matrix(np.vstack(rows_x)), np.vstack(rows_z), np.concatenate(rows_y)
+
+
+def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=None):
     """Both epochs in one GLS, the planes' positions and tilts unknown: ``(cov, beta,
     planes, partial)``, ``cov`` (12, 12) and ``beta`` (12,) of the after-epoch's two rigid
     motions (left rotation, left translation, right rotation, right translation; radians,
@@ -142,7 +180,9 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10):
     peer's sides: nothing ties the two sides before the event, so a plane that crosses the
     trace, the ground, is two planes); the after-epoch's points also move with their side.
     The surveys' shared errors are independent random effects per epoch (``Σ = σ² I + Z
-    Zᵀ``)."""
+    Zᵀ``). ``patch_m``: each epoch's points of a plane averaged over cubes of that side
+    before the fit (what an estimator that observes patch means instead of points could
+    reach); ``"plane"``: each epoch's least-squares plane fits instead of its points."""
     import scipy.sparse as sp
 
     surf_b = fp.before.surfaces
@@ -184,8 +224,9 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10):
     for e, ((sc, sd, src, model), keep) in enumerate(zip(scenes, keeps)):
         keep = keep[col[plane_of(sc, sd, keep)] >= 0]
         xtz_e = ztz_e = zty_e = None
-        for lo in range(0, keep.size, CHUNK):
-            idx = keep[lo : lo + CHUNK]
+        step = CHUNK if patch_m is None else max(keep.size, 1)  # patches: the epoch at once
+        for lo in range(0, keep.size, step):
+            idx = keep[lo : lo + step]
             p = sc.points[idx]
             lab = sc.labels[idx].astype(np.int64)
             pl = plane_of(sc, sd, idx)
@@ -215,6 +256,13 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10):
                 if effects[e] is not None
                 else _tls_effects(p, n, src[idx], model, sc)
             )
+            if patch_m == "plane":
+                x, z, y = _plane_fits(x, z, y, pl, np.reshape(vals[0], (m, 3)))
+            elif patch_m is not None:
+                cube = np.floor((p - sc.points[keep].min(axis=0)) / float(patch_m))
+                cube = cube.astype(np.int64)
+                group = ((pl * 4096 + cube[:, 0]) * 4096 + cube[:, 1]) * 4096 + cube[:, 2]
+                x, z, y = _patch_means(x, z, y, group)
             xtx = xtx + (x.T @ x)
             xty += x.T @ y
             parts = (np.asarray(x.T @ z), z.T @ z, z.T @ y)
@@ -262,7 +310,7 @@ def _misspecified(xtx, xtz, ztz, w, known) -> np.ndarray:
     return c + c @ b @ b.T @ c
 
 
-def one(case_name: str, seed: int) -> dict:
+def one(case_name: str, seed: int, patch_m=None) -> dict:
     c = harness.CASES[case_name]
     for model in (c["before"], c["after"]):
         if model is None or model.kind not in ("tls", "mls") or model.nonflat_m > 0:
@@ -276,7 +324,11 @@ def one(case_name: str, seed: int) -> dict:
     out = {"case": case_name, "seed": seed}
     # the planes unknown: both epochs at once; its motion is the after-epoch's (the
     # before-epoch defines the planes); the relative motion right - left
-    jcov, jbeta, out["planes_n"], partial = _joint(fp, sides, c["before"], c["after"], centres)
+    jcov, jbeta, out["planes_n"], partial = _joint(
+        fp, sides, c["before"], c["after"], centres, patch_m=patch_m
+    )
+    if patch_m is not None:
+        out["patch_m"] = patch_m if patch_m == "plane" else float(patch_m)
     k = np.zeros((3, 12))
     k[:, 9:12] = np.eye(3)
     k[:, 3:6] = -np.eye(3)
@@ -380,6 +432,14 @@ def main(argv=None) -> int:
         help="MLS drift drawn with this many random Fourier features instead of the "
         "synthetic's 64 (a check of the floor's calibration: other pairs, the same kernel)",
     )
+    ap.add_argument(
+        "--patch-m",
+        type=lambda v: v if v == "plane" else float(v),
+        default=None,
+        help="observe each epoch's points of a plane as means over cubes of this side "
+        "(metres): the floor of an estimator that works on patches instead of points; "
+        "'plane': on each epoch's least-squares plane fits",
+    )
     ap.add_argument("--table", type=Path, nargs="+", help="only print the table of these rows")
     ap.add_argument(
         "--against", type=Path, nargs="+", default=[], help="accuracy_slip.py rows to join"
@@ -393,7 +453,7 @@ def main(argv=None) -> int:
     with ProcessPoolExecutor(
         max_workers=max(1, args.jobs), initializer=_features, initargs=(args.fourier_features,)
     ) as pool:
-        for row in pool.map(one, [args.case] * len(seeds), seeds):
+        for row in pool.map(one, [args.case] * len(seeds), seeds, [args.patch_m] * len(seeds)):
             rows.append(row)
             print(json.dumps(row), flush=True)
             if args.out:

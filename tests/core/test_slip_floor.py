@@ -61,3 +61,38 @@ def test_tls_floor_below_least_squares():
     np.testing.assert_allclose(row["knowing_only"]["setups"], floor, rtol=1e-9)
     assert np.all(np.abs(row["floor"]["err"]) < 4 * floor)
     assert row["planes_n"] >= 20
+
+
+def test_patch_means_lose_nothing_when_rows_share_their_design():
+    """Group means are sufficient when every row of a group has the same design: the GLS
+    covariance and estimate on the means (``_patch_means``) equal those on the rows."""
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(9)
+    group = rng.integers(0, 25, 300)
+    xg, zg = rng.normal(size=(25, 4)), rng.normal(size=(25, 5)) * 0.3
+    x, z = xg[group], zg[group]
+    y = x @ rng.normal(size=4) + z @ rng.normal(size=5) + rng.normal(0, 0.1, 300)
+    w = 100.0
+
+    def gls(x, z, y):
+        sigma = np.eye(len(y)) / w + z @ z.T
+        si = np.linalg.inv(sigma)
+        cov = np.linalg.inv(x.T @ si @ x)
+        return cov, cov @ x.T @ si @ y
+
+    xm, zm, ym = F._patch_means(sp.csr_matrix(x), z, y, group)
+    c0, b0 = gls(x, z, y)
+    c1, b1 = gls(xm.toarray(), np.asarray(zm), np.asarray(ym))
+    np.testing.assert_allclose(c1, c0, rtol=1e-8)
+    np.testing.assert_allclose(b1, b0, rtol=1e-8, atol=1e-10)
+
+
+def test_tls_floor_on_patches():
+    """Patches of 0.1 mm hold one point each: the point floor. Patches of 2 m can only lose
+    information: a σ at least the point floor's on every axis."""
+    point = np.array(F.one("tls-6-setups", 3000)["floor"]["sigma"])
+    tiny = np.array(F.one("tls-6-setups", 3000, patch_m=1e-4)["floor"]["sigma"])
+    wide = np.array(F.one("tls-6-setups", 3000, patch_m=2.0)["floor"]["sigma"])
+    np.testing.assert_allclose(tiny, point, rtol=1e-6)
+    assert np.all(wide >= point * (1 - 1e-9))
