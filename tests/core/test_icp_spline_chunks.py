@@ -37,22 +37,29 @@ def test_weights_from_chunks_equal_those_of_one_array(robust, trim):
     assert wgt.median_abs_m == np.median(np.abs(v))
 
 
+#: the lobe of :func:`_lobe_scene`
+LOBE = LobeField(centre_xy=(11.0, 12.0), radius_x_m=6.0, radius_y_m=6.0, max_d_m=(0.1, -0.3, -0.1))
+
+
+def _lobe_scene(rng):
+    """A lobe (0.3 m) on 24 m of rough ground, cells of 4 m: ``(before, after, tree of
+    before, cell centres (36, 2), cell of each after-point)``."""
+    from scipy.spatial import cKDTree
+
+    before = cloud(rng, -3.0, 27.0, 25, 0.003)
+    after = cloud(rng, 0.0, 24.0, 25, 0.003)
+    after = after + LOBE(after[:, :2])
+    g = np.arange(2.0, 24.0, 4.0)
+    rxy = np.array([(x, y) for y in g for x in g])
+    seg = (np.floor(after[:, 1] / 4.0) * 6 + np.floor(after[:, 0] / 4.0)).astype(np.int64)
+    return before, after, cKDTree(before), rxy, seg
+
+
 def test_a_fit_over_three_chunks_equals_the_one_chunk_fit():
     """A lobe (0.3 m) on 24 m of rough ground, cells of 4 m: the after-points split into
     three uneven chunks by x; the driver adds their shares. Same field, covariances, per-cell
     residuals and counts, sigma0 and iterations (up to the sums' rounding)."""
-    from scipy.spatial import cKDTree
-
-    rng = np.random.default_rng(7)
-    lobe = LobeField(centre_xy=(11.0, 12.0), radius_x_m=6.0, radius_y_m=6.0,
-                     max_d_m=(0.1, -0.3, -0.1))  # fmt: skip
-    before = cloud(rng, -3.0, 27.0, 25, 0.003)
-    after = cloud(rng, 0.0, 24.0, 25, 0.003)
-    after = after + lobe(after[:, :2])
-    tree = cKDTree(before)
-    g = np.arange(2.0, 24.0, 4.0)
-    rxy = np.array([(x, y) for y in g for x in g])
-    seg = (np.floor(after[:, 1] / 4.0) * 6 + np.floor(after[:, 0] / 4.0)).astype(np.int64)
+    before, after, tree, rxy, seg = _lobe_scene(np.random.default_rng(7))
     pairs = np.array([(i, i + 1) for i in range(len(rxy) - 1)])
     kw = dict(
         initial=lambda xy: np.zeros((len(xy), 3)), report_xy=rxy, report_pairs=pairs,
@@ -97,7 +104,7 @@ def test_a_fit_over_three_chunks_equals_the_one_chunk_fit():
     ratio = np.diagonal(one.cov_blocks, axis1=1, axis2=2) / np.diagonal(one.cov, axis1=1, axis2=2)
     assert 0.6 < np.median(ratio[:, :3]) < 1.6
     # and the field is the lobe's (the fit works, not only agrees with itself)
-    err = np.linalg.norm(one.d - lobe(rxy), axis=1)
+    err = np.linalg.norm(one.d - LOBE(rxy), axis=1)
     assert np.sqrt(np.mean(err**2)) < 0.03
 
 
@@ -177,20 +184,10 @@ def test_held_pairs_give_the_normal_equations_of_those_pairs_at_any_field(robust
     matrices stay those of the held pairs and its right-hand side and ``wvv`` are the
     obvious sums over the held pairs' residuals (a loop over points, written out here),
     while the live pairs of the moved field differ."""
-    from scipy.spatial import cKDTree
-
     from slipmap.core.icp import _NormalCache
 
     rng = np.random.default_rng(3)
-    lobe = LobeField(centre_xy=(11.0, 12.0), radius_x_m=6.0, radius_y_m=6.0,
-                     max_d_m=(0.1, -0.3, -0.1))  # fmt: skip
-    before = cloud(rng, -3.0, 27.0, 25, 0.003)
-    after = cloud(rng, 0.0, 24.0, 25, 0.003)
-    after = after + lobe(after[:, :2])
-    tree = cKDTree(before)
-    g = np.arange(2.0, 24.0, 4.0)
-    rxy = np.array([(x, y) for y in g for x in g])
-    seg = (np.floor(after[:, 1] / 4.0) * 6 + np.floor(after[:, 0] / 4.0)).astype(np.int64)
+    before, after, tree, rxy, seg = _lobe_scene(rng)
     frame = knot_frame(after[:, :2].min(axis=0), after[:, :2].max(axis=0), rxy, 4.0)
     chunk = SplineChunk(after, frame=frame, before=before, tree=tree,
                         normals=_NormalCache(before, tree, 12), gate_m=1.0, seg=seg)  # fmt: skip
