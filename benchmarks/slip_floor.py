@@ -259,10 +259,10 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
             if patch_m == "plane":
                 x, z, y = _plane_fits(x, z, y, pl, np.reshape(vals[0], (m, 3)))
             elif patch_m is not None:
-                cube = np.floor((p - sc.points[keep].min(axis=0)) / float(patch_m))
-                cube = cube.astype(np.int64)
-                group = ((pl * 4096 + cube[:, 0]) * 4096 + cube[:, 1]) * 4096 + cube[:, 2]
-                x, z, y = _patch_means(x, z, y, group)
+                cube = np.floor((p - p.min(axis=0)) / float(patch_m)).astype(np.int64)
+                # one group per (plane, cube): the distinct rows, whatever the cubes' count
+                _, group = np.unique(np.column_stack([pl, cube]), axis=0, return_inverse=True)
+                x, z, y = _patch_means(x, z, y, group.reshape(-1))
             xtx = xtx + (x.T @ x)
             xty += x.T @ y
             parts = (np.asarray(x.T @ z), z.T @ z, z.T @ y)
