@@ -31,6 +31,13 @@ with SlipMap's, the ICP peer's and the true-surface fit's errors of the same pai
 averaged over cubes of side ``S`` metres, or (``plane``) each epoch's least-squares plane
 fits: what an estimator that observes patches, or planes, instead of points could reach.
 
+``--model-drift SECONDS:MM[:offset] ...`` adds, per pair, the σ under the true error of the
+fit that models the MLS drift as SlipMap does (:mod:`slipmap.core.unit_drift`: a hat basis
+in GpsTime per pass, independent knots every SECONDS of MM per axis) instead of the truth;
+``:offset``: the model's drift acts on each plane fit's offset only, not on its tilts, as
+in SlipMap's stochastic model (with ``--patch-m plane``; docs/accuracy.md, "What the drift
+model misses").
+
 Run: ``python benchmarks/slip_floor.py --case tls-6-setups --seeds 30 --first-seed 3000``
 """
 
@@ -96,7 +103,7 @@ def _mls_basis(scene, model):
 
     local = np.asarray(scene.points, dtype=np.float64) - np.asarray(scene.origin)
     lo, hi = synthetic._survey_area(scene, local)
-    s, _, heading, total, step = synthetic._mls_path(local, lo, hi, model)
+    s, line, heading, total, step = synthetic._mls_path(local, lo, hi, model)
     grid = np.linspace(0.0, total, max(2, int(math.ceil(total / step)) + 1))
     ell = model.correlation_length_m
     kern = model.level_m**2 * np.exp(-0.5 * ((grid[:, None] - grid[None, :]) / ell) ** 2)
@@ -126,6 +133,23 @@ def _mls_basis(scene, model):
             cols.append(lever * model.lever_arm_m)
         return np.hstack(cols)
 
+    def hat(idx, n, interval_s, sigma_m):
+        """Columns (m, 3 V) of SlipMap's model of the drift (:mod:`slipmap.core.unit_drift`):
+        a hat basis in time with knots every ``interval_s`` seconds per pass, independent
+        coefficients of ``sigma_m`` per axis; V the (pass, knot) pairs of the whole epoch."""
+        x = s / synthetic._MLS_SPEED_M_S / float(interval_s)
+        k = np.floor(x).astype(np.int64)
+        ids = np.unique(np.concatenate([line * (1 << 32) + k, line * (1 << 32) + k + 1]))
+        xi = x[idx]
+        ki = k[idx]
+        w = xi - ki
+        b = np.zeros((idx.size, ids.size))
+        rows = np.arange(idx.size)
+        b[rows, np.searchsorted(ids, line[idx] * (1 << 32) + ki)] = 1.0 - w
+        b[rows, np.searchsorted(ids, line[idx] * (1 << 32) + ki + 1)] += w
+        return np.hstack([n[:, [j]] * b * float(sigma_m) for j in range(3)])
+
+    effects.hat = hat
     effects.kinds = np.array(
         ["drift"] * 3 * factor.shape[1] + ["lever arm"] * (3 if model.lever_arm_m > 0 else 0)
     )
@@ -154,19 +178,24 @@ def _plane_fits(x, z, y, group, basis):
     (offset and normal) and not their points."""
     import scipy.sparse as sp
 
-    xd = x.toarray()
-    rows_x, rows_z, rows_y = [], [], []
+    rows_x, rows_z, rows_y, first = [], [], [], []
     for g in np.unique(group):
         m = np.flatnonzero(group == g)
         q, r = np.linalg.qr(basis[m])
         q = q[:, np.abs(np.diag(r)) > 1e-9 * np.abs(r).max()]
-        rows_x.append(q.T @ xd[m])
+        rows_x.append(np.asarray((x[m].T @ q).T))
         rows_z.append(q.T @ z[m])
         rows_y.append(q.T @ y[m])
-    return sp.csr_matrix(np.vstack(rows_x)), np.vstack(rows_z), np.concatenate(rows_y)
+        first.append(np.arange(q.shape[1]) == 0)
+    return (
+        sp.csr_matrix(np.vstack(rows_x)),
+        np.vstack(rows_z),
+        np.concatenate(rows_y),
+        np.concatenate(first),
+    )
 
 
-def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=None):
+def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=None, model_drifts=()):
     """Both epochs in one GLS, the planes' positions and tilts unknown: ``(cov, beta,
     planes, partial)``, ``cov`` (12, 12) and ``beta`` (12,) of the after-epoch's two rigid
     motions (left rotation, left translation, right rotation, right translation; radians,
@@ -182,7 +211,10 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
     The surveys' shared errors are independent random effects per epoch (``Σ = σ² I + Z
     Zᵀ``). ``patch_m``: each epoch's points of a plane averaged over cubes of that side
     before the fit (what an estimator that observes patch means instead of points could
-    reach); ``"plane"``: each epoch's least-squares plane fits instead of its points."""
+    reach); ``"plane"``: each epoch's least-squares plane fits instead of its points.
+    ``model_drifts``: (interval_s, sigma_m) pairs; each adds to ``partial`` (as ``"hat Δ s
+    σ mm"``) the covariance, under the true error model, of the fit that models the MLS
+    drift as SlipMap does (a hat basis in time per pass) instead."""
     import scipy.sparse as sp
 
     surf_b = fp.before.surfaces
@@ -224,9 +256,15 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
     for e, ((sc, sd, src, model), keep) in enumerate(zip(scenes, keeps)):
         keep = keep[col[plane_of(sc, sd, keep)] >= 0]
         xtz_e = ztz_e = zty_e = None
-        step = CHUNK if patch_m is None else max(keep.size, 1)  # patches: the epoch at once
-        for lo in range(0, keep.size, step):
-            idx = keep[lo : lo + step]
+        if patch_m is None:
+            chunks = [keep[lo : lo + CHUNK] for lo in range(0, keep.size, CHUNK)]
+        elif patch_m == "plane":  # whole planes per chunk
+            keep = keep[np.argsort(plane_of(sc, sd, keep), kind="stable")]
+            bounds = np.flatnonzero(np.diff(plane_of(sc, sd, keep))) + 1
+            chunks = np.split(keep, bounds)
+        else:  # patches: the epoch at once
+            chunks = [keep]
+        for idx in chunks:
             p = sc.points[idx]
             lab = sc.labels[idx].astype(np.int64)
             pl = plane_of(sc, sd, idx)
@@ -256,8 +294,17 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
                 if effects[e] is not None
                 else _tls_effects(p, n, src[idx], model, sc)
             )
+            n_true = z.shape[1]
+            if model_drifts and effects[e] is not None:
+                z = np.hstack([z] + [effects[e].hat(idx, n, dt, sg) for dt, sg, *_ in model_drifts])
             if patch_m == "plane":
-                x, z, y = _plane_fits(x, z, y, pl, np.reshape(vals[0], (m, 3)))
+                x, z, y, offset_row = _plane_fits(x, z, y, pl, np.reshape(vals[0], (m, 3)))
+                at = n_true
+                for dt, sg, *how in model_drifts:
+                    v = effects[e].hat(idx[:1], n[:1], dt, sg).shape[1]
+                    if how and how[0] == "offset":  # the model sees the offsets only
+                        z[~offset_row, at : at + v] = 0.0
+                    at += v
             elif patch_m is not None:
                 cube = np.floor((p - p.min(axis=0)) / float(patch_m)).astype(np.int64)
                 # one group per (plane, cube): the distinct rows, whatever the cubes' count
@@ -273,13 +320,22 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
         xtz.append(xtz_e)
         ztz.append(ztz_e)
         zty.append(zty_e)
-        kinds.append(effects[e].kinds if effects[e] is not None else ["setups"] * zty_e.size)
+        kinds_e = list(effects[e].kinds) if effects[e] is not None else ["setups"] * n_true
+        if model_drifts and effects[e] is not None:
+            for dt, sg, *how in model_drifts:
+                v = effects[e].hat(idx[:1], n[:1], dt, sg).shape[1]
+                kinds_e += [f"hat {dt:g} s {1e3 * sg:g} mm" + (f" {how[0]}" if how else "")] * v
+        kinds.append(kinds_e)
     from scipy.linalg import block_diag
 
-    xtz = np.hstack(xtz)
-    ztz = block_diag(*ztz)
-    zty = np.concatenate(zty)
-    kinds = np.concatenate(kinds)
+    xtz_all = np.hstack(xtz)
+    ztz_all = block_diag(*ztz)
+    all_kinds = np.concatenate(kinds)
+    hats = sorted({k for k in all_kinds if k.startswith("hat ")})
+    truth = ~np.isin(all_kinds, hats)
+    xtz, ztz = xtz_all[:, truth], ztz_all[np.ix_(truth, truth)]
+    zty = np.concatenate(zty)[truth]
+    kinds = all_kinds[truth]
     xtx = xtx.toarray()
     inner = np.linalg.inv(np.eye(ztz.shape[0]) + w * ztz)
     info = w * xtx - w * w * xtz @ inner @ xtz.T
@@ -291,7 +347,23 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
         name: _misspecified(xtx, xtz, ztz, w, kinds == name)[sl, sl]
         for name in sorted(set(kinds)) + ["none"]
     }
+    for name in hats:
+        partial[name] = _model_cov(xtx, xtz_all, ztz_all, w, all_kinds == name, truth)[sl, sl]
     return cov[sl, sl], beta[sl], int(planes.size), partial
+
+
+def _model_cov(xtx, xtz, ztz, w, model, truth) -> np.ndarray:
+    """Covariance under the true ``Σ = I / w + Z_t Z_tᵀ`` (columns ``truth``) of the GLS fit
+    whose model is ``Σ_m = I / w + Z_m Z_mᵀ`` (columns ``model``, bool over Z's columns):
+    ``C - C B_m B_mᵀ C + C B Bᵀ C``, ``C = (Xᵀ Σ_m⁻¹ X)⁻¹``, ``B = Xᵀ Σ_m⁻¹ Z_t``,
+    ``B_m = Xᵀ Σ_m⁻¹ Z_m``."""
+    m, t = np.flatnonzero(model), np.flatnonzero(truth)
+    inner = np.linalg.inv(np.eye(m.size) + w * ztz[np.ix_(m, m)])
+    xm = xtz[:, m]
+    c = np.linalg.inv(w * xtx - w * w * xm @ inner @ xm.T)
+    b = w * xtz[:, t] - w * w * xm @ inner @ ztz[np.ix_(m, t)]
+    bm = w * xm - w * w * xm @ inner @ ztz[np.ix_(m, m)]
+    return c - c @ bm @ bm.T @ c + c @ b @ b.T @ c
 
 
 def _misspecified(xtx, xtz, ztz, w, known) -> np.ndarray:
@@ -310,7 +382,7 @@ def _misspecified(xtx, xtz, ztz, w, known) -> np.ndarray:
     return c + c @ b @ b.T @ c
 
 
-def one(case_name: str, seed: int, patch_m=None) -> dict:
+def one(case_name: str, seed: int, patch_m=None, model_drifts=()) -> dict:
     c = harness.CASES[case_name]
     for model in (c["before"], c["after"]):
         if model is None or model.kind not in ("tls", "mls") or model.nonflat_m > 0:
@@ -325,7 +397,7 @@ def one(case_name: str, seed: int, patch_m=None) -> dict:
     # the planes unknown: both epochs at once; its motion is the after-epoch's (the
     # before-epoch defines the planes); the relative motion right - left
     jcov, jbeta, out["planes_n"], partial = _joint(
-        fp, sides, c["before"], c["after"], centres, patch_m=patch_m
+        fp, sides, c["before"], c["after"], centres, patch_m=patch_m, model_drifts=model_drifts
     )
     if patch_m is not None:
         out["patch_m"] = patch_m if patch_m == "plane" else float(patch_m)
@@ -440,6 +512,14 @@ def main(argv=None) -> int:
         "(metres): the floor of an estimator that works on patches instead of points; "
         "'plane': on each epoch's least-squares plane fits",
     )
+    ap.add_argument(
+        "--model-drift",
+        nargs="+",
+        default=[],
+        metavar="SECONDS:MM",
+        help="also the σ, under the true error, of the fit that models the MLS drift as "
+        "SlipMap does: a hat basis in time per pass, knots every SECONDS, MM per axis",
+    )
     ap.add_argument("--table", type=Path, nargs="+", help="only print the table of these rows")
     ap.add_argument(
         "--against", type=Path, nargs="+", default=[], help="accuracy_slip.py rows to join"
@@ -453,7 +533,21 @@ def main(argv=None) -> int:
     with ProcessPoolExecutor(
         max_workers=max(1, args.jobs), initializer=_features, initargs=(args.fourier_features,)
     ) as pool:
-        for row in pool.map(one, [args.case] * len(seeds), seeds, [args.patch_m] * len(seeds)):
+        drifts = tuple(
+            (float(v.split(":")[0]), 1e-3 * float(v.split(":")[1]), *v.split(":")[2:])
+            for v in args.model_drift
+        )
+        if any(d[2:] not in ((), ("offset",)) for d in drifts):
+            ap.error("--model-drift takes SECONDS:MM or SECONDS:MM:offset")
+        if any(d[2:] for d in drifts) and args.patch_m != "plane":
+            ap.error("--model-drift ...:offset needs --patch-m plane (offsets of plane fits)")
+        for row in pool.map(
+            one,
+            [args.case] * len(seeds),
+            seeds,
+            [args.patch_m] * len(seeds),
+            [drifts] * len(seeds),
+        ):
             rows.append(row)
             print(json.dumps(row), flush=True)
             if args.out:

@@ -49,6 +49,28 @@ def test_full_model_is_gls():
     np.testing.assert_allclose(got, gls, rtol=1e-9)
 
 
+def test_model_cov_matches_dense():
+    """A model of other effects than the truth's (a hat basis in place of the drift): the
+    sandwich against dense matrices, and the GLS covariance when the model is the truth."""
+    rng = np.random.default_rng(6)
+    x = rng.normal(size=(100, 4))
+    zt = rng.normal(size=(100, 5)) * 0.4
+    zm = rng.normal(size=(100, 3)) * 0.6
+    w = 16.0
+    z = np.hstack([zt, zm])
+    truth = np.r_[np.ones(5, bool), np.zeros(3, bool)]
+    got = F._model_cov(x.T @ x, x.T @ z, z.T @ z, w, ~truth, truth)
+    sigma = np.eye(100) / w + zt @ zt.T
+    sm_inv = np.linalg.inv(np.eye(100) / w + zm @ zm.T)
+    m = np.linalg.inv(x.T @ sm_inv @ x) @ x.T @ sm_inv
+    np.testing.assert_allclose(got, m @ sigma @ m.T, rtol=1e-9, atol=1e-14)
+    same = np.hstack([zt, zt])
+    first = np.r_[np.ones(5, bool), np.zeros(5, bool)]
+    got = F._model_cov(x.T @ x, x.T @ same, same.T @ same, w, ~first, first)
+    gls = np.linalg.inv(x.T @ np.linalg.inv(sigma) @ x)
+    np.testing.assert_allclose(got, gls, rtol=1e-9)
+
+
 def test_tls_floor_below_least_squares():
     """On one TLS pair of the harness: the floor (every setup's error modelled) is the
     smallest σ on every axis, least squares' is larger, and the floor's error is of its σ's
