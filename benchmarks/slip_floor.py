@@ -133,22 +133,32 @@ def _mls_basis(scene, model):
             cols.append(lever * model.lever_arm_m)
         return np.hstack(cols)
 
+    knots = {}
+
+    def hat_knots(interval_s):
+        """Each point's time in knot spacings, its knot, and the (pass, knot) ids of the
+        whole epoch, once per spacing."""
+        if interval_s not in knots:
+            x = s / synthetic._MLS_SPEED_M_S / float(interval_s)
+            k = np.floor(x).astype(np.int64)
+            ids = np.unique(np.concatenate([line * (1 << 32) + k, line * (1 << 32) + k + 1]))
+            knots[interval_s] = (x, k, ids)
+        return knots[interval_s]
+
     def hat(idx, n, interval_s, sigma_m):
         """Columns (m, 3 V) of SlipMap's model of the drift (:mod:`slipmap.core.unit_drift`):
         a hat basis in time with knots every ``interval_s`` seconds per pass, independent
         coefficients of ``sigma_m`` per axis; V the (pass, knot) pairs of the whole epoch."""
-        x = s / synthetic._MLS_SPEED_M_S / float(interval_s)
-        k = np.floor(x).astype(np.int64)
-        ids = np.unique(np.concatenate([line * (1 << 32) + k, line * (1 << 32) + k + 1]))
-        xi = x[idx]
+        x, k, ids = hat_knots(interval_s)
         ki = k[idx]
-        w = xi - ki
+        w = x[idx] - ki
         b = np.zeros((idx.size, ids.size))
         rows = np.arange(idx.size)
         b[rows, np.searchsorted(ids, line[idx] * (1 << 32) + ki)] = 1.0 - w
         b[rows, np.searchsorted(ids, line[idx] * (1 << 32) + ki + 1)] += w
         return np.hstack([n[:, [j]] * b * float(sigma_m) for j in range(3)])
 
+    hat.columns = lambda interval_s: 3 * hat_knots(interval_s)[2].size
     effects.hat = hat
     effects.kinds = np.array(
         ["drift"] * 3 * factor.shape[1] + ["lever arm"] * (3 if model.lever_arm_m > 0 else 0)
@@ -300,8 +310,8 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
             if patch_m == "plane":
                 x, z, y, offset_row = _plane_fits(x, z, y, pl, np.reshape(vals[0], (m, 3)))
                 at = n_true
-                for dt, sg, *how in model_drifts:
-                    v = effects[e].hat(idx[:1], n[:1], dt, sg).shape[1]
+                for dt, _, *how in model_drifts:
+                    v = effects[e].hat.columns(dt)
                     if how and how[0] == "offset":  # the model sees the offsets only
                         z[~offset_row, at : at + v] = 0.0
                     at += v
@@ -323,7 +333,7 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
         kinds_e = list(effects[e].kinds) if effects[e] is not None else ["setups"] * n_true
         if model_drifts and effects[e] is not None:
             for dt, sg, *how in model_drifts:
-                v = effects[e].hat(idx[:1], n[:1], dt, sg).shape[1]
+                v = effects[e].hat.columns(dt)
                 kinds_e += [f"hat {dt:g} s {1e3 * sg:g} mm" + (f" {how[0]}" if how else "")] * v
         kinds.append(kinds_e)
     from scipy.linalg import block_diag
@@ -368,18 +378,10 @@ def _model_cov(xtx, xtz, ztz, w, model, truth) -> np.ndarray:
 
 def _misspecified(xtx, xtz, ztz, w, known) -> np.ndarray:
     """Covariance under the true ``Σ = I / w + Z Zᵀ`` of the GLS fit that models only the
-    effects ``known`` (bool over Z's columns; none: ordinary least squares):
-    ``C + C B Bᵀ C``, ``C = (Xᵀ Σ_k⁻¹ X)⁻¹``, ``B = Xᵀ Σ_k⁻¹ Z_u`` for the unknown ``Z_u``."""
-    k, u = np.flatnonzero(known), np.flatnonzero(~known)
-    if k.size:
-        inner = np.linalg.inv(np.eye(k.size) + w * ztz[np.ix_(k, k)])
-        xk = xtz[:, k]
-        c = np.linalg.inv(w * xtx - w * w * xk @ inner @ xk.T)
-        b = w * xtz[:, u] - w * w * xk @ inner @ ztz[np.ix_(k, u)]
-    else:
-        c = np.linalg.inv(w * xtx)
-        b = w * xtz[:, u]
-    return c + c @ b @ b.T @ c
+    effects ``known`` (bool over Z's columns; none: ordinary least squares): :func:`_model_cov`
+    with the model's columns a subset of the truth's, ``C + C B Bᵀ C``, ``B = Xᵀ Σ_k⁻¹ Z_u``
+    for the unknown ``Z_u``."""
+    return _model_cov(xtx, xtz, ztz, w, known, np.ones(known.size, bool))
 
 
 def one(case_name: str, seed: int, patch_m=None, model_drifts=()) -> dict:
