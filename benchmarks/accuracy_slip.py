@@ -247,15 +247,22 @@ def one(
     unit_contrasts=True,
     unit_turn=True,
     families=None,
+    drift_tilts=False,
+    unit_interval_s=None,
 ) -> dict:
     """One pair of one case: errors of every method (metres) and their σ."""
+    import slipmap.core.adjustment as adjustment
     import slipmap.core.stochastic as stochastic
 
-    # the units' turn and the spatial families REML chooses from (module switches: benchmark
-    # devices, set in this worker process)
+    # the units' turn and the spatial families REML chooses from, the drift's tilts and its
+    # knot spacing (module switches: benchmark devices, set in this worker process)
     stochastic.UNIT_TURN = bool(unit_turn)
     if families is not None:
         stochastic.DEFAULT_FAMILIES = tuple(families)
+    adjustment.UNIT_DRIFT_TILTS = bool(drift_tilts)
+    if unit_interval_s is not None:  # the one spacing, always taken over the rigid unit
+        adjustment.UNIT_INTERVALS_S = (float(unit_interval_s),)
+        stochastic.UNIT_INTERVAL_MARGIN = -math.inf
     c = CASES[case_name]
     t0 = time.perf_counter()
     fp = draw_pair(case_name, seed)
@@ -621,6 +628,22 @@ def main(argv=None):
         "off: translations only, as before stop 44",
     )
     ap.add_argument(
+        "--unit-drift-tilts",
+        choices=("on", "off"),
+        default="off",
+        help="let the units' drift tilt the planes as well as move them, the tilts entering "
+        "the motion jointly with the offsets (core.adjustment.UNIT_DRIFT_TILTS, a prototype; "
+        "default off, as the library)",
+    )
+    ap.add_argument(
+        "--unit-interval",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="the drift's one knot spacing, always taken over the rigid unit "
+        "(core.adjustment.UNIT_INTERVALS_S; default: REML chooses among the library's)",
+    )
+    ap.add_argument(
         "--families",
         default=None,
         help="comma-separated spatial families REML chooses from (core.stochastic."
@@ -670,6 +693,8 @@ def main(argv=None):
             args.unit_contrasts == "on",
             args.unit_turn == "on",
             None if args.families is None else tuple(args.families.split(",")),
+            args.unit_drift_tilts == "on",
+            args.unit_interval,
         )
         for c in cases
         for s in range(args.first_seed, args.first_seed + args.seeds)

@@ -36,7 +36,11 @@ fit that models the MLS drift as SlipMap does (:mod:`slipmap.core.unit_drift`: a
 in GpsTime per pass, independent knots every SECONDS of MM per axis) instead of the truth;
 ``:offset``: the model's drift acts on each plane fit's offset only, not on its tilts, as
 in SlipMap's stochastic model (with ``--patch-m plane``; docs/accuracy.md, "What the drift
-model misses").
+model misses"); ``:split``: on the offsets and the tilts, but the two uncorrelated (the
+cross-covariance between a plane's offset and the tilts dropped: a model that keeps the
+offsets' and the tilts' adjustments apart, as SlipMap's does); ``:sides``: the model's drift
+independent between the two sides of the trace, as when each side is adjusted alone and
+the motions differenced (SlipMap's sides; combines with the others, ``6:3:offset:sides``).
 
 Run: ``python benchmarks/slip_floor.py --case tls-6-setups --seeds 30 --first-seed 3000``
 """
@@ -306,15 +310,27 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
             )
             n_true = z.shape[1]
             if model_drifts and effects[e] is not None:
-                z = np.hstack([z] + [effects[e].hat(idx, n, dt, sg) for dt, sg, *_ in model_drifts])
+                side_of = np.where(sd[idx] > 0, 1, 0)
+                z = np.hstack(
+                    [z]
+                    + [
+                        _hat_copies(effects[e].hat(idx, n, dt, sg), how, side_of)
+                        for dt, sg, *how in model_drifts
+                    ]
+                )
             if patch_m == "plane":
                 x, z, y, offset_row = _plane_fits(x, z, y, pl, np.reshape(vals[0], (m, 3)))
                 at = n_true
                 for dt, _, *how in model_drifts:
                     v = effects[e].hat.columns(dt)
-                    if how and how[0] == "offset":  # the model sees the offsets only
-                        z[~offset_row, at : at + v] = 0.0
-                    at += v
+                    for _ in range(2 if "sides" in how else 1):
+                        if "offset" in how:  # the model sees the offsets only
+                            z[~offset_row, at : at + v] = 0.0
+                        elif "split" in how:  # offsets and tilts, uncorrelated
+                            z[~offset_row, at : at + v] = 0.0
+                            at += v
+                            z[offset_row, at : at + v] = 0.0
+                        at += v
             elif patch_m is not None:
                 cube = np.floor((p - p.min(axis=0)) / float(patch_m)).astype(np.int64)
                 # one group per (plane, cube): the distinct rows, whatever the cubes' count
@@ -333,8 +349,8 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
         kinds_e = list(effects[e].kinds) if effects[e] is not None else ["setups"] * n_true
         if model_drifts and effects[e] is not None:
             for dt, sg, *how in model_drifts:
-                v = effects[e].hat.columns(dt)
-                kinds_e += [f"hat {dt:g} s {1e3 * sg:g} mm" + (f" {how[0]}" if how else "")] * v
+                v = effects[e].hat.columns(dt) * _copies(how)
+                kinds_e += [f"hat {dt:g} s {1e3 * sg:g} mm" + "".join(f" {h}" for h in how)] * v
         kinds.append(kinds_e)
     from scipy.linalg import block_diag
 
@@ -344,7 +360,8 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
     hats = sorted({k for k in all_kinds if k.startswith("hat ")})
     truth = ~np.isin(all_kinds, hats)
     xtz, ztz = xtz_all[:, truth], ztz_all[np.ix_(truth, truth)]
-    zty = np.concatenate(zty)[truth]
+    zty_all = np.concatenate(zty)
+    zty = zty_all[truth]
     kinds = all_kinds[truth]
     xtx = xtx.toarray()
     inner = np.linalg.inv(np.eye(ztz.shape[0]) + w * ztz)
@@ -357,9 +374,38 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
         name: _misspecified(xtx, xtz, ztz, w, kinds == name)[sl, sl]
         for name in sorted(set(kinds)) + ["none"]
     }
+    fits = {}
     for name in hats:
         partial[name] = _model_cov(xtx, xtz_all, ztz_all, w, all_kinds == name, truth)[sl, sl]
-    return cov[sl, sl], beta[sl], int(planes.size), partial
+        fits[name] = _model_beta(xtx, xty, xtz_all, zty_all, ztz_all, w, all_kinds == name)[sl]
+    return cov[sl, sl], beta[sl], int(planes.size), partial, fits
+
+
+def _model_beta(xtx, xty, xtz, zty, ztz, w, model) -> np.ndarray:
+    """The estimate of the GLS fit whose model is ``Σ_m = I / w + Z_m Z_mᵀ`` (columns
+    ``model``) on the pair's points: its realised error beside its σ (:func:`_model_cov`)."""
+    m = np.flatnonzero(model)
+    inner = np.linalg.inv(np.eye(m.size) + w * ztz[np.ix_(m, m)])
+    xm = xtz[:, m]
+    c = np.linalg.inv(w * xtx - w * w * xm @ inner @ xm.T)
+    return c @ (w * xty - w * w * xm @ inner @ zty[m])
+
+
+def _copies(how) -> int:
+    """Copies of a model drift's columns: two for ``split`` (offsets, tilts), two per side
+    for ``sides``."""
+    return (2 if "split" in how else 1) * (2 if "sides" in how else 1)
+
+
+def _hat_copies(hat, how, side_of):
+    """The model drift's point-level columns ``hat`` (m, v) in :func:`_copies` copies:
+    ``sides``: one copy per side of the trace (``side_of`` (m,) 0 or 1), each zero on the
+    other side's points, so that the model's drift is independent between the sides, as
+    when each side is adjusted alone; ``split``: each (side's) copy twice, the offset rows
+    of one and the tilt rows of the other zeroed after the plane fits."""
+    per_side = [hat * (side_of == k)[:, None] for k in (0, 1)] if "sides" in how else [hat]
+    reps = 2 if "split" in how else 1
+    return np.hstack([c for c in per_side for _ in range(reps)])
 
 
 def _model_cov(xtx, xtz, ztz, w, model, truth) -> np.ndarray:
@@ -398,7 +444,7 @@ def one(case_name: str, seed: int, patch_m=None, model_drifts=()) -> dict:
     out = {"case": case_name, "seed": seed}
     # the planes unknown: both epochs at once; its motion is the after-epoch's (the
     # before-epoch defines the planes); the relative motion right - left
-    jcov, jbeta, out["planes_n"], partial = _joint(
+    jcov, jbeta, out["planes_n"], partial, fits = _joint(
         fp, sides, c["before"], c["after"], centres, patch_m=patch_m, model_drifts=model_drifts
     )
     if patch_m is not None:
@@ -419,6 +465,10 @@ def one(case_name: str, seed: int, patch_m=None, model_drifts=()) -> dict:
         name: [float(math.sqrt(v @ (k @ pc @ k.T) @ v)) for v in axes]
         for name, pc in partial.items()
     }
+    if fits:  # the realised error of each fit that models the drift as SlipMap does
+        out["model_err"] = {
+            name: harness._errors(k @ beta, truth, strike) for name, beta in fits.items()
+        }
     return out
 
 
@@ -539,10 +589,11 @@ def main(argv=None) -> int:
             (float(v.split(":")[0]), 1e-3 * float(v.split(":")[1]), *v.split(":")[2:])
             for v in args.model_drift
         )
-        if any(d[2:] not in ((), ("offset",)) for d in drifts):
-            ap.error("--model-drift takes SECONDS:MM or SECONDS:MM:offset")
-        if any(d[2:] for d in drifts) and args.patch_m != "plane":
-            ap.error("--model-drift ...:offset needs --patch-m plane (offsets of plane fits)")
+        flags = {"offset", "split", "sides"}
+        if any(not set(d[2:]) <= flags or {"offset", "split"} <= set(d[2:]) for d in drifts):
+            ap.error("--model-drift takes SECONDS:MM[:offset|:split][:sides]")
+        if any(set(d[2:]) & {"offset", "split"} for d in drifts) and args.patch_m != "plane":
+            ap.error("--model-drift ...:offset|split needs --patch-m plane (plane fits)")
         for row in pool.map(
             one,
             [args.case] * len(seeds),

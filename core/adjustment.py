@@ -62,7 +62,7 @@ from .rotation import rotation_matrix, rotation_vector
 from .rotation import skew as _skew
 from .stochastic import PlaneModel, VarianceComponents
 from .unit_contrasts import epoch_rows, screen_contrasts, unit_contrasts, with_contrast_units
-from .unit_drift import UNIT_INTERVALS_S, check_unit_time, hat_unit_shares
+from .unit_drift import UNIT_INTERVALS_S, check_unit_time, hat_unit_shares, hat_unit_tilt_shares
 
 log = logging.getLogger(__name__)
 
@@ -213,6 +213,10 @@ def _describe_direction(v: np.ndarray) -> str:
 #: of fresh weights. A converged adjustment then needs two or three passes over the points
 #: instead of one per iteration.
 WEIGHT_REUSE_RAD = 1e-2
+#: the units' drift tilts the planes as well as moving them (:func:`.unit_drift.
+#: hat_unit_tilt_shares`): when True the tilts enter the motion's GLS jointly with the
+#: offsets through the units' errors (:func:`_drift_tilt_terms`); a prototype, off
+UNIT_DRIFT_TILTS = False
 
 
 class _Epoch:
@@ -677,6 +681,11 @@ def _step_block(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
         shift = cfg.shift(active)  # the units' errors the contrasts predict
         nred = t_s + pl.h.T @ vih
         rred = rt_s + vih.T @ (pl.y - shift)
+        if UNIT_DRIFT_TILTS:  # the units' errors tilt the planes too
+            terms = _drift_tilt_terms(cfg, pl, vop, vih, active, pl.y - shift)
+            if terms is not None:
+                nred = nred + terms[0]
+                rred = rred + terms[1]
     nred = 0.5 * (nred + nred.T)
     _check_singular(nred)
     qxx = np.linalg.inv(nred)
@@ -688,6 +697,86 @@ def _step_block(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
     state.delta = np.zeros(b)
     state.delta[active] = delta
     return d1, d2, nred, 0.5 * (qxx + qxx.T)
+
+
+def _unit_columns(cfg, active):
+    """The units' errors in force over the active planes: ``(z_o (k, r), lam (r, r), mean
+    (r,), z_t (k, 3, r))``, their design in the misclosures (as the covariance operator's),
+    their covariance and mean (given the contrasts when the model is conditioned on them) and
+    their design in the planes' tilts (rotation, radians per unit coefficient); None when
+    no unit component is in force or no tilt shares are known."""
+    tilts = getattr(cfg, "unit_tilts", None)
+    if not tilts or cfg.unit_interval not in tilts:
+        return None
+    m = cfg.model
+    idx = np.flatnonzero(active)
+    cond = cfg.condition(active)
+    rows = None if cond is None else cond.rows
+    turn_rows = rows is None or rows.position is not None
+    lever = m.unit_lever_m if math.isfinite(m.unit_lever_m) and turn_rows else math.inf
+    nrm = m.normals[idx]
+    proj = np.eye(3)[None] - nrm[:, :, None] * nrm[:, None, :]
+    zo, zt, lam = [], [], []
+    for e, name in enumerate(("unit_before", "unit_after")):
+        th = float(cfg.theta.get(name, 0.0))
+        sh = m.shares_before if e == 0 else m.shares_after
+        om = tilts[cfg.unit_interval][e]
+        if th <= 0 or sh is None or om is None:
+            continue
+        sub = sh[idx]
+        if cond is not None:
+            c = rows.shares_before if e == 0 else rows.shares_after
+            if c is None:
+                continue
+            keep = np.any(sub != 0.0, axis=0) | np.any(c != 0.0, axis=0)
+        else:
+            keep = sub.sum(axis=0) > 0
+        if not np.any(keep):
+            continue
+        sign = 1.0 if e == 0 else -1.0
+        if cond is None:
+            zo.append(sign * m.unit_basis(name, idx))
+            lam.append(np.full(zo[-1].shape[1], th))
+        o = om[idx][:, keep]  # (k, V, 3)
+        # a unit's translation s tilts plane j by Ω_jv (n_jᵀ s); the after epoch's errors
+        # act as the motion does (its rotation), the before epoch's against it
+        tr = o[:, :, :, None] * nrm[:, None, None, :]  # (k, V, 3 rot, 3 axis)
+        blocks = [tr]
+        if math.isfinite(lever):  # the unit's turn ψ (coefficient L ψ) turns its share
+            blocks.append(sub[:, keep][:, :, None, None] * proj[:, None] / float(lever))
+        blk = np.concatenate(blocks, axis=3)  # (k, V, 3, q)
+        zt.append(-sign * blk.transpose(0, 2, 1, 3).reshape(idx.size, 3, -1))
+    if not zt:
+        return None
+    zt = np.concatenate(zt, axis=2)
+    if cond is not None:
+        z_o, lam_m, mean = cond.z, cond.lam, cond.g @ rows.value
+    else:
+        z_o, lam_m = np.hstack(zo), np.diag(np.concatenate(lam))
+        mean = np.zeros(z_o.shape[1])
+    if z_o.shape[1] != zt.shape[2]:
+        raise AssertionError("the units' tilt design does not match their offset design")
+    return z_o, lam_m, mean, zt
+
+
+def _drift_tilt_terms(cfg, pl, vop, vih, active, y_o):
+    """The change to the motion's normal matrix (6, 6) and right-hand side (6,) when the
+    units' errors tilt the planes (:data:`UNIT_DRIFT_TILTS`), or None: the tilts' terms given
+    the offsets (:func:`.stochastic.tilts_given_offsets`) in place of their own."""
+    cols = _unit_columns(cfg, active)
+    if cols is None:
+        return None
+    z_o, lam, mean, zt = cols
+    at, rtl = _stoch.tilt_information(pl.tr / cfg.s0sq, pl.rtr / cfg.s0sq, cfg.tilt_var)
+    keep = cfg.tilt_keep[active]
+    at, rtl = at * keep[:, None, None], rtl * keep[:, None]
+    viz = vop.solve(z_o)
+    info, rhs, wz = _stoch.tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, pl.h, y_o)
+    info[:3, :3] -= at.sum(axis=0)
+    rhs[:3] -= rtl.sum(axis=0)
+    # the right-hand side's change per offset through the units' errors the offsets predict,
+    # and per unit error through the tilts
+    return info, rhs, -(wz @ lam) @ viz.T, wz
 
 
 def _step_dense(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
@@ -994,19 +1083,43 @@ def _run(
                 )
         shares = [p_[0] for p_ in pairs]
         codes = [p_[1] for p_ in pairs]
+    tilts = None
+    if UNIT_DRIFT_TILTS and drift and not dense:
+        tilts = _unit_tilt_options(epochs, units, times, drift, _initial_planes(epochs, b)[0])
     return _solve(
         epochs, b, centre, shares, dense=dense, model=model, fixed=fixed,
         max_iterations=max_iterations, tolerance=tolerance, alpha=alpha, min_planes=min_planes,
         reject_outlier_planes=reject_outlier_planes, progress=progress,
         labels=(before_plane, after_plane), unit_codes=codes, random_tilt=random_tilt,
-        unit_drift=drift, contrasts=contrasts,
+        unit_drift=drift, contrasts=contrasts, unit_tilts=tilts,
     )  # fmt: skip
+
+
+def _unit_tilt_options(epochs, units, times, drift, normals):
+    """``{interval_s: (tilts_b, tilts_a)}``: each epoch's (b, V, 3) tilt shares
+    (:func:`.unit_drift.hat_unit_tilt_shares`) in the columns of its shares of ``drift``
+    (:func:`_unit_drift_options`), or None for an epoch without units."""
+    out = {}
+    for dt, (_, cd) in drift.items():
+        per = []
+        for ep, u, t, c in zip(epochs, units, times, cd):
+            if u is None or c is None or ep.idx is None:
+                per.append(None)
+                continue
+            step = dt if t is not None else math.inf
+            per.append(
+                hat_unit_tilt_shares(
+                    ep.idx, ep.of_valid(u), ep.of_valid(t), ep.u, normals, c, interval_s=step
+                )
+            )
+        out[dt] = tuple(per)
+    return out
 
 
 def _solve(
     epochs, b, centre, shares, *, dense, model, fixed, max_iterations, tolerance, alpha,
     min_planes, reject_outlier_planes, progress, labels, unit_codes=None, random_tilt=None,
-    unit_drift=None, contrasts=None,
+    unit_drift=None, contrasts=None, unit_tilts=None,
 ):  # fmt: skip
     """The adjustment of two epochs (:class:`_Epoch` or :class:`_MomentEpoch`); ``shares``:
     each epoch's (b, U) acquisition-unit shares or None (stochastic models only);
@@ -1065,6 +1178,7 @@ def _solve(
         )  # fmt: skip
         cfg = _StochasticConfig(plane_model, b)
         cfg.unit_drift = unit_drift
+        cfg.unit_tilts = unit_tilts
         tilt = _stoch.RANDOM_TILT if random_tilt is None else bool(random_tilt)
         out, stoch = _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit,
                                  rejected, reject_outlier_planes, min_planes, opts,
@@ -1418,12 +1532,21 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     vih = vop.solve(pl.h)
     t_fin, rt_fin = pl.tilt(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
     n_fin = t_fin + pl.h.T @ vih
+    k_o, wz = vih.T, None
+    if UNIT_DRIFT_TILTS:  # the tilts given the offsets (prototype: the gain on the units'
+        # errors through the tilts is not yet carried to the other side's covariance)
+        terms = _drift_tilt_terms(cfg, pl, vop, vih, active, pl.y - cfg.shift(active))
+        if terms is not None:
+            n_fin = n_fin + terms[0]
+            k_o, wz = k_o + terms[2], terms[3]
     q_fin = np.linalg.inv(0.5 * (n_fin + n_fin.T))
-    cfg.gain = q_fin @ vih.T
+    cfg.gain = q_fin @ k_o
     cfg.gain_idx = idx
     cond = cfg.condition(active)
     # the motion's gain on the contrast rows: x̂ takes Q Hᵀ V⁻¹ (y − Z g c)
     cfg.contrast_gain = None if cond is None else -cfg.gain @ cond.z @ cond.g
+    if cond is not None and wz is not None:  # and through the tilts: μ moves ỹ_t by −Z_t μ
+        cfg.contrast_gain = cfg.contrast_gain - q_fin @ wz @ cond.g
     cfg.gain_extra = dict(
         model=model, fixed=dict(fixed), e=pl.y.copy(), p=cfg.s0sq * pl.p, h=pl.h.copy(),
         inflation=cfg.inflation[idx].copy(), t=t_fin, rt=rt_fin,

@@ -147,6 +147,7 @@ __all__ = [
     "RANDOM_TILT",
     "TiltEstimate",
     "tilt_information",
+    "tilts_given_offsets",
     "estimate_tilt_variance",
 ]
 
@@ -2379,6 +2380,71 @@ def tilt_information(a: np.ndarray, r: np.ndarray, tilt_var: float):
     sol = np.linalg.solve(m, np.concatenate([a, r[:, :, None]], axis=2))
     at = sol[:, :, :3]
     return 0.5 * (at + at.transpose(0, 2, 1)), sol[:, :, 3]
+
+
+def tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, h, y_o):
+    """The planes' tilts' information on the motion (6, 6) and its right-hand side (6,) when
+    the units' errors move the planes' offsets and tilt them too (the offsets' own terms
+    ``Hᵀ V⁻¹ H``, ``Hᵀ V⁻¹ y_o`` not included).
+
+    The offsets ``y_o = H x + Z_o c + ε_o`` (``Cov = V``, the units' part ``Z_o Λ Z_oᵀ``
+    included) and the tilts ``y_t = R x + Z_t c + ε_t`` (``R`` the rotation; ``Cov ε_t = D``,
+    each plane's point-noise tilt with its random tilt) share the units' errors ``c ~ N(μ,
+    Λ)``. Given the offsets the tilts are ``ỹ_t = y_t − Z_t a = R̃ x + ε`` with ``a = μ + Λ
+    Z_oᵀ V⁻¹ y_o``, ``R̃ = R − Z_t Λ Z_oᵀ V⁻¹ H`` and ``Cov ε = D + Z_t P Z_tᵀ``, ``P = Λ −
+    Λ Z_oᵀ V⁻¹ Z_o Λ``, so the joint GLS is the offsets' plus ``R̃ᵀ W R̃`` and ``R̃ᵀ W ỹ_t``
+    with ``W = (D + Z_t P Z_tᵀ)⁻¹`` by Woodbury on the information ``D⁻¹`` (rank 2 per
+    plane: the normal's turn is not seen) without inverting ``P``:
+    ``W = D⁻¹ − F P (I + G P)⁻¹ Fᵀ``, ``F = D⁻¹ Z_t``, ``G = Z_tᵀ D⁻¹ Z_t``.
+
+    Parameters
+    ----------
+    at : (k, 3, 3) float64
+        Each plane's tilt information ``D_j⁻¹`` on the rotation (rad⁻²).
+    rtl : (k, 3) float64
+        Its right-hand side ``D_j⁻¹ y_t,j``.
+    zt : (k, 3, r) float64
+        The units' errors' design in the tilts (rad per unit of ``c``).
+    z_o : (k, r) float64
+        Their design in the offsets.
+    lam : (r, r) float64
+        Their covariance ``Λ``; ``mean`` (r,) their mean ``μ``.
+    viz : (k, r) float64
+        ``V⁻¹ Z_o``.
+    h : (k, 6) float64
+        The offsets' design ``H``; ``y_o`` (k,) the offsets less the units' mean, ``y_o −
+        Z_o μ`` (the misclosures less the contrasts' shift, :class:`ContrastCondition`).
+
+    Returns
+    -------
+    info : (6, 6) float64
+    rhs : (6,) float64
+    wz : (6, r) float64
+        ``R̃ᵀ W Z_t``: the right-hand side's change per unit error through the tilts (its
+        change per offset is ``−wz Λ Z_oᵀ V⁻¹``), for the motion's gains.
+    """
+    bmat = lam @ (viz.T @ h)  # (r, 6)
+    a = mean + lam @ (viz.T @ y_o)
+    p = lam - lam @ (z_o.T @ viz) @ lam
+    f = np.einsum("kij,kjr->kir", at, zt)  # D⁻¹ Z_t
+    g = np.einsum("kir,kis->rs", zt, f)
+    g = 0.5 * (g + g.T)
+    ftr = np.zeros((zt.shape[2], 6))
+    ftr[:, :3] = f.sum(axis=0).T  # Fᵀ R
+    ftr_t = ftr - g @ bmat  # Fᵀ R̃
+    rdr = np.zeros((6, 6))
+    rdr[:3, :3] = at.sum(axis=0)
+    info = rdr - ftr.T @ bmat - bmat.T @ ftr + bmat.T @ g @ bmat  # R̃ᵀ D⁻¹ R̃
+    fyt = np.einsum("kir,ki->r", zt, rtl) - g @ a  # Fᵀ ỹ_t
+    rhs = np.zeros(6)
+    rhs[:3] = rtl.sum(axis=0) - np.einsum("kir,r->i", f, a)
+    rhs -= bmat.T @ fyt  # R̃ᵀ D⁻¹ ỹ_t
+    k_mat = np.linalg.solve(np.eye(g.shape[0]) + p @ g, p)  # P (I + G P)⁻¹
+    k_mat = 0.5 * (k_mat + k_mat.T)
+    info = info - ftr_t.T @ k_mat @ ftr_t
+    rhs = rhs - ftr_t.T @ k_mat @ fyt
+    wz = ftr_t.T - (ftr_t.T @ k_mat) @ g  # R̃ᵀ D⁻¹ Z_t − (Fᵀ R̃)ᵀ K G
+    return 0.5 * (info + info.T), rhs, wz
 
 
 def tilt_information_reference(a: np.ndarray, r: np.ndarray, tilt_var: float, rel_tol=1e-9):

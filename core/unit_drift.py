@@ -169,3 +169,122 @@ def hat_unit_shares_reference(plane, unit, time_s, count, *, interval_s):
         return np.zeros((b, 0)), ids
     out = np.column_stack([cols[int(v)] for v in ids])
     return out / np.maximum(np.asarray(count, dtype=float), 1.0)[:, None], ids
+
+
+def hat_unit_tilt_shares(
+    plane: np.ndarray,
+    unit: np.ndarray,
+    time_s: Optional[np.ndarray],
+    offsets_m: np.ndarray,
+    normals: np.ndarray,
+    ids: np.ndarray,
+    *,
+    interval_s: float,
+) -> np.ndarray:
+    """Tilt of each plane's least-squares fit per unit of drift along its normal, per virtual
+    unit: the tilt shares beside :func:`hat_unit_shares`' offset shares.
+
+    A drift that changes along a plane tilts it as well as moving it. With the drift along
+    the plane's normal ``f_i = Σ_v B_v(t_i) a_v`` at its points, the least-squares plane fit's
+    gradient is ``g = M⁺ Σ_i ũ_i f_i`` (``ũ_i`` the point's offset from the plane's
+    centroid projected into the plane, ``M = Σ ũ_i ũ_iᵀ`` of rank 2), the rotation that
+    tilts the plane so is ``g × n`` (in the plane: a rotation about the normal tilts
+    nothing), so each virtual unit ``v`` tilts plane ``j`` by ``Ω_jv a_v`` with::
+
+        Ω_jv = (M_j⁺ Σ_{i ∈ j} ũ_i B_v(t_i)) × n_j        (radians per metre of drift)
+
+    Parameters
+    ----------
+    plane, unit, time_s, interval_s
+        As :func:`hat_unit_shares` (``time_s`` not read for ``math.inf``).
+    offsets_m : (N, 3) float64
+        Each point's offset from its plane's centroid (the centroid of the points given of
+        that plane), metres.
+    normals : (b, 3) float64
+        Unit plane normals.
+    ids : (V,) int64
+        The virtual units of the columns (:func:`hat_unit_shares`' ``ids``).
+
+    Returns
+    -------
+    (b, V, 3) float64
+        ``Ω_jv``, rad/m; zero for a plane whose points do not span two directions.
+    """
+    plane = np.asarray(plane, dtype=np.int64)
+    unit = np.asarray(unit, dtype=np.int64)
+    nrm = np.asarray(normals, dtype=np.float64)
+    b, nv = nrm.shape[0], int(np.asarray(ids).size)
+    if not (interval_s > 0):
+        raise InvalidParameterError(f"interval_s must be > 0 seconds, got {interval_s!r}")
+    u = np.asarray(offsets_m, dtype=np.float64)
+    n_i = nrm[plane]
+    u = u - n_i * np.einsum("ij,ij->i", u, n_i)[:, None]  # into the plane
+    # each plane's scatter in the plane and its pseudo-inverse (rank 2; a plane whose points
+    # are collinear keeps the rank its points give)
+    m = np.zeros((b, 3, 3))
+    for k in range(3):
+        for q in range(k, 3):
+            m[:, k, q] = m[:, q, k] = np.bincount(plane, u[:, k] * u[:, q], minlength=b)
+    lam, vec = np.linalg.eigh(m)
+    big = lam > 1e-9 * np.maximum(lam[:, -1:], 1e-300)
+    inv = np.where(big, 1.0 / np.where(big, lam, 1.0), 0.0)
+    m_pinv = np.einsum("bij,bj,bkj->bik", vec, inv, vec)
+    if math.isinf(interval_s):
+        vid, wt, idx, uu = unit, np.ones(unit.size), plane, u
+    else:
+        x = np.asarray(time_s, dtype=np.float64) / float(interval_s)
+        k0 = np.floor(x)
+        w = x - k0
+        k0 = k0.astype(np.int64)
+        vid = np.concatenate([virtual_unit_ids(unit, k0), virtual_unit_ids(unit, k0 + 1)])
+        wt = np.concatenate([1.0 - w, w])
+        idx = np.concatenate([plane, plane])
+        uu = np.concatenate([u, u])
+    ids = np.asarray(ids, dtype=np.int64)
+    col = np.searchsorted(ids, vid)
+    ok = (col < nv) & (ids[np.minimum(col, max(nv - 1, 0))] == vid) if nv else np.zeros(0, bool)
+    s = np.zeros((b, nv, 3))
+    if nv:
+        flat = idx[ok] * nv + col[ok]
+        for k in range(3):
+            s[:, :, k] = np.bincount(flat, wt[ok] * uu[ok, k], minlength=b * nv).reshape(b, nv)
+    g = np.einsum("bik,bvk->bvi", m_pinv, s)
+    return np.cross(g, nrm[:, None, :])
+
+
+def hat_unit_tilt_shares_reference(plane, unit, time_s, offsets_m, normals, ids, *, interval_s):
+    """Slow reference of :func:`hat_unit_tilt_shares`: per plane and virtual unit, the drift
+    ``B_v(t_i)`` along the normal at the plane's points, a least-squares plane fit to it
+    (``lstsq`` on an offset and two in-plane axes), and the rotation that tilts the plane so
+    (``g × n``)."""
+    plane = np.asarray(plane)
+    normals = np.asarray(normals, dtype=float)
+    b, nv = normals.shape[0], len(ids)
+    out = np.zeros((b, nv, 3))
+    for j in range(b):
+        sel = np.flatnonzero(plane == j)
+        if sel.size < 3:
+            continue
+        n = normals[j]
+        ref = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        e1 = np.cross(n, ref)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        uu = np.asarray(offsets_m, dtype=float)[sel]
+        a = np.column_stack([np.ones(sel.size), uu @ e1, uu @ e2])
+        for v, vid in enumerate(ids):
+            f = np.zeros(sel.size)
+            for i_, i in enumerate(sel):
+                u_, t = int(unit[i]), None if time_s is None else float(time_s[i])
+                if math.isinf(interval_s):
+                    f[i_] = 1.0 if u_ == vid else 0.0
+                    continue
+                k = math.floor(t / interval_s)
+                w = t / interval_s - k
+                for kk, ww in ((k, 1.0 - w), (k + 1, w)):
+                    if int(virtual_unit_ids(np.array([u_]), np.array([kk]))[0]) == vid:
+                        f[i_] += ww
+            coef = np.linalg.lstsq(a, f, rcond=None)[0]
+            g = coef[1] * e1 + coef[2] * e2
+            out[j, v] = np.cross(g, n)
+    return out

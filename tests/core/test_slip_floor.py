@@ -71,6 +71,30 @@ def test_model_cov_matches_dense():
     np.testing.assert_allclose(got, gls, rtol=1e-9)
 
 
+def test_model_beta_is_the_dense_gls_estimate_and_sides_copies_split_the_columns():
+    """The realised estimate of a model fit (``_model_beta``) against the dense GLS with the
+    model's covariance; ``:sides`` copies are zero on the other side's rows and sum to the
+    hat's columns, ``:split`` doubles each copy."""
+    rng = np.random.default_rng(8)
+    x = rng.normal(size=(80, 4))
+    z = rng.normal(size=(80, 6)) * 0.5
+    y = x @ rng.normal(size=4) + z @ rng.normal(size=6) + rng.normal(0, 0.25, 80)
+    w = 16.0
+    model = np.r_[np.zeros(2, bool), np.ones(4, bool)]
+    got = F._model_beta(x.T @ x, x.T @ y, x.T @ z, z.T @ y, z.T @ z, w, model)
+    zm = z[:, model]
+    sm_inv = np.linalg.inv(np.eye(80) / w + zm @ zm.T)
+    want = np.linalg.solve(x.T @ sm_inv @ x, x.T @ sm_inv @ y)
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    side = rng.integers(0, 2, 80)
+    cp = F._hat_copies(z, ["sides"], side)
+    assert cp.shape == (80, 12)
+    assert not np.any(cp[side == 1, :6]) and not np.any(cp[side == 0, 6:])
+    np.testing.assert_array_equal(cp[:, :6] + cp[:, 6:], z)
+    assert F._hat_copies(z, ["split", "sides"], side).shape == (80, 24)
+    assert F._copies(["offset"]) == 1 and F._copies(["split", "sides"]) == 4
+
+
 def test_tls_floor_below_least_squares():
     """On one TLS pair of the harness: the floor (every setup's error modelled) is the
     smallest σ on every axis, least squares' is larger, and the floor's error is of its σ's

@@ -17,6 +17,8 @@ from slipmap.core.unit_drift import (
     check_unit_time,
     hat_unit_shares,
     hat_unit_shares_reference,
+    hat_unit_tilt_shares,
+    hat_unit_tilt_shares_reference,
     virtual_unit_ids,
 )
 
@@ -47,6 +49,62 @@ def test_shares_match_the_slow_reference_and_sum_to_one(interval):
     np.testing.assert_allclose(s.sum(axis=1), 1.0, rtol=1e-12)
     if math.isinf(interval):  # one column per unit, its share of the plane's points
         np.testing.assert_array_equal(ids, np.unique(unit))
+
+
+def _plane_points(rng, k=6, per=30):
+    """Points of ``k`` planes with random normals, 2-4 m across, each seen by one or two
+    units over a few seconds: plane, unit, time, offsets from each plane's centroid,
+    normals."""
+    nrm = rng.normal(size=(k, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    plane, unit, time, off = [], [], [], []
+    for j in range(k):
+        e1 = np.cross(nrm[j], rng.normal(size=3))
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(nrm[j], e1)
+        ab = rng.uniform(-2, 2, (per, 2))
+        x = ab[:, :1] * e1 + ab[:, 1:] * e2 + 0.01 * rng.normal(size=(per, 1)) * nrm[j]
+        plane.append(np.full(per, j))
+        unit.append(np.where(ab[:, 1] > 0.5, 2, 1))
+        time.append(500.0 + 10.0 * j + 1.5 * ab[:, 0] + 0.1 * ab[:, 1])
+        off.append(x - x.mean(axis=0))
+    plane, unit, time, off = (np.concatenate(a) for a in (plane, unit, time, off))
+    return plane, unit, time, off, nrm
+
+
+@pytest.mark.parametrize("interval", [3.0, math.inf])
+def test_tilt_shares_match_the_slow_reference(interval):
+    rng = np.random.default_rng(5)
+    plane, unit, time, off, nrm = _plane_points(rng)
+    count = np.bincount(plane).astype(float)
+    _, ids = hat_unit_shares(plane, unit, time, count, interval_s=interval)
+    w = hat_unit_tilt_shares(plane, unit, time, off, nrm, ids, interval_s=interval)
+    w_ref = hat_unit_tilt_shares_reference(plane, unit, time, off, nrm, ids, interval_s=interval)
+    assert w.shape == (nrm.shape[0], ids.size, 3)
+    np.testing.assert_allclose(w, w_ref, rtol=1e-9, atol=1e-12)
+    # a rotation about the normal tilts nothing: the tilts lie in the planes
+    np.testing.assert_allclose(np.einsum("bvi,bi->bv", w, nrm), 0.0, atol=1e-12)
+
+
+def test_a_drift_linear_in_time_tilts_a_plane_scanned_along_it():
+    """Known answer: a horizontal plane scanned along x at 10 m/s under a drift of 3 mm/s
+    along the normal has a slope of 0.3 mm/m along x, the rotation (0, -3e-4, 0) rad; the
+    hat basis holds a linear drift exactly, and a rigid unit (inf) none of it."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-5, 5, (400, 2))
+    off = np.column_stack([xy, np.zeros(400)])
+    off -= off.mean(axis=0)
+    time = 1000.0 + xy[:, 0] / 10.0
+    plane, unit = np.zeros(400, np.int64), np.full(400, 3)
+    nrm = np.array([[0.0, 0.0, 1.0]])
+    _, ids = hat_unit_shares(plane, unit, time, np.array([400.0]), interval_s=0.25)
+    w = hat_unit_tilt_shares(plane, unit, time, off, nrm, ids, interval_s=0.25)
+    knot_time = (ids & ((1 << 32) - 1)) - (1 << 31)  # the knots' index
+    drift = 3e-3 * 0.25 * knot_time.astype(float)  # 3 mm/s at each knot, metres
+    np.testing.assert_allclose(w[0].T @ drift, [0.0, -3e-4, 0.0], atol=1e-12)
+    _, ids_r = hat_unit_shares(plane, unit, None, np.array([400.0]), interval_s=math.inf)
+    w_r = hat_unit_tilt_shares(plane, unit, None, off, nrm, ids_r, interval_s=math.inf)
+    np.testing.assert_allclose(w_r, 0.0, atol=1e-12)
 
 
 def test_two_sides_give_one_knot_one_id():
@@ -165,3 +223,116 @@ def test_renovated_mls_pair_no_longer_claims_eight_sigma():
     assert err == pytest.approx(-4.2e-3, abs=1e-3)  # the survey's: true surfaces give −4.0
     assert sig >= 1e-3 and abs(err / sig) < 4.0
     assert math.isfinite(res.joint_components.unit_interval_s)
+
+
+def test_tilts_given_offsets_is_the_joint_gls_of_offsets_and_tilts():
+    """Known answer: the offsets' GLS plus :func:`tilts_given_offsets` is the GLS of the
+    offsets and the tilts stacked, with the units' errors shared between them (dense
+    covariance, its inverse), for a unit mean μ ≠ 0; and with no unit design in the tilts
+    it is the tilts' own information."""
+    rng = np.random.default_rng(11)
+    k, r = 9, 7
+    h = rng.normal(size=(k, 6))
+    a0 = rng.normal(size=(k, k))
+    v0 = a0 @ a0.T / k + np.eye(k)  # the offsets' covariance without the units
+    z_o = rng.normal(size=(k, r))
+    l0 = rng.normal(size=(r, r))
+    lam = l0 @ l0.T / r + 0.1 * np.eye(r)
+    mean = rng.normal(size=r)
+    zt = rng.normal(size=(k, 3, r))
+    d_blocks = []
+    for _ in range(k):
+        q = rng.normal(size=(3, 3))
+        d_blocks.append(q @ q.T + 0.5 * np.eye(3))
+    d = np.zeros((3 * k, 3 * k))
+    for j, blk in enumerate(d_blocks):
+        d[3 * j : 3 * j + 3, 3 * j : 3 * j + 3] = blk
+    at = np.array([np.linalg.inv(blk) for blk in d_blocks])
+    x_true = rng.normal(size=6)
+    y_o = h @ x_true + rng.normal(size=k)
+    r_rot = np.zeros((3 * k, 6))
+    r_rot[:, :3] = np.tile(np.eye(3), (k, 1))
+    y_t = r_rot @ x_true + rng.normal(size=3 * k)
+    rtl = np.einsum("kij,kj->ki", at, y_t.reshape(k, 3))
+    v = v0 + z_o @ lam @ z_o.T
+    viz = np.linalg.solve(v, z_o)
+    y_o_c = y_o - z_o @ mean  # the offsets less the units' mean, as the function takes them
+    info, rhs, wz = sto.tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, h, y_o_c)
+    # the dense joint GLS of the stacked offsets and tilts, the units' mean taken off
+    zt2 = zt.reshape(3 * k, r)
+    x = np.vstack([h, r_rot])
+    z = np.vstack([z_o, zt2])
+    cov = np.zeros((4 * k, 4 * k))
+    cov[:k, :k] = v0
+    cov[k:, k:] = d
+    cov += z @ lam @ z.T
+    y = np.concatenate([y_o, y_t]) - z @ mean
+    ci = np.linalg.inv(cov)
+    vi = np.linalg.inv(v)
+    np.testing.assert_allclose(info + h.T @ vi @ h, x.T @ ci @ x, rtol=1e-9)
+    np.testing.assert_allclose(rhs + h.T @ vi @ y_o_c, x.T @ ci @ y, rtol=1e-9, atol=1e-9)
+    # the gains: the joint GLS's right-hand side per unit error through the tilts and per
+    # offset (the tilts' part; the offsets' own is Hᵀ V⁻¹)
+    g_joint = x.T @ ci  # (6, 4k) per stacked observation
+    np.testing.assert_allclose(wz, g_joint[:, k:] @ zt2, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(
+        -(wz @ lam) @ viz.T + h.T @ vi, g_joint[:, :k], rtol=1e-8, atol=1e-10
+    )
+    # no unit design in the tilts: their own information and right-hand side
+    info0, rhs0, _ = sto.tilts_given_offsets(at, rtl, 0 * zt, z_o, lam, mean, viz, h, y_o_c)
+    np.testing.assert_allclose(info0[:3, :3], at.sum(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(info0[3:], 0.0, atol=1e-12)
+    np.testing.assert_allclose(rhs0[:3], rtl.sum(axis=0), rtol=1e-12)
+
+
+@pytest.mark.parametrize("epoch", ["before", "after"])
+def test_tilt_shares_predict_the_adjustments_tilt_misclosures(epoch):
+    """Known answer: one epoch's points moved by a drift along GpsTime that is exactly in the
+    hat basis (random coefficients per virtual unit); the adjustment's per-plane tilt
+    misclosure (its plane block reduced at the true motion) is the tilt shares times the
+    drift along each normal: + for the after epoch (its errors act as the motion does),
+    − for the before epoch."""
+    from slipmap.core import adjustment as adj
+
+    rng = np.random.default_rng(1)
+    b = 8
+    nrm = rng.normal(size=(b, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    pts, lab, tim, uni = [], [], [], []
+    for j in range(b):
+        e1 = np.cross(nrm[j], rng.normal(size=3))
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(nrm[j], e1)
+        ab = rng.uniform(-4, 4, (400, 2))
+        pts.append(rng.uniform(-30, 30, 3) + ab[:, :1] * e1 + ab[:, 1:] * e2)
+        lab.append(np.full(400, j))
+        tim.append(1000 + 3.0 * j + 0.4 * ab[:, 0] + 0.05 * ab[:, 1])
+        uni.append(np.full(400, 1 + j % 2))
+    pts, lab, tim, uni = (np.concatenate(a) for a in (pts, lab, tim, uni))
+    dt = 2.0
+    _, ids = hat_unit_shares(lab, uni, tim, np.bincount(lab).astype(float), interval_s=dt)
+    coef = 1e-3 * rng.normal(size=(ids.size, 3))  # metres per axis and virtual unit
+    x = tim / dt
+    k = np.floor(x).astype(np.int64)
+    w = x - k
+    v0 = np.searchsorted(ids, virtual_unit_ids(uni, k))
+    v1 = np.searchsorted(ids, virtual_unit_ids(uni, k + 1))
+    moved = pts + (1 - w)[:, None] * coef[v0] + w[:, None] * coef[v1]
+    before, after = (moved, pts) if epoch == "before" else (pts, moved)
+    centre = pts.mean(axis=0)
+    eps = (
+        adj._Epoch(before, lab, 0.001, b, centre, "before"),
+        adj._Epoch(after, lab, 0.001, b, centre, "after"),
+    )
+    n0, d0 = adj._initial_planes(eps, b)
+    state = adj._State(np.eye(3), np.zeros(3), n0.copy(), d0.copy())
+    g_mat, g_vec, _ = adj._reduce(state, eps, np.ones(b, bool), b)
+    pl = adj._PlaneLevel(g_mat, g_vec)
+    ep = eps[0] if epoch == "before" else eps[1]
+    om = hat_unit_tilt_shares(ep.idx, uni, tim, ep.u, n0, ids, interval_s=dt)
+    sign = -1.0 if epoch == "before" else 1.0
+    pred = sign * np.einsum("bvi,bj,vj->bi", om, n0, coef)
+    # the misclosure each plane's tilt information weighs: tr v = rtr
+    np.testing.assert_allclose(
+        np.einsum("bij,bj->bi", pl.tr, pred), pl.rtr, rtol=1e-3, atol=1e-6 * np.abs(pl.rtr).max()
+    )
