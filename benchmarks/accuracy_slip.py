@@ -249,6 +249,7 @@ def one(
     families=None,
     drift_tilts=False,
     unit_interval_s=None,
+    true_planes=False,
 ) -> dict:
     """One pair of one case: errors of every method (metres) and their σ."""
     import slipmap.core.adjustment as adjustment
@@ -340,6 +341,10 @@ def one(
         strike = math.atan2(float(d[0]), float(d[1]))
     sides, centres = sides_and_centres(fp, trace)
     row.update(_truth(fp, sides, centres, truth, strike))
+    if true_planes:
+        row["full_true_planes"] = _true_planes(
+            fp, sides, centres, truth, strike, units, random_tilt
+        )
     if peer:
         t0 = time.perf_counter()
         try:
@@ -415,6 +420,35 @@ def _truth(fp, sides, centres, truth, strike) -> dict:
         else:
             out[name] = {"failed": "too few true-surface orientations on a side"}
     return out
+
+
+def _true_planes(fp, sides, centres, truth, strike, units, random_tilt=None) -> dict:
+    """Row "full_true_planes": SlipMap's adjustment (``adjust_rigid``, the full model with
+    the units and their times, its own contrasts and components) on each side's true
+    surfaces instead of the planes it finds: what its plane finding adds to its error."""
+    from slipmap.core.adjustment import adjust_rigid
+
+    t0 = time.perf_counter()
+    motion = {}
+    try:
+        for s in (-1, 1):
+            mb, ma = sides[0] == s, sides[1] == s
+            kw = {
+                k: (v[mb] if k.endswith("before") else v[ma])
+                for k, v in units.items()
+                if k != "unit_contrasts"
+            }
+            res = adjust_rigid(
+                fp.before.points[mb], fp.before.labels[mb].astype(np.int64),
+                fp.after.points[ma], fp.after.labels[ma].astype(np.int64),
+                sigma_before=fp.before.noise_m, sigma_after=fp.after.noise_m,
+                centre=centres[s], stochastic_model="full", random_tilt=random_tilt, **kw,
+            )  # fmt: skip
+            motion[s] = np.asarray(res.params[3:])
+    except Exception as exc:  # noqa: BLE001 - a failed run is recorded and counted
+        return {"failed": f"{type(exc).__name__}: {exc}"}
+    rel = motion[1] - motion[-1]
+    return {"err": _errors(rel, truth, strike), "s": round(time.perf_counter() - t0, 2)}
 
 
 def _errors(rel, truth, strike):
@@ -644,6 +678,12 @@ def main(argv=None):
         "(core.adjustment.UNIT_INTERVALS_S; default: REML chooses among the library's)",
     )
     ap.add_argument(
+        "--true-planes",
+        action="store_true",
+        help="also SlipMap's adjustment on each side's true surfaces (the synthetic's labels) "
+        "instead of the planes it finds: row full_true_planes, its error only",
+    )
+    ap.add_argument(
         "--families",
         default=None,
         help="comma-separated spatial families REML chooses from (core.stochastic."
@@ -695,6 +735,7 @@ def main(argv=None):
             None if args.families is None else tuple(args.families.split(",")),
             args.unit_drift_tilts == "on",
             args.unit_interval,
+            args.true_planes,
         )
         for c in cases
         for s in range(args.first_seed, args.first_seed + args.seeds)

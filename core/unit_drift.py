@@ -89,6 +89,21 @@ def virtual_unit_ids(unit: np.ndarray, knot: np.ndarray) -> np.ndarray:
     return (u << _KNOT_BITS) | k
 
 
+def _hat_terms(unit: np.ndarray, time_s, interval_s: float):
+    """The hat basis's non-zero terms of each point: virtual unit id, weight ``B_v(t_i)``
+    and the point's index, two terms a point (its knots ``⌊t/Δ⌋`` and the next), one for
+    ``math.inf`` (the unit itself, weight 1)."""
+    n = unit.size
+    if math.isinf(interval_s):
+        return unit, np.ones(n), np.arange(n)
+    x = np.asarray(time_s, dtype=np.float64) / float(interval_s)
+    k = np.floor(x)
+    w = x - k
+    k = k.astype(np.int64)
+    vid = np.concatenate([virtual_unit_ids(unit, k), virtual_unit_ids(unit, k + 1)])
+    return vid, np.concatenate([1.0 - w, w]), np.concatenate([np.arange(n), np.arange(n)])
+
+
 def hat_unit_shares(
     plane: np.ndarray,
     unit: np.ndarray,
@@ -128,16 +143,8 @@ def hat_unit_shares(
     denom = np.maximum(np.asarray(count, dtype=np.float64), 1.0)
     if not (interval_s > 0):
         raise InvalidParameterError(f"interval_s must be > 0 seconds, got {interval_s!r}")
-    if math.isinf(interval_s):
-        vid, wt, idx = unit, np.ones(unit.size), plane
-    else:
-        x = np.asarray(time_s, dtype=np.float64) / float(interval_s)
-        k = np.floor(x)
-        w = x - k
-        k = k.astype(np.int64)
-        vid = np.concatenate([virtual_unit_ids(unit, k), virtual_unit_ids(unit, k + 1)])
-        wt = np.concatenate([1.0 - w, w])
-        idx = np.concatenate([plane, plane])
+    vid, wt, take = _hat_terms(unit, time_s, interval_s)
+    idx = plane[take]
     ids, inv = np.unique(vid, return_inverse=True)
     nv = ids.size
     if nv == 0:
@@ -229,17 +236,8 @@ def hat_unit_tilt_shares(
     big = lam > 1e-9 * np.maximum(lam[:, -1:], 1e-300)
     inv = np.where(big, 1.0 / np.where(big, lam, 1.0), 0.0)
     m_pinv = np.einsum("bij,bj,bkj->bik", vec, inv, vec)
-    if math.isinf(interval_s):
-        vid, wt, idx, uu = unit, np.ones(unit.size), plane, u
-    else:
-        x = np.asarray(time_s, dtype=np.float64) / float(interval_s)
-        k0 = np.floor(x)
-        w = x - k0
-        k0 = k0.astype(np.int64)
-        vid = np.concatenate([virtual_unit_ids(unit, k0), virtual_unit_ids(unit, k0 + 1)])
-        wt = np.concatenate([1.0 - w, w])
-        idx = np.concatenate([plane, plane])
-        uu = np.concatenate([u, u])
+    vid, wt, take = _hat_terms(unit, time_s, interval_s)
+    idx, uu = plane[take], u[take]
     ids = np.asarray(ids, dtype=np.int64)
     col = np.searchsorted(ids, vid)
     ok = (col < nv) & (ids[np.minimum(col, max(nv - 1, 0))] == vid) if nv else np.zeros(0, bool)

@@ -51,31 +51,33 @@ def test_shares_match_the_slow_reference_and_sum_to_one(interval):
         np.testing.assert_array_equal(ids, np.unique(unit))
 
 
-def _plane_points(rng, k=6, per=30):
-    """Points of ``k`` planes with random normals, 2-4 m across, each seen by one or two
-    units over a few seconds: plane, unit, time, offsets from each plane's centroid,
-    normals."""
+def _plane_points(rng, k=6, per=30, noise_m=0.01):
+    """Points of ``k`` planes with random normals, 4 m across and 60 m apart, each seen by one
+    or two units over a few seconds: plane, unit, time, offsets from each plane's centroid,
+    normals, and the points (the offsets plus each plane's centroid); ``noise_m`` along the
+    normal."""
     nrm = rng.normal(size=(k, 3))
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    plane, unit, time, off = [], [], [], []
+    plane, unit, time, off, pts = [], [], [], [], []
     for j in range(k):
         e1 = np.cross(nrm[j], rng.normal(size=3))
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(nrm[j], e1)
         ab = rng.uniform(-2, 2, (per, 2))
-        x = ab[:, :1] * e1 + ab[:, 1:] * e2 + 0.01 * rng.normal(size=(per, 1)) * nrm[j]
+        x = ab[:, :1] * e1 + ab[:, 1:] * e2 + noise_m * rng.normal(size=(per, 1)) * nrm[j]
         plane.append(np.full(per, j))
         unit.append(np.where(ab[:, 1] > 0.5, 2, 1))
         time.append(500.0 + 10.0 * j + 1.5 * ab[:, 0] + 0.1 * ab[:, 1])
         off.append(x - x.mean(axis=0))
-    plane, unit, time, off = (np.concatenate(a) for a in (plane, unit, time, off))
-    return plane, unit, time, off, nrm
+        pts.append(off[-1] + rng.uniform(-30, 30, 3))
+    plane, unit, time, off, pts = (np.concatenate(a) for a in (plane, unit, time, off, pts))
+    return plane, unit, time, off, nrm, pts
 
 
 @pytest.mark.parametrize("interval", [3.0, math.inf])
 def test_tilt_shares_match_the_slow_reference(interval):
     rng = np.random.default_rng(5)
-    plane, unit, time, off, nrm = _plane_points(rng)
+    plane, unit, time, off, nrm, _ = _plane_points(rng)
     count = np.bincount(plane).astype(float)
     _, ids = hat_unit_shares(plane, unit, time, count, interval_s=interval)
     w = hat_unit_tilt_shares(plane, unit, time, off, nrm, ids, interval_s=interval)
@@ -294,21 +296,9 @@ def test_tilt_shares_predict_the_adjustments_tilt_misclosures(epoch):
     − for the before epoch."""
     from slipmap.core import adjustment as adj
 
-    rng = np.random.default_rng(1)
     b = 8
-    nrm = rng.normal(size=(b, 3))
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    pts, lab, tim, uni = [], [], [], []
-    for j in range(b):
-        e1 = np.cross(nrm[j], rng.normal(size=3))
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(nrm[j], e1)
-        ab = rng.uniform(-4, 4, (400, 2))
-        pts.append(rng.uniform(-30, 30, 3) + ab[:, :1] * e1 + ab[:, 1:] * e2)
-        lab.append(np.full(400, j))
-        tim.append(1000 + 3.0 * j + 0.4 * ab[:, 0] + 0.05 * ab[:, 1])
-        uni.append(np.full(400, 1 + j % 2))
-    pts, lab, tim, uni = (np.concatenate(a) for a in (pts, lab, tim, uni))
+    lab, uni, tim, _, _, pts = _plane_points(np.random.default_rng(1), k=b, per=400, noise_m=0.0)
+    rng = np.random.default_rng(2)
     dt = 2.0
     _, ids = hat_unit_shares(lab, uni, tim, np.bincount(lab).astype(float), interval_s=dt)
     coef = 1e-3 * rng.normal(size=(ids.size, 3))  # metres per axis and virtual unit
@@ -332,7 +322,9 @@ def test_tilt_shares_predict_the_adjustments_tilt_misclosures(epoch):
     om = hat_unit_tilt_shares(ep.idx, uni, tim, ep.u, n0, ids, interval_s=dt)
     sign = -1.0 if epoch == "before" else 1.0
     pred = sign * np.einsum("bvi,bj,vj->bi", om, n0, coef)
-    # the misclosure each plane's tilt information weighs: tr v = rtr
+    # the misclosure each plane's tilt information weighs: tr v = rtr (to first order in
+    # the drift: the before epoch's drifted points also define the planes; a wrong sign or
+    # share would be off by its own size)
     np.testing.assert_allclose(
-        np.einsum("bij,bj->bi", pl.tr, pred), pl.rtr, rtol=1e-3, atol=1e-6 * np.abs(pl.rtr).max()
+        np.einsum("bij,bj->bi", pl.tr, pred), pl.rtr, rtol=1e-2, atol=1e-3 * np.abs(pl.rtr).max()
     )
