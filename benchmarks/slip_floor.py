@@ -381,13 +381,19 @@ def _joint(fp, sides, model_b, model_a, side_centres, min_points=10, patch_m=Non
     return cov[sl, sl], beta[sl], int(planes.size), partial, fits
 
 
+def _model_gls(xtx, xtz, ztz, w, m):
+    """The GLS of the model ``Σ_m = I / w + Z_m Z_mᵀ`` (the columns ``m``, indices) by
+    Woodbury: ``(C, inner, Xᵀ Z_m)``, ``C = (Xᵀ Σ_m⁻¹ X)⁻¹``, ``inner = (I + w Z_mᵀZ_m)⁻¹``."""
+    inner = np.linalg.inv(np.eye(m.size) + w * ztz[np.ix_(m, m)])
+    xm = xtz[:, m]
+    return np.linalg.inv(w * xtx - w * w * xm @ inner @ xm.T), inner, xm
+
+
 def _model_beta(xtx, xty, xtz, zty, ztz, w, model) -> np.ndarray:
     """The estimate of the GLS fit whose model is ``Σ_m = I / w + Z_m Z_mᵀ`` (columns
     ``model``) on the pair's points: its realised error beside its σ (:func:`_model_cov`)."""
     m = np.flatnonzero(model)
-    inner = np.linalg.inv(np.eye(m.size) + w * ztz[np.ix_(m, m)])
-    xm = xtz[:, m]
-    c = np.linalg.inv(w * xtx - w * w * xm @ inner @ xm.T)
+    c, inner, xm = _model_gls(xtx, xtz, ztz, w, m)
     return c @ (w * xty - w * w * xm @ inner @ zty[m])
 
 
@@ -414,9 +420,7 @@ def _model_cov(xtx, xtz, ztz, w, model, truth) -> np.ndarray:
     ``C - C B_m B_mᵀ C + C B Bᵀ C``, ``C = (Xᵀ Σ_m⁻¹ X)⁻¹``, ``B = Xᵀ Σ_m⁻¹ Z_t``,
     ``B_m = Xᵀ Σ_m⁻¹ Z_m``."""
     m, t = np.flatnonzero(model), np.flatnonzero(truth)
-    inner = np.linalg.inv(np.eye(m.size) + w * ztz[np.ix_(m, m)])
-    xm = xtz[:, m]
-    c = np.linalg.inv(w * xtx - w * w * xm @ inner @ xm.T)
+    c, inner, xm = _model_gls(xtx, xtz, ztz, w, m)
     b = w * xtz[:, t] - w * w * xm @ inner @ ztz[np.ix_(m, t)]
     bm = w * xm - w * w * xm @ inner @ ztz[np.ix_(m, m)]
     return c - c @ bm @ bm.T @ c + c @ b @ b.T @ c

@@ -585,16 +585,22 @@ class _PlaneLevel:
         self.rtr = rtj[:, :3]
         self.n_white = g_mat[:, :6, :6].sum(0)
 
-    def tilt(self, s0sq: float, tilt_var: float = 0.0, keep: Optional[np.ndarray] = None):
-        """The tilt information (6, 6) and right-hand side (6,) scaled by the point-level
-        factor, each plane's tilt weighed with the random tilt ``tilt_var`` (rad²,
-        :func:`.stochastic.tilt_information`) and the tilts of the planes not in ``keep``
-        (k,) left out; ``tilt_var`` 0 and every plane kept: ``t / s0sq``, ``rt / s0sq``."""
-        if not tilt_var > 0 and (keep is None or bool(np.all(keep))):
-            return self.t / s0sq, self.rt / s0sq
+    def tilt_blocks(self, s0sq: float, tilt_var: float = 0.0, keep=None):
+        """Each plane's rotation information (k, 3, 3) and right-hand side (k, 3) scaled by the
+        point-level factor, weighed with the random tilt ``tilt_var`` (rad²,
+        :func:`.stochastic.tilt_information`), zero for the planes not in ``keep`` (k,)."""
         at, rtl = _stoch.tilt_information(self.tr / s0sq, self.rtr / s0sq, tilt_var)
         if keep is not None:
             at, rtl = at * keep[:, None, None], rtl * keep[:, None]
+        return at, rtl
+
+    def tilt(self, s0sq: float, tilt_var: float = 0.0, keep: Optional[np.ndarray] = None):
+        """The tilt information (6, 6) and right-hand side (6,) scaled by the point-level
+        factor, the planes' :meth:`tilt_blocks` summed; ``tilt_var`` 0 and every plane kept:
+        ``t / s0sq``, ``rt / s0sq``."""
+        if not tilt_var > 0 and (keep is None or bool(np.all(keep))):
+            return self.t / s0sq, self.rt / s0sq
+        at, rtl = self.tilt_blocks(s0sq, tilt_var, keep)
         t = self.t / s0sq
         rt = self.rt / s0sq
         t[:3, :3] = at.sum(axis=0)
@@ -712,27 +718,17 @@ def _unit_columns(cfg, active):
     idx = np.flatnonzero(active)
     cond = cfg.condition(active)
     rows = None if cond is None else cond.rows
-    turn_rows = rows is None or rows.position is not None
-    lever = m.unit_lever_m if math.isfinite(m.unit_lever_m) and turn_rows else math.inf
+    lever = m.unit_lever_m if m.unit_turns else math.inf  # as the offsets' design
     nrm = m.normals[idx]
     proj = np.eye(3)[None] - nrm[:, :, None] * nrm[:, None, :]
     zo, zt, lam = [], [], []
     for e, name in enumerate(("unit_before", "unit_after")):
         th = float(cfg.theta.get(name, 0.0))
-        sh = m.shares_before if e == 0 else m.shares_after
         om = tilts[cfg.unit_interval][e]
-        if th <= 0 or sh is None or om is None:
+        keep = m.unit_columns(name, idx, rows)  # the columns of the offsets' design
+        if th <= 0 or om is None or keep is None or not np.any(keep):
             continue
-        sub = sh[idx]
-        if cond is not None:
-            c = rows.shares_before if e == 0 else rows.shares_after
-            if c is None:
-                continue
-            keep = np.any(sub != 0.0, axis=0) | np.any(c != 0.0, axis=0)
-        else:
-            keep = sub.sum(axis=0) > 0
-        if not np.any(keep):
-            continue
+        sub = (m.shares_before if e == 0 else m.shares_after)[idx]
         sign = 1.0 if e == 0 else -1.0
         if cond is None:
             zo.append(sign * m.unit_basis(name, idx))
@@ -767,9 +763,7 @@ def _drift_tilt_terms(cfg, pl, vop, vih, active, y_o):
     if cols is None:
         return None
     z_o, lam, mean, zt = cols
-    at, rtl = _stoch.tilt_information(pl.tr / cfg.s0sq, pl.rtr / cfg.s0sq, cfg.tilt_var)
-    keep = cfg.tilt_keep[active]
-    at, rtl = at * keep[:, None, None], rtl * keep[:, None]
+    at, rtl = pl.tilt_blocks(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
     viz = vop.solve(z_o)
     info, rhs, wz = _stoch.tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, pl.h, y_o)
     info[:3, :3] -= at.sum(axis=0)

@@ -1360,15 +1360,33 @@ class PlaneModel:
                 c = np.vstack([c, rows.position])
         return _share_centroids(w, c)
 
+    @property
+    def unit_turns(self) -> bool:
+        """Whether the units' design has their turn beside their translation: a lever, and
+        every contrast row a position (rows without: translations only)."""
+        rows = self.contrasts
+        return math.isfinite(self.unit_lever_m) and (rows is None or rows.position is not None)
+
+    def unit_columns(
+        self, which: str, idx: np.ndarray, rows: Optional[ContrastRows] = None
+    ) -> Optional[np.ndarray]:
+        """(U,) bool: the columns of unit component ``which`` that the planes ``idx`` see, or
+        with ``rows`` that they or the contrast rows see; None without shares (of the planes,
+        or of the rows' epoch)."""
+        s = self.shares_before if which == "unit_before" else self.shares_after
+        if s is None:
+            return None
+        if rows is None:
+            return s[idx].sum(axis=0) > 0
+        c = rows.shares_before if which == "unit_before" else rows.shares_after
+        if c is None:
+            return None
+        return np.any(s[idx] != 0.0, axis=0) | np.any(c != 0.0, axis=0)
+
     def _unit_design(self, which, shares, normals, positions, keep):
         """:func:`_share_design` of the unit columns ``keep`` with the units' turn when the
-        model has a lever and every row of it a position (rows without: translations)."""
-        rows = self.contrasts
-        if (
-            not math.isfinite(self.unit_lever_m)
-            or positions is None
-            or (rows is not None and rows.position is None)
-        ):
+        model has one (:attr:`unit_turns`) and the rows positions."""
+        if not self.unit_turns or positions is None:
             return _share_design(shares, normals)
         origins = self.unit_origins(which)[keep]
         return _share_design(shares, normals, positions, origins, self.unit_lever_m)
@@ -1385,14 +1403,11 @@ class PlaneModel:
         (k, r) and in the contrast rows (m, r), over the units either sees (r = 3 × them),
         or None. A unit error moves a misclosure by ``+nᵀs`` (before) or ``−nᵀs`` (after), a
         contrast of either epoch by ``+nᵀs`` (:mod:`.unit_contrasts`)."""
-        s = self.shares_before if which == "unit_before" else self.shares_after
+        keep = self.unit_columns(which, idx, rows)
+        if keep is None or not np.any(keep):
+            return None
+        sm = (self.shares_before if which == "unit_before" else self.shares_after)[idx]
         c = rows.shares_before if which == "unit_before" else rows.shares_after
-        if s is None or c is None:
-            return None
-        sm = s[idx]
-        keep = np.any(sm != 0.0, axis=0) | np.any(c != 0.0, axis=0)
-        if not np.any(keep):
-            return None
         sign = 1.0 if which == "unit_before" else -1.0
         turn = rows.position is not None  # rows without positions: translations only
         return (
@@ -1466,18 +1481,15 @@ class PlaneModel:
 
     def unit_basis(self, which: str, idx: np.ndarray) -> Optional[np.ndarray]:
         """(k, 3U) ``Z`` of the planes ``idx`` for unit component ``which``."""
-        s = self.shares_before if which == "unit_before" else self.shares_after
-        if s is None:
+        keep = self.unit_columns(which, idx)
+        if keep is None or not np.any(keep):
             return None
-        sub = s[idx]
-        keep = sub.sum(axis=0) > 0
-        if not np.any(keep):
-            return None
+        sub = (self.shares_before if which == "unit_before" else self.shares_after)[idx]
         return self._unit_design(which, sub[:, keep], self.normals[idx], self.centroids[idx], keep)
 
     def n_units(self, which: str, idx: np.ndarray) -> int:
-        s = self.shares_before if which == "unit_before" else self.shares_after
-        return 0 if s is None else int(np.count_nonzero(s[idx].sum(axis=0) > 0))
+        keep = self.unit_columns(which, idx)
+        return 0 if keep is None else int(np.count_nonzero(keep))
 
     def bases(self, idx: np.ndarray, range_m) -> Dict[str, np.ndarray]:
         """Dense (k, k) ``V_i`` of each plane-level component for planes ``idx``
