@@ -336,6 +336,10 @@ def one(
                 s: {k.name: k.sigma_m for k in getattr(res, s).rigid.variance_components.components}
                 for s in ("left", "right")
             }
+            # the random tilt per plane per side, rad (0: off or nil)
+            row[label]["tilt_sigma_rad"] = [
+                getattr(res, s).rigid.variance_components.tilt.sigma_rad for s in ("left", "right")
+            ]
     if strike is None:  # every model failed: the trace's own strike
         d = fp.trace_xy[1] - fp.trace_xy[0]
         strike = math.atan2(float(d[0]), float(d[1]))

@@ -773,6 +773,23 @@ def _drift_tilt_terms(cfg, pl, vop, vih, active, y_o):
     return info, rhs, -(wz @ lam) @ viz.T, wz
 
 
+def _component_tilts(cfg, pl, active, keep):
+    """The tilts' information (6, 6) and right-hand side (6,) the plane-level components and
+    the plane tests take: :meth:`_PlaneLevel.tilt`, and where the units' errors tilt the
+    planes (:data:`UNIT_DRIFT_TILTS`) the tilts weighed with the drift's tilts too
+    (:func:`.stochastic.tilts_marginal`): precise tilts that the drift moves would otherwise
+    pin the motion and push the drift's part into the offsets' components."""
+    t, rt = pl.tilt(cfg.s0sq, cfg.tilt_var, keep)
+    cols = _unit_columns(cfg, active) if UNIT_DRIFT_TILTS else None
+    if cols is None:
+        return t, rt
+    _, lam, mean, zt = cols
+    at, rtl = pl.tilt_blocks(cfg.s0sq, cfg.tilt_var, keep)
+    t, rt = t.copy(), rt.copy()
+    t[:3, :3], rt[:3] = _stoch.tilts_marginal(at, rtl, zt, lam, mean)
+    return t, rt
+
+
 def _step_dense(state: _State, epochs, active: np.ndarray, b: int, cfg=None):
     """The same step from the full Gauss-Helmert matrices (A, B, W, G) of every point.
 
@@ -1394,7 +1411,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         idx = np.flatnonzero(active)
         e = pl.y  # at convergence the increment is nil: y is the misclosure residual
         xd = pl.h
-        t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
+        t_s, rt_s = _component_tilts(cfg, pl, active, cfg.tilt_keep[active])
         p_s = cfg.s0sq * pl.p
         cfg.model.normals[idx] = state.n[idx] / np.linalg.norm(state.n[idx], axis=1)[:, None]
         if not gross_done:
@@ -1449,9 +1466,16 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             # just estimated (stochastic.estimate_tilt_variance)
             vop = cfg.v_operator(active, pl.p)
             vih = vop.solve(xd)
+            y_o = e - cfg.shift(active)
+            drift = None
+            cols = _unit_columns(cfg, active) if UNIT_DRIFT_TILTS else None
+            if cols is not None:  # σ_t beside the drift's tilts, not counting them again
+                z_o, lam, mean, zt = cols
+                drift = (zt, z_o, lam, mean, vop.solve(z_o), xd, y_o)
             tilt_est = _stoch.estimate_tilt_variance(
-                pl.tr / cfg.s0sq, pl.rtr / cfg.s0sq, xd.T @ vih, vih.T @ (e - cfg.shift(active)),
-                start=cfg.tilt_var,
+                pl.tr / cfg.s0sq, pl.rtr / cfg.s0sq, xd.T @ vih, vih.T @ y_o,
+                start=cfg.tilt_var, drift=drift,
+                left_out=None if drift is None else ~cfg.tilt_keep[idx],
             )  # fmt: skip
             old_tv, cfg.tilt_var = cfg.tilt_var, tilt_est.var
             tilt_moved = abs(cfg.tilt_var - old_tv) > 0.02 * max(cfg.tilt_var, old_tv)
@@ -1460,7 +1484,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             cfg.tilt_keep[:] = True
             cfg.tilt_keep[idx] = keep
             if _stoch.REML_RANDOM_TILT:
-                t_s, rt_s = pl.tilt(cfg.s0sq, cfg.tilt_var, keep)
+                t_s, rt_s = _component_tilts(cfg, pl, active, keep)
         changed = False
         if reject and idx.size > min_planes:
             # the test is against the model, not the last weights

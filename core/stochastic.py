@@ -149,6 +149,7 @@ __all__ = [
     "tilt_information",
     "tilts_given_offsets",
     "estimate_tilt_variance",
+    "tilts_marginal",
 ]
 
 #: the models: "white" = independent point errors only (the study's model, data snooping
@@ -2459,6 +2460,45 @@ def tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, h, y_o):
     return 0.5 * (info + info.T), rhs, wz
 
 
+def tilts_marginal(at, rtl, zt, lam, mean):
+    """The planes' tilts' information on the motion's rotation (3, 3) and its right-hand
+    side (3,) when the units' errors ``c ~ N(μ, Λ)`` tilt them, taken on their own (not
+    given the offsets, :func:`tilts_given_offsets`): ``Rᵀ W R`` and ``Rᵀ W (y_t − Z_t μ)``
+    with ``W = (D + Z_t Λ Z_tᵀ)⁻¹ = D⁻¹ − F Λ (I + G Λ)⁻¹ Fᵀ``, ``F = D⁻¹ Z_t``, ``G =
+    Z_tᵀ D⁻¹ Z_t`` (Woodbury on the tilt information). This is what the plane-level
+    components (REML of the offsets) and the plane tests take as the tilts' information on
+    the motion: the tilts weighed as the drift makes them, without their correlation with
+    the offsets (which the adjustment itself uses).
+
+    Parameters
+    ----------
+    at : (k, 3, 3) float64
+        Each plane's tilt information ``D_j⁻¹`` on the rotation (rad⁻²).
+    rtl : (k, 3) float64
+        Its right-hand side ``D_j⁻¹ y_t,j``.
+    zt : (k, 3, r) float64
+        The units' errors' design in the tilts.
+    lam : (r, r) float64
+        Their covariance; ``mean`` (r,) their mean.
+
+    Returns
+    -------
+    info : (3, 3) float64
+    rhs : (3,) float64
+    """
+    f = np.einsum("kij,kjr->kir", at, zt)
+    g = np.einsum("kir,kis->rs", zt, f)
+    g = 0.5 * (g + g.T)
+    k_mat = np.linalg.solve(np.eye(g.shape[0]) + lam @ g, lam)  # Λ (I + G Λ)⁻¹
+    k_mat = 0.5 * (k_mat + k_mat.T)
+    fs = f.sum(axis=0)  # (3, r): Rᵀ F
+    d = rtl - np.einsum("kir,r->ki", f, mean)  # D⁻¹ (y_t − Z_t μ)
+    fy = np.einsum("kir,ki->r", zt, d)
+    info = at.sum(axis=0) - fs @ k_mat @ fs.T
+    rhs = d.sum(axis=0) - fs @ (k_mat @ fy)
+    return 0.5 * (info + info.T), rhs
+
+
 def tilt_information_reference(a: np.ndarray, r: np.ndarray, tilt_var: float, rel_tol=1e-9):
     """The slow, obvious form of :func:`tilt_information`: per plane, the tangent axes ``E``
     and the point-noise covariance ``C`` of the tilt from the eigenvectors of ``a`` (its
@@ -2545,13 +2585,51 @@ def _tilt_gls(a, r, hvh, hvy, s):
     return q, beta, g, at - at @ q[:3, :3] @ at
 
 
-def _tilt_helmert(a, r, hvh, hvy, s, floor):
+def _tilt_gls_drift(a, r, hvh, hvy, s, drift):
+    """:func:`_tilt_gls` when the units' errors tilt the planes too (``drift``, the
+    arguments of :func:`tilts_given_offsets` after ``at, rtl``: ``zt, z_o, lam, mean, viz,
+    h, y_o``): the tilts given the offsets, ``Cov = D(s) + Z_t P Z_tᵀ``, with ``W`` by
+    Woodbury as there. Returns ``Q`` (6, 6), ``β`` (6,), the weighted tilt residuals ``u =
+    W ẽ`` (k, 3) and the projector's diagonal blocks ``Π_jj = W_jj − (W R̃)_j Q (W
+    R̃)_jᵀ`` (k, 3, 3)."""
+    zt, z_o, lam, mean, viz, h, y_o = drift
+    at, rtl = tilt_information(a, r, s)
+    info, rhs_t, _ = tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, h, y_o)
+    n = np.array(hvh, dtype=np.float64, copy=True) + info
+    q = np.linalg.pinv(0.5 * (n + n.T), hermitian=True)
+    beta = q @ (np.asarray(hvy, dtype=np.float64) + rhs_t)
+    bmat = lam @ (viz.T @ h)  # (r, 6)
+    abar = mean + lam @ (viz.T @ y_o)
+    p = lam - lam @ (z_o.T @ viz) @ lam
+    f = np.einsum("kij,kjr->kir", at, zt)  # D⁻¹ Z_t
+    g = np.einsum("kir,kis->rs", zt, f)
+    g = 0.5 * (g + g.T)
+    k_mat = np.linalg.solve(np.eye(g.shape[0]) + p @ g, p)
+    k_mat = 0.5 * (k_mat + k_mat.T)
+    # D⁻¹ ẽ, ẽ_j = y_j − Z_t,j a − (R̃ β)_j = y_j − β_rot − Z_t,j (a − B β)
+    shift = beta[None, :3] + np.einsum("kir,r->ki", zt, abar - bmat @ beta)
+    d = rtl - np.einsum("kij,kj->ki", at, shift)
+    u = d - np.einsum("kir,r->ki", f, k_mat @ np.einsum("kir,ki->r", zt, d))
+    ftr_t = -g @ bmat
+    ftr_t[:, :3] += f.sum(axis=0).T  # Fᵀ R̃
+    wr = np.zeros((at.shape[0], 3, 6))
+    wr[:, :, :3] = at
+    wr -= np.einsum("kir,rc->kic", f, bmat + k_mat @ ftr_t)  # (W R̃)_j
+    wjj = at - np.einsum("kir,rs,kjs->kij", f, k_mat, f)
+    pjj = wjj - np.einsum("kic,cd,kjd->kij", wr, q, wr)
+    return q, beta, u, pjj
+
+
+def _tilt_helmert(a, r, hvh, hvy, s, floor, drift=None):
     """The Helmert / Förstner iteration of :func:`estimate_tilt_variance` from ``s``: (s,
     sd, iterations, converged); ``s`` 0 when it falls below ``floor``."""
     converged, it, fisher = False, 0, float("nan")
     while it < TILT_MAX_ITER:
         it += 1
-        _, _, g, pjj = _tilt_gls(a, r, hvh, hvy, s)
+        if drift is None:
+            _, _, g, pjj = _tilt_gls(a, r, hvh, hvy, s)
+        else:
+            _, _, g, pjj = _tilt_gls_drift(a, r, hvh, hvy, s, drift)
         num = float((g * g).sum())
         den = float(np.trace(pjj, axis1=1, axis2=2).sum())
         fisher = float(np.einsum("kij,kji->", pjj, pjj))
@@ -2574,6 +2652,8 @@ def estimate_tilt_variance(
     hvy: np.ndarray,
     *,
     start: float = 0.0,
+    drift: Optional[tuple] = None,
+    left_out: Optional[np.ndarray] = None,
 ) -> TiltEstimate:
     """REML estimate of the random tilt's variance ``σ_t²`` (rad²) from the planes' tilt
     misclosures, the offsets' part of the model held at its current components, with a
@@ -2614,6 +2694,18 @@ def estimate_tilt_variance(
         ``HᵀV⁻¹y`` of the offsets at the current motion.
     start : float
         Starting value (rad²); <= 0: the robust value above.
+    drift : tuple, optional
+        When the units' errors tilt the planes too: ``(zt (k, 3, r), z_o (k_o, r), lam (r,
+        r), mean (r,), viz (k_o, r), h (k_o, 6), y_o (k_o,))`` as
+        :func:`tilts_given_offsets` takes them (the offsets' ``hvh``, ``hvy`` as above). The
+        tilts are then taken given the offsets, with covariance ``D(σ_t²) + Z_t P Z_tᵀ``, so
+        that the drift's tilts are not counted a second time in ``σ_t``; the REML equation
+        is the same with ``g = W ẽ`` and ``Π`` of that covariance
+        (:func:`_tilt_gls_drift`), and each plane's tilt test is against its misclosure
+        less the drift's predicted tilt. Cost: ``O(k r²)``.
+    left_out : (k,) bool, optional
+        Planes whose tilt an earlier call left out: they stay out (the caller's rounds of
+        components and tilts then cannot cycle on one plane's borderline test).
 
     Returns
     -------
@@ -2629,21 +2721,31 @@ def estimate_tilt_variance(
         return TiltEstimate(note="no tilt information")
     floor = TILT_NEGLIGIBLE * c_med
     crit = max(K_REJECT_MIN**2, -2.0 * math.log(TILT_ALPHA / k))
-    keep = np.ones(k, dtype=bool)
+    keep = np.ones(k, dtype=bool) if left_out is None else ~np.asarray(left_out, dtype=bool)
     s = float(start)
     if not s > floor:
         v = np.einsum("kij,kj->ki", cinv, r)
         s = max(float(np.median((v * v).sum(axis=1) / (2.0 * math.log(2.0)) - cpt)), c_med)
     sd, it, conv = float("nan"), 0, True
     for _ in range(5):
-        s, sd, n_it, conv = _tilt_helmert(a[keep], r[keep], hvh, hvy, max(s, c_med), floor)
+        dk = None if drift is None else (drift[0][keep],) + tuple(drift[1:])
+        s, sd, n_it, conv = _tilt_helmert(a[keep], r[keep], hvh, hvy, max(s, c_med), floor, dk)
         it += n_it
         # every plane's tilt tested against the GLS of the kept ones
-        q, beta, _, _ = _tilt_gls(a[keep], r[keep], hvh, hvy, s)
-        res = r - a @ beta[:3]
+        if drift is None:
+            q, beta, _, _ = _tilt_gls(a[keep], r[keep], hvh, hvy, s)
+            res = r - a @ beta[:3]
+        else:  # less the drift's tilt the offsets predict
+            q, beta, _, _ = _tilt_gls_drift(a[keep], r[keep], hvh, hvy, s, dk)
+            zt, z_o, lam, mean, viz, h, y_o = drift
+            pred = mean + lam @ (viz.T @ (y_o - h @ beta))
+            shift = beta[None, :3] + np.einsum("kir,r->ki", zt, pred)
+            res = r - np.einsum("kij,kj->ki", a, shift)
         g = np.linalg.solve(np.eye(3) + s * a, res[:, :, None])[:, :, 0]
         qj = np.einsum("ki,kij,kj->k", g, cinv, g) + s * (g * g).sum(axis=1)
         new = qj <= crit
+        if left_out is not None:
+            new &= ~left_out
         if int(new.sum()) < MIN_PLANES_TILT or np.array_equal(new, keep):
             break
         keep = new

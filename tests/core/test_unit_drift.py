@@ -328,3 +328,137 @@ def test_tilt_shares_predict_the_adjustments_tilt_misclosures(epoch):
     np.testing.assert_allclose(
         np.einsum("bij,bj->bi", pl.tr, pred), pl.rtr, rtol=1e-2, atol=1e-3 * np.abs(pl.rtr).max()
     )
+
+
+def _tangent_tilts(rng, k, c_rad=3e-4):
+    """k planes' rank-2 tilt informations ``a_j = E_j C_j⁻¹ E_jᵀ`` (k, 3, 3) and their
+    tangent axes ``E_j`` (k, 3, 2), ``C_j`` of about ``c_rad`` rad."""
+    nrm = rng.normal(size=(k, 3))
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    e = np.zeros((k, 3, 2))
+    c = np.zeros((k, 2, 2))
+    a = np.zeros((k, 3, 3))
+    for j in range(k):
+        q = np.linalg.qr(np.column_stack([nrm[j], rng.normal(size=(3, 2))]))[0]
+        e[j] = q[:, 1:]
+        m = rng.normal(size=(2, 2)) * c_rad
+        c[j] = m @ m.T + (0.5 * c_rad) ** 2 * np.eye(2)
+        a[j] = e[j] @ np.linalg.inv(c[j]) @ e[j].T
+    return a, e, c
+
+
+def test_tilt_variance_beside_the_drifts_tilts_is_the_reml_maximum():
+    """Known answer: σ_t² estimated beside the drift's tilts (``drift=``) maximises the
+    restricted likelihood of the offsets and the tangent tilts stacked, the units' errors
+    shared between them (dense covariance, a scan of the likelihood around the estimate);
+    σ_t from such draws comes back near the truth where the drift's tilts are ignored
+    inflate it; with no unit design in the tilts it is the estimator without ``drift``."""
+    rng = np.random.default_rng(5)
+    k, r = 80, 6
+    a, e, c = _tangent_tilts(rng, k)
+    h = rng.normal(size=(k, 6)) * [1, 1, 1, 0.02, 0.02, 0.02]
+    v0 = np.diag(rng.uniform(0.5, 1.5, k)) * 1e-6
+    z_o = rng.normal(size=(k, r)) * 0.5
+    lam = np.diag(rng.uniform(0.5, 2.0, r)) * 1e-6
+    mean = rng.normal(size=r) * 1e-4
+    zt = rng.normal(size=(k, 3, r)) * 0.3  # rad per metre of a unit's error
+    zt2 = np.einsum("kia,kir->kar", e, zt).reshape(2 * k, r)
+    r_rot = np.zeros((2 * k, 6))
+    r_rot[:, :3] = e.transpose(0, 2, 1).reshape(2 * k, 3)
+    v = v0 + z_o @ lam @ z_o.T
+    viz = np.linalg.solve(v, z_o)
+    x = np.vstack([h, r_rot])
+    z = np.vstack([z_o, zt2])
+    ests, plain = [], []
+    s_true = (2e-4) ** 2
+    for trial in range(12):
+        cvec = rng.multivariate_normal(mean, lam)
+        y_o = z_o @ cvec + rng.multivariate_normal(np.zeros(k), v0)
+        y2 = zt2 @ cvec + np.concatenate(
+            [rng.multivariate_normal(np.zeros(2), c[j] + s_true * np.eye(2)) for j in range(k)]
+        )
+        # the information form the estimator takes: r_j = a_j v_j, v_j = E_j y2_j
+        vv = np.einsum("kia,ka->ki", e, y2.reshape(k, 2))
+        rr = np.einsum("kij,kj->ki", a, vv)
+        y_o_c = y_o - z_o @ mean
+        hvh = h.T @ np.linalg.solve(v, h)
+        hvy = h.T @ np.linalg.solve(v, y_o_c)
+        drift = (zt, z_o, lam, mean, viz, h, y_o_c)
+        est = sto.estimate_tilt_variance(a, rr, hvh, hvy, drift=drift)
+        ests.append(est.var)
+        plain.append(sto.estimate_tilt_variance(a, rr, hvh, hvy).var)
+        if trial:
+            continue
+        assert est.converged and est.keep is None or bool(np.all(est.keep))
+        y = np.concatenate([y_o, y2]) - z @ mean
+
+        def reml(s, y=y):
+            cov = np.zeros((3 * k, 3 * k))
+            cov[:k, :k] = v0
+            for j in range(k):
+                cov[k + 2 * j : k + 2 * j + 2, k + 2 * j : k + 2 * j + 2] = c[j] + s * np.eye(2)
+            cov += z @ lam @ z.T
+            ci = np.linalg.inv(cov)
+            n = x.T @ ci @ x
+            beta = np.linalg.solve(n, x.T @ ci @ y)
+            res = y - x @ beta
+            return -0.5 * (np.linalg.slogdet(cov)[1] + np.linalg.slogdet(n)[1] + res @ ci @ res)
+
+        lv = [reml(est.var * f) for f in (0.9, 0.97, 1.0, 1.03, 1.1)]
+        assert lv[2] >= max(lv) - 1e-9 * abs(lv[2])
+        # its derivative nil: the likelihood flat to second order around the estimate
+        assert abs(lv[3] - lv[1]) < 0.02 * (2 * lv[2] - lv[0] - lv[4]) + 1e-9
+    # out of many draws: σ_t near the truth beside the drift; inflated without it
+    assert np.sqrt(np.mean(ests)) == pytest.approx(2e-4, rel=0.15)
+    assert np.mean(plain) > 1.5 * np.mean(ests)
+    # no unit design in the tilts: the estimator without the drift
+    nod = sto.estimate_tilt_variance(a, rr, hvh, hvy, drift=(0 * zt,) + drift[1:])
+    assert nod.var == pytest.approx(plain[-1], rel=1e-6)
+
+
+def test_tilts_marginal_is_the_tilts_gls_with_the_drifts_covariance():
+    """Known answer: :func:`tilts_marginal` is the GLS information and right-hand side of
+    the tangent tilts alone, covariance ``D + Z_t Λ Z_tᵀ`` and mean ``Z_t μ`` (dense); with
+    no unit design it is the tilts' own information."""
+    rng = np.random.default_rng(3)
+    k, r = 12, 5
+    a, e, c = _tangent_tilts(rng, k)
+    zt = rng.normal(size=(k, 3, r)) * 0.3
+    l0 = rng.normal(size=(r, r))
+    lam = (l0 @ l0.T / r + 0.1 * np.eye(r)) * 1e-6
+    mean = rng.normal(size=r) * 1e-4
+    y2 = rng.normal(size=2 * k) * 1e-3
+    vv = np.einsum("kia,ka->ki", e, y2.reshape(k, 2))
+    rtl = np.einsum("kij,kj->ki", a, vv)
+    info, rhs = sto.tilts_marginal(a, rtl, zt, lam, mean)
+    zt2 = np.einsum("kia,kir->kar", e, zt).reshape(2 * k, r)
+    r_rot = e.transpose(0, 2, 1).reshape(2 * k, 3)
+    cov = zt2 @ lam @ zt2.T
+    for j in range(k):
+        cov[2 * j : 2 * j + 2, 2 * j : 2 * j + 2] += c[j]
+    ci = np.linalg.inv(cov)
+    np.testing.assert_allclose(info, r_rot.T @ ci @ r_rot, rtol=1e-8)
+    np.testing.assert_allclose(rhs, r_rot.T @ ci @ (y2 - zt2 @ mean), rtol=1e-8)
+    info0, rhs0 = sto.tilts_marginal(a, rtl, 0 * zt, lam, mean)
+    np.testing.assert_allclose(info0, a.sum(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(rhs0, rtl.sum(axis=0), rtol=1e-12)
+
+
+def test_tilt_variance_keeps_left_out_tilts_out():
+    """``left_out``: a plane an earlier round left out stays out (the rounds cannot cycle on
+    it), and the estimate is that of the others."""
+    rng = np.random.default_rng(9)
+    k = 40
+    a, e, c = _tangent_tilts(rng, k)
+    st = 2e-4
+    y2 = np.concatenate(
+        [rng.multivariate_normal(np.zeros(2), c[j] + st**2 * np.eye(2)) for j in range(k)]
+    )
+    vv = np.einsum("kia,ka->ki", e, y2.reshape(k, 2))
+    rr = np.einsum("kij,kj->ki", a, vv)
+    out = np.zeros(k, dtype=bool)
+    out[[3, 17]] = True
+    est = sto.estimate_tilt_variance(a, rr, np.zeros((6, 6)), np.zeros(6), left_out=out)
+    assert not est.keep[3] and not est.keep[17]
+    sub = sto.estimate_tilt_variance(a[~out], rr[~out], np.zeros((6, 6)), np.zeros(6))
+    assert est.var == pytest.approx(sub.var, rel=1e-6)
