@@ -2395,6 +2395,17 @@ def tilt_information(a: np.ndarray, r: np.ndarray, tilt_var: float):
     return 0.5 * (at + at.transpose(0, 2, 1)), sol[:, :, 3]
 
 
+def _tilt_woodbury(at, zt, cov):
+    """The pieces of ``(D + Z_t C Z_tᵀ)⁻¹ = D⁻¹ − F K Fᵀ`` on the tilt information ``at =
+    D⁻¹`` (k, 3, 3), rank 2 per plane, without inverting ``C`` (r, r): ``F = D⁻¹ Z_t`` (k, 3,
+    r), ``G = Z_tᵀ D⁻¹ Z_t`` (r, r) and ``K = C (I + G C)⁻¹`` (r, r)."""
+    f = np.einsum("kij,kjr->kir", at, zt)
+    g = np.einsum("kir,kis->rs", zt, f)
+    g = 0.5 * (g + g.T)
+    k_mat = np.linalg.solve(np.eye(g.shape[0]) + cov @ g, cov)
+    return f, g, 0.5 * (k_mat + k_mat.T)
+
+
 def tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, h, y_o):
     """The planes' tilts' information on the motion (6, 6) and its right-hand side (6,) when
     the units' errors move the planes' offsets and tilt them too (the offsets' own terms
@@ -2439,9 +2450,7 @@ def tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, h, y_o):
     bmat = lam @ (viz.T @ h)  # (r, 6)
     a = mean + lam @ (viz.T @ y_o)
     p = lam - lam @ (z_o.T @ viz) @ lam
-    f = np.einsum("kij,kjr->kir", at, zt)  # D⁻¹ Z_t
-    g = np.einsum("kir,kis->rs", zt, f)
-    g = 0.5 * (g + g.T)
+    f, g, k_mat = _tilt_woodbury(at, zt, p)  # K = P (I + G P)⁻¹
     ftr = np.zeros((zt.shape[2], 6))
     ftr[:, :3] = f.sum(axis=0).T  # Fᵀ R
     ftr_t = ftr - g @ bmat  # Fᵀ R̃
@@ -2452,8 +2461,6 @@ def tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, h, y_o):
     rhs = np.zeros(6)
     rhs[:3] = rtl.sum(axis=0) - np.einsum("kir,r->i", f, a)
     rhs -= bmat.T @ fyt  # R̃ᵀ D⁻¹ ỹ_t
-    k_mat = np.linalg.solve(np.eye(g.shape[0]) + p @ g, p)  # P (I + G P)⁻¹
-    k_mat = 0.5 * (k_mat + k_mat.T)
     info = info - ftr_t.T @ k_mat @ ftr_t
     rhs = rhs - ftr_t.T @ k_mat @ fyt
     wz = ftr_t.T - (ftr_t.T @ k_mat) @ g  # R̃ᵀ D⁻¹ Z_t − (Fᵀ R̃)ᵀ K G
@@ -2486,11 +2493,7 @@ def tilts_marginal(at, rtl, zt, lam, mean):
     info : (3, 3) float64
     rhs : (3,) float64
     """
-    f = np.einsum("kij,kjr->kir", at, zt)
-    g = np.einsum("kir,kis->rs", zt, f)
-    g = 0.5 * (g + g.T)
-    k_mat = np.linalg.solve(np.eye(g.shape[0]) + lam @ g, lam)  # Λ (I + G Λ)⁻¹
-    k_mat = 0.5 * (k_mat + k_mat.T)
+    f, _, k_mat = _tilt_woodbury(at, zt, lam)  # K = Λ (I + G Λ)⁻¹
     fs = f.sum(axis=0)  # (3, r): Rᵀ F
     d = rtl - np.einsum("kir,r->ki", f, mean)  # D⁻¹ (y_t − Z_t μ)
     fy = np.einsum("kir,ki->r", zt, d)
@@ -2601,11 +2604,7 @@ def _tilt_gls_drift(a, r, hvh, hvy, s, drift):
     bmat = lam @ (viz.T @ h)  # (r, 6)
     abar = mean + lam @ (viz.T @ y_o)
     p = lam - lam @ (z_o.T @ viz) @ lam
-    f = np.einsum("kij,kjr->kir", at, zt)  # D⁻¹ Z_t
-    g = np.einsum("kir,kis->rs", zt, f)
-    g = 0.5 * (g + g.T)
-    k_mat = np.linalg.solve(np.eye(g.shape[0]) + p @ g, p)
-    k_mat = 0.5 * (k_mat + k_mat.T)
+    f, g, k_mat = _tilt_woodbury(at, zt, p)
     # D⁻¹ ẽ, ẽ_j = y_j − Z_t,j a − (R̃ β)_j = y_j − β_rot − Z_t,j (a − B β)
     shift = beta[None, :3] + np.einsum("kir,r->ki", zt, abar - bmat @ beta)
     d = rtl - np.einsum("kij,kj->ki", at, shift)
