@@ -718,30 +718,17 @@ def _unit_columns(cfg, active):
     idx = np.flatnonzero(active)
     cond = cfg.condition(active)
     rows = None if cond is None else cond.rows
-    lever = m.unit_lever_m if m.unit_turns else math.inf  # as the offsets' design
-    nrm = m.normals[idx]
-    proj = np.eye(3)[None] - nrm[:, :, None] * nrm[:, None, :]
     zo, zt, lam = [], [], []
     for e, name in enumerate(("unit_before", "unit_after")):
         th = float(cfg.theta.get(name, 0.0))
         om = tilts[cfg.unit_interval][e]
-        keep = m.unit_columns(name, idx, rows)  # the columns of the offsets' design
-        if th <= 0 or om is None or keep is None or not np.any(keep):
+        z = None if th <= 0 or om is None else m.unit_tilt_design(name, idx, om, rows)
+        if z is None:
             continue
-        sub = (m.shares_before if e == 0 else m.shares_after)[idx]
-        sign = 1.0 if e == 0 else -1.0
         if cond is None:
-            zo.append(sign * m.unit_basis(name, idx))
+            zo.append((1.0 if e == 0 else -1.0) * m.unit_basis(name, idx))
             lam.append(np.full(zo[-1].shape[1], th))
-        o = om[idx][:, keep]  # (k, V, 3)
-        # a unit's translation s tilts plane j by Ω_jv (n_jᵀ s); the after epoch's errors
-        # act as the motion does (its rotation), the before epoch's against it
-        tr = o[:, :, :, None] * nrm[:, None, None, :]  # (k, V, 3 rot, 3 axis)
-        blocks = [tr]
-        if math.isfinite(lever):  # the unit's turn ψ (coefficient L ψ) turns its share
-            blocks.append(sub[:, keep][:, :, None, None] * proj[:, None] / float(lever))
-        blk = np.concatenate(blocks, axis=3)  # (k, V, 3, q)
-        zt.append(-sign * blk.transpose(0, 2, 1, 3).reshape(idx.size, 3, -1))
+        zt.append(z)
     if not zt:
         return None
     zt = np.concatenate(zt, axis=2)
@@ -769,8 +756,8 @@ def _drift_tilt_terms(cfg, pl, vop, vih, active, y_o):
     info[:3, :3] -= at.sum(axis=0)
     rhs[:3] -= rtl.sum(axis=0)
     # the right-hand side's change per offset through the units' errors the offsets predict,
-    # and per unit error through the tilts
-    return info, rhs, -(wz @ lam) @ viz.T, wz
+    # and per unit error through the tilts; the pieces of the gain on the tilts
+    return info, rhs, -(wz @ lam) @ viz.T, wz, (at, zt, z_o, lam, viz)
 
 
 def _component_tilts(cfg, pl, active, keep):
@@ -1289,8 +1276,17 @@ def _plane_gain(cfg, centre, codes) -> _stoch.PlaneGain:
         contrasts=None if m.contrasts is None else m.contrasts.shifted(centre),
         contrast_gain=getattr(cfg, "contrast_gain", None),
         unit_lever_m=float(m.unit_lever_m),
+        unit_tilt_options=_sub_tilts(getattr(cfg, "unit_tilts", None), idx),
         **cfg.gain_extra,
     )
+
+
+def _sub_tilts(tilts, idx):
+    """``{interval_s: (tilts_b, tilts_a)}`` of :func:`_unit_tilt_options` on the planes
+    ``idx`` (an epoch's None kept), or None."""
+    if not tilts:
+        return None
+    return {dt: tuple(None if om is None else om[idx] for om in pair) for dt, pair in tilts.items()}
 
 
 def _white(state, epochs, active, b, step, z_crit, rejected, reject, min_planes, opts):
@@ -1550,14 +1546,20 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
     vih = vop.solve(pl.h)
     t_fin, rt_fin = pl.tilt(cfg.s0sq, cfg.tilt_var, cfg.tilt_keep[active])
     n_fin = t_fin + pl.h.T @ vih
-    k_o, wz = vih.T, None
-    if UNIT_DRIFT_TILTS:  # the tilts given the offsets (prototype: the gain on the units'
-        # errors through the tilts is not yet carried to the other side's covariance)
+    k_o, wz, terms = vih.T, None, None
+    if UNIT_DRIFT_TILTS:  # the tilts given the offsets
         terms = _drift_tilt_terms(cfg, pl, vop, vih, active, pl.y - cfg.shift(active))
         if terms is not None:
             n_fin = n_fin + terms[0]
             k_o, wz = k_o + terms[2], terms[3]
     q_fin = np.linalg.inv(0.5 * (n_fin + n_fin.T))
+    # the tilts the joint components see (as this side's components saw them)
+    t_c, rt_c = _component_tilts(cfg, pl, active, cfg.tilt_keep[active])
+    tilt_extra = {}
+    if terms is not None:  # the gain on each plane's tilt, for the other side's covariance
+        at_f, zt_f, zo_f, lam_f, viz_f = terms[4]
+        tg, tn = _stoch.tilt_gains(at_f, zt_f, zo_f, lam_f, viz_f, pl.h, q_fin)
+        tilt_extra = dict(tilt_gain=tg, tilt_noise=tn)
     cfg.gain = q_fin @ k_o
     cfg.gain_idx = idx
     cond = cfg.condition(active)
@@ -1567,8 +1569,8 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
         cfg.contrast_gain = cfg.contrast_gain - q_fin @ wz @ cond.g
     cfg.gain_extra = dict(
         model=model, fixed=dict(fixed), e=pl.y.copy(), p=cfg.s0sq * pl.p, h=pl.h.copy(),
-        inflation=cfg.inflation[idx].copy(), t=t_fin, rt=rt_fin,
-        q=0.5 * (q_fin + q_fin.T), prior_plane_var=PRIOR_PLANE_SHARE**2 * apri,
+        inflation=cfg.inflation[idx].copy(), t=t_c, rt=rt_c,
+        q=0.5 * (q_fin + q_fin.T), prior_plane_var=PRIOR_PLANE_SHARE**2 * apri, **tilt_extra,
     )  # fmt: skip
     # estimated components make the GLS covariance optimistic (Kackar & Harville 1984): the
     # slip then follows about a t distribution with the plane-level residual degrees of

@@ -150,6 +150,7 @@ __all__ = [
     "tilts_given_offsets",
     "estimate_tilt_variance",
     "tilts_marginal",
+    "tilt_gains",
 ]
 
 #: the models: "white" = independent point errors only (the study's model, data snooping
@@ -684,6 +685,15 @@ class PlaneGain:
     contrast_gain: Optional[np.ndarray] = None
     #: the lever of the units' turn the adjustment chose (:data:`UNIT_LEVERS_M`; inf: none)
     unit_lever_m: float = math.inf
+    #: ``{interval_s: (tilts_before, tilts_after)}``: each plane's (k, U, 3) tilt per unit
+    #: column of ``unit_options`` (:func:`.unit_drift.hat_unit_tilt_shares`; an epoch without
+    #: units None) when the units' errors tilt the planes (``UNIT_DRIFT_TILTS``); else None
+    unit_tilt_options: Optional[Dict[float, tuple]] = None
+    #: (6, k, 3) the motion's gain on each plane's tilt and (6, 6) the covariance the tilts'
+    #: own noise gives (:func:`tilt_gains`), when the units' errors tilt the planes; None:
+    #: the tilts on their own (``q t q``)
+    tilt_gain: Optional[np.ndarray] = None
+    tilt_noise: Optional[np.ndarray] = None
 
     def support(self):
         """(k, S, 3) samples, (k, S) weights and (k,) radii (see :class:`PlaneModel`)."""
@@ -905,8 +915,11 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
         kj = np.zeros((12, k))
         kj[:6, :ka], kj[6:, ka:] = a.gain, b.gain
     cov = kj @ v @ kj.T
-    cov[:6, :6] += a.q @ a.t @ a.q
-    cov[6:, 6:] += b.q @ b.t @ b.q
+    tilt = _joint_tilt_path(a, b, model, idx, theta, rows, kj, est.unit_interval_s)
+    if tilt is not None:
+        cov += tilt
+    cov[:6, :6] += a.q @ a.t @ a.q if a.tilt_noise is None else a.tilt_noise
+    cov[6:, 6:] += b.q @ b.t @ b.q if b.tilt_noise is None else b.tilt_noise
     nu = max(k - 12.0, 3.0)
     if any(src == "estimated" for src in est.source.values()):
         nu = min(nu, _satterthwaite_dof(model, idx, est, kj, cov, rows))
@@ -919,6 +932,74 @@ def joint_covariance(a: PlaneGain, b: PlaneGain, *, seed: int = 0):
         unit_interval_s=float(est.unit_interval_s), unit_lever_m=float(est.unit_lever_m),
     )  # fmt: skip
     return small * 0.5 * (cov + cov.T), joint
+
+
+def _joint_tilt_path(
+    a: PlaneGain, b: PlaneGain, model: PlaneModel, idx, theta, rows, kj, interval_s
+):
+    """(12, 12) the part of :func:`joint_covariance` that runs through the planes' tilts
+    when the units' errors tilt them (a side's :attr:`PlaneGain.tilt_gain`), or None.
+
+    Under the joint model the tilts' random part is ``Z_t c`` plus their own noise, ``c`` the
+    units' errors at the joint knot spacing (covariance ``θ I`` per epoch) and ``Z_t``
+    (:meth:`PlaneModel.unit_tilt_design`) from each side's tilt shares over the union of
+    the units. With ``K_t`` the motions' gains on the tilts and ``Z`` the units' design in
+    the misclosures and contrast rows (``kj``'s columns), this is ``θ (K_t Z_t)(K_t Z_t)ᵀ +
+    θ (kj Z)(K_t Z_t)ᵀ + θ (K_t Z_t)(kj Z)ᵀ`` summed over the epochs: the tilts' share of
+    the drift, and its covariance with the offsets' share of it, which is negative where
+    the tilts take the drift out. Their own noise is the sides' ``tilt_noise``."""
+    if a.tilt_gain is None and b.tilt_gain is None:
+        return None
+    dt = interval_s
+    ka = a.e.size
+    k = idx.size
+    kt = np.zeros((12, k, 3))
+    if a.tilt_gain is not None:
+        kt[:6, :ka] = a.tilt_gain
+    if b.tilt_gain is not None:
+        kt[6:, ka:] = b.tilt_gain
+    out = np.zeros((12, 12))
+    for e, name in enumerate(("unit_before", "unit_after")):
+        th = float(theta.get(name, 0.0))
+        om = _union_tilts(a, b, e, dt)
+        if th <= 0 or om is None:
+            continue
+        zt = model.unit_tilt_design(name, idx, om, rows)
+        if zt is None:
+            continue
+        if rows is None:
+            z = (1.0 if e == 0 else -1.0) * model.unit_basis(name, idx)
+        else:
+            z = np.vstack(model.unit_designs(name, idx, rows))
+        g_t = np.einsum("cki,kir->cr", kt, zt)
+        g_o = kj @ z
+        out += th * (g_t @ g_t.T + g_o @ g_t.T + g_t @ g_o.T)
+    return out
+
+
+def _union_tilts(a: PlaneGain, b: PlaneGain, epoch: int, interval_s):
+    """(ka + kb, U, 3) both sides' tilt shares of one epoch at the knot spacing
+    ``interval_s`` over the union of their unit columns (a side without them: zeros), or
+    None when neither has them."""
+    parts = []
+    for g in (a, b):
+        opt = g.unit_options.get(interval_s) if g.unit_options else None
+        tl = g.unit_tilt_options.get(interval_s) if g.unit_tilt_options else None
+        if opt is None:
+            return None
+        codes = opt[2 + epoch]
+        om = None if tl is None else tl[epoch]
+        if codes is None:
+            return None
+        if om is None:
+            om = np.zeros((g.e.size, codes.size, 3))
+        parts.append((om, codes))
+    (oa, ua), (ob, ub) = parts
+    codes = np.union1d(ua, ub)
+    out = np.zeros((oa.shape[0] + ob.shape[0], codes.size, 3))
+    out[: oa.shape[0], np.searchsorted(codes, ua)] = oa
+    out[oa.shape[0] :, np.searchsorted(codes, ub)] = ob
+    return out
 
 
 def _pad(arr, ns, centroids=None):
@@ -1383,6 +1464,33 @@ class PlaneModel:
         if c is None:
             return None
         return np.any(s[idx] != 0.0, axis=0) | np.any(c != 0.0, axis=0)
+
+    def unit_tilt_design(
+        self, which: str, idx: np.ndarray, omega: np.ndarray, rows: Optional[ContrastRows] = None
+    ) -> Optional[np.ndarray]:
+        """(k, 3, r) the unit component ``which``'s design in the tilts of the planes ``idx``
+        (rotation, radians per unit coefficient), in the columns of its design in their
+        misclosures (:meth:`unit_basis`, or :meth:`unit_designs` with ``rows``), or None.
+
+        ``omega`` (b, U, 3): each plane's tilt per metre of a unit column's error along its
+        normal (:func:`.unit_drift.hat_unit_tilt_shares`). A unit's translation ``s`` tilts
+        plane ``j`` by ``Ω_jv (n_jᵀ s)``; its turn ``ψ`` (coefficient ``L ψ``) turns its
+        share of the plane, ``share · P_j ψ`` (``P_j`` the projector on the plane). The after
+        epoch's errors act as the motion does, the before epoch's against it: the sign is
+        that of the motion's rotation, opposite to the misclosures' (``+nᵀs`` before)."""
+        keep = self.unit_columns(which, idx, rows)
+        if keep is None or not np.any(keep):
+            return None
+        nrm = self.normals[idx]
+        o = omega[idx][:, keep]  # (k, V, 3)
+        blocks = [o[:, :, :, None] * nrm[:, None, None, :]]  # (k, V, 3 rot, 3 axis)
+        if self.unit_turns and (rows is None or rows.position is not None):
+            sub = (self.shares_before if which == "unit_before" else self.shares_after)[idx]
+            proj = np.eye(3)[None] - nrm[:, :, None] * nrm[:, None, :]
+            blocks.append(sub[:, keep][:, :, None, None] * proj[:, None] / self.unit_lever_m)
+        blk = np.concatenate(blocks, axis=3)  # (k, V, 3, q)
+        sign = -1.0 if which == "unit_before" else 1.0
+        return sign * blk.transpose(0, 2, 1, 3).reshape(idx.size, 3, -1)
 
     def _unit_design(self, which, shares, normals, positions, keep):
         """:func:`_share_design` of the unit columns ``keep`` with the units' turn when the
@@ -2588,6 +2696,50 @@ def _tilt_gls(a, r, hvh, hvy, s):
     return q, beta, g, at - at @ q[:3, :3] @ at
 
 
+def _tilt_weighted_design(at, zt, z_o, lam, viz, h):
+    """``(W R̃)_j`` (k, 3, 6) of the tilts given the offsets (:func:`tilts_given_offsets`),
+    with ``F = D⁻¹ Z_t`` (k, 3, r) and ``K = P (I + G P)⁻¹`` (r, r): ``W R̃ = D⁻¹ R̃ − F K Fᵀ
+    R̃``, ``D⁻¹ R̃_j = a_j [I 0] − F_j B``, ``B = Λ Z_oᵀ V⁻¹ H``. The motion's gain on the
+    tilt of plane ``j`` is ``Q (W R̃)_jᵀ``."""
+    bmat = lam @ (viz.T @ h)
+    p = lam - lam @ (z_o.T @ viz) @ lam
+    f, g, k_mat = _tilt_woodbury(at, zt, p)
+    ftr_t = -g @ bmat
+    ftr_t[:, :3] += f.sum(axis=0).T  # Fᵀ R̃
+    wr = np.zeros((at.shape[0], 3, 6))
+    wr[:, :, :3] = at
+    wr -= np.einsum("kir,rc->kic", f, bmat + k_mat @ ftr_t)
+    return wr, f, k_mat
+
+
+def tilt_gains(at, zt, z_o, lam, viz, h, q):
+    """The motion's gain on each plane's tilt and the covariance its tilts' own noise gives,
+    when the units' errors tilt the planes (:func:`tilts_given_offsets`), for the
+    covariance with another adjustment (:func:`joint_covariance`).
+
+    Parameters
+    ----------
+    at, zt, z_o, lam, viz, h
+        As :func:`tilts_given_offsets`.
+    q : (6, 6) float64
+        The motion's covariance ``Q`` (the inverse of the offsets' and tilts' information).
+
+    Returns
+    -------
+    gain : (6, k, 3) float64
+        ``∂x̂/∂y_t,j = Q (W R̃)_jᵀ`` (rad per rad for the rotation rows, m per rad for the
+        translation rows).
+    noise : (6, 6) float64
+        ``Q R̃ᵀ W D W R̃ Q = Σ_j gain_j D_j gain_jᵀ``, ``D_j`` each plane's tilt covariance
+        without the units (point noise and random tilt; the pseudo-inverse of ``at_j``):
+        what replaces ``Q T Q`` of the tilts taken on their own.
+    """
+    wr, _, _ = _tilt_weighted_design(at, zt, z_o, lam, viz, h)
+    gain = np.einsum("cd,kid->cki", q, wr)
+    noise = np.einsum("cki,kij,dkj->cd", gain, _tilt_pinv(at), gain)
+    return gain, 0.5 * (noise + noise.T)
+
+
 def _tilt_gls_drift(a, r, hvh, hvy, s, drift):
     """:func:`_tilt_gls` when the units' errors tilt the planes too (``drift``, the
     arguments of :func:`tilts_given_offsets` after ``at, rtl``: ``zt, z_o, lam, mean, viz,
@@ -2603,17 +2755,11 @@ def _tilt_gls_drift(a, r, hvh, hvy, s, drift):
     beta = q @ (np.asarray(hvy, dtype=np.float64) + rhs_t)
     bmat = lam @ (viz.T @ h)  # (r, 6)
     abar = mean + lam @ (viz.T @ y_o)
-    p = lam - lam @ (z_o.T @ viz) @ lam
-    f, g, k_mat = _tilt_woodbury(at, zt, p)
+    wr, f, k_mat = _tilt_weighted_design(at, zt, z_o, lam, viz, h)
     # D⁻¹ ẽ, ẽ_j = y_j − Z_t,j a − (R̃ β)_j = y_j − β_rot − Z_t,j (a − B β)
     shift = beta[None, :3] + np.einsum("kir,r->ki", zt, abar - bmat @ beta)
     d = rtl - np.einsum("kij,kj->ki", at, shift)
     u = d - np.einsum("kir,r->ki", f, k_mat @ np.einsum("kir,ki->r", zt, d))
-    ftr_t = -g @ bmat
-    ftr_t[:, :3] += f.sum(axis=0).T  # Fᵀ R̃
-    wr = np.zeros((at.shape[0], 3, 6))
-    wr[:, :, :3] = at
-    wr -= np.einsum("kir,rc->kic", f, bmat + k_mat @ ftr_t)  # (W R̃)_j
     wjj = at - np.einsum("kir,rs,kjs->kij", f, k_mat, f)
     pjj = wjj - np.einsum("kic,cd,kjd->kij", wr, q, wr)
     return q, beta, u, pjj

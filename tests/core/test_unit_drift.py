@@ -280,6 +280,12 @@ def test_tilts_given_offsets_is_the_joint_gls_of_offsets_and_tilts():
     np.testing.assert_allclose(
         -(wz @ lam) @ viz.T + h.T @ vi, g_joint[:, :k], rtol=1e-8, atol=1e-10
     )
+    # the motion's gain on each tilt (the stacked GLS's, Q Xᵀ C⁻¹ on the tilts' rows) and
+    # the covariance their own noise gives
+    q = np.linalg.inv(x.T @ ci @ x)
+    gain, noise = sto.tilt_gains(at, zt, z_o, lam, viz, h, q)
+    np.testing.assert_allclose(gain.reshape(6, 3 * k), (q @ g_joint)[:, k:], rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(noise, (q @ g_joint)[:, k:] @ d @ (q @ g_joint)[:, k:].T, rtol=1e-8)
     # no unit design in the tilts: their own information and right-hand side
     info0, rhs0, _ = sto.tilts_given_offsets(at, rtl, 0 * zt, z_o, lam, mean, viz, h, y_o_c)
     np.testing.assert_allclose(info0[:3, :3], at.sum(axis=0), rtol=1e-12)
@@ -462,3 +468,71 @@ def test_tilt_variance_keeps_left_out_tilts_out():
     assert not est.keep[3] and not est.keep[17]
     sub = sto.estimate_tilt_variance(a[~out], rr[~out], np.zeros((6, 6)), np.zeros(6))
     assert est.var == pytest.approx(sub.var, rel=1e-6)
+
+
+def test_joint_tilt_path_is_the_stacked_covariance_of_offsets_and_tilts():
+    """Known answer: the joint covariance's path through the tilts (``_joint_tilt_path``) is
+    what the motions' gains on the misclosures and on the tilts give under one set of units
+    shared by both sides (their columns matched by id), with the tilts' design written out
+    here (a unit error ``s`` moves a misclosure by ``±nᵀs`` and tilts the plane by ``∓Ω
+    nᵀs``): ``G C Gᵀ − kj V kjᵀ`` with ``C`` the dense covariance of offsets and tilts
+    stacked (their own noise left out)."""
+    rng = np.random.default_rng(21)
+    ka, kb = 5, 6
+    k = ka + kb
+    codes = {"a": [np.array([1, 2, 3]), np.array([7, 8])],
+             "b": [np.array([2, 3, 4]), np.array([8, 9])]}  # fmt: skip
+    nrm = rng.normal(size=(k, 3))
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    cen = rng.normal(size=(k, 3)) * 20
+
+    def side(name, sl):
+        n = sl.stop - sl.start
+        sh = [rng.uniform(0, 1, (n, c.size)) for c in codes[name]]
+        om = [rng.normal(size=(n, c.size, 3)) * 0.05 for c in codes[name]]
+        g = sto.PlaneGain(
+            gain=rng.normal(size=(6, n)), centroids=cen[sl], normals=nrm[sl],
+            shares_before=sh[0], shares_after=sh[1], units_before=codes[name][0],
+            units_after=codes[name][1], theta={}, range_m=float("nan"), e=np.zeros(n),
+            unit_options={6.0: (sh[0], sh[1], codes[name][0], codes[name][1])},
+            unit_tilt_options={6.0: (om[0], om[1])}, tilt_gain=rng.normal(size=(6, n, 3)),
+        )  # fmt: skip
+        return g, sh, om
+
+    a, sha, oma = side("a", slice(0, ka))
+    b, shb, omb = side("b", slice(ka, k))
+    theta = {"unit_before": 2e-6, "unit_after": 3e-6}
+    ub, ua = (
+        np.union1d(*[c[0] for c in codes.values()]),
+        np.union1d(*[c[1] for c in codes.values()]),
+    )
+    sh_u, om_u = [], []
+    for e, uu in enumerate((ub, ua)):
+        s_ = np.zeros((k, uu.size))
+        o_ = np.zeros((k, uu.size, 3))
+        for rows, name, sh, om in ((slice(0, ka), "a", sha, oma), (slice(ka, k), "b", shb, omb)):
+            cols = np.searchsorted(uu, codes[name][e])
+            s_[rows, cols] = sh[e]
+            o_[rows, cols] = om[e]
+        sh_u.append(s_)
+        om_u.append(o_)
+    model = sto.PlaneModel(cen, nrm, sh_u[0], sh_u[1])
+    idx = np.arange(k)
+    kj = np.zeros((12, k))
+    kj[:6, :ka], kj[6:, ka:] = a.gain, b.gain
+    got = sto._joint_tilt_path(a, b, model, idx, theta, None, kj, 6.0)
+    # dense: the units' errors c (3 per unit column), offsets Z c, tilts Z_t c
+    zo, zt, lam = [], [], []
+    for e, name in enumerate(("unit_before", "unit_after")):
+        sign = 1.0 if e == 0 else -1.0
+        zo.append(sign * np.einsum("ku,ki->kui", sh_u[e], nrm).reshape(k, -1))
+        zt.append(-sign * np.einsum("kur,ki->krui", om_u[e], nrm).reshape(3 * k, -1))
+        lam.append(np.full(zo[-1].shape[1], theta[name]))
+    z = np.vstack([np.hstack(zo), np.hstack(zt)])  # (k + 3k, R)
+    c = z @ np.diag(np.concatenate(lam)) @ z.T
+    kt = np.zeros((12, k, 3))
+    kt[:6, :ka], kt[6:, ka:] = a.tilt_gain, b.tilt_gain
+    g = np.hstack([kj, kt.reshape(12, 3 * k)])
+    want = g @ c @ g.T - kj @ c[:k, :k] @ kj.T
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12 * np.abs(want).max())
+    assert np.abs(want).max() > 0
