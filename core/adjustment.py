@@ -760,14 +760,16 @@ def _drift_tilt_terms(cfg, pl, vop, vih, active, y_o):
     return info, rhs, -(wz @ lam) @ viz.T, wz, (at, zt, z_o, lam, viz)
 
 
-def _component_tilts(cfg, pl, active, keep):
+def _component_tilts(cfg, pl, active, keep, cols=False):
     """The tilts' information (6, 6) and right-hand side (6,) the plane-level components and
     the plane tests take: :meth:`_PlaneLevel.tilt`, and where the units' errors tilt the
     planes (:data:`UNIT_DRIFT_TILTS`) the tilts weighed with the drift's tilts too
     (:func:`.stochastic.tilts_marginal`): precise tilts that the drift moves would otherwise
-    pin the motion and push the drift's part into the offsets' components."""
+    pin the motion and push the drift's part into the offsets' components. ``cols``: the
+    caller's :func:`_unit_columns` under the components in force (False: found here)."""
     t, rt = pl.tilt(cfg.s0sq, cfg.tilt_var, keep)
-    cols = _unit_columns(cfg, active) if UNIT_DRIFT_TILTS else None
+    if cols is False:
+        cols = _unit_columns(cfg, active) if UNIT_DRIFT_TILTS else None
     if cols is None:
         return t, rt
     _, lam, mean, zt = cols
@@ -1480,7 +1482,7 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             cfg.tilt_keep[:] = True
             cfg.tilt_keep[idx] = keep
             if _stoch.REML_RANDOM_TILT:
-                t_s, rt_s = _component_tilts(cfg, pl, active, keep)
+                t_s, rt_s = _component_tilts(cfg, pl, active, keep, cols)
         changed = False
         if reject and idx.size > min_planes:
             # the test is against the model, not the last weights
@@ -1554,10 +1556,10 @@ def _stochastic(state, epochs, active, b, step, cfg, model, fixed, z_crit, rejec
             k_o, wz = k_o + terms[2], terms[3]
     q_fin = np.linalg.inv(0.5 * (n_fin + n_fin.T))
     # the tilts the joint components see (as this side's components saw them)
-    t_c, rt_c = _component_tilts(cfg, pl, active, cfg.tilt_keep[active])
-    tilt_extra = {}
+    t_c, rt_c, tilt_extra = t_fin, rt_fin, {}
     if terms is not None:  # the gain on each plane's tilt, for the other side's covariance
         at_f, zt_f, zo_f, lam_f, viz_f = terms[4]
+        t_c, rt_c = _component_tilts(cfg, pl, active, cfg.tilt_keep[active])
         tg, tn = _stoch.tilt_gains(at_f, zt_f, zo_f, lam_f, viz_f, pl.h, q_fin)
         tilt_extra = dict(tilt_gain=tg, tilt_noise=tn)
     cfg.gain = q_fin @ k_o

@@ -113,7 +113,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
@@ -751,7 +751,7 @@ def _union_of(sa, ua, sb, ub) -> Optional[np.ndarray]:
     if ua is None or ub is None or sa is None or sb is None:
         return None
     codes = np.union1d(ua, ub)
-    out = np.zeros((sa.shape[0] + sb.shape[0], codes.size))
+    out = np.zeros((sa.shape[0] + sb.shape[0], codes.size) + sa.shape[2:])
     out[: sa.shape[0], np.searchsorted(codes, ua)] = sa
     out[sa.shape[0] :, np.searchsorted(codes, ub)] = sb
     return out
@@ -950,7 +950,6 @@ def _joint_tilt_path(
     the tilts take the drift out. Their own noise is the sides' ``tilt_noise``."""
     if a.tilt_gain is None and b.tilt_gain is None:
         return None
-    dt = interval_s
     ka = a.e.size
     k = idx.size
     kt = np.zeros((12, k, 3))
@@ -961,7 +960,7 @@ def _joint_tilt_path(
     out = np.zeros((12, 12))
     for e, name in enumerate(("unit_before", "unit_after")):
         th = float(theta.get(name, 0.0))
-        om = _union_tilts(a, b, e, dt)
+        om = _union_tilts(a, b, e, interval_s)
         if th <= 0 or om is None:
             continue
         zt = model.unit_tilt_design(name, idx, om, rows)
@@ -995,11 +994,7 @@ def _union_tilts(a: PlaneGain, b: PlaneGain, epoch: int, interval_s):
             om = np.zeros((g.e.size, codes.size, 3))
         parts.append((om, codes))
     (oa, ua), (ob, ub) = parts
-    codes = np.union1d(ua, ub)
-    out = np.zeros((oa.shape[0] + ob.shape[0], codes.size, 3))
-    out[: oa.shape[0], np.searchsorted(codes, ua)] = oa
-    out[oa.shape[0] :, np.searchsorted(codes, ub)] = ob
-    return out
+    return _union_of(oa, ua, ob, ub)
 
 
 def _pad(arr, ns, centroids=None):
@@ -2555,13 +2550,35 @@ def tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, h, y_o):
         ``R̃ᵀ W Z_t``: the right-hand side's change per unit error through the tilts (its
         change per offset is ``−wz Λ Z_oᵀ V⁻¹``), for the motion's gains.
     """
+    return _given_offsets(at, rtl, zt, mean, viz, y_o, lam, _offset_parts(at, zt, z_o, lam, viz, h))
+
+
+class _OffsetParts(NamedTuple):
+    """The pieces of the tilts given the offsets (:func:`tilts_given_offsets`) that do not
+    depend on the observations: ``B = Λ Z_oᵀ V⁻¹ H`` (r, 6), ``F = D⁻¹ Z_t`` (k, 3, r),
+    ``G`` and ``K = P (I + G P)⁻¹`` (r, r), ``Fᵀ R`` and ``Fᵀ R̃`` (r, 6)."""
+
+    bmat: np.ndarray
+    f: np.ndarray
+    g: np.ndarray
+    k_mat: np.ndarray
+    ftr: np.ndarray
+    ftr_t: np.ndarray
+
+
+def _offset_parts(at, zt, z_o, lam, viz, h) -> _OffsetParts:
     bmat = lam @ (viz.T @ h)  # (r, 6)
-    a = mean + lam @ (viz.T @ y_o)
     p = lam - lam @ (z_o.T @ viz) @ lam
     f, g, k_mat = _tilt_woodbury(at, zt, p)  # K = P (I + G P)⁻¹
     ftr = np.zeros((zt.shape[2], 6))
     ftr[:, :3] = f.sum(axis=0).T  # Fᵀ R
-    ftr_t = ftr - g @ bmat  # Fᵀ R̃
+    return _OffsetParts(bmat, f, g, k_mat, ftr, ftr - g @ bmat)  # Fᵀ R̃
+
+
+def _given_offsets(at, rtl, zt, mean, viz, y_o, lam, parts: _OffsetParts):
+    """:func:`tilts_given_offsets` from its :class:`_OffsetParts`."""
+    bmat, f, g, k_mat, ftr, ftr_t = parts
+    a = mean + lam @ (viz.T @ y_o)
     rdr = np.zeros((6, 6))
     rdr[:3, :3] = at.sum(axis=0)
     info = rdr - ftr.T @ bmat - bmat.T @ ftr + bmat.T @ g @ bmat  # R̃ᵀ D⁻¹ R̃
@@ -2696,20 +2713,14 @@ def _tilt_gls(a, r, hvh, hvy, s):
     return q, beta, g, at - at @ q[:3, :3] @ at
 
 
-def _tilt_weighted_design(at, zt, z_o, lam, viz, h):
-    """``(W R̃)_j`` (k, 3, 6) of the tilts given the offsets (:func:`tilts_given_offsets`),
-    with ``F = D⁻¹ Z_t`` (k, 3, r) and ``K = P (I + G P)⁻¹`` (r, r): ``W R̃ = D⁻¹ R̃ − F K Fᵀ
-    R̃``, ``D⁻¹ R̃_j = a_j [I 0] − F_j B``, ``B = Λ Z_oᵀ V⁻¹ H``. The motion's gain on the
+def _tilt_weighted_design(at, parts: _OffsetParts):
+    """``(W R̃)_j`` (k, 3, 6) of the tilts given the offsets (:func:`tilts_given_offsets`):
+    ``W R̃ = D⁻¹ R̃ − F K Fᵀ R̃``, ``D⁻¹ R̃_j = a_j [I 0] − F_j B``. The motion's gain on the
     tilt of plane ``j`` is ``Q (W R̃)_jᵀ``."""
-    bmat = lam @ (viz.T @ h)
-    p = lam - lam @ (z_o.T @ viz) @ lam
-    f, g, k_mat = _tilt_woodbury(at, zt, p)
-    ftr_t = -g @ bmat
-    ftr_t[:, :3] += f.sum(axis=0).T  # Fᵀ R̃
     wr = np.zeros((at.shape[0], 3, 6))
     wr[:, :, :3] = at
-    wr -= np.einsum("kir,rc->kic", f, bmat + k_mat @ ftr_t)
-    return wr, f, k_mat
+    wr -= np.einsum("kir,rc->kic", parts.f, parts.bmat + parts.k_mat @ parts.ftr_t)
+    return wr
 
 
 def tilt_gains(at, zt, z_o, lam, viz, h, q):
@@ -2734,7 +2745,7 @@ def tilt_gains(at, zt, z_o, lam, viz, h, q):
         without the units (point noise and random tilt; the pseudo-inverse of ``at_j``):
         what replaces ``Q T Q`` of the tilts taken on their own.
     """
-    wr, _, _ = _tilt_weighted_design(at, zt, z_o, lam, viz, h)
+    wr = _tilt_weighted_design(at, _offset_parts(at, zt, z_o, lam, viz, h))
     gain = np.einsum("cd,kid->cki", q, wr)
     noise = np.einsum("cki,kij,dkj->cd", gain, _tilt_pinv(at), gain)
     return gain, 0.5 * (noise + noise.T)
@@ -2749,20 +2760,27 @@ def _tilt_gls_drift(a, r, hvh, hvy, s, drift):
     R̃)_jᵀ`` (k, 3, 3)."""
     zt, z_o, lam, mean, viz, h, y_o = drift
     at, rtl = tilt_information(a, r, s)
-    info, rhs_t, _ = tilts_given_offsets(at, rtl, zt, z_o, lam, mean, viz, h, y_o)
+    parts = _offset_parts(at, zt, z_o, lam, viz, h)
+    info, rhs_t, _ = _given_offsets(at, rtl, zt, mean, viz, y_o, lam, parts)
     n = np.array(hvh, dtype=np.float64, copy=True) + info
     q = np.linalg.pinv(0.5 * (n + n.T), hermitian=True)
     beta = q @ (np.asarray(hvy, dtype=np.float64) + rhs_t)
-    bmat = lam @ (viz.T @ h)  # (r, 6)
-    abar = mean + lam @ (viz.T @ y_o)
-    wr, f, k_mat = _tilt_weighted_design(at, zt, z_o, lam, viz, h)
+    wr = _tilt_weighted_design(at, parts)
+    f, k_mat = parts.f, parts.k_mat
     # D⁻¹ ẽ, ẽ_j = y_j − Z_t,j a − (R̃ β)_j = y_j − β_rot − Z_t,j (a − B β)
-    shift = beta[None, :3] + np.einsum("kir,r->ki", zt, abar - bmat @ beta)
+    shift = beta[None, :3] + np.einsum("kir,r->ki", zt, _drift_mean(drift, beta))
     d = rtl - np.einsum("kij,kj->ki", at, shift)
     u = d - np.einsum("kir,r->ki", f, k_mat @ np.einsum("kir,ki->r", zt, d))
     wjj = at - np.einsum("kir,rs,kjs->kij", f, k_mat, f)
     pjj = wjj - np.einsum("kic,cd,kjd->kij", wr, q, wr)
     return q, beta, u, pjj
+
+
+def _drift_mean(drift, beta):
+    """(r,) the units' errors the offsets predict at the motion ``β``: ``μ + Λ Z_oᵀ V⁻¹ (y_o −
+    H β)`` (``drift`` as :func:`_tilt_gls_drift` takes it)."""
+    _, _, lam, mean, viz, h, y_o = drift
+    return mean + lam @ (viz.T @ (y_o - h @ beta))
 
 
 def _tilt_helmert(a, r, hvh, hvy, s, floor, drift=None):
@@ -2882,9 +2900,7 @@ def estimate_tilt_variance(
             res = r - a @ beta[:3]
         else:  # less the drift's tilt the offsets predict
             q, beta, _, _ = _tilt_gls_drift(a[keep], r[keep], hvh, hvy, s, dk)
-            zt, z_o, lam, mean, viz, h, y_o = drift
-            pred = mean + lam @ (viz.T @ (y_o - h @ beta))
-            shift = beta[None, :3] + np.einsum("kir,r->ki", zt, pred)
+            shift = beta[None, :3] + np.einsum("kir,r->ki", drift[0], _drift_mean(drift, beta))
             res = r - np.einsum("kij,kj->ki", a, shift)
         g = np.linalg.solve(np.eye(3) + s * a, res[:, :, None])[:, :, 0]
         qj = np.einsum("ki,kij,kj->k", g, cinv, g) + s * (g * g).sum(axis=1)
