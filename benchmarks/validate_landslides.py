@@ -116,6 +116,25 @@ ALS = AlsSampling(line_spacing_m=0.4, point_spacing_m=0.35)
 SCARP_CASES = ("slab", "slump", "fault")
 
 
+class TurnedField:
+    """A case field whose horizontal motion is turned by ``turn_deg`` (anticlockwise) about
+    the vertical, its shape and lines unchanged (``--turn-motion``): the same landslide
+    moving in another direction, to see whether a method depends on the grid's axes."""
+
+    def __init__(self, field, turn_deg: float):
+        self.field, self.turn = field, math.radians(turn_deg)
+
+    def __call__(self, xy):
+        d = np.array(self.field(xy), dtype=np.float64)
+        cs, sn = math.cos(self.turn), math.sin(self.turn)
+        d[:, 0], d[:, 1] = cs * d[:, 0] - sn * d[:, 1], sn * d[:, 0] + cs * d[:, 1]
+        return d
+
+    @property
+    def breaklines(self):
+        return getattr(self.field, "breaklines", ())
+
+
 def fields(lo: np.ndarray, hi: np.ndarray) -> dict:
     """The case fields on a cloud's bounding box ``lo``, ``hi`` (2,) (see the docstring)."""
     c = 0.5 * (lo + hi)
@@ -541,6 +560,21 @@ def main(argv=None) -> int:
         "Open3D (0: the job's own default, 2000)",
     )
     ap.add_argument("--no-peers", action="store_true")
+    ap.add_argument(
+        "--turn-motion",
+        type=float,
+        default=0.0,
+        metavar="DEG",
+        help="turn every case's horizontal motion by DEG about the vertical (shapes and "
+        "lines unchanged; default 0)",
+    )
+    ap.add_argument(
+        "--horizontal-model",
+        choices=["axes", "pooled", "principal"],
+        default=None,
+        help="the spline penalty's horizontal weights (core/icp_spline.py HORIZONTAL_MODEL; "
+        "default: the library's)",
+    )
     ap.add_argument("--out", type=Path, default=None, help="JSON (default in benchmarks/results)")
     ap.add_argument("--table", type=Path, help="only print the tables of this JSON")
     args = ap.parse_args(argv)
@@ -558,7 +592,13 @@ def main(argv=None) -> int:
     seeds = range(args.first_seed, args.first_seed + (1 if args.quick else args.seeds))
     cloud = read_las(DATA)
     pts = cloud.xyz
+    if args.horizontal_model is not None:
+        from slipmap.core import icp_spline
+
+        icp_spline.HORIZONTAL_MODEL = args.horizontal_model
     flds = fields(pts[:, :2].min(axis=0), pts[:, :2].max(axis=0))
+    if args.turn_motion:
+        flds = {k: TurnedField(f, args.turn_motion) for k, f in flds.items()}
     cases = args.cases or list(flds)
     results, cells_log = [], []
     t0 = time.perf_counter()

@@ -89,9 +89,10 @@ def assert_same_field(fast, ref, *, atol):
     np.testing.assert_array_equal(fast.n, ref.n)
 
 
-def lobe_pair():
+def lobe_pair(turn_deg: float = 0.0):
     """Two independent samplings of rough synthetic terrain (40 m square, 3 mm noise, UTM
-    offset), the second moved by a lobe of radius 6 m (3 cells of 4 m across)."""
+    offset), the second moved by a lobe of radius 6 m (3 cells of 4 m across), 0.5 m south
+    (its horizontal motion turned anticlockwise by ``turn_deg``) and 0.2 m down."""
     rng = np.random.default_rng(0)
 
     def sample(n):
@@ -100,7 +101,10 @@ def lobe_pair():
 
     before, after = sample(96_000), sample(96_000)
     lobe = LobeField(
-        centre_xy=(20.0, 20.0), radius_x_m=6.0, radius_y_m=6.0, max_d_m=(0, -0.5, -0.2)
+        centre_xy=(20.0, 20.0),
+        radius_x_m=6.0,
+        radius_y_m=6.0,
+        max_d_m=(0.5 * np.sin(np.radians(turn_deg)), -0.5 * np.cos(np.radians(turn_deg)), -0.2),
     )
     return before + UTM, after + lobe(after[:, :2]) + UTM, lobe
 
