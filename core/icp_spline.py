@@ -87,8 +87,8 @@ LOCAL_WIDTHS_KNOTS: Tuple[float, ...] = (0.5, 2.0)
 #: turned about the vertical is penalised alike and a motion along one direction still
 #: leaves the other held (:func:`_horizontal_update`)
 #: (stop 53: on the TLS harness with the motion turned 0°, 20° and 45° the lobes gain 13-20 %
-#: and shift, slump and fault lose 1-60 % of far-cell RMSE; on ALS, at 0° only, it loses on
-#: five cases of seven: docs/fields.md, "The penalty in the motion's own frame")
+#: and shift, slump and fault lose 1-60 % of far-cell RMSE; on ALS over the same directions
+#: it is level to 5 % worse: docs/fields.md, "The penalty in the motion's own frame")
 HORIZONTAL_MODEL = "axes"
 
 
