@@ -751,23 +751,33 @@ def _assemble_kron(bounds, idx16, w16, bu, bv, nrm, v, wt, n_k, ok, pattern=None
     return nmat, rhs, gram
 
 
-def _trace_inv_block(factor, r2, j: int, n_k: int, seed: int = 0) -> np.ndarray:
-    """``tr(A⁻¹[k, j] RᵀR)`` (3,) of component ``j`` and each ``k`` from ``A``'s sparse LU:
-    exact (``n_k`` solves) up to TRACE_EXACT_MAX knots, else Hutchinson's estimate with
-    TRACE_PROBES Rademacher probes."""
+def _trace_inv_block(factor, r2, j: int, n_k: int, seed: int = 0, rows=None) -> np.ndarray:
+    """``tr(A⁻¹[k, j] RᵀR)`` of component ``j`` for each ``k`` of ``rows`` (default ``(j,)``;
+    the same solves serve them all) from ``A``'s sparse LU: exact (``n_k`` solves) up to
+    TRACE_EXACT_MAX knots, else Hutchinson's estimate with TRACE_PROBES Rademacher probes."""
+    rows = (j,) if rows is None else rows
     if n_k <= TRACE_EXACT_MAX:
         rhs = np.zeros((3 * n_k, n_k))
         rhs[j * n_k + np.arange(n_k), np.arange(n_k)] = 1.0
         x = factor.solve(rhs)
-        return np.array([float(r2.multiply(x[k * n_k : (k + 1) * n_k]).sum()) for k in range(3)])
+        return np.array([float(r2.multiply(x[k * n_k : (k + 1) * n_k]).sum()) for k in rows])
     rng = np.random.default_rng(seed + j)
     z = rng.choice([-1.0, 1.0], size=(n_k, TRACE_PROBES))
     rhs = np.zeros((3 * n_k, TRACE_PROBES))
     rhs[j * n_k : (j + 1) * n_k] = r2 @ z
     x = factor.solve(rhs)
-    return np.array(
-        [float(np.mean(np.sum(z * x[k * n_k : (k + 1) * n_k], axis=0))) for k in range(3)]
-    )
+    return np.array([float(np.mean(np.sum(z * x[k * n_k : (k + 1) * n_k], axis=0))) for k in rows])
+
+
+def _weight_groups():
+    """The components whose penalty weight each gets by the scalar update, per
+    :data:`HORIZONTAL_MODEL` (with "principal" x and y get theirs from
+    :func:`_horizontal_update`), and the rows ``k`` of ``A⁻¹[k, j]`` each component ``j``
+    needs (the x-y blocks only with "principal")."""
+    if HORIZONTAL_MODEL == "principal":
+        return ([2],), ((0, 1), (0, 1), (2,))
+    groups = ([0], [1], [2]) if HORIZONTAL_MODEL == "axes" else ([0, 1], [2])
+    return groups, ((0,), (1,), (2,))
 
 
 def _sym2(a: np.ndarray) -> np.ndarray:
@@ -858,11 +868,11 @@ def _penalty_blocks(lam: np.ndarray, rmat, r2):
     (``xx, yy, z, xy``)."""
     import scipy.sparse as sp
 
-    if lam.ndim == 1:
-        blk = [w * r2 for w in lam]
-    else:
-        blk = [rmat.T @ sp.diags(w) @ rmat for w in lam]
-    cross = blk[3] if np.any(lam[3] != 0) else None
+    def block(w):
+        return w * r2 if lam.ndim == 1 else rmat.T @ sp.diags(w) @ rmat
+
+    blk = [block(w) for w in lam[:3]]
+    cross = block(lam[3]) if np.any(lam[3] != 0) else None  # none with one weight per axis
     return sp.bmat(
         [[blk[0], cross, None], [cross, blk[1], None], [None, None, blk[2]]], format="csr"
     )
@@ -876,21 +886,24 @@ def _variance_components(factor, r2, lam_abs, c, wvv: float, n_obs: int) -> np.n
     ``n_R - lam_j tr(A⁻¹_jj RᵀR)``."""
     n_k = r2.shape[0]
     n_r = float(np.count_nonzero(r2.diagonal() > 0))  # pseudo-observations, about n_k
-    tr = np.column_stack([_trace_inv_block(factor, r2, j, n_k) for j in range(3)])  # [k, j]
+    groups, rows = _weight_groups()
+    tr = np.zeros((3, 3))  # [k, j]: the blocks the model needs
+    for j in range(3):
+        tr[list(rows[j]), j] = _trace_inv_block(factor, r2, j, n_k, rows=rows[j])
     t = lam_abs[:3] * np.diagonal(tr)  # redundancy the prior gives away per component
     given = float(np.sum(t) + 2.0 * lam_abs[3] * tr[0, 1])
     r_obs = max(n_obs - (3 * n_k - given), 1.0)
     s0sq = wvv / r_obs
     out = lam_abs.copy()
-    rough = np.array([[float(c[:, a] @ (r2 @ c[:, b])) for b in range(3)] for a in range(3)])
-    groups = ([0], [1], [2]) if HORIZONTAL_MODEL == "axes" else ([0, 1], [2])
-    if HORIZONTAL_MODEL == "principal":
-        groups = ([2],)
-        if rough[0, 0] + rough[1, 1] > 0:
-            gain = 0.5 * (tr[:2, :2] + tr[:2, :2].T)
-            out[[0, 1, 3]] = _horizontal_update(lam_abs[[0, 1, 3]], gain, rough[:2, :2], n_r, s0sq)
+    r2c = r2 @ c
+    rough = np.array([float(c[:, j] @ r2c[:, j]) for j in range(3)])
+    if HORIZONTAL_MODEL == "principal" and rough[0] + rough[1] > 0:
+        gain = 0.5 * (tr[:2, :2] + tr[:2, :2].T)
+        cross = float(c[:, 0] @ r2c[:, 1])
+        m = np.array([[rough[0], cross], [cross, rough[1]]])
+        out[[0, 1, 3]] = _horizontal_update(lam_abs[[0, 1, 3]], gain, m, n_r, s0sq)
     for group in groups:
-        rg = float(np.sum(np.diagonal(rough)[group]))
+        rg = float(np.sum(rough[group]))
         eg = float(np.sum(np.maximum(n_r - t[group], 1.0)))
         if rg > 0:
             out[group] = s0sq / (rg / eg)
@@ -908,7 +921,10 @@ def _local_variance_components(
     with ``e_s`` each row's redundancy, its share ``n_nominal / T`` of the pseudo-
     observations less ``lam_s (R A⁻¹_jj Rᵀ)_ss``. A kernel of ones is the global estimate."""
     n_rows, n_k = rmat.shape
-    dg = np.stack([_diag_r_inv_rt(factor, rmat, j, n_k) for j in range(3)], axis=1)  # k, j, T
+    groups, rows = _weight_groups()
+    dg = np.zeros((3, 3, n_rows))  # [k, j]: the blocks the model needs
+    for j in range(3):
+        dg[list(rows[j]), j] = _diag_r_inv_rt(factor, rmat, j, n_k, rows=rows[j])
     diag = np.array([dg[j, j] for j in range(3)])  # (3, T)
     # redundancy the prior gives away per component (and through the cross weight)
     given = float(np.sum(lam_rows[:3] * diag) + 2.0 * np.sum(lam_rows[3] * dg[0, 1]))
@@ -918,9 +934,7 @@ def _local_variance_components(
     out = lam_rows.copy()
     rc = np.stack([rmat @ c[:, j] for j in range(3)])  # (3, T)
     floor = 1e-3 * (kernel @ np.full(n_rows, share))
-    groups = ([0], [1], [2]) if HORIZONTAL_MODEL == "axes" else ([0, 1], [2])
     if HORIZONTAL_MODEL == "principal":
-        groups = ([2],)
         pair = np.stack([rc[0] * rc[0], rc[1] * rc[1], rc[0] * rc[1]])
         num = np.stack([kernel @ q for q in pair])  # (3, T): xx, yy, xy
         gain = _sym2(np.stack([dg[0, 0], dg[1, 1], 0.5 * (dg[0, 1] + dg[1, 0])]))
@@ -971,10 +985,11 @@ def _restricted_score(
     return lda - ldp + (wvv_weighted + float(cv @ (penalty @ cv))) / max(s0sq, 1e-300)
 
 
-def _diag_r_inv_rt(factor, rmat, j: int, n_k: int, seed: int = 0) -> np.ndarray:
-    """``diag(R A⁻¹_kj Rᵀ)`` (3, T) of component ``j`` and each ``k``: exact up to
-    TRACE_EXACT_MAX knots, else Hutchinson's diagonal estimate with TRACE_PROBES Rademacher
-    probes."""
+def _diag_r_inv_rt(factor, rmat, j: int, n_k: int, seed: int = 0, rows=None) -> np.ndarray:
+    """``diag(R A⁻¹_kj Rᵀ)`` (len(rows), T) of component ``j`` for each ``k`` of ``rows``
+    (default ``(j,)``; the same solves serve them all): exact up to TRACE_EXACT_MAX knots,
+    else Hutchinson's diagonal estimate with TRACE_PROBES Rademacher probes."""
+    rows = (j,) if rows is None else rows
     if n_k <= TRACE_EXACT_MAX:
         rhs = np.zeros((3 * n_k, n_k))
         rhs[j * n_k + np.arange(n_k), np.arange(n_k)] = 1.0
@@ -982,7 +997,7 @@ def _diag_r_inv_rt(factor, rmat, j: int, n_k: int, seed: int = 0) -> np.ndarray:
         return np.array(
             [
                 np.asarray(rmat.multiply(rmat @ x[k * n_k : (k + 1) * n_k]).sum(axis=1)).ravel()
-                for k in range(3)
+                for k in rows
             ]
         )
     rng = np.random.default_rng(seed + j)
@@ -990,7 +1005,7 @@ def _diag_r_inv_rt(factor, rmat, j: int, n_k: int, seed: int = 0) -> np.ndarray:
     rhs = np.zeros((3 * n_k, TRACE_PROBES))
     rhs[j * n_k : (j + 1) * n_k] = rmat.T @ z
     x = factor.solve(rhs)
-    return np.array([np.mean(z * (rmat @ x[k * n_k : (k + 1) * n_k]), axis=1) for k in range(3)])
+    return np.array([np.mean(z * (rmat @ x[k * n_k : (k + 1) * n_k]), axis=1) for k in rows])
 
 
 def knot_frame(
