@@ -179,8 +179,12 @@ def test_a_lobe_the_scan_proposes_a_line_for_is_left_whole(caplog, monkeypatch):
     assert res.breaklines_source == "none" and res.breaklines is None
     smooth = windowed_icp(before, after, **kw)
     # the refit without the line starts where the candidate's fit ended (issue #29), so it
-    # is the smooth field to the fits' convergence: measured 0.12 mm, 0.016 sigma
+    # is the smooth field to the fits' convergence (CHANGE_FLOOR: the steps stop at 2 % of
+    # the residuals' spread, 0.15 mm here, while they shrink by about 0.8 an iteration, so up
+    # to about five steps' worth of distance to the fixed point is left; the line's own
+    # jump is 10 mm). Measured with the principal horizontal model (the default since stop
+    # 54) 1.8 mm, 0.098 sigma (dx); with one weight per axis 0.12 mm, 0.016 sigma
     for k in ("dx", "dy", "dz"):
         gap = np.abs(getattr(res, k) - getattr(smooth, k))
-        assert np.all(gap < 0.05 * getattr(smooth, "sigma_" + k)), k
-        assert gap.max() < 5e-4, k
+        assert np.all(gap < 0.15 * getattr(smooth, "sigma_" + k)), k
+        assert gap.max() < 2.5e-3, k

@@ -96,17 +96,19 @@ def test_spline_field_recovers_a_linear_field_exactly_without_noise():
 def test_spline_field_follows_a_lobe_three_cells_wide():
     """The lobe of tests/core/test_icp_cells.py (radius 6 m, 4 m cells): rigid cells 4.7 cm,
     two deformation passes 1.8 cm at the centres; the spline field with knots 1.5 m apart
-    and its smoothing estimated gets under a centimetre (the likelihood takes the local
-    penalty of half a knot spacing here: 8.1 mm; the wide kernel alone 7.1 mm). The lobe
-    moves along the grid's y axis; turned 45° the same lobe is followed to 14.5 mm
-    (tests/core/test_icp_spline_principal.py, docs/fields.md stop 53)."""
+    and its smoothing estimated gets to about a centimetre. The lobe moves along the grid's
+    y axis, which favours one penalty weight per grid axis: it held x flat and reached 8.1 mm
+    here, but 13.1 and 14.5 mm with the lobe turned 20° and 45°. The principal frame (the
+    default since stop 54) reaches 11.0 / 12.6 / 13.4 mm at the three turns
+    (tests/core/test_icp_spline_principal.py; docs/fields.md, stops 53 and 54: over the
+    harness's 18 scenes a case it is 9-17 % better on the lobes)."""
     before, after, lobe = lobe_pair()
     res = windowed_icp(
         before, after, cell_m=4.0, coarse_to_fine=1, field_model="spline", spline_spacing_m=1.5
     )
     in_lobe, stable, n_inside = lobe_errors(res, lobe)
     assert n_inside >= 6
-    assert in_lobe < 0.01  # measured 8.1 mm
+    assert in_lobe < 0.012  # measured 11.0 mm (the rigid cells 4.7 cm, deformation passes 1.8)
     assert stable < 0.004  # measured 2.1 mm
     assert np.all(np.isfinite(res.sigma_dx)) and np.all(res.sigma_dx > 0)
 

@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial import cKDTree
 from test_icp import cloud
 
+from slipmap.core import icp_spline
 from slipmap.core.icp import _NormalCache, _options
 from slipmap.core.icp_spline import fit_spline_field
 from slipmap.core.synthetic import LobeField
@@ -51,8 +52,13 @@ def _truth(rxy, d):
 def test_a_refit_from_the_first_fit_reaches_the_same_field_in_few_iterations(seed):
     before, after, rxy = _scene(seed)
     cold = _fit(before, after, rxy)
-    assert cold.smoothing_estimate is not None and cold.smoothing_estimate.shape == (3,)
-    assert np.all(cold.smoothing_estimate > 0)
+    est = cold.smoothing_estimate
+    # (xx, yy, z) weights, and with the principal horizontal model the cross weight xy
+    want = (4,) if icp_spline.HORIZONTAL_MODEL == "principal" else (3,)
+    assert est is not None and est.shape == want
+    assert np.all(est[:3] > 0)
+    if est.size == 4:  # the horizontal 2 x 2 weight is positive definite
+        assert est[0] * est[1] > est[3] ** 2
     warm = _fit(before, after, rxy, initial=cold.field, smoothing_start=cold.smoothing_estimate)
     inner = np.linalg.norm(rxy - np.array(LOBE.centre_xy), axis=1) < 8.0
     # the known lobe, both fits (cells inside the lobe and on its rim; knots 4 m apart for a
