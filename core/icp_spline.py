@@ -89,7 +89,7 @@ LOCAL_WIDTHS_KNOTS: Tuple[float, ...] = (0.5, 2.0)
 #: "principal" is the default since stop 54: over six seeds and the motion turned 0°, 20°
 #: and 45° (18 scenes a case) the TLS lobes gain 9-17 % of far-cell RMSE (lobe-round 1.14
 #: -> 0.99 cm, lobe-small 1.15 -> 0.94, lobe-long 1.41 -> 1.28), the other cases and every
-#: ALS case stay level (ratios 0.99-1.07, each interval holding 1), and the estimate no
+#: ALS case stay level (ratios 0.99-1.11, each 90 % interval holding 1), and the estimate no
 #: longer depends on how the map grid is turned against the motion ("axes" flattened a
 #: component only when the motion had none along that grid axis): docs/fields.md, "The
 #: penalty in the motion's own frame"
