@@ -48,6 +48,7 @@ from .icp_options import EIG_RTOL, NULL_RTOL, _Options, _weights
 from .progress import ProgressCallback, report, scaled
 from .rotation import left_jacobian as _left_jacobian
 from .rotation import rotation_matrix, rotation_vector
+from .threads import single_blas_thread
 
 log = logging.getLogger(__name__)
 
@@ -1800,6 +1801,7 @@ def _deformation_field(cells: _Cells, d, usable, n_rows, n_cols, x0, y0, cell):
     return f, grad
 
 
+@single_blas_thread()
 def windowed_icp(
     before: np.ndarray,
     after: np.ndarray,

@@ -44,6 +44,7 @@ from .icp_options import (
     _shared_target_inflation,
 )
 from .progress import ProgressCallback, report, scaled
+from .threads import single_blas_thread
 
 log = logging.getLogger(__name__)
 
@@ -1666,6 +1667,7 @@ def _sum_sparse(parts, n: int):
     return out.tocsr()
 
 
+@single_blas_thread()
 def fit_spline_chunks(
     run: ChunkRunner,
     *,

@@ -13,13 +13,19 @@ PACKAGES = ("laspy", "lazrs", "scipy")
 NEEDS = {"strain": ("scipy",)}
 DEFAULT_NEEDS = PACKAGES
 #: package -> (Debian package, conda-forge package); None: not packaged (pip)
-_DEBIAN = {"scipy": "python3-scipy", "numba": "python3-numba"}
+_DEBIAN = {
+    "scipy": "python3-scipy",
+    "numba": "python3-numba",
+    "threadpoolctl": "python3-threadpoolctl",
+}
 _CONDA = {"lazrs": "lazrs-python"}
 #: optional packages that make an algorithm faster, never needed to run it (package -> what
 #: it speeds up); a missing one is said in the run's log with its install command
 SPEEDUPS = {
     "numba": "the windowed ICP's compiled CPU kernels (the point pairs several times faster "
     "where no OpenCL device is available)",
+    "threadpoolctl": "the windowed ICP and its spline field (one BLAS thread for their many "
+    "small matrix operations, where OpenBLAS's idle threads would hold the cores)",
 }
 
 

@@ -84,8 +84,9 @@ class WindowedICPAlgorithm(SlipMapAlgorithm):
 
     def processAlgorithm(self, parameters, context, feedback):  # noqa: N802 (QGIS API name)
         opts = self.job_options(parameters, context)
-        if opts.get("backend", "auto") in ("auto", "numba"):
-            hint = speedup_message("numba")
+        speedups = ("numba",) if opts.get("backend", "auto") in ("auto", "numba") else ()
+        for name in speedups + ("threadpoolctl",):
+            hint = speedup_message(name)
             if hint:
                 feedback.pushInfo(hint)
         outputs = file_outputs(self, parameters, context, job.SPEC, _FILES)

@@ -335,5 +335,9 @@ def test_a_missing_speedup_is_said_with_its_command(monkeypatch):
     assert "numba" in line and line.endswith("python -m pip install numba")
     assert "sudo apt install python3-numba" in compat.speedup_message("numba", "debian")
     assert compat.speedup_message("numba", "conda").endswith("conda install -c conda-forge numba")
+    monkeypatch.setattr(compat, "_importable", lambda name: name not in ("numba", "threadpoolctl"))
+    line = compat.speedup_message("threadpoolctl", "debian")  # one BLAS thread (core/threads.py)
+    assert "BLAS" in line and line.endswith("sudo apt install python3-threadpoolctl")
     monkeypatch.setattr(compat, "_importable", lambda name: True)
     assert compat.speedup_message("numba", "osgeo4w") == ""
+    assert compat.speedup_message("threadpoolctl", "osgeo4w") == ""
