@@ -666,12 +666,65 @@ def spline_block_covariance(
     chunk : int
         Reported positions per solve.
 
+    ``R A⁻¹ (c M + s0² P) A⁻¹ Rᵀ`` is formed with ``c M + s0² P`` once, as a sparse matrix
+    on the coefficients (``M = Sᵀ S``, ``S`` the blocks' summed scores): each chunk of
+    positions then needs one sparse product over the coefficients instead of one over the
+    blocks (of 0.125 m, tens of thousands on a TLS scene: 0.45 s of the default run on
+    lone-star's lobe before, stop 55). :func:`_spline_block_covariance_reference` sums
+    ``z_b z_bᵀ`` block by block, as the formula reads; they agree to rounding (tests).
+
     Returns
     -------
     cov : (K, 9, 9) float64
     n_blocks : (K,) int64
         Blocks with used points in each cell.
     """
+    import scipy.sparse as sp
+
+    k = len(rows)
+    n3 = penalty.shape[0]
+    n_k = n3 // 3
+    scores = list(scores)
+    keys = np.concatenate([s.keys for s in scores]).reshape(-1, 2)
+    knots = np.concatenate([s.knots for s in scores]).reshape(-1, 16)
+    vals = np.concatenate([s.vals for s in scores]).reshape(-1, 48)
+    if len(keys):
+        _, binv = np.unique(keys, axis=0, return_inverse=True)
+        binv = binv.reshape(-1)
+        nb = int(binv.max()) + 1
+    else:
+        binv, nb = np.zeros(0, dtype=np.int64), 0
+    rr = (np.arange(3)[None, :, None] * n_k + knots[:, None, :]).reshape(-1, 48)
+    # blocks x coefficients; a block's shares from several chunks (and groups) are added
+    S = sp.csr_matrix((vals.ravel(), (np.repeat(binv, 48), rr.ravel())), shape=(nb, n3))
+    meat = (scale * (S.T @ S) + s0sq * sp.csr_matrix(penalty)).tocsr()  # (n3, n3)
+    cov = np.zeros((k, 9, 9))
+    for s0 in range(0, k, chunk):
+        part = slice(s0, min(s0 + chunk, k))
+        kk = part.stop - part.start
+        _, sol = solve_report_rows(factor, rows[part], cols[part], n3)  # (3 n_k, kk * 9)
+        ms = np.asarray(meat @ sol).reshape(n3, kk, 9)
+        cov[part] = np.einsum("nki,nkj->kij", sol.reshape(n3, kk, 9), ms)
+    cb = np.concatenate([s.cell_blocks for s in scores]).reshape(-1, 3)
+    cb = np.unique(cb, axis=0).reshape(-1, 3) if len(cb) else cb
+    n_blocks = np.bincount(cb[:, 0], minlength=k).astype(np.int64)[:k]
+    return cov, n_blocks
+
+
+def _spline_block_covariance_reference(
+    scores,
+    *,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    factor,
+    penalty,
+    s0sq: float,
+    scale: float,
+    chunk: int = 64,
+) -> Tuple[np.ndarray, np.ndarray]:
+    """The slow, obvious form of :func:`spline_block_covariance` (the reference its tests
+    hold it to): per chunk of positions, every block's summed score ``z_b = g_bᵀ A⁻¹ Rᵀ``
+    and the sum of ``z_b z_bᵀ`` over the blocks. Same parameters and returns."""
     import scipy.sparse as sp
 
     k = len(rows)
