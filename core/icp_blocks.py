@@ -681,22 +681,9 @@ def spline_block_covariance(
     """
     import scipy.sparse as sp
 
-    k = len(rows)
-    n3 = penalty.shape[0]
-    n_k = n3 // 3
     scores = list(scores)
-    keys = np.concatenate([s.keys for s in scores]).reshape(-1, 2)
-    knots = np.concatenate([s.knots for s in scores]).reshape(-1, 16)
-    vals = np.concatenate([s.vals for s in scores]).reshape(-1, 48)
-    if len(keys):
-        _, binv = np.unique(keys, axis=0, return_inverse=True)
-        binv = binv.reshape(-1)
-        nb = int(binv.max()) + 1
-    else:
-        binv, nb = np.zeros(0, dtype=np.int64), 0
-    rr = (np.arange(3)[None, :, None] * n_k + knots[:, None, :]).reshape(-1, 48)
-    # blocks x coefficients; a block's shares from several chunks (and groups) are added
-    S = sp.csr_matrix((vals.ravel(), (np.repeat(binv, 48), rr.ravel())), shape=(nb, n3))
+    k, n3 = len(rows), penalty.shape[0]
+    S = _block_score_matrix(scores, n3)
     meat = (scale * (S.T @ S) + s0sq * sp.csr_matrix(penalty)).tocsr()  # (n3, n3)
     cov = np.zeros((k, 9, 9))
     for s0 in range(0, k, chunk):
@@ -705,10 +692,7 @@ def spline_block_covariance(
         _, sol = solve_report_rows(factor, rows[part], cols[part], n3)  # (3 n_k, kk * 9)
         ms = np.asarray(meat @ sol).reshape(n3, kk, 9)
         cov[part] = np.einsum("nki,nkj->kij", sol.reshape(n3, kk, 9), ms)
-    cb = np.concatenate([s.cell_blocks for s in scores]).reshape(-1, 3)
-    cb = np.unique(cb, axis=0).reshape(-1, 3) if len(cb) else cb
-    n_blocks = np.bincount(cb[:, 0], minlength=k).astype(np.int64)[:k]
-    return cov, n_blocks
+    return cov, _blocks_per_cell(scores, k)
 
 
 def _spline_block_covariance_reference(
@@ -725,24 +709,10 @@ def _spline_block_covariance_reference(
     """The slow, obvious form of :func:`spline_block_covariance` (the reference its tests
     hold it to): per chunk of positions, every block's summed score ``z_b = g_bᵀ A⁻¹ Rᵀ``
     and the sum of ``z_b z_bᵀ`` over the blocks. Same parameters and returns."""
-    import scipy.sparse as sp
-
-    k = len(rows)
-    n3 = penalty.shape[0]
-    n_k = n3 // 3
     scores = list(scores)
-    keys = np.concatenate([s.keys for s in scores]).reshape(-1, 2)
-    knots = np.concatenate([s.knots for s in scores]).reshape(-1, 16)
-    vals = np.concatenate([s.vals for s in scores]).reshape(-1, 48)
-    if len(keys):
-        _, binv = np.unique(keys, axis=0, return_inverse=True)
-        binv = binv.reshape(-1)
-        nb = int(binv.max()) + 1
-    else:
-        binv, nb = np.zeros(0, dtype=np.int64), 0
-    rr = (np.arange(3)[None, :, None] * n_k + knots[:, None, :]).reshape(-1, 48)
-    # blocks x coefficients; a block's shares from several chunks (and groups) are added
-    S = sp.csr_matrix((vals.ravel(), (np.repeat(binv, 48), rr.ravel())), shape=(nb, n3))
+    k, n3 = len(rows), penalty.shape[0]
+    S = _block_score_matrix(scores, n3)
+    nb = S.shape[0]
     cov = np.zeros((k, 9, 9))
     for s0 in range(0, k, chunk):
         part = slice(s0, min(s0 + chunk, k))
@@ -754,7 +724,30 @@ def _spline_block_covariance_reference(
         cov[part] = scale * np.einsum("bki,bkj->kij", z, z) + s0sq * np.einsum(
             "nki,nkj->kij", sr, ps
         )
+    return cov, _blocks_per_cell(scores, k)
+
+
+def _block_score_matrix(scores, n3: int):
+    """(blocks, n3) sparse ``S``: each block's summed scores on the coefficients (the
+    chunks' shares of one block, and its groups', added)."""
+    import scipy.sparse as sp
+
+    n_k = n3 // 3
+    keys = np.concatenate([s.keys for s in scores]).reshape(-1, 2)
+    knots = np.concatenate([s.knots for s in scores]).reshape(-1, 16)
+    vals = np.concatenate([s.vals for s in scores]).reshape(-1, 48)
+    if len(keys):
+        _, binv = np.unique(keys, axis=0, return_inverse=True)
+        binv = binv.reshape(-1)
+        nb = int(binv.max()) + 1
+    else:
+        binv, nb = np.zeros(0, dtype=np.int64), 0
+    rr = (np.arange(3)[None, :, None] * n_k + knots[:, None, :]).reshape(-1, 48)
+    return sp.csr_matrix((vals.ravel(), (np.repeat(binv, 48), rr.ravel())), shape=(nb, n3))
+
+
+def _blocks_per_cell(scores, k: int) -> np.ndarray:
+    """(k,) int64: blocks with used points in each cell."""
     cb = np.concatenate([s.cell_blocks for s in scores]).reshape(-1, 3)
     cb = np.unique(cb, axis=0).reshape(-1, 3) if len(cb) else cb
-    n_blocks = np.bincount(cb[:, 0], minlength=k).astype(np.int64)[:k]
-    return cov, n_blocks
+    return np.bincount(cb[:, 0], minlength=k).astype(np.int64)[:k]
