@@ -3,11 +3,13 @@
 The windowed ICP and its spline field call BLAS and LAPACK on small matrices, thousands of
 times per run: batched 6 × 6 eigen-decompositions of the cells, products over blocks of 1024
 points, SuperLU's supernodes. OpenBLAS (numpy's BLAS on Debian and in the PyPI wheels) starts
-its threads for such calls and leaves them spinning after each one. On the 2-core test machine
-(lone-star lobe, the default ``slipmap icp``) that doubles the CPU time for no gain in wall
-time with the numpy matcher (6.8 s wall, 12.6 s CPU; one BLAS thread: 7.0 s, 7.4 s) and slows
-the compiled matchers, whose own threads then wait for cores the spinning BLAS threads hold:
-Numba 6.2 → 5.5 s, OpenCL on PoCL (a CPU driver) 9.2 → 5.2 s (docs/benchmarks.md, stop 55).
+its threads for such calls and leaves them spinning after each one: under cProfile the
+cells' batched ``eigh`` took 0.56 s of a run with two BLAS threads and 0.04 s with one. On
+the 2-core test machine (lone-star lobe, the default ``slipmap icp``, paired runs) one BLAS
+thread takes 40-43 % off the CPU time with the same results (5e-8 m); the wall time stays
+level there (-4 % with the Numba matcher, -2 % with PoCL, within the runs' spread): the
+freed core is what a machine running other work, or with more cores, gains
+(docs/benchmarks.md, stop 55).
 
 :func:`single_blas_thread` limits BLAS to one thread through threadpoolctl, the library
 scikit-learn uses for the same purpose, and restores the caller's limit on exit; nested
