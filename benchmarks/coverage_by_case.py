@@ -5,8 +5,10 @@
 one or more of its JSON files (``cells``, ``cell_columns``) and gives, per case and class
 (``near``: centre < 3 m from a discontinuity, ``far``: the others), the cells, the share of
 error components within 2 reported σ, RMS(error/σ) per component, the RMS error and the
-median σ; and per case the RMS over the scenes of each scene's mean error beside the mean
-spread of the errors within a scene (a shared error of the scene against one per cell).
+median σ (far cells also split into ``far moving`` and ``far still`` where the rows say how
+far the ground moved); and per case the RMS over the scenes of each scene's mean error
+beside the mean spread of the errors within a scene (a shared error of the scene against
+one per cell).
 
 Usage::
 
@@ -22,6 +24,10 @@ from collections import defaultdict
 import numpy as np
 
 NEAR_M = 3.0
+#: a far cell whose true motion is at least this (metres) is ``far moving``, else ``far
+#: still`` (the harness's rows since stop 56 carry the truth's size, ``moved``): in a scene
+#: of survey extent (``--extent-tiles``) most cells are still ground
+MOVING_M = 0.02
 
 
 def rows(paths, method: str):
@@ -46,7 +52,11 @@ def main(argv=None) -> int:
     for r in rows(args.files, args.method):
         cls = "near" if r["dist"] < NEAR_M else "far"
         v = [r["ex"], r["ey"], r["ez"], r["sx"], r["sy"], r["sz"]]
-        for key in ((r["density"], cls, r["case"]), (r["density"], cls, "all")):
+        keys = [(r["density"], cls, r["case"]), (r["density"], cls, "all")]
+        if cls == "far" and r.get("moved") is not None:  # runs since stop 56 record it
+            sub = "far moving" if r["moved"] >= MOVING_M else "far still"
+            keys += [(r["density"], sub, r["case"]), (r["density"], sub, "all")]
+        for key in keys:
             groups[key].append(v)
         if r["case"] != "slump":
             groups[(r["density"], cls, "all but the slump")].append(v)
