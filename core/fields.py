@@ -654,11 +654,15 @@ class NeighbourVarianceFactor:
     normalised : (K, q) float64
         ``r / sqrt(var)`` of every cell and component (NaN for cells not tested): about
         ``factor`` times a standard normal for a consistent cell, an outlier test statistic.
+    variance : (K, q) float64 or None
+        ``var(r)`` of every cell and component from the formal sigmas (NaN for cells not
+        tested), metres².
     """
 
     factor: float
     n_cells: int
     normalised: np.ndarray
+    variance: Optional[np.ndarray] = None
 
 
 def _neighbour_table(row: np.ndarray, col: np.ndarray, reach: int = 1) -> np.ndarray:
@@ -732,6 +736,7 @@ def neighbour_variance_factor(
     min_neighbours: int = 5,
     min_cells: int = 8,
     pair_covariance: Optional[Tuple[np.ndarray, np.ndarray]] = None,
+    separated: Optional[np.ndarray] = None,
 ) -> NeighbourVarianceFactor:
     """Variance factor of the formal sigmas of a gridded field, from neighbour agreement.
 
@@ -764,6 +769,11 @@ def neighbour_variance_factor(
         ``var(r) = sigma_i² - 2 sum h_j c_ij + sum h_j h_k c_jk``. Pairs not given are
         uncorrelated. Without it a positively correlated field's ``var(r)`` is overstated and
         its factor too small.
+    separated : (K, 8) bool, optional
+        True where a cell's neighbour (in the order of the eight offsets ``(-1, -1), (-1, 0),
+        ... (1, 1)`` in rows, columns) lies across a discontinuity of the field (a breakline
+        between their centres): that neighbour does not predict the cell, whose motion may
+        jump there.
 
     Returns
     -------
@@ -777,6 +787,8 @@ def neighbour_variance_factor(
     normalised = np.full(values.shape, np.nan)
     nb = _neighbour_table(row, col)
     present = (nb >= 0) & ok[np.maximum(nb, 0)]
+    if separated is not None:
+        present &= ~np.asarray(separated, dtype=bool).reshape(row.size, 8)
     # plane z = a + b*dc + c*dr through the present neighbours, evaluated at (0, 0): weights
     # h = e1' (X'WX)^-1 X'W with W the 0/1 presence mask; collinear neighbours (possible with
     # min_neighbours < 5) define no plane and leave the cell out
@@ -801,12 +813,15 @@ def neighbour_variance_factor(
         var = var - 2.0 * np.einsum("kj,kjq->kq", h, c_in) + np.einsum("kj,kl,kjlq->kq", h, h, c_nn)
         var = np.maximum(var, 1e-6 * sigmas[centre] ** 2)  # rounding of nearly equal values
     normalised[centre] = (values[centre] - pred) / np.sqrt(var)
+    variance = np.full(values.shape, np.nan)
+    variance[centre] = var
     if nb.shape[0] < int(min_cells):
-        return NeighbourVarianceFactor(float("nan"), int(nb.shape[0]), normalised)
+        return NeighbourVarianceFactor(float("nan"), int(nb.shape[0]), normalised, variance)
     ratio = normalised[centre] ** 2
     return NeighbourVarianceFactor(
-        float(math.sqrt(np.median(ratio) / CHI2_1_MEDIAN)), int(nb.shape[0]), normalised
-    )
+        float(math.sqrt(np.median(ratio) / CHI2_1_MEDIAN)), int(nb.shape[0]), normalised,
+        variance,
+    )  # fmt: skip
 
 
 def _neighbour_variance_factor_reference(
@@ -819,14 +834,20 @@ def _neighbour_variance_factor_reference(
     min_neighbours=5,
     min_cells=8,
     pair_covariance=None,
+    separated=None,
 ) -> NeighbourVarianceFactor:
     """Slow obvious version of :func:`neighbour_variance_factor` (a loop over cells with
     ``np.linalg.lstsq`` per cell), for testing."""
     row, col, values, sigmas, ok = _neighbour_args(row, col, values, sigmas, usable)
     where = {(int(r), int(c)): i for i, (r, c) in enumerate(zip(row, col)) if ok[i]}
     normalised = np.full(values.shape, np.nan)
+    variance = np.full(values.shape, np.nan)
     for (r, c), i in where.items():
-        nbs = [(a, b, where[(r + a, c + b)]) for a, b in _OFFSETS if (r + a, c + b) in where]
+        nbs = [
+            (a, b, where[(r + a, c + b)])
+            for o, (a, b) in enumerate(_OFFSETS)
+            if (r + a, c + b) in where and not (separated is not None and separated[i][o])
+        ]
         X = np.array([[1.0, b, a] for a, b, _ in nbs]).reshape(-1, 3)
         if len(nbs) < min_neighbours or np.linalg.matrix_rank(X) < 3:
             continue
@@ -846,10 +867,12 @@ def _neighbour_variance_factor_reference(
         u = np.concatenate([[1.0], -h])
         var = np.maximum(np.einsum("a,b,abq->q", u, u, c), 1e-6 * sigmas[i] ** 2)
         normalised[i] = r_i / np.sqrt(var)
+        variance[i] = var
     tested = np.all(np.isfinite(normalised), axis=1)
     n = int(tested.sum())
     if n < min_cells:
-        return NeighbourVarianceFactor(float("nan"), n, normalised)
+        return NeighbourVarianceFactor(float("nan"), n, normalised, variance)
     return NeighbourVarianceFactor(
-        float(math.sqrt(np.median(normalised[tested] ** 2) / CHI2_1_MEDIAN)), n, normalised
-    )
+        float(math.sqrt(np.median(normalised[tested] ** 2) / CHI2_1_MEDIAN)), n, normalised,
+        variance,
+    )  # fmt: skip

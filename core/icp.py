@@ -2915,6 +2915,7 @@ def _apply_floor(
         res.n,
         usable=usable,
         pair_covariance=pair_cov,
+        separated=_separated_neighbours(res),
     )
     res = replace(res, sigma_n_cap=fl.n_cap, sigma_floor_factor=fl.factor)
     if not math.isfinite(fl.factor):
@@ -2945,6 +2946,34 @@ def _apply_floor(
     return replace(res, **scaled_cols, cov_d=cov_d)
 
 
+def _separated_neighbours(res: WindowedICPResult) -> Optional[np.ndarray]:
+    """(K, 8) bool: True where the segment from a cell's centre to its neighbour's (in
+    :func:`slipmap.core.fields.neighbour_variance_factor`'s order of the offsets) crosses
+    one of the field's breaklines, given or detected (``res.breaklines``); None without
+    lines. The neighbour tests of the sigmas leave such neighbours out: across a line the
+    field may jump, and the jump is not the cells' error."""
+    from .breaklines import crossings
+    from .fields import _OFFSETS
+
+    lines = res.breaklines
+    if lines is None or getattr(lines, "empty", True) or not len(res.row):
+        return None
+    x0, y0 = res.origin_xy
+    h = float(res.cell_m)
+    cx = x0 + (res.col + 0.5) * h
+    cy = y0 - (res.row + 0.5) * h  # rows run south
+    off = np.asarray(_OFFSETS, dtype=np.float64)  # (8, 2): rows, columns
+    p = np.repeat(np.column_stack([cx, cy]), 8, axis=0)
+    q = p + np.tile(np.column_stack([off[:, 1] * h, -off[:, 0] * h]), (len(cx), 1))
+    return (crossings(p, q, lines) > 0).reshape(len(cx), 8)
+
+
+#: a cell component whose neighbour residual is more than this many of its (factor-scaled)
+#: standard deviations takes the residual's excess as its own variance
+#: (:func:`_widen_neighbour_outliers`); None: no such widening
+NEIGHBOUR_OUTLIER_Z = 3.0
+
+
 def _scale_sigmas(res: WindowedICPResult, pair_cov=None, apply: bool = True) -> WindowedICPResult:
     """``res`` with covariances scaled by the field's variance factor (see windowed_icp).
     ``pair_cov`` ((Q, 2) cell pairs, (Q, 3) covariances): the cells' formal errors are
@@ -2959,6 +2988,7 @@ def _scale_sigmas(res: WindowedICPResult, pair_cov=None, apply: bool = True) -> 
         np.column_stack([res.sigma_dx, res.sigma_dy, res.sigma_dz]),
         usable=res.converged,
         pair_covariance=pair_cov,
+        separated=_separated_neighbours(res),
     )
     res = replace(res, sigma_factor_estimate=est.factor, sigma_factor_cells=est.n_cells)
     if not math.isfinite(est.factor):
@@ -2988,4 +3018,55 @@ def _scale_sigmas(res: WindowedICPResult, pair_cov=None, apply: bool = True) -> 
         k: getattr(res, k) * f
         for k in ("sigma_dx", "sigma_dy", "sigma_dz", "sigma_rx", "sigma_ry", "sigma_rz")
     }
-    return replace(res, **scaled_cols, cov_d=res.cov_d * (f * f), sigma_factor=f)
+    res = replace(res, **scaled_cols, cov_d=res.cov_d * (f * f), sigma_factor=f)
+    return _widen_neighbour_outliers(res, est, f)
+
+
+def _widen_neighbour_outliers(res: WindowedICPResult, est, f: float) -> WindowedICPResult:
+    """``res`` (its sigmas already times ``f``) with the components that fail the neighbour
+    test widened: where ``r² > z² f² var(r)`` (``z`` = NEIGHBOUR_OUTLIER_Z; ``est``: the
+    :func:`~slipmap.core.fields.neighbour_variance_factor` of the unscaled sigmas), the
+    cell's variance gains ``r² - z² f² var(r)``, the residual's excess over what the test
+    accepts (nil at the threshold, so a cell just past it is not tripled; about ``r²`` for
+    a cell far past it).
+
+    One factor for the field fits its typical cell. A cell that straddles a discontinuity
+    no line marks (a slump's outline, a scarp the detection missed) reports a blend of two
+    motions; its own points fit that blend, so its sigma cannot show the error, but its
+    neighbours disagree with it. The test's excess is a variance estimate with one degree
+    of freedom, as a robust adjustment widens an observation that fails its test instead
+    of trusting it (docs/fields.md, stop 56). Its neighbours' residuals carry a share of
+    its error (``h_j`` of it, 1/8 with all eight present) and may be widened with it. A cell
+    that reports its own fit instead of the field (``from_cell``) is not widened: it
+    differs from the field's cells around it because its points refute the field there
+    (tests/core/test_icp_choice.py: such cells 0.1-1 cm off, the field 1.2 cm)."""
+    if NEIGHBOUR_OUTLIER_Z is None or est.variance is None:
+        return res
+    var = est.variance * (f * f)
+    with np.errstate(invalid="ignore"):
+        r2 = est.normalised**2 * var
+        accepted = NEIGHBOUR_OUTLIER_Z**2 * var
+        out = np.isfinite(r2) & (r2 > accepted)
+    if res.from_cell is not None and np.size(res.from_cell) == len(out):
+        # a cell that reports its own fit chose it because its points refute the field
+        # there: its disagreement with the field's cells around it is theirs, not its own
+        out &= ~np.asarray(res.from_cell, dtype=bool)[:, None]
+    if not out.any():
+        return res
+    extra = np.where(out, r2 - accepted, 0.0)  # (K, 3), positive where out
+    sig = np.column_stack([res.sigma_dx, res.sigma_dy, res.sigma_dz])
+    wide = np.sqrt(sig**2 + extra)
+    log.info(
+        "%d cells disagree with their neighbours beyond %g sigma: their sigmas take the "
+        "excess (%d components)",
+        int(out.any(axis=1).sum()),
+        NEIGHBOUR_OUTLIER_Z,
+        int(out.sum()),
+    )
+    return replace(
+        res,
+        sigma_dx=wide[:, 0],
+        sigma_dy=wide[:, 1],
+        sigma_dz=wide[:, 2],
+        cov_d=res.cov_d + extra[:, :, None] * np.eye(3)[None],
+    )

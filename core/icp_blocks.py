@@ -392,6 +392,7 @@ def cell_floor(
     pair_covariance=None,
     min_cells: int = 8,
     iterations: int = 8,
+    separated: Optional[np.ndarray] = None,
 ) -> CellFloor:
     """The error a cell's residuals cannot show, from neighbour agreement: a factor and a
     cap on the cell's effective observations.
@@ -428,6 +429,9 @@ def cell_floor(
         Fewer tested cells give NaN (no change).
     iterations : int
         Alternations of the two bisections.
+    separated : (K, 8) bool, optional
+        Neighbours across a breakline, left out of each cell's prediction
+        (:func:`slipmap.core.fields.neighbour_variance_factor`).
 
     Returns
     -------
@@ -453,7 +457,7 @@ def cell_floor(
             pc = (pairs, pcov * np.sqrt(g[pairs[:, 0]] * g[pairs[:, 1]])[:, None])
         est = neighbour_variance_factor(
             row, col, values, sig * np.sqrt(g)[:, None], usable=usable, min_cells=1,
-            pair_covariance=pc,
+            pair_covariance=pc, separated=separated,
         )  # fmt: skip
         return est.normalised.reshape(len(n), -1) ** 2
 
