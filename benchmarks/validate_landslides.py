@@ -120,6 +120,11 @@ DENSE_N = 500
 PIV_OPTS = {"tls": {"grid_m": 0.15}, "als": {"grid_m": 0.5, "windows_px": (24, 12, 12)}}
 ALS = AlsSampling(line_spacing_m=0.4, point_spacing_m=0.35)
 SCARP_CASES = ("slab", "slump", "fault")
+#: half the length of the slab's scarp and of the fault's trace, metres. Their fields step
+#: along the infinite line through the trace; until stop 57 the lines were 60 m and 80 m
+#: long, which spans the 32 m x 41 m scene but not one of --extent-tiles 3, where cells by
+#: the step beyond the lines' ends were scored as far from it
+REACH_M = 200.0
 
 
 class TurnedField:
@@ -150,18 +155,21 @@ def fields(lo: np.ndarray, hi: np.ndarray) -> dict:
     ang = math.radians(15.0)
     u = np.array([-math.cos(ang), -math.sin(ang)])  # scarp runs east to west, slab to the south
     s0 = c + np.array([0.0, 4.0])
+    # the slab's and the fault's step runs along the whole line through their trace
+    # (SlabField, FaultField): their lines reach REACH_M either way, across a scene of
+    # --extent-tiles too, so that every cell by the step counts as near it
     return {
         "lobe-round": LobeField(c, side / 3, side / 3, 0.0, (0.0, -0.6, -0.25)),
         # a (near-)uniform shift: the lobe of radius 500 m (0.65 m, curvature < 1e-5 /m)
         "shift": LobeField(c, 500.0, 500.0, 0.0, (0.0, -0.6, -0.25)),
         "lobe-small": LobeField(c + np.array([-6.0, -9.0]), 6.0, 6.0, 0.0, (0.25, -0.35, -0.15)),
         "lobe-long": LobeField(c, 7.0, 16.0, 30.0, (0.6 * down[0], 0.6 * down[1], -0.25)),
-        "slab": SlabField((s0 - 30 * u, s0 + 30 * u), (0.1, -0.5, -0.2)),
+        "slab": SlabField((s0 - REACH_M * u, s0 + REACH_M * u), (0.1, -0.5, -0.2)),
         "slump": SlumpField(tuple(c), azimuth_deg=180.0, head_m=9.0, toe_m=9.0, width_m=18.0),
         "fault": FaultField(
             (
-                c - 40 * np.array([math.sin(math.radians(60)), math.cos(math.radians(60))]),
-                c + 40 * np.array([math.sin(math.radians(60)), math.cos(math.radians(60))]),
+                c - REACH_M * np.array([math.sin(math.radians(60)), math.cos(math.radians(60))]),
+                c + REACH_M * np.array([math.sin(math.radians(60)), math.cos(math.radians(60))]),
             ),
             slip_m=0.3,
             throw_m=0.05,
@@ -368,7 +376,7 @@ def scene(cloud, pts, case, fld, density, seed, args, tmp: Path, cells_log: list
         for k in np.flatnonzero(ok):
             cells_log.append(
                 (name, density, case, seed, *(d[k] - truth[k]), *sig[k], count[k], r.rmse[k],
-                 dist[k], np.linalg.norm(truth[k]))
+                 dist[k], np.linalg.norm(truth[k]), c[k, 0], c[k, 1])
             )  # fmt: skip
         if name == "default":
             ref = (r, truth, mask, dist)
@@ -442,7 +450,7 @@ def scene(cloud, pts, case, fld, density, seed, args, tmp: Path, cells_log: list
 
 
 CELL_COLS = ("method", "density", "case", "seed", "ex", "ey", "ez", "sx", "sy", "sz", "n",
-             "rmse", "dist", "moved")  # fmt: skip
+             "rmse", "dist", "moved", "x", "y")  # fmt: skip
 
 
 def coverage(cells_log: list) -> dict:

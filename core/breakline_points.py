@@ -16,23 +16,29 @@ within ``reach_m`` (a cell) of it:
 
 The candidate is dropped when the median jump is below ``min_jump_m`` or reaches it at fewer
 than ``min_along_share`` of the stations along the line (the scan proposes lines across the
-whole area: a step along part of it is the edge test's to find), when some station's jump
-exceeds ``max_jump_m`` (the two sides' fields carried over ground the line cuts wrongly: a
-straight line through a block that ends inside the area), or when no straight line puts
-more than ``1 - max_wrong_share`` of the decisive points on their side. Otherwise the line
-is the straight line, turned by up to ``angle_range_deg`` and shifted by up to ``reach_m``,
-that puts the fewest decisive points on the wrong side. ``refine_breaklines`` places a line
-station by station, judging each point by the field a cell and a half away, which on a lobe
-whose motion changes by 0.2 m a cell differs from the field at the point by as much as a
-0.3 m fault (on the harness's fault it moved the line's west end 6 m off); a straight line
-fitted to all the decisive points at once is held by the stretches where the step is clear.
+whole area: a step along a short part of it is the edge test's to find), when some station's
+jump exceeds ``max_jump_m`` (the two sides' fields carried over ground the line cuts
+wrongly: a straight line through a block that ends inside the area), or when no straight
+line puts more than ``1 - max_wrong_share`` of the decisive points on their side. Before the
+along-share or the largest-jump test drops it, a candidate is cut to the longest stretch of
+consecutive stations that step within those bounds, when that spans
+:data:`PLACE_MIN_RUN_STATIONS` cells (stations with data on both sides only), and judged
+there: a scarp that ends inside a survey larger than itself, or beyond which one side holds
+no points (issue #29, stop 57; on airborne density at a survey's extent the edge test finds
+no line and this is the path). Otherwise the line is the straight line, turned by up to
+``angle_range_deg`` and shifted by up to ``reach_m``, that puts the fewest decisive points
+on the wrong side. ``refine_breaklines`` places a line station by station, judging each
+point by the field a cell and a half away, which on a lobe whose motion changes by 0.2 m a
+cell differs from the field at the point by as much as a 0.3 m fault (on the harness's
+fault it moved the line's west end 6 m off); a straight line fitted to all the decisive
+points at once is held by the stretches where the step is clear.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, Optional, Tuple
 
 import numpy as np
 
@@ -60,6 +66,15 @@ PLACE_MIN_DECISIVE = 200
 #: that ends inside the area) is the edge test's to find
 PLACE_MIN_ALONG_SHARE = 0.75
 PLACE_MIN_STATION_POINTS = 20
+#: a candidate that fails the along-share or the largest-jump test is cut to the longest
+#: stretch of consecutive stations whose jumps lie between the station floor and
+#: ``max_jump_m``, when that spans this many stations (cells) at least, and judged there:
+#: the scan proposes a line across the whole area, and a scarp may step along part of it
+#: only (where it ends inside the area, or beyond which one side holds no data). Shorter
+#: stretches are left to the edge test: on the harness's lobes, steep flanks step by 0.1-0.25
+#: m over three stations (15 m) and their points take sides as a scarp's do
+PLACE_TRIM = True
+PLACE_MIN_RUN_STATIONS = 6
 
 
 @dataclass(frozen=True)
@@ -88,6 +103,35 @@ class StraightPlacement:
     wrong_share: float
     shift_m: float
     turn_deg: float
+
+
+def _stepping_run(k_st, left, jumps, st_min, max_jump_m) -> Optional[Tuple[int, int]]:
+    """The longest stretch of consecutive stations along a candidate whose median jump lies
+    within ``[st_min, max_jump_m]``, counting only stations with PLACE_MIN_STATION_POINTS
+    points, half of them at least on either side (where a side holds no data its field is
+    the penalty's extrapolation, not a motion): ``(first, end)`` station numbers (``k_st``:
+    each point's), None when it spans fewer than :data:`PLACE_MIN_RUN_STATIONS`."""
+    if not PLACE_TRIM or len(k_st) == 0:
+        return None
+    n_st = np.bincount(k_st)
+    n_left = np.bincount(k_st, weights=left, minlength=len(n_st))
+    half = 0.5 * PLACE_MIN_STATION_POINTS
+    used = (n_st >= PLACE_MIN_STATION_POINTS) & (n_left >= half) & (n_st - n_left >= half)
+    hi = np.inf if max_jump_m is None else max_jump_m
+    good = np.zeros(len(n_st), dtype=bool)
+    for k in np.flatnonzero(used):
+        good[k] = st_min <= np.median(jumps[k_st == k]) <= hi
+    best, i = (0, 0), 0
+    while i < len(good):
+        j = i
+        while j < len(good) and good[j]:
+            j += 1
+        if j - i > best[1] - best[0]:
+            best = (i, j)
+        i = j + 1
+    if best[1] - best[0] < PLACE_MIN_RUN_STATIONS:
+        return None
+    return best
 
 
 def place_straight_line(
@@ -161,7 +205,9 @@ def place_straight_line(
     jumps = np.linalg.norm(field(foot + eps * n0) - field(foot - eps * n0), axis=1)
     jump = float(np.median(jumps))
     # ... and along the line, every reach_m (stations with PLACE_MIN_STATION_POINTS points)
-    ell = (a[:, :2] - e0) @ t0
+    rel = a[:, :2] - e0
+    left = (t0[0] * rel[:, 1] - t0[1] * rel[:, 0]) > 0
+    ell = rel @ t0
     k_st = np.floor((ell - ell.min()) / reach_m).astype(np.int64)
     n_st = np.bincount(k_st)
     st_jump = np.array(
@@ -170,8 +216,23 @@ def place_straight_line(
     st_min = min_jump_m if station_jump_m is None else station_jump_m
     along = float(np.mean(st_jump >= st_min)) if st_jump.size else 0.0
     log.debug("straight breakline: jumps at the stations %s", np.round(st_jump, 3))
-    rel = a[:, :2] - e0
-    left = (t0[0] * rel[:, 1] - t0[1] * rel[:, 0]) > 0
+    too_big = st_jump.size and max_jump_m is not None and float(st_jump.max()) > max_jump_m
+    run = None
+    if too_big or along < min_along_share:
+        run = _stepping_run(k_st, left, jumps, st_min, max_jump_m)
+    if run is not None:
+        # the step holds along part of the candidate only (a scarp that ends inside the
+        # area, or beyond which a side holds no data, the scan's line reaching across all
+        # of it): the candidate is cut to that stretch, and the points there decide
+        lo_m, hi_m = ell.min() + run[0] * reach_m, ell.min() + run[1] * reach_m
+        inside = (ell >= lo_m) & (ell < hi_m)
+        log.info(
+            "straight breakline: the field steps along %.0f m of the candidate's %.0f m",
+            hi_m - lo_m, float(np.ptp(ell)),
+        )  # fmt: skip
+        e0, e1 = e0 + lo_m * t0, e0 + hi_m * t0
+        a, u_own, u_flip, left, jumps = (v[inside] for v in (a, u_own, u_flip, left, jumps))
+        jump, along, too_big = float(np.median(jumps)), 1.0, False
     u_left = np.where(left[:, None], u_own, u_flip)
     u_right = np.where(left[:, None], u_flip, u_own)
 
@@ -187,7 +248,7 @@ def place_straight_line(
     with np.errstate(invalid="ignore"):
         decisive = fin & (np.abs(v_l - v_r) > 2.0 * spread)
     n_dec = int(decisive.sum())
-    if st_jump.size and max_jump_m is not None and float(st_jump.max()) > max_jump_m:
+    if too_big:
         log.info(
             "straight breakline dropped: the field jumps by up to %.3f m across it, more than "
             "the %.3f m the cells allow", float(st_jump.max()), max_jump_m,
