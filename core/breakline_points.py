@@ -105,22 +105,19 @@ class StraightPlacement:
     turn_deg: float
 
 
-def _stepping_run(k_st, left, jumps, st_min, max_jump_m) -> Optional[Tuple[int, int]]:
-    """The longest stretch of consecutive stations along a candidate whose median jump lies
-    within ``[st_min, max_jump_m]``, counting only stations with PLACE_MIN_STATION_POINTS
-    points, half of them at least on either side (where a side holds no data its field is
-    the penalty's extrapolation, not a motion): ``(first, end)`` station numbers (``k_st``:
-    each point's), None when it spans fewer than :data:`PLACE_MIN_RUN_STATIONS`."""
-    if not PLACE_TRIM or len(k_st) == 0:
+def _stepping_run(st_med, n_st, n_left, st_min, max_jump_m) -> Optional[Tuple[int, int]]:
+    """The longest stretch of consecutive stations along a candidate whose median jump
+    ``st_med`` (per station, NaN where it has fewer than PLACE_MIN_STATION_POINTS points)
+    lies within ``[st_min, max_jump_m]``, counting only stations with half of those points
+    at least on either side (``n_st`` points, ``n_left`` of them left; where a side holds no
+    data its field is the penalty's extrapolation, not a motion): ``(first, end)`` station
+    numbers, None when it spans fewer than :data:`PLACE_MIN_RUN_STATIONS`."""
+    if not PLACE_TRIM or len(n_st) == 0:
         return None
-    n_st = np.bincount(k_st)
-    n_left = np.bincount(k_st, weights=left, minlength=len(n_st))
     half = 0.5 * PLACE_MIN_STATION_POINTS
-    used = (n_st >= PLACE_MIN_STATION_POINTS) & (n_left >= half) & (n_st - n_left >= half)
     hi = np.inf if max_jump_m is None else max_jump_m
-    good = np.zeros(len(n_st), dtype=bool)
-    for k in np.flatnonzero(used):
-        good[k] = st_min <= np.median(jumps[k_st == k]) <= hi
+    with np.errstate(invalid="ignore"):
+        good = (n_left >= half) & (n_st - n_left >= half) & (st_med >= st_min) & (st_med <= hi)
     best, i = (0, 0), 0
     while i < len(good):
         j = i
@@ -210,16 +207,18 @@ def place_straight_line(
     ell = rel @ t0
     k_st = np.floor((ell - ell.min()) / reach_m).astype(np.int64)
     n_st = np.bincount(k_st)
-    st_jump = np.array(
-        [np.median(jumps[k_st == k]) for k in np.flatnonzero(n_st >= PLACE_MIN_STATION_POINTS)]
-    )
+    st_med = np.full(len(n_st), np.nan)  # each station's median jump, where it has points
+    for k in np.flatnonzero(n_st >= PLACE_MIN_STATION_POINTS):
+        st_med[k] = np.median(jumps[k_st == k])
+    st_jump = st_med[n_st >= PLACE_MIN_STATION_POINTS]
     st_min = min_jump_m if station_jump_m is None else station_jump_m
     along = float(np.mean(st_jump >= st_min)) if st_jump.size else 0.0
     log.debug("straight breakline: jumps at the stations %s", np.round(st_jump, 3))
     too_big = st_jump.size and max_jump_m is not None and float(st_jump.max()) > max_jump_m
     run = None
     if too_big or along < min_along_share:
-        run = _stepping_run(k_st, left, jumps, st_min, max_jump_m)
+        n_left = np.bincount(k_st, weights=left, minlength=len(n_st))
+        run = _stepping_run(st_med, n_st, n_left, st_min, max_jump_m)
     if run is not None:
         # the step holds along part of the candidate only (a scarp that ends inside the
         # area, or beyond which a side holds no data, the scan's line reaching across all
