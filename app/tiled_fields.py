@@ -897,7 +897,7 @@ def _on_cells(k: int, at: np.ndarray, values, fill=np.nan) -> np.ndarray:
 
 
 def _candidate_lines(cells, d, usable, at, cells_res, lattice):
-    """The breaklines the tiled cell pass's motions propose
+    """The breaklines the tiled cell pass's motions propose, to try in turn
     (:func:`~slipmap.core.icp.candidate_lines` on the values the one-file run reads: formal
     covariances, the cells' fitted gradients and the formal sigmas of their rotations)."""
     from ..core.icp import _rotation_scale, candidate_lines
@@ -1508,10 +1508,8 @@ def _icp_spline_tiled(
     try:
         first, span = None, (0.55, 1.0)
         if lines is None and spline_kw.get("detect"):
-            candidate, straight = _candidate_lines(
-                cells, d, usable & ~flagged_c, at, cells_res, lattice
-            )
-            if candidate is not None:  # as the one-file run: fit, confirm, refit
+            tries = _candidate_lines(cells, d, usable & ~flagged_c, at, cells_res, lattice)
+            for candidate, straight in tries:  # as the one-file run: fit, confirm, refit
                 frame, run = fitter(candidate, 0.0, "candidate")
                 first = fit_spline_chunks(
                     run, frame=frame, initial=start, progress=scaled(pg, 0.55, 0.75),
@@ -1522,6 +1520,9 @@ def _icp_spline_tiled(
                     first.field, straight, [blocks[i] for i in live], engine=engine,
                     gate_m=gate, cell_m=cell, progress=cancel_only if progress else None,
                 )  # fmt: skip
+                if lines is not None:
+                    break
+            if tries:
                 lines_source = "none" if lines is None else "detected"
                 span = (0.8, 1.0)
         weights = None

@@ -630,6 +630,17 @@ SCAN_MIN_STEP_FLOORS = 2.0
 SCAN_MIN_STEP_RMS = 3.0
 #: ... and each side holds this many cells at least
 SCAN_MIN_SIDE_CELLS = 4
+#: a band longer than this (in cells; lone-star's 32 m x 41 m scene spans 10.4 cells of 5 m
+#: on its diagonal) is fitted by the quadratic plus hat functions along the line, times
+#: (1, across), with knots every SCAN_ALONG_KNOT_CELLS: across a survey larger than its
+#: landslide, one quadratic along 100 m of the line cannot follow a lobe 30 m wide, its
+#: residuals swamp the step and the fault is not proposed (issue #29, stop 58)
+SCAN_QUADRATIC_CELLS = 12.0
+SCAN_ALONG_KNOT_CELLS = 4.0
+#: ... and the best line of the coarse scan is refined in direction (steps of this many
+#: degrees, up to the coarse step either way; 0: not refined) and offset (quarter cells, up
+#: to a cell either way)
+SCAN_REFINE_DEG = 1.5
 #: on the points, the field fitted with the candidate may jump across it by at most this
 #: many times the step the cells saw, at every station along it (more: the two sides'
 #: fields are carried over ground the line cuts wrongly, e.g. a straight line through a
@@ -678,6 +689,24 @@ def _poly2(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.column_stack([np.ones_like(u), u, v, u * u, u * v, v * v])
 
 
+def _band_design(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The smooth part of the scan's band model, ``u`` along the line and ``v`` across it
+    (cells; ``v`` scaled to the band): the quadratic of :func:`_poly2` on ``u`` scaled to
+    the band's length, and where the band is longer than :data:`SCAN_QUADRATIC_CELLS`, hat
+    functions of ``u`` (knots every :data:`SCAN_ALONG_KNOT_CELLS`, the band's ends left to
+    the quadratic) times 1 and ``v``."""
+    span = float(np.ptp(u)) if u.size else 0.0
+    us = (u - u.mean()) / max(span, 1.0)
+    x0 = _poly2(us, v)
+    if span <= SCAN_QUADRATIC_CELLS:
+        return x0
+    k = SCAN_ALONG_KNOT_CELLS
+    knots = float(u.min()) + k * np.arange(1, int(span // k) + 1)
+    knots = knots[knots < float(u.max())]
+    hats = np.clip(1.0 - np.abs(u[:, None] - knots[None, :]) / k, 0.0, None)
+    return np.column_stack([x0, hats, hats * v[:, None]])
+
+
 def scan_straight_step(
     d: np.ndarray,
     *,
@@ -698,8 +727,10 @@ def scan_straight_step(
     weighs the whole line at once: for every straight line (directions every
     ``angle_step_deg``, offsets every half cell), the cells within ``band_cells`` of it
     (leaving out those within :data:`SCAN_GAP_CELLS` of it, which straddle it) are fitted,
-    per component, by a quadratic in the line's coordinates with and without a step across
-    the line (least squares); the line whose step reduces the residuals most (F statistic)
+    per component, by a quadratic in the line's coordinates (on a band longer than
+    :data:`SCAN_QUADRATIC_CELLS`, plus hat functions along the line times 1 and the offset
+    across it: :func:`_band_design`) with and without a step across the line (least
+    squares); the line whose step reduces the residuals most (F statistic)
     is kept, and proposed when its step is at least :data:`SCAN_MIN_STEP_FLOORS` ×
     ``floor_m`` and :data:`SCAN_MIN_STEP_RMS` × the RMS of the band's residuals.
 
@@ -754,33 +785,44 @@ def scan_straight_step(
     ctr = pos.mean(axis=0)
     q = (pos - ctr) / cell  # in cells
     r_max = float(np.max(np.hypot(q[:, 0], q[:, 1])))
+
+    def fit(th, rho):  # (F, th, rho, step, rms, cells) of one line, None if not fitted
+        t = np.array([np.cos(th), np.sin(th)])
+        v = q @ np.array([-t[1], t[0]]) - rho
+        band = (np.abs(v) <= band_cells) & (np.abs(v) >= SCAN_GAP_CELLS)
+        side = np.sign(v[band])
+        n_l, n_r = int(np.sum(side > 0)), int(np.sum(side < 0))
+        if min(n_l, n_r) < SCAN_MIN_SIDE_CELLS:
+            return None
+        x0 = _band_design((q @ t)[band], v[band] / band_cells)
+        x1 = np.column_stack([x0, 0.5 * side])
+        obs = vec[band]
+        dof = n_k * (len(obs) - x1.shape[1])
+        if dof <= 0:
+            return None
+        c0 = np.linalg.lstsq(x0, obs, rcond=None)[0]
+        c1 = np.linalg.lstsq(x1, obs, rcond=None)[0]
+        rss0 = float(np.sum((obs - x0 @ c0) ** 2))
+        rss1 = float(np.sum((obs - x1 @ c1) ** 2))
+        f = (rss0 - rss1) / n_k / max(rss1 / dof, 1e-300)
+        return (f, th, rho, c1[-1], np.sqrt(rss1 / dof), int(band.sum()))
+
+    def better(best, got):
+        return got if got is not None and (best is None or got[0] > best[0]) else best
+
     best = None
     for th in np.radians(np.arange(0.0, 180.0, angle_step_deg)):
-        t = np.array([np.cos(th), np.sin(th)])
-        nrm = np.array([-t[1], t[0]])
-        u_all, v_all = q @ t, q @ nrm
         for rho in np.arange(-r_max, r_max + 1e-9, SCAN_OFFSET_STEP_CELLS):
-            v = v_all - rho
-            band = (np.abs(v) <= band_cells) & (np.abs(v) >= SCAN_GAP_CELLS)
-            side = np.sign(v[band])
-            n_l, n_r = int(np.sum(side > 0)), int(np.sum(side < 0))
-            if min(n_l, n_r) < SCAN_MIN_SIDE_CELLS:
-                continue
-            u = u_all[band]
-            us = (u - u.mean()) / max(float(np.ptp(u)), 1.0)
-            x0 = _poly2(us, v[band] / band_cells)
-            x1 = np.column_stack([x0, 0.5 * side])
-            obs = vec[band]
-            dof = n_k * (len(obs) - x1.shape[1])
-            if dof <= 0:
-                continue
-            c0 = np.linalg.lstsq(x0, obs, rcond=None)[0]
-            c1 = np.linalg.lstsq(x1, obs, rcond=None)[0]
-            rss0 = float(np.sum((obs - x0 @ c0) ** 2))
-            rss1 = float(np.sum((obs - x1 @ c1) ** 2))
-            f = (rss0 - rss1) / n_k / max(rss1 / dof, 1e-300)
-            if best is None or f > best[0]:
-                best = (f, th, rho, c1[-1], np.sqrt(rss1 / dof), int(band.sum()))
+            best = better(best, fit(th, rho))
+    if best is not None and SCAN_REFINE_DEG > 0:
+        # the best line refined between its neighbouring directions and offsets: a scarp
+        # between two of the coarse directions is otherwise proposed up to half a step
+        # off, and at a survey's extent its ends leave the band (issue #29, stop 58)
+        th0, rho0 = best[1], best[2]
+        half = np.radians(angle_step_deg)
+        for th in th0 + np.arange(-half, half + 1e-9, np.radians(SCAN_REFINE_DEG)):
+            for rho in rho0 + np.arange(-1.0, 1.0 + 1e-9, 0.5 * SCAN_OFFSET_STEP_CELLS):
+                best = better(best, fit(th, rho))
     if best is None:
         return None
     f, th, rho, step, rms, n_band = best

@@ -2309,11 +2309,11 @@ def windowed_icp(
         first = None  # the fit with candidate lines, when lines were detected
         if lines is None and detect_breaklines:
             # the formal covariances: the detection's threshold was set with them
-            candidate, straight = candidate_lines(
+            tries = candidate_lines(
                 cells, d, usable & ~flagged, cov_formal, (n_rows, n_cols, x0, y0, cell),
                 grad=grad, sig_grad=sig_rot,
             )  # fmt: skip
-            if candidate is not None:
+            for candidate, straight in tries:
                 # one fit with the candidate lines, then the points confirm and place them
                 first = fit_spline_field(
                     a[cells.points], breaklines=candidate, progress=scaled(progress, 0.9, 0.95),
@@ -2323,6 +2323,9 @@ def windowed_icp(
                     first.field, a[cells.points], straight, before=b, tree=tree,
                     normals=normals, gate_m=gate, cell_m=cell,
                 )  # fmt: skip
+                if lines is not None:
+                    break
+            if tries:
                 lines_source = "none" if lines is None else "detected"
                 progress = scaled(progress, 0.95, 1.0)
         weights = None
@@ -2729,18 +2732,63 @@ def _detect_lines(
 
 def candidate_lines(cells, d, usable, cov_formal, lattice, *, grad=None, sig_grad=None):
     """The breaklines the cells' motions propose, for the points to confirm: the edges of
-    :func:`_detect_lines`, else the straight step of :func:`_scan_line` (a fault across a
-    lobe, which the edge test misses). ``lattice``: ``(n_rows, n_cols, x0, y0, cell_m)``.
-    Returns ``(lines or None, straight step or None)``; the one-file and the tiled run share
-    it."""
+    :func:`_detect_lines`, the straight step of :func:`_scan_line` (a fault across a lobe,
+    which the edge test misses or follows only part of the way), or the straight step
+    first and the edges second where most of the edges lie along it
+    (:data:`SCAN_COVER_SHARE`). ``lattice``: ``(n_rows, n_cols, x0, y0, cell_m)``.
+    Returns a list of ``(lines, straight step or None)`` to try in turn until the points
+    confirm one (empty: none proposed); the one-file and the tiled run share it."""
     n_rows, n_cols, x0, y0, cell = lattice
     lines = _detect_lines(
         cells, d, usable, cov_formal, n_rows, n_cols, x0, y0, cell, grad=grad, sig_grad=sig_grad
     )
-    straight = None
+    straight = _scan_line(cells, d, usable, n_rows, n_cols, x0, y0, cell)
+    return order_candidates(lines, straight, cell_m=cell)
+
+
+def order_candidates(lines, straight, *, cell_m: float) -> list:
+    """The candidates to try in turn (:func:`candidate_lines`) from the edge test's
+    ``lines`` (Breaklines or None) and the scan's ``straight`` step (StraightStep or None):
+    ``[(lines, None)]``, ``[(straight.line, straight)]``, both with the straight one first
+    where the edges lie along it (:data:`SCAN_COVER_SHARE`), or ``[]``."""
+    if straight is None:
+        return [] if lines is None else [(lines, None)]
     if lines is None:
-        straight = _scan_line(cells, d, usable, n_rows, n_cols, x0, y0, cell)
-    return (lines if straight is None else straight.line), straight
+        return [(straight.line, straight)]
+    along = _share_along(lines, straight.line, SCAN_COVER_CELLS * cell_m)
+    if along < SCAN_COVER_SHARE:
+        return [(lines, None)]  # the edges lie elsewhere: another discontinuity
+    log.info(
+        "breaklines: %.0f %% of the edges' lines lie along the straight step: the straight "
+        "line is the first candidate, the edges' the second", 100.0 * along,
+    )  # fmt: skip
+    return [(straight.line, straight), (lines, None)]
+
+
+#: the straight scan's line is tried before the edge test's lines when this share of their
+#: length lies within SCAN_COVER_CELLS cells of it (a rotating block's outline, two edge
+#: lines at right angles, lies half along a straight line through one of its sides: 53 %
+#: in tests/core/test_icp_choice.py's slump): one step seen both ways, which a
+#: straight line across the data places better than a chain of cell edges that stops or
+#: bends where the ground around the step deforms (a fault across a lobe in a survey larger
+#: than the lobe; issue #29, stop 58); the edges' lines are tried next when the points drop
+#: the straight one
+SCAN_COVER_SHARE = 0.75
+SCAN_COVER_CELLS = 1.5
+
+
+def _share_along(lines, line, within_m: float) -> float:
+    """Share of the length of ``lines`` (Breaklines) within ``within_m`` of ``line``."""
+    from .breaklines import distance_m
+
+    pts = []
+    for part in lines.parts:
+        seg = np.diff(part, axis=0)
+        n = np.maximum(np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / (0.1 * within_m)), 1)
+        for p0, dv, k in zip(part[:-1], seg, n.astype(int)):
+            pts.append(p0 + (np.arange(k) + 0.5)[:, None] / k * dv)
+    q = np.vstack(pts)
+    return float(np.mean(distance_m(q, line) <= within_m))
 
 
 def confirm_lines(field, after, straight, *, before, tree, normals, gate_m, cell_m):

@@ -236,3 +236,101 @@ def test_a_scarp_that_ends_inside_the_area_is_cut_to_where_it_steps(monkeypatch)
     assert np.max(ends[:, 0]) < block.tip[0] + P_CELL  # not on across the still ground
     monkeypatch.setattr(bp, "PLACE_TRIM", False)
     assert windowed_icp(before, after, **kw).breaklines is None
+
+
+class _Sum:
+    def __init__(self, *fields):
+        self.fields = fields
+
+    def __call__(self, xy):
+        return sum(f(xy) for f in self.fields)
+
+
+def _survey(field, n_c=24, n_r=20):
+    """Cells of 5 m over a 120 m x 100 m survey: centres and the field there."""
+    x = (np.arange(n_c) + 0.5) * CELL
+    y = n_r * CELL - (np.arange(n_r) + 0.5) * CELL
+    gx, gy = np.meshgrid(x, y)
+    return x, y, field(np.c_[gx.ravel(), gy.ravel()]).reshape(n_r, n_c, 3)
+
+
+def test_across_a_survey_larger_than_its_lobes_the_scan_follows_them_along_the_line(
+    monkeypatch,
+):
+    # the harness's fault across a 120 m x 100 m survey with two lobes 70 m apart along
+    # it: one quadratic along the band's 130 m cannot follow both, its residuals swamp the
+    # 0.3 m step and the scan proposes nothing (the premise, SCAN_QUADRATIC_CELLS off);
+    # with hat functions along the line it finds the fault
+    from slipmap.core import breaklines as bl
+
+    centre = np.array([60.0, 50.0])
+    u = np.array([math.sin(math.radians(60.0)), math.cos(math.radians(60.0))])
+    lobes = _Sum(
+        LobeField(tuple(centre - 35.0 * u), 16.0, 20.0, 0.0, (0.3, -0.75, -0.3)),
+        LobeField(tuple(centre + 35.0 * u), 16.0, 20.0, 0.0, (-0.45, -0.6, -0.3)),
+    )
+    trace = _trace(centre, 60.0, half_m=100.0)
+    fault = FaultField(tuple(map(tuple, trace)), slip_m=0.3, throw_m=0.05, base=lobes)
+    truth = breaklines([trace])
+    x, y, clean = _survey(fault)
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        d = clean + rng.normal(0.0, 0.01, clean.shape)
+        valid = rng.random(clean.shape[:2]) > 0.15
+        found = scan_straight_step(d, x=x, y=y, valid=valid)
+        assert found is not None, seed
+        assert abs(found.angle_deg - 30.0) <= 7.5, (seed, found.angle_deg)
+        assert distance_m(_over(found.line, hi=100.0), truth).max() <= CELL, seed
+        assert 0.2 <= np.linalg.norm(found.step_m) <= 0.45, found.step_m
+        with monkeypatch.context() as m:
+            m.setattr(bl, "SCAN_QUADRATIC_CELLS", np.inf)
+            old = scan_straight_step(d, x=x, y=y, valid=valid)
+        assert old is None or abs(old.angle_deg - 30.0) > 7.5, (seed, old.angle_deg)
+
+
+def test_on_small_grids_the_scan_fits_one_quadratic_along_the_band(monkeypatch):
+    # the hat functions start beyond SCAN_QUADRATIC_CELLS: on a grid of lone-star's size
+    # (7 x 9 cells of 5 m: the harness's scenes) the scan is the quadratic's, to the digit
+    from slipmap.core import breaklines as bl
+
+    x, y, clean = _survey(_fault(centre=(17.5, 22.5), scale=0.7), n_c=7, n_r=9)
+    rng = np.random.default_rng(0)
+    d = clean + rng.normal(0.0, 0.01, clean.shape)
+    valid = rng.random(clean.shape[:2]) > 0.1
+    found = scan_straight_step(d, x=x, y=y, valid=valid)
+    monkeypatch.setattr(bl, "SCAN_QUADRATIC_CELLS", np.inf)
+    same = scan_straight_step(d, x=x, y=y, valid=valid)
+    assert found.angle_deg == same.angle_deg and found.f_stat == same.f_stat
+    np.testing.assert_array_equal(found.step_m, same.step_m)
+
+
+def _step(a, b):
+    from slipmap.core.breaklines import StraightStep
+
+    return StraightStep(line=breaklines([np.array([a, b])]), angle_deg=30.0,
+                        step_m=np.array([0.3, 0.0, 0.0]), rms_m=0.04, f_stat=80.0,
+                        n_cells=90)  # fmt: skip
+
+
+def test_the_straight_step_is_tried_first_where_the_edges_lie_along_it():
+    from slipmap.core.icp import order_candidates
+
+    straight = _step((0.0, 0.0), (120.0, 0.0))
+    part = breaklines([np.array([[60.0, 1.0], [118.0, 2.0]])])  # half of it, 1-2 m off
+    bent = breaklines([np.array([[60.0, 1.0], [104.0, 2.0], [106.0, 12.0]])])  # then turns
+    whole = breaklines([np.array([[-2.0, 2.0], [122.0, -1.0]])])
+    elsewhere = breaklines([np.array([[10.0, 40.0], [90.0, 60.0]])])
+    # a block's outline: one side along the straight line, the other across it
+    corner = breaklines(
+        [np.array([[40.0, 1.0], [80.0, 1.0]]), np.array([[80.0, 1.0], [80.0, 40.0]])]
+    )
+    for edges in (part, bent, whole):
+        got = order_candidates(edges, straight, cell_m=CELL)
+        assert [g[1] for g in got] == [straight, None]
+        assert got[1][0] is edges
+    # edges that lie elsewhere or only partly along it: the edges alone, as without the scan
+    for edges in (elsewhere, corner):
+        assert order_candidates(edges, straight, cell_m=CELL) == [(edges, None)]
+    assert order_candidates(None, straight, cell_m=CELL) == [(straight.line, straight)]
+    assert order_candidates(part, None, cell_m=CELL) == [(part, None)]
+    assert order_candidates(None, None, cell_m=CELL) == []
