@@ -637,10 +637,6 @@ SCAN_MIN_SIDE_CELLS = 4
 #: residuals swamp the step and the fault is not proposed (issue #29, stop 58)
 SCAN_QUADRATIC_CELLS = 12.0
 SCAN_ALONG_KNOT_CELLS = 4.0
-#: ... and the best line of the coarse scan is refined in direction (steps of this many
-#: degrees, up to the coarse step either way; 0: not refined) and offset (quarter cells, up
-#: to a cell either way)
-SCAN_REFINE_DEG = 1.5
 #: on the points, the field fitted with the candidate may jump across it by at most this
 #: many times the step the cells saw, at every station along it (more: the two sides'
 #: fields are carried over ground the line cuts wrongly, e.g. a straight line through a
@@ -814,15 +810,6 @@ def scan_straight_step(
     for th in np.radians(np.arange(0.0, 180.0, angle_step_deg)):
         for rho in np.arange(-r_max, r_max + 1e-9, SCAN_OFFSET_STEP_CELLS):
             best = better(best, fit(th, rho))
-    if best is not None and SCAN_REFINE_DEG > 0:
-        # the best line refined between its neighbouring directions and offsets: a scarp
-        # between two of the coarse directions is otherwise proposed up to half a step
-        # off, and at a survey's extent its ends leave the band (issue #29, stop 58)
-        th0, rho0 = best[1], best[2]
-        half = np.radians(angle_step_deg)
-        for th in th0 + np.arange(-half, half + 1e-9, np.radians(SCAN_REFINE_DEG)):
-            for rho in rho0 + np.arange(-1.0, 1.0 + 1e-9, 0.5 * SCAN_OFFSET_STEP_CELLS):
-                best = better(best, fit(th, rho))
     if best is None:
         return None
     f, th, rho, step, rms, n_band = best
