@@ -28,6 +28,7 @@ __all__ = [
     "crossings",
     "same_side",
     "distance_m",
+    "share_within",
     "from_sequence",
     "given_breaklines",
     "detect_breaklines",
@@ -207,6 +208,18 @@ def distance_m(points: np.ndarray, lines: Breaklines, *, chunk: int = 65536) -> 
         foot = a[None] + t[..., None] * d[None]
         out[lo : lo + len(pp)] = np.sqrt(((pp - foot) ** 2).sum(axis=2)).min(axis=1)
     return out
+
+
+def share_within(lines: Breaklines, line: Breaklines, within_m: float) -> float:
+    """Share of the length of ``lines`` within ``within_m`` (metres) of ``line``, sampled
+    every tenth of ``within_m`` along each segment."""
+    pts = []
+    for part in lines.parts:
+        seg = np.diff(part, axis=0)
+        n = np.maximum(np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / (0.1 * within_m)), 1)
+        for p0, dv, k in zip(part[:-1], seg, n.astype(int)):
+            pts.append(p0 + (np.arange(k) + 0.5)[:, None] / k * dv)
+    return float(np.mean(distance_m(np.vstack(pts), line) <= within_m))
 
 
 def from_sequence(parts: Sequence[np.ndarray] | Breaklines | None) -> Breaklines | None:
@@ -782,34 +795,31 @@ def scan_straight_step(
     q = (pos - ctr) / cell  # in cells
     r_max = float(np.max(np.hypot(q[:, 0], q[:, 1])))
 
-    def fit(th, rho):  # (F, th, rho, step, rms, cells) of one line, None if not fitted
-        t = np.array([np.cos(th), np.sin(th)])
-        v = q @ np.array([-t[1], t[0]]) - rho
-        band = (np.abs(v) <= band_cells) & (np.abs(v) >= SCAN_GAP_CELLS)
-        side = np.sign(v[band])
-        n_l, n_r = int(np.sum(side > 0)), int(np.sum(side < 0))
-        if min(n_l, n_r) < SCAN_MIN_SIDE_CELLS:
-            return None
-        x0 = _band_design((q @ t)[band], v[band] / band_cells)
-        x1 = np.column_stack([x0, 0.5 * side])
-        obs = vec[band]
-        dof = n_k * (len(obs) - x1.shape[1])
-        if dof <= 0:
-            return None
-        c0 = np.linalg.lstsq(x0, obs, rcond=None)[0]
-        c1 = np.linalg.lstsq(x1, obs, rcond=None)[0]
-        rss0 = float(np.sum((obs - x0 @ c0) ** 2))
-        rss1 = float(np.sum((obs - x1 @ c1) ** 2))
-        f = (rss0 - rss1) / n_k / max(rss1 / dof, 1e-300)
-        return (f, th, rho, c1[-1], np.sqrt(rss1 / dof), int(band.sum()))
-
-    def better(best, got):
-        return got if got is not None and (best is None or got[0] > best[0]) else best
-
     best = None
     for th in np.radians(np.arange(0.0, 180.0, angle_step_deg)):
+        t = np.array([np.cos(th), np.sin(th)])
+        nrm = np.array([-t[1], t[0]])
+        u_all, v_all = q @ t, q @ nrm
         for rho in np.arange(-r_max, r_max + 1e-9, SCAN_OFFSET_STEP_CELLS):
-            best = better(best, fit(th, rho))
+            v = v_all - rho
+            band = (np.abs(v) <= band_cells) & (np.abs(v) >= SCAN_GAP_CELLS)
+            side = np.sign(v[band])
+            n_l, n_r = int(np.sum(side > 0)), int(np.sum(side < 0))
+            if min(n_l, n_r) < SCAN_MIN_SIDE_CELLS:
+                continue
+            x0 = _band_design(u_all[band], v[band] / band_cells)
+            x1 = np.column_stack([x0, 0.5 * side])
+            obs = vec[band]
+            dof = n_k * (len(obs) - x1.shape[1])
+            if dof <= 0:
+                continue
+            c0 = np.linalg.lstsq(x0, obs, rcond=None)[0]
+            c1 = np.linalg.lstsq(x1, obs, rcond=None)[0]
+            rss0 = float(np.sum((obs - x0 @ c0) ** 2))
+            rss1 = float(np.sum((obs - x1 @ c1) ** 2))
+            f = (rss0 - rss1) / n_k / max(rss1 / dof, 1e-300)
+            if best is None or f > best[0]:
+                best = (f, th, rho, c1[-1], np.sqrt(rss1 / dof), int(band.sum()))
     if best is None:
         return None
     f, th, rho, step, rms, n_band = best

@@ -2755,7 +2755,9 @@ def order_candidates(lines, straight, *, cell_m: float) -> list:
         return [] if lines is None else [(lines, None)]
     if lines is None:
         return [(straight.line, straight)]
-    along = _share_along(lines, straight.line, SCAN_COVER_CELLS * cell_m)
+    from .breaklines import share_within
+
+    along = share_within(lines, straight.line, SCAN_COVER_CELLS * cell_m)
     if along < SCAN_COVER_SHARE:
         return [(lines, None)]  # the edges lie elsewhere: another discontinuity
     log.info(
@@ -2775,20 +2777,6 @@ def order_candidates(lines, straight, *, cell_m: float) -> list:
 #: the straight one
 SCAN_COVER_SHARE = 0.75
 SCAN_COVER_CELLS = 1.5
-
-
-def _share_along(lines, line, within_m: float) -> float:
-    """Share of the length of ``lines`` (Breaklines) within ``within_m`` of ``line``."""
-    from .breaklines import distance_m
-
-    pts = []
-    for part in lines.parts:
-        seg = np.diff(part, axis=0)
-        n = np.maximum(np.ceil(np.hypot(seg[:, 0], seg[:, 1]) / (0.1 * within_m)), 1)
-        for p0, dv, k in zip(part[:-1], seg, n.astype(int)):
-            pts.append(p0 + (np.arange(k) + 0.5)[:, None] / k * dv)
-    q = np.vstack(pts)
-    return float(np.mean(distance_m(q, line) <= within_m))
 
 
 def confirm_lines(field, after, straight, *, before, tree, normals, gate_m, cell_m):
