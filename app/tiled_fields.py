@@ -943,7 +943,7 @@ def _cell_weights(cells, d, ok, converged, flagged, at, cells_res):
 CORRIDOR_POINT_BYTES = 200.0
 
 
-def _confirm_lines_tiled(field, straight, blocks, *, engine, gate_m, cell_m, progress):
+def _confirm_lines_tiled(field, straight, blocks, *, engine, gate_m, cell_m, again, progress):
     """Candidate breaklines (``field.lines``) confirmed and placed by the points near them, as
     the one-file run does (:func:`~slipmap.core.icp.confirm_lines`): each block returns its
     after-points within a cell of the lines and the epoch-1 points within reach of their
@@ -987,8 +987,9 @@ def _confirm_lines_tiled(field, straight, blocks, *, engine, gate_m, cell_m, pro
         len(a), len(b), len(blocks),
     )  # fmt: skip
     return confirm_lines(
-        field, a, straight, before=b, tree=tree, normals=normals, gate_m=gate_m, cell_m=cell_m
-    )
+        field, a, straight, before=b, tree=tree, normals=normals, gate_m=gate_m, cell_m=cell_m,
+        again=again,
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- the jobs
@@ -1361,6 +1362,7 @@ def _icp_spline_tiled(
         finish_cells,
         spline_cells,
         take_own_fits,
+        try_candidates,
     )
     from ..core.icp_choice import ChoiceCosts, choose_cells, no_worse
     from ..core.icp_spline import MIN_SPLINE_CELLS, SplineCellsError, fit_spline_chunks, knot_frame
@@ -1509,19 +1511,22 @@ def _icp_spline_tiled(
         first, span = None, (0.55, 1.0)
         if lines is None and spline_kw.get("detect"):
             tries = _candidate_lines(cells, d, usable & ~flagged_c, at, cells_res, lattice)
-            for candidate, straight in tries:  # as the one-file run: fit, confirm, refit
+
+            def fit(candidate):  # as the one-file run: fit, confirm, refit
                 frame, run = fitter(candidate, 0.0, "candidate")
-                first = fit_spline_chunks(
+                return fit_spline_chunks(
                     run, frame=frame, initial=start, progress=scaled(pg, 0.55, 0.75),
                     defer_report=True, **fit_kw,
                 )  # fmt: skip
+
+            def confirm(field, straight, again):
                 outer(0.75, "breaklines: the points near the candidates")
-                lines = _confirm_lines_tiled(
-                    first.field, straight, [blocks[i] for i in live], engine=engine,
-                    gate_m=gate, cell_m=cell, progress=cancel_only if progress else None,
+                return _confirm_lines_tiled(
+                    field, straight, [blocks[i] for i in live], engine=engine, gate_m=gate,
+                    cell_m=cell, again=again, progress=cancel_only if progress else None,
                 )  # fmt: skip
-                if lines is not None:
-                    break
+
+            lines, first = try_candidates(tries, fit, confirm)
             if tries:
                 lines_source = "none" if lines is None else "detected"
                 span = (0.8, 1.0)

@@ -95,6 +95,14 @@ class StraightPlacement:
         Offset of the placed line from the candidate at the data's middle, metres.
     turn_deg : float
         Its turn from the candidate's direction, degrees.
+    cut : bool
+        The candidate was cut to the stretch along which the field steps (judged station by
+        station along the candidate, before it was turned).
+    on_points : Breaklines or None
+        The straight line the decisive points place (``line`` where the candidate is
+        kept), also where the candidate is dropped on its jump or along-share while those
+        points still take sides along a straight line (at most ``max_wrong_share`` on the
+        wrong one); None otherwise.
     """
 
     line: Optional[Breaklines]
@@ -103,6 +111,8 @@ class StraightPlacement:
     wrong_share: float
     shift_m: float
     turn_deg: float
+    cut: bool = False
+    on_points: Optional[Breaklines] = None
 
 
 def _stepping_run(st_med, n_st, n_left, st_min, max_jump_m) -> Optional[Tuple[int, int]]:
@@ -253,16 +263,48 @@ def place_straight_line(
             "the %.3f m the cells allow", float(st_jump.max()), max_jump_m,
         )  # fmt: skip
         return StraightPlacement(None, jump, 0, float("nan"), 0.0, 0.0)
-    if jump < min_jump_m or n_dec < PLACE_MIN_DECISIVE or along < min_along_share:
+    if n_dec < PLACE_MIN_DECISIVE:
+        log.info("straight breakline dropped: %d decisive points", n_dec)
+        return StraightPlacement(None, jump, n_dec, float("nan"), 0.0, 0.0)
+    side = np.where(v_l[decisive] < v_r[decisive], 1.0, -1.0)  # +1: left
+    placed, fewest, off, dt = _best_line(a[decisive, :2], side, e0, e1, reach_m, angle_range_deg)
+    share = fewest / n_dec
+    turn = float(np.degrees(dt))
+    if jump < min_jump_m or along < min_along_share:
         log.info(
             "straight breakline dropped: the field jumps by %.3f m across it (median; "
             "%.3f m needed) and by %.3f m along %.0f %% of it (%.0f %% needed), %d decisive "
-            "points", jump, min_jump_m, st_min, 100.0 * along, 100.0 * min_along_share, n_dec,
+            "points (the best straight line on them: turned %.1f°, %.0f %% on the wrong "
+            "side)", jump, min_jump_m, st_min, 100.0 * along, 100.0 * min_along_share, n_dec,
+            turn, 100.0 * share,
         )  # fmt: skip
-        return StraightPlacement(None, jump, n_dec, float("nan"), 0.0, 0.0)
-    p = a[decisive, :2]
-    side = np.where(v_l[decisive] < v_r[decisive], 1.0, -1.0)  # +1: left
-    # the line turns about the decisive points' middle, on the candidate
+        return StraightPlacement(
+            None, jump, n_dec, share, off, turn,
+            on_points=placed if share <= max_wrong_share else None,
+        )  # fmt: skip
+    if share > max_wrong_share:
+        log.info(
+            "straight breakline dropped: the best straight line leaves %.0f %% of %d decisive "
+            "points on the wrong side", 100.0 * share, n_dec,
+        )  # fmt: skip
+        return StraightPlacement(None, jump, n_dec, share, 0.0, 0.0)
+    log.info(
+        "straight breakline placed on %d decisive points (%.1f %% on the wrong side): "
+        "shifted %.2f m, turned %.1f°, the field jumps by %.3f m (%.0f %% of its stations)",
+        n_dec, 100.0 * share, off, turn, jump, 100.0 * along,
+    )  # fmt: skip
+    return StraightPlacement(
+        placed, jump, n_dec, share, off, turn, cut=run is not None, on_points=placed
+    )
+
+
+def _best_line(p, side, e0, e1, reach_m, angle_range_deg):
+    """The straight line, turned by up to ``angle_range_deg`` from the candidate ``e0`` ->
+    ``e1`` about the decisive points' middle on it and shifted by up to ``reach_m``, that
+    leaves the fewest of the decisive points ``p`` (D, 2) off their ``side`` (D,: +1 left,
+    -1 right): ``(line, fewest, shift_m, turn_rad)``, the line as far along as the
+    candidate reached; of several best (turn, shift) pairs, the middle one."""
+    t0 = (e1 - e0) / max(float(np.hypot(*(e1 - e0))), 1e-12)
     mid = e0 + float(np.median((p - e0) @ t0)) * t0
     th0 = float(np.arctan2(t0[1], t0[0]))
     turns = np.radians(np.arange(-angle_range_deg, angle_range_deg + 1e-9, PLACE_ANGLE_STEP_DEG))
@@ -275,14 +317,6 @@ def place_straight_line(
         # a point is on the wrong side of the line at offset o when sign(s - o) != side
         wrong[i] = [np.count_nonzero(np.sign(s - o) != side) for o in offsets]
     fewest = int(wrong.min())
-    share = fewest / n_dec
-    if share > max_wrong_share:
-        log.info(
-            "straight breakline dropped: the best straight line leaves %.0f %% of %d decisive "
-            "points on the wrong side", 100.0 * share, n_dec,
-        )  # fmt: skip
-        return StraightPlacement(None, jump, n_dec, share, 0.0, 0.0)
-    # the middle of the best (turn, offset) pairs
     ii, jj = np.nonzero(wrong == fewest)
     k = int(
         np.argmin(
@@ -292,15 +326,8 @@ def place_straight_line(
     )
     dt, off = float(turns[ii[k]]), float(offsets[jj[k]])
     t = np.array([np.cos(th0 + dt), np.sin(th0 + dt)])
-    n = np.array([-t[1], t[0]])
-    centre = mid + off * n
-    # as far along as the candidate reached
+    centre = mid + off * np.array([-t[1], t[0]])
     reach_0 = float((e0 - mid) @ t0)
     reach_1 = float((e1 - mid) @ t0)
     placed = from_sequence([np.array([centre + reach_0 * t, centre + reach_1 * t])])
-    log.info(
-        "straight breakline placed on %d decisive points (%.1f %% on the wrong side): "
-        "shifted %.2f m, turned %.1f°, the field jumps by %.3f m (%.0f %% of its stations)",
-        n_dec, 100.0 * share, off, np.degrees(dt), jump, 100.0 * along,
-    )  # fmt: skip
-    return StraightPlacement(placed, jump, n_dec, share, off, float(np.degrees(dt)))
+    return placed, fewest, off, dt

@@ -35,6 +35,7 @@ __all__ = [
     "step_edges",
     "StraightStep",
     "scan_straight_step",
+    "straight_across",
 ]
 
 
@@ -683,6 +684,9 @@ class StraightStep:
         residual variance).
     n_cells : int
         Cells in the band.
+    box_m : ndarray, shape (2, 2), optional
+        The box the line crosses (its lower and upper x, y corners: the vectors' box and a
+        cell beyond), metres; :func:`straight_across` draws another line across it.
     """
 
     line: Breaklines
@@ -691,6 +695,7 @@ class StraightStep:
     rms_m: float
     f_stat: float
     n_cells: int
+    box_m: np.ndarray | None = None
 
 
 def _poly2(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -830,16 +835,29 @@ def scan_straight_step(
     nrm = np.array([-t[1], t[0]])
     mid = ctr + rho * cell * nrm
     # across the vectors' box and a cell beyond, both ways
-    lo = pos.min(axis=0) - cell
-    hi = pos.max(axis=0) + cell
-    ends = np.array(
-        [mid - _exit_distance(mid, -t, lo, hi) * t, mid + _exit_distance(mid, t, lo, hi) * t]
-    )
-    line = from_sequence([ends])
+    box = np.array([pos.min(axis=0) - cell, pos.max(axis=0) + cell])
+    line = straight_across(mid, t, box)
     if line is None:
         return None
     return StraightStep(line=line, angle_deg=float(np.degrees(th)), step_m=np.asarray(step),
-                        rms_m=float(rms), f_stat=float(f), n_cells=n_band)  # fmt: skip
+                        rms_m=float(rms), f_stat=float(f), n_cells=n_band,
+                        box_m=box)  # fmt: skip
+
+
+def straight_across(
+    point: np.ndarray, direction: np.ndarray, box_m: np.ndarray
+) -> Breaklines | None:
+    """The straight line through ``point`` (2,) along ``direction`` (2,), from one side of
+    the box ``box_m`` (2, 2: lower and upper x, y corners, metres) to the other; None when
+    the point lies outside the box."""
+    p = np.asarray(point, dtype=np.float64)
+    t = np.asarray(direction, dtype=np.float64)
+    t = t / max(float(np.hypot(*t)), 1e-12)
+    lo, hi = np.asarray(box_m, dtype=np.float64)
+    if np.any(p < lo) or np.any(p > hi):
+        return None
+    ends = np.array([p - _exit_distance(p, -t, lo, hi) * t, p + _exit_distance(p, t, lo, hi) * t])
+    return from_sequence([ends])
 
 
 def _exit_distance(p, t, lo, hi) -> float:

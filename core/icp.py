@@ -2313,18 +2313,20 @@ def windowed_icp(
                 cells, d, usable & ~flagged, cov_formal, (n_rows, n_cols, x0, y0, cell),
                 grad=grad, sig_grad=sig_rot,
             )  # fmt: skip
-            for candidate, straight in tries:
-                # one fit with the candidate lines, then the points confirm and place them
-                first = fit_spline_field(
+
+            def fit(candidate):  # one fit with the candidate lines ...
+                return fit_spline_field(
                     a[cells.points], breaklines=candidate, progress=scaled(progress, 0.9, 0.95),
                     defer_report=True, **spline_kw,
                 )  # fmt: skip
-                lines = confirm_lines(
-                    first.field, a[cells.points], straight, before=b, tree=tree,
-                    normals=normals, gate_m=gate, cell_m=cell,
+
+            def confirm(field, straight, again):  # ... then the points confirm and place them
+                return confirm_lines(
+                    field, a[cells.points], straight, before=b, tree=tree, normals=normals,
+                    gate_m=gate, cell_m=cell, again=again,
                 )  # fmt: skip
-                if lines is not None:
-                    break
+
+            lines, first = try_candidates(tries, fit, confirm)
             if tries:
                 lines_source = "none" if lines is None else "detected"
                 progress = scaled(progress, 0.95, 1.0)
@@ -2779,13 +2781,29 @@ SCAN_COVER_SHARE = 0.75
 SCAN_COVER_CELLS = 1.5
 
 
-def confirm_lines(field, after, straight, *, before, tree, normals, gate_m, cell_m):
+#: a straight candidate cut to the stretch along which the field steps, or dropped on its
+#: jump, while its decisive points place a line turned by at least this much, was judged
+#: station by station along the unturned line, which leaves the step where the scan's
+#: direction is off (7.5°, its angle step, is 4.6 m over 35 m, about a cell): the placed
+#: line, across the survey, is fitted and judged again (:func:`try_candidates`; issue #29,
+#: stop 59: the ALS slab at a survey's extent)
+RETRY_TURN_DEG = 2.0
+
+
+def confirm_lines(field, after, straight, *, before, tree, normals, gate_m, cell_m, again=True):
     """The candidate breaklines of a field fitted with them (``field.lines``), confirmed and
     placed by the points within a cell of them (``after``: at least those):
     :func:`~slipmap.core.breakline_points.place_straight_line` for a ``straight`` step
-    (:func:`candidate_lines`), else :func:`~slipmap.core.icp_spline.refine_breaklines`;
-    None when none is confirmed. ``before``, ``tree``, ``normals``: epoch 1 around them (the
-    one-file run's whole epoch, or a tiled run's corridor)."""
+    (:func:`candidate_lines`), else :func:`~slipmap.core.icp_spline.refine_breaklines`.
+    ``before``, ``tree``, ``normals``: epoch 1 around them (the one-file run's whole epoch,
+    or a tiled run's corridor).
+
+    Returns ``(lines, retry)``: the confirmed lines (None when none is), and, with
+    ``again``, for a straight step cut to part of its length or dropped on its jump,
+    whose decisive points place a straight line turned by :data:`RETRY_TURN_DEG` or more
+    from it, that line across the scan's box as a new candidate (a
+    :class:`~slipmap.core.breaklines.StraightStep`) to fit and judge in its place (None
+    otherwise)."""
     from .breaklines import DETECT_FLOOR_M
 
     near_kw = dict(before=before, tree=tree, normals=normals, gate_m=gate_m, reach_m=cell_m)
@@ -2794,14 +2812,68 @@ def confirm_lines(field, after, straight, *, before, tree, normals, gate_m, cell
         from .breaklines import SCAN_MAX_JUMP_STEPS, SCAN_MIN_JUMP_STEPS
 
         step_m = float(np.linalg.norm(straight.step_m))
-        return place_straight_line(
+        placed = place_straight_line(
             field, after, station_jump_m=DETECT_FLOOR_M,
             min_jump_m=max(DETECT_FLOOR_M, SCAN_MIN_JUMP_STEPS * step_m),
             max_jump_m=SCAN_MAX_JUMP_STEPS * step_m, **near_kw,
-        ).line  # fmt: skip
+        )  # fmt: skip
+        retry = None
+        turned = abs(placed.turn_deg) >= RETRY_TURN_DEG and placed.on_points is not None
+        if again and turned and (placed.cut or placed.line is None):
+            retry = _across(straight, placed.on_points)
+        return placed.line, retry
     from .icp_spline import refine_breaklines
 
-    return refine_breaklines(field, after, min_jump_m=DETECT_FLOOR_M, **near_kw)
+    return refine_breaklines(field, after, min_jump_m=DETECT_FLOOR_M, **near_kw), None
+
+
+def _across(straight, placed):
+    """The straight step ``straight`` moved onto the line ``placed`` (one straight part, cut
+    to part of the survey), drawn across the scan's box; None without a box."""
+    import dataclasses
+
+    from .breaklines import straight_across
+
+    if straight.box_m is None or placed is None:
+        return None
+    e0, e1 = placed.parts[0][0], placed.parts[0][-1]
+    line = straight_across(0.5 * (e0 + e1), e1 - e0, straight.box_m)
+    if line is None:
+        return None
+    ang = float(np.degrees(np.arctan2(e1[1] - e0[1], e1[0] - e0[0]))) % 180.0
+    return dataclasses.replace(straight, line=line, angle_deg=ang)
+
+
+def try_candidates(tries, fit, confirm):
+    """Fit the field with each candidate of ``tries`` (:func:`candidate_lines`) in turn and
+    let the points confirm it, until they confirm one; the one-file and the tiled run share
+    it. ``fit(lines)`` fits the field with candidate lines and returns the fit (its
+    ``.field``); ``confirm(field, straight, again)`` is :func:`confirm_lines` on the
+    run's points. A straight candidate placed on part of its length, or dropped, whose
+    decisive points place a line turned from it (:data:`RETRY_TURN_DEG`) is fitted and
+    judged once more along that line across the survey, and taken where the points confirm
+    it there; else the cut line stands (or the candidate stays dropped).
+
+    Returns ``(lines, first)``: the confirmed lines (None when none is) and the fit with
+    the candidate they came from (the last one tried when none is; None without
+    candidates), where the final fit starts."""
+    lines = first = None
+    for candidate, straight in tries:
+        first = fit(candidate)
+        lines, retry = confirm(first.field, straight, True)
+        if retry is not None:
+            log.info(
+                "breaklines: the points place the straight candidate turned (%s): fitted "
+                "again along their line, across the survey",
+                "on part of it" if lines is not None else "it was dropped",
+            )  # fmt: skip
+            second = fit(retry.line)
+            across, _ = confirm(second.field, retry, False)
+            if across is not None:
+                lines, first = across, second
+        if lines is not None:
+            break
+    return lines, first
 
 
 def _scan_line(cells, d, usable, n_rows, n_cols, x0, y0, cell):

@@ -9,6 +9,7 @@ import logging
 import math
 
 import numpy as np
+import pytest
 from test_icp import UTM, surface
 
 from slipmap.core.breaklines import (
@@ -16,9 +17,10 @@ from slipmap.core.breaklines import (
     detect_breaklines,
     distance_m,
     scan_straight_step,
+    straight_across,
 )
 from slipmap.core.icp import windowed_icp
-from slipmap.core.synthetic import FaultField, LobeField, material_motion
+from slipmap.core.synthetic import FaultField, LobeField, SlabField, material_motion
 
 CELL = 5.0
 N = 10  # cells a side
@@ -118,12 +120,13 @@ def test_the_scan_proposes_nothing_on_gentle_smooth_fields():
 P_CELL, SIDE = 5.0, 50.0
 
 
-def _pair(field, seed=0, n=60_000):
-    """Rough terrain (3 mm noise) sampled twice; the second sampling moved by ``field``."""
+def _pair(field, seed=0, n=60_000, side=SIDE):
+    """Rough terrain (3 mm noise) sampled twice over a ``side`` m square; the second
+    sampling moved by ``field``."""
     rng = np.random.default_rng(seed)
 
     def sample():
-        xy = rng.uniform(0.0, SIDE, (n, 2))
+        xy = rng.uniform(0.0, side, (n, 2))
         return np.c_[xy, surface(xy) + rng.normal(0.0, 0.003, n)]
 
     b, a = sample(), sample()
@@ -334,3 +337,130 @@ def test_the_straight_step_is_tried_first_where_the_edges_lie_along_it():
     assert order_candidates(None, straight, cell_m=CELL) == [(straight.line, straight)]
     assert order_candidates(part, None, cell_m=CELL) == [(part, None)]
     assert order_candidates(None, None, cell_m=CELL) == []
+
+
+# --------------------------------------------------------------------------- a turned retry
+
+
+def test_a_line_across_a_box_runs_from_side_to_side():
+    box = np.array([[0.0, 0.0], [100.0, 50.0]])
+    line = straight_across(np.array([50.0, 25.0]), np.array([2.0, 1.0]), box)
+    np.testing.assert_allclose(line.parts[0], [[0.0, 0.0], [100.0, 50.0]], atol=1e-12)
+    line = straight_across(np.array([20.0, 10.0]), np.array([0.0, -3.0]), box)
+    np.testing.assert_allclose(line.parts[0], [[20.0, 50.0], [20.0, 0.0]], atol=1e-12)
+    assert straight_across(np.array([120.0, 10.0]), np.array([1.0, 0.0]), box) is None
+
+
+class _Fit:
+    def __init__(self, lines):
+        self.field = lines  # the stubs' field is the lines it was fitted with
+
+
+@pytest.mark.parametrize("confirmed_across", [True, False])
+def test_a_cut_and_turned_line_is_fitted_again_across_the_survey_and_kept_where_confirmed(
+    confirmed_across,
+):
+    """try_candidates with stub fits: a straight candidate whose placement was cut and
+    turned is fitted once more along the placed direction across the scan's box; the points'
+    verdict there decides, and where they drop it the cut line stands."""
+    import dataclasses
+
+    from slipmap.core.icp import _across, try_candidates
+
+    box = np.array([[0.0, 0.0], [100.0, 100.0]])
+    cand = dataclasses.replace(_step((0.0, 50.0), (100.0, 50.0)), box_m=box)
+    cut = breaklines([np.array([[30.0, 45.0], [70.0, 55.0]])])  # turned 14°, 41 m long
+    fitted = []
+
+    def fit(lines):
+        fitted.append(lines)
+        return _Fit(lines)
+
+    def confirm(field, straight, again):
+        if field is cand.line:  # the first fit: cut and turned
+            assert again
+            return cut, _across(straight, cut)
+        assert not again and straight.line is field  # the retry, judged once
+        return (field if confirmed_across else None), None
+
+    lines, first = try_candidates([(cand.line, cand)], fit, confirm)
+    assert len(fitted) == 2 and fitted[0] is cand.line
+    p = fitted[1].parts[0]  # the retry: along the cut line, from side to side
+    np.testing.assert_allclose(p, [[0.0, 37.5], [100.0, 62.5]], atol=1e-9)
+    if confirmed_across:
+        assert lines is fitted[1] and first.field is fitted[1]
+    else:
+        assert lines is cut and first.field is cand.line
+
+
+def test_a_line_placed_whole_or_not_turned_is_not_fitted_again():
+    from slipmap.core.icp import try_candidates
+
+    cand = _step((0.0, 50.0), (100.0, 50.0))
+    edges = breaklines([np.array([[10.0, 10.0], [60.0, 20.0]])])
+    fitted = []
+
+    def fit(lines):
+        fitted.append(lines)
+        return _Fit(lines)
+
+    def confirm(field, straight, again):  # the straight line dropped, the edges confirmed
+        return (None if straight is not None else field), None
+
+    lines, first = try_candidates([(cand.line, cand), (edges, None)], fit, confirm)
+    assert fitted == [cand.line, edges] and lines is edges and first.field is edges
+    assert try_candidates([], fit, confirm) == (None, None)
+
+
+@pytest.mark.parametrize(
+    "side, n, premise",
+    [
+        # the field fitted with the candidate jumps by 0.12 m at its points' feet, short of
+        # a quarter of the scan's 0.55 m step: dropped, though its points take sides along a
+        # line turned by 7°
+        (50.0, 60_000, "straight breakline dropped: the field jumps by"),
+        # it steps along 50 m of the 112 m only: cut to them, and turned by 7.5°
+        (100.0, 100_000, "steps along 50 m of the candidate's 112 m"),
+    ],
+)
+def test_a_line_the_scan_proposes_off_its_direction_is_placed_along_the_whole_scarp(
+    side, n, premise, monkeypatch, caplog
+):
+    """A slab's straight scarp across the survey, the scan's proposal turned 7.5° off it
+    (its angle step; the harness's ALS slab at extent, seed 2, got 22.5° for 15°). Judged
+    along the candidate, the step is dropped (50 m survey) or cut to a third of the line
+    (100 m); the decisive points place a line turned onto the scarp, and fitted again along
+    it, across the survey, that line is confirmed along the whole scarp (measured: within
+    0.38 m and 0.43 m of it over 57 m and 109 m). Cut, as before the retry, the cells by
+    the scarp beyond the cut's ends were 0.9-1.5 m off on the harness."""
+    import dataclasses
+
+    import slipmap.core.breaklines as bl
+
+    ang = math.radians(15.0)
+    u = np.array([math.cos(ang), math.sin(ang)])
+    c = np.array([0.5 * side, 0.5 * side])
+    slab = SlabField((c - 200.0 * u, c + 200.0 * u), (0.1, -0.5, -0.2))
+    before, after = _pair(slab, n=n, side=side)
+    real = bl.scan_straight_step
+
+    def turned(d, **kw):
+        s = real(d, **kw)
+        e0, e1 = s.line.parts[0][0], s.line.parts[0][-1]
+        th = math.radians(s.angle_deg + 7.5)
+        line = straight_across(0.5 * (e0 + e1), np.array([math.cos(th), math.sin(th)]), s.box_m)
+        return dataclasses.replace(s, line=line, angle_deg=s.angle_deg + 7.5)
+
+    monkeypatch.setattr(bl, "detect_breaklines", lambda *a, **k: None)  # the scan's case
+    monkeypatch.setattr(bl, "scan_straight_step", turned)
+    kw = dict(cell_m=P_CELL, coarse_to_fine=1, field_model="spline", detect_breaklines=True)
+    with caplog.at_level(logging.INFO, logger="slipmap.core"):
+        res = windowed_icp(before, after, **kw)
+    assert premise in caplog.text
+    assert "fitted again along their line" in caplog.text
+    assert res.breaklines_source == "detected" and len(res.breaklines) == 1
+    line = breaklines([p - UTM[:2] for p in res.breaklines.parts])
+    scarp = breaklines([np.array([c - 200.0 * u, c + 200.0 * u])])
+    p = _over(line, 0.0, side)
+    assert distance_m(p, scarp).max() < 1.0
+    assert line.length_m() > side  # across the survey, not a stretch of it
