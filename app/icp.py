@@ -518,7 +518,6 @@ def run(
         ``data``: ``{"result": WindowedICPResult, "columns": layer_columns, "rings":
         cell_rings, "crs": pyproj CRS or None}``.
     """
-    from ..core.icp import windowed_icp
     from .tiled import is_tiled
 
     tiled = is_tiled(opts, "before", "after")
@@ -543,41 +542,13 @@ def run(
             before = None
         else:
             before, after, crs = read_pair(opts)
-            check_overlap(before, after)
             exclude = None
             if stable_mask is None and opts.get("stable_mask"):
                 stable_mask = _mask_reader(opts["stable_mask"])
             if stable_mask is not None:
                 exclude = stable_mask(crs)
             lines = _breaklines_of(opts, breaklines, crs)
-            check_lattice(after, opts["cell_m"])
-            kw = core_kwargs(opts)
-            if kw["field_model"] == "spline":
-                kw["breaklines"] = lines
-            run_kw = dict(
-                prealign=bool(exclude) or bool(opts.get("prealign")),
-                exclude_polygons=exclude,
-                progress=progress,
-            )
-            try:
-                with spline_errors():
-                    res = windowed_icp(before, after, **run_kw, **kw)
-            except OptionError as exc:
-                if opts.get("field_model") or exc.key != "cell_m":
-                    raise
-                from .options import warn_option
-
-                warn_option(
-                    "too few cells for the default spline field (%s): the field is the "
-                    "cells'; use a smaller {cell_m}, or set {field_model} to cells to "
-                    "silence this",
-                    str(exc),
-                )
-                kw.update(field_model="cells")
-                kw.pop("breaklines", None)
-                kw.pop("detect_breaklines", None)
-                kw.pop("cell_choice", None)
-                res = windowed_icp(before, after, **run_kw, **kw)
+            res = compute(before, after, opts, lines=lines, exclude=exclude, progress=progress)
         comparison = None
         if control is not None:
             field = field_of_columns(
@@ -623,6 +594,57 @@ def run(
     files = {k: plan.final(k) for k in _KEYS if plan.wants(k) and plan.final(k).exists()}
     data = {"result": res, "columns": columns, "rings": rings, "crs": crs}
     return JobResult(summary, lines, files, data=data)
+
+
+def compute(before, after, opts, *, lines=None, exclude=None, progress=None):
+    """Windowed ICP of one epoch pair in memory (the CLI's, QGIS's and PDAL's one-file run).
+
+    Parameters
+    ----------
+    before, after : (N1, 3), (N2, 3) float64
+        The epochs' points, metres, one CRS.
+    opts
+        :data:`SPEC`'s options, parsed.
+    lines : Breaklines, optional
+        Given breaklines (the spline field jumps across them).
+    exclude : list of (K, 2) float64, optional
+        Moving-area polygons left out of the pre-alignment.
+
+    Returns
+    -------
+    WindowedICPResult
+        With too few cells for the default spline field, the cells' field and a warning
+        naming ``cell_m``.
+    """
+    from ..core.icp import windowed_icp
+
+    check_overlap(before, after)
+    check_lattice(after, opts["cell_m"])
+    kw = core_kwargs(opts)
+    if kw["field_model"] == "spline":
+        kw["breaklines"] = lines
+    run_kw = dict(
+        prealign=bool(exclude) or bool(opts.get("prealign")),
+        exclude_polygons=exclude,
+        progress=progress,
+    )
+    try:
+        with spline_errors():
+            return windowed_icp(before, after, **run_kw, **kw)
+    except OptionError as exc:
+        if opts.get("field_model") or exc.key != "cell_m":
+            raise
+        from .options import warn_option
+
+        warn_option(
+            "too few cells for the default spline field (%s): the field is the cells'; use a "
+            "smaller {cell_m}, or set {field_model} to cells to silence this",
+            str(exc),
+        )
+        kw.update(field_model="cells")
+        for k in ("breaklines", "detect_breaklines", "cell_choice"):
+            kw.pop(k, None)
+        return windowed_icp(before, after, **run_kw, **kw)
 
 
 def _breaklines_of(opts, reader, crs):

@@ -24,7 +24,9 @@ No science here: the stages call ``slipmap.core``.
 from __future__ import annotations
 
 import json
+import logging
 import math
+import os
 from dataclasses import dataclass, field
 from typing import Any, Dict, Mapping, Optional, Sequence, Tuple
 
@@ -33,6 +35,8 @@ import numpy as np
 from slipmap.app.options import OptionError
 from slipmap.app.summaries import json_safe
 from slipmap.core.errors import SlipMapError
+
+log = logging.getLogger(__name__)
 
 TYPES = ("float", "int", "bool", "str", "choice", "object", "vector3", "names", "keyvalues")
 
@@ -548,3 +552,53 @@ def parse_wkt_lines(text: str, option: str = "trace") -> list:
             raise StageError(f"{where}: each WKT vertex needs x and y: {g!r}")
         parts.append(arr[:, :2])
     return parts
+
+
+# --------------------------------------------------------------------------- two epochs
+
+#: the options of a stage that takes two merged epochs (displacement, icp)
+EPOCH_OPTIONS = (
+    Option("epoch_dimension", "str", "Epoch", "Dimension tagging each point's epoch."),
+    Option("before", "int", 1, "Epoch value of the first (before) epoch."),
+    Option("after", "int", 2, "Epoch value of the second (after) epoch."),
+)
+
+
+def epochs(ins: Mapping[str, np.ndarray], opts: Mapping[str, Any], stage: str):
+    """Indices of each epoch's points in the view, ``{"before": (N1,), "after": (N2,)}``,
+    from the epoch dimension (:data:`EPOCH_OPTIONS`)."""
+    if opts["before"] == opts["after"]:
+        raise StageError(f"{stage}: options 'before' and 'after' must differ")
+    dim = opts["epoch_dimension"]
+    if dim not in ins:
+        raise StageError(
+            f"{stage}: option 'epoch_dimension': the view has no {dim!r} dimension (tag the "
+            f"epochs with filters.assign before filters.merge); it has {', '.join(sorted(ins))}"
+        )
+    epoch = np.asarray(ins[dim])
+    idx = {key: np.flatnonzero(epoch == opts[key]) for key in ("before", "after")}
+    for key, ix in idx.items():
+        if ix.size == 0:
+            raise StageError(
+                f"{stage}: no point has {dim} == {opts[key]} (option {key!r}); "
+                f"values present: {np.unique(epoch)[:10].tolist()}"
+            )
+    return idx
+
+
+def lines_file(text: str, option: str, stage: str, inputs: StageInputs) -> Tuple[str, Any]:
+    """The path and the view's CRS (pyproj, None without one) of a line option given as a
+    file rather than WKT; refused naming ``option`` when no such file exists."""
+    path = os.path.expanduser(text)
+    if not os.path.isfile(path):
+        raise StageError(
+            f"{stage}: option {option!r} is neither a WKT LINESTRING nor an existing file: {text!r}"
+        )
+    crs = inputs.crs(stage)
+    if crs is None:
+        log.warning(
+            "%s: the point view has no spatial reference; the %s file %s is read in its own "
+            "CRS, not reprojected (set the readers' spatialreference if the two differ)",
+            stage, option, path,
+        )  # fmt: skip
+    return path, crs

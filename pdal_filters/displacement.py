@@ -26,7 +26,6 @@ epoch tagging (:func:`options_table`, docs/pdal.md).
 """
 
 import logging
-import os
 
 import numpy as np
 
@@ -65,9 +64,7 @@ def options_table() -> OptionTable:
                 required=True,
             ),
             Option("trace_layer", "str", None, "Layer of the trace file (default: first line)."),
-            Option("epoch_dimension", "str", "Epoch", "Dimension tagging each point's epoch."),
-            Option("before", "int", 1, "Epoch value of the first (before) epoch."),
-            Option("after", "int", 2, "Epoch value of the second (after) epoch."),
+            *_stage.EPOCH_OPTIONS,
         ],
     )
 
@@ -86,41 +83,10 @@ def _trace(opts, inputs):
     text = opts["trace"]
     if _stage.is_wkt_line(text):
         return fault_trace(_stage.parse_wkt_lines(text, "trace"))
-    path = os.path.expanduser(text)
-    if not os.path.isfile(path):
-        raise _stage.StageError(
-            f"{STAGE}: option 'trace' is neither a WKT LINESTRING nor an existing file: {text!r}"
-        )
-    crs = inputs.crs(STAGE)
-    if crs is None:
-        log.warning(
-            "%s: the point view has no spatial reference; the trace %s is read in its own CRS, "
-            "not reprojected (set the readers' spatialreference if the two differ)",
-            STAGE,
-            path,
-        )
+    path, crs = _stage.lines_file(text, "trace", STAGE, inputs)
     from slipmap.core.io.vector import read_fault_trace
 
     return read_fault_trace(path, target_crs=crs, layer=opts["trace_layer"])
-
-
-def _epochs(ins, opts):
-    """Indices of each epoch's points in the view (from the epoch dimension)."""
-    dim = opts["epoch_dimension"]
-    if dim not in ins:
-        raise _stage.StageError(
-            f"{STAGE}: option 'epoch_dimension': the view has no {dim!r} dimension (tag the "
-            f"epochs with filters.assign before filters.merge); it has {', '.join(sorted(ins))}"
-        )
-    epoch = np.asarray(ins[dim])
-    idx = {key: np.flatnonzero(epoch == opts[key]) for key in EPOCHS}
-    for key, ix in idx.items():
-        if ix.size == 0:
-            raise _stage.StageError(
-                f"{STAGE}: no point has {dim} == {opts[key]} (option {key!r}); "
-                f"values present: {np.unique(epoch)[:10].tolist()}"
-            )
-    return idx
 
 
 def run(ins, outs, *, opts, inputs):
@@ -130,8 +96,6 @@ def run(ins, outs, *, opts, inputs):
     from slipmap.app.summaries import stochastic_outputs
     from slipmap.core.io.las import PointCloud
 
-    if opts["before"] == opts["after"]:
-        raise _stage.StageError(f"{STAGE}: options 'before' and 'after' must differ")
     o = _stage.job_options(SPEC, opts)
     n = _stage.n_points(ins)
     labels = np.full(n, -1, dtype=np.int32)
@@ -141,7 +105,7 @@ def run(ins, outs, *, opts, inputs):
         _stage.set_output(outs, "Residual", residual, np.float64, n, STAGE)
         return _stage.stage_node("displacement", "empty point view")
 
-    idx = _epochs(ins, opts)
+    idx = _stage.epochs(ins, opts, STAGE)
     pts = _stage.points_from(ins, STAGE)
     dim = opts["epoch_dimension"]
     label = {key: f"{key} epoch ({dim} == {opts[key]})" for key in EPOCHS}

@@ -4,8 +4,8 @@
      "module": "slipmap_planes", "function": "planes",
      "add_dimension": ["PlaneId=int32", "Planarity"], "pdalargs": {"min_plane_points": 50}}
 
-Functions: ``planes``, ``roughness``, ``accuracy``, ``displacement`` (docs/pdal.md). Where this
-file is: ``python -m slipmap.pdal_filters``.
+Functions: ``planes``, ``roughness``, ``accuracy``, ``displacement``, ``icp``
+(docs/pdal.md). Where this file is: ``python -m slipmap.pdal_filters``.
 
 PDAL compiles this file on its own, under the ``module`` name and without its path, and puts
 ``pdalargs``, ``spatialreference``, ``schema`` and ``metadata`` into its globals before each
@@ -40,6 +40,11 @@ def accuracy(ins, outs):
 def displacement(ins, outs):
     """Fault slip between two merged epochs: PlaneId (int32), Residual (m), summary."""
     return _run("displacement", ins, outs)
+
+
+def icp(ins, outs):
+    """Displacement field between two merged epochs: DisplacementX/Y/Z (m), IcpCell (int32)."""
+    return _run("icp", ins, outs)
 
 
 def _run(job, ins, outs):

@@ -45,13 +45,14 @@ PDAL_STAGES = {
 PIPELINES = sorted(PIPELINE_DIR.glob("*.json"))
 
 
-def test_four_pipelines_exist():
+def test_the_pipelines_exist():
     names = {p.stem for p in PIPELINES}
     assert {
         "planes_buildings",
         "roughness_outcrop",
         "accuracy_propagation",
         "displacement_fault",
+        "icp_landslide",
     } <= names
 
 
@@ -84,15 +85,16 @@ def test_pipeline_is_consistent(path):
             assert s.get("extra_dims") == "all" and s.get("forward") == "all"
 
 
-def test_displacement_pipeline_tags_epochs():
-    stages = pipeline_stages(PIPELINE_DIR / "displacement_fault.json")
+@pytest.mark.parametrize("name", ["displacement_fault", "icp_landslide"])
+def test_two_epoch_pipelines_tag_epochs(name):
+    stages = pipeline_stages(PIPELINE_DIR / f"{name}.json")
     assigns = [s["value"].replace(" ", "") for s in stages if s["type"] == "filters.assign"]
     assert assigns == ["Epoch=1", "Epoch=2"]
     merge = next(s for s in stages if s["type"] == "filters.merge")
     assert merge["inputs"] == ["before", "after"]
 
 
-@pytest.mark.parametrize("name", ["planes", "roughness", "accuracy", "displacement"])
+@pytest.mark.parametrize("name", ["planes", "roughness", "accuracy", "displacement", "icp"])
 def test_docs_tables_match_option_tables(name):
     doc = (ROOT / "docs" / "pdal.md").read_text()
     job = importlib.import_module("slipmap.pdal_filters." + name)

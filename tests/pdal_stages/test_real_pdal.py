@@ -420,3 +420,97 @@ def test_displacement_pipeline_random_tilt_equals_cli(pdal_py, demo_pair, tmp_pa
     for key in ("right_lateral_slip", "sigma_right_lateral", "dz", "sigma_dz"):
         assert kids[key] == pytest.approx(cli["relative"][key], abs=1e-5), key
     assert kids["summary"]["parameters"]["random_tilt"] is True
+
+
+# --------------------------------------------------------------------------- icp
+
+
+#: the part of the demo's epochs the field pipeline runs on (40 m x 60 m across the fault,
+#: which runs north at x = 498 060): 96 cells of 5 m
+FIELD_BOX = (498040.0, 4234030.0, 498080.0, 4234090.0)
+FIELD_COLUMNS = ("x", "y", "dx", "dy", "dz", "sigma_dx", "sigma_dy", "sigma_dz", "n")
+
+
+@pytest.fixture(scope="module")
+def field_pair(demo_pair, tmp_path_factory):
+    """The demo's epochs cut to FIELD_BOX (LAS files, header and CRS kept) and the CLI's
+    ``slipmap icp`` on them with the demo's WGS 84 fault as the breakline, numpy backend
+    (``auto`` takes Numba where the Python has it, and PDAL's need not: on this town's flat
+    ground, which barely shows horizontal motion at 5 m cells, σ 12-14 cm, two backends'
+    last bits lead the fits apart by their σ)."""
+    laspy = pytest.importorskip("laspy")
+    out = tmp_path_factory.mktemp("field")
+    x0, y0, x1, y1 = FIELD_BOX
+    for name in ("demo_before", "demo_after"):
+        las = laspy.read(str(demo_pair / f"{name}.laz"))
+        x, y = np.asarray(las.x), np.asarray(las.y)
+        las.points = las.points[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
+        las.write(str(out / f"{name}.las"))
+    fault = str(demo_pair / "demo_fault.geojson")
+    _cli("icp", str(out / "demo_before.las"), str(out / "demo_after.las"),
+         "--breaklines", fault, "--backend", "numpy", "--out", str(out / "cli"))  # fmt: skip
+    return out
+
+
+def _field_args(demo_pair) -> dict:
+    return {"breaklines": str(demo_pair / "demo_fault.geojson"), "cell_m": 5.0, "backend": "numpy"}
+
+
+def _assert_cli_field(kids: dict, field_pair):
+    """The stage's cells are the CLI's icp.csv: same points, same code, to 1 µm (measured
+    0.15 µm at most: the fits' iterations carry the last bits of sums taken in another order
+    in PDAL's embedded Python, and this ground barely determines the horizontal motion)."""
+    import csv
+
+    with open(field_pair / "cli" / "icp.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    cli = {k: np.array([float(r[k]) for r in rows]) for k in FIELD_COLUMNS}
+    cells = {k: np.asarray(kids["cells"][k], dtype=float) for k in FIELD_COLUMNS}
+    assert len(cells["x"]) == len(cli["x"]) > 60
+    for k in FIELD_COLUMNS:
+        np.testing.assert_allclose(cells[k], cli[k], rtol=0, atol=1e-6, err_msg=k)
+    given = json.loads((field_pair / "cli" / "icp.json").read_text())["breaklines"]
+    assert kids["summary"]["breaklines"]["source"] == given["source"] == "given"
+    # the WGS 84 file reprojected to the views' UTM: the fault at x = 498 060
+    line = np.asarray(kids["summary"]["breaklines"]["lines"][0])
+    assert np.abs(line[:, 0] - 498060.0).max() < 0.05
+    np.testing.assert_allclose(line, given["lines"][0], atol=1e-3)
+
+
+def test_icp_pipeline_command_equals_cli(same_python, field_pair, demo_pair, tmp_path):
+    """The two-reader field pipeline by the `pdal` command, the breakline a WGS 84 file (PDAL
+    passes the views' SRS as a dict): the CLI's cells, and each point its cell's motion."""
+    md = tmp_path / "field.json"
+    _run_command(
+        same_python,
+        PIPELINE_DIR / "icp_landslide.json",
+        f"--stage.epoch1.filename={field_pair / 'demo_before.las'}",
+        f"--stage.epoch2.filename={field_pair / 'demo_after.las'}",
+        f"--writers.las.filename={tmp_path / 'field.laz'}",
+        f"--filters.python.pdalargs={json.dumps(_slipmap_path(_field_args(demo_pair)))}",
+        f"--metadata={md}",
+    )
+    stage = json.loads(md.read_text())["stages"]["filters.python"]
+    assert stage["slipmap"] == "icp"
+    kids = stage["children"]
+    _assert_cli_field(kids, field_pair)
+    assert kids["headline"].startswith("windowed ICP: ")
+    out = _las(tmp_path / "field.laz")
+    k = np.asarray(out.IcpCell)
+    has = k >= 0
+    assert has.mean() > 0.9
+    dx = np.asarray(kids["cells"]["dx"], dtype=float)
+    # LAS extra bytes keep doubles: each point carries its cell's dx exactly
+    np.testing.assert_array_equal(np.asarray(out.DisplacementX)[has], dx[k[has]])
+    assert np.isnan(np.asarray(out.DisplacementZ)[~has]).all()
+
+
+def test_icp_pipeline_bindings_equals_cli(pdal_py, field_pair, demo_pair, tmp_path):
+    files = {
+        "INPUT_epoch1.laz": field_pair / "demo_before.las",
+        "INPUT_epoch2.laz": field_pair / "demo_after.las",
+        "OUTPUT_field.laz": tmp_path / "field.laz",
+    }
+    pipe = pdal_py.Pipeline(_pipeline_doc("icp_landslide", files, _field_args(demo_pair)))
+    pipe.execute()
+    _assert_cli_field(pipe.metadata["metadata"]["filters.python"]["children"], field_pair)

@@ -1,0 +1,162 @@
+"""PDAL stage ``icp``: the displacement field (:mod:`slipmap.app.icp`) of two merged epochs.
+
+The two epochs arrive as one point view tagged by an epoch dimension (``Epoch``: 1 = before,
+2 = after, as for the ``displacement`` stage). :func:`slipmap.app.icp.compute` cuts the
+after epoch into square cells and registers each onto the before surface, with the job's
+defaults (one spline field, smooth on either side of the breaklines, which are found in the
+data unless given). Breaklines are given as ``breaklines``: WKT ``LINESTRING`` /
+``MULTILINESTRING`` in the points' CRS, or the path of an OGR line file (reprojected to the
+view's spatial reference).
+
+Every point gets its cell's ground motion, before to after, in metres (the values at the
+cell's centre, as the CLI's table; a point in no fitted cell gets NaN):
+
+* ``DisplacementX``, ``DisplacementY``, ``DisplacementZ`` (double): east, north, up;
+* ``IcpCell`` (int32): the cell's row in the metadata's ``cells`` table; -1 for none.
+
+``out_metadata`` holds a headline, ``icp.json``'s summary (``summary``, the breaklines'
+source and vertices among it) and ``cells``, the CLI's table as columns (``x``, ``y``,
+``dx``, ``dy``, ``dz``, ``sigma_dx`` …).
+
+Pipeline stage (the script is ``slipmap_stages.py``, see :mod:`slipmap.pdal_filters`)::
+
+    {"type": "filters.python", "script": "pdal_filters/slipmap_stages.py",
+     "module": "slipmap_icp", "function": "icp",
+     "add_dimension": ["DisplacementX", "DisplacementY", "DisplacementZ", "IcpCell=int32"],
+     "pdalargs": {"cell_m": 5, "breaklines": "LINESTRING (500000 4200000, 500100 4200050)"}}
+
+Options: the job's (:data:`slipmap.app.icp.SPEC`) that PDAL shows, plus the breaklines and
+the epoch tagging (:func:`options_table`, docs/pdal.md).
+"""
+
+import numpy as np
+
+from slipmap.app import icp as job
+from slipmap.pdal_filters import _stage
+from slipmap.pdal_filters._stage import Option, OptionTable
+
+STAGE = "slipmap icp"
+SPEC = job.SPEC
+OUTPUTS = {
+    "DisplacementX": "float64",
+    "DisplacementY": "float64",
+    "DisplacementZ": "float64",
+    "IcpCell": "int32",
+}
+
+
+def options_table() -> OptionTable:
+    """The stage's options (docs/pdal.md): the breaklines, the epoch tagging, the job's."""
+    return OptionTable.from_spec(
+        STAGE,
+        SPEC,
+        extra=[
+            Option(
+                "breaklines",
+                "str",
+                None,
+                "Lines the field may jump across (scarps, a fault), in the points' CRS: WKT "
+                "`LINESTRING`/`MULTILINESTRING`, or the path of an OGR line file (reprojected "
+                "to the view's spatial reference; needs GDAL). Unset: found in the data "
+                "(`detect_breaklines`).",
+            ),
+            *_stage.EPOCH_OPTIONS,
+        ],
+    )
+
+
+TABLE = options_table()
+
+
+def outputs(opts):
+    """{dimension: dtype} written (declare them in add_dimension)."""
+    return OUTPUTS
+
+
+def _breaklines(opts, inputs):
+    """The given breaklines (None when unset), in the view's CRS."""
+    text = opts["breaklines"]
+    if text is None or not str(text).strip():
+        return None
+    from slipmap.core.breaklines import breaklines
+
+    if _stage.is_wkt_line(text):
+        return breaklines(_stage.parse_wkt_lines(text, "breaklines"))
+    from slipmap.app.fields import read_breaklines
+
+    path, crs = _stage.lines_file(text, "breaklines", STAGE, inputs)
+    return read_breaklines(path, crs)
+
+
+def _breaklines_file(text):
+    """The breaklines' file for the summary (None when given as WKT or unset)."""
+    return None if text is None or _stage.is_wkt_line(text) else str(text)
+
+
+def point_cells(res, xy: np.ndarray) -> np.ndarray:
+    """(N,) int32: the row of ``res`` (its cells' order) of the cell each point ``xy`` (N, 2)
+    lies in, -1 where that cell was not fitted or lies outside the grid."""
+    k = np.full((res.n_rows, res.n_cols), -1, dtype=np.int32)
+    k[res.row, res.col] = np.arange(len(res), dtype=np.int32)
+    x0, y0 = res.origin_xy
+    col = np.floor((xy[:, 0] - x0) / res.cell_m).astype(np.int64)
+    row = np.floor((y0 - xy[:, 1]) / res.cell_m).astype(np.int64)
+    inside = (row >= 0) & (row < res.n_rows) & (col >= 0) & (col < res.n_cols)
+    out = np.full(len(xy), -1, dtype=np.int32)
+    out[inside] = k[row[inside], col[inside]]
+    return out
+
+
+def run(ins, outs, *, opts, inputs):
+    """The field's cells as metadata; each point's cell and its motion into ``outs``."""
+    from slipmap.app.summaries import icp_summary
+
+    o = _stage.job_options(SPEC, opts)
+    n = _stage.n_points(ins)
+    cell = np.full(n, -1, dtype=np.int32)
+    motion = np.full((n, 3), np.nan)
+
+    def put():
+        for j, name in enumerate(("DisplacementX", "DisplacementY", "DisplacementZ")):
+            _stage.set_output(outs, name, motion[:, j], np.float64, n, STAGE)
+        _stage.set_output(outs, "IcpCell", cell, np.int32, n, STAGE)
+
+    if n == 0:
+        put()
+        return _stage.stage_node("icp", "empty point view")
+    idx = _stage.epochs(ins, opts, STAGE)
+    pts = _stage.points_from(ins, STAGE)
+    lines = _breaklines(opts, inputs)
+    res = job.compute(pts[idx["before"]], pts[idx["after"]], o, lines=lines)
+    cell = point_cells(res, pts[:, :2])
+    has = cell >= 0
+    motion[has] = np.column_stack([res.dx, res.dy, res.dz])[cell[has]]
+    put()
+    summary = {
+        **icp_summary(res),
+        "breaklines": job.breaklines_summary(res, _breaklines_file(opts["breaklines"])),
+    }
+    mag = np.hypot(res.dx, res.dy)
+    sig = np.hypot(res.sigma_dx, res.sigma_dy)
+    headline = (
+        f"windowed ICP: {len(res)} cells of {res.cell_m:g} m, median horizontal motion "
+        f"{np.nanmedian(mag):.4f} m (median 1-sigma {np.nanmedian(sig):.4f} m), breaklines "
+        f"{res.breaklines_source}"
+        if len(res)
+        else "windowed ICP: no cell fitted"
+    )
+    return _stage.stage_node(
+        "icp",
+        "SlipMap displacement field by windowed ICP: ground motion before -> after, metres "
+        "(x east, y north, z up)",
+        [
+            _stage.metadata_node("headline", headline, "cells, median motion and 1-sigma"),
+            _stage.metadata_node("summary", summary, "icp.json's summary"),
+            _stage.metadata_node(
+                "cells",
+                {k: np.asarray(v).tolist() for k, v in job.layer_columns(res).items()},
+                "the cells as columns (the CLI's icp.csv): x, y, z centre, dx, dy, dz and "
+                "their 1-sigma (m), ...; IcpCell indexes them",
+            ),
+        ],
+    )
