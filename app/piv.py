@@ -359,13 +359,33 @@ def _lines(opts: Mapping[str, Any], crs, given):
 
 
 def _compute(opts: Mapping[str, Any], wins, progress, given_lines=None):
-    """One file per epoch: both read whole, gridded, PIV. Returns ``(PIVResult, grid, crs,
-    z_before, z_after)``."""
-    from ..core.dem import grid_elevation
-    from ..core.piv import piv
-
+    """One file per epoch: both read whole, gridded (:func:`dems`; the points are let go
+    before the PIV), PIV (:func:`piv_of_dems`). Returns ``(PIVResult, grid, crs, z_before,
+    z_after)``."""
     before, after, crs = read_pair(opts)
     lines = _lines(opts, crs, given_lines)
+    grid, zb, za = dems(before, after, opts, wins, progress=progress)
+    del before, after
+    return piv_of_dems(zb, za, grid, opts, wins, lines=lines, progress=progress), grid, crs, zb, za
+
+
+def dems(before, after, opts: Mapping[str, Any], wins, *, progress=None):
+    """Both epochs gridded on one grid (the CLI's, QGIS's and PDAL's one-file run).
+
+    Parameters
+    ----------
+    before, after : (N1, 3), (N2, 3) float64
+        The epochs' points, metres, one CRS.
+    opts
+        :data:`SPEC`'s options, parsed; ``wins`` their window sizes (:func:`windows`).
+
+    Returns
+    -------
+    (grid, z_before, z_after)
+        The grid and both DEMs, (n_rows, n_cols) float64 metres, NaN where no point is.
+    """
+    from ..core.dem import grid_elevation
+
     grid = common_grid_of(
         before, after, opts["grid_m"], key="grid_m", bytes_per_cell=BYTES_PER_CELL
     )
@@ -374,9 +394,16 @@ def _compute(opts: Mapping[str, Any], wins, progress, given_lines=None):
         progress(0.02, "gridding both epochs")
     zb = grid_elevation(before, grid=grid)
     za = grid_elevation(after, grid=grid)
-    del before, after
     log.info("DEMs: %d x %d cells of %.3f m", grid.n_rows, grid.n_cols, grid.cell_m)
-    res = piv(
+    return grid, zb, za
+
+
+def piv_of_dems(zb, za, grid, opts: Mapping[str, Any], wins, *, lines=None, progress=None):
+    """:func:`~slipmap.core.piv.piv` of the two DEMs of :func:`dems` with the job's options
+    and the given ``lines`` (Breaklines or None: windows are not smeared across them)."""
+    from ..core.piv import piv
+
+    return piv(
         zb,
         za,
         grid=grid,
@@ -390,7 +417,6 @@ def _compute(opts: Mapping[str, Any], wins, progress, given_lines=None):
         vertical_compensation=bool(opts.get("vertical_compensation", True)),
         progress=scaled(progress, 0.05, 0.95),
     )
-    return res, grid, crs, zb, za
 
 
 def _write(plan: OutputPlan, res, cols, zb, za, grid, crs) -> None:

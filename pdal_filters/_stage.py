@@ -602,3 +602,36 @@ def lines_file(text: str, option: str, stage: str, inputs: StageInputs) -> Tuple
             stage, option, path,
         )  # fmt: skip
     return path, crs
+
+
+def raster_index(xy: np.ndarray, origin_xy, spacing_m: float, shape) -> np.ndarray:
+    """(N,) int64: the row-major index of the pixel each point ``xy`` (N, 2) lies in, of a
+    raster of ``shape`` (rows, cols) whose upper-left corner is ``origin_xy`` and pixels
+    ``spacing_m`` square (rows north to south); -1 outside it."""
+    n_rows, n_cols = (int(v) for v in shape)
+    x0, y0 = (float(v) for v in origin_xy)
+    col = np.floor((xy[:, 0] - x0) / spacing_m).astype(np.int64)
+    row = np.floor((y0 - xy[:, 1]) / spacing_m).astype(np.int64)
+    inside = (row >= 0) & (row < n_rows) & (col >= 0) & (col < n_cols)
+    return np.where(inside, row * n_cols + col, -1)
+
+
+def lines_option(text: Any, option: str, stage: str, inputs: StageInputs):
+    """The Breaklines of a line option (None when unset): WKT ``LINESTRING`` /
+    ``MULTILINESTRING`` in the points' CRS, or an OGR line file reprojected to the view's
+    SRS; errors name ``option``."""
+    if text is None or not str(text).strip():
+        return None
+    from slipmap.core.breaklines import breaklines
+
+    if is_wkt_line(text):
+        return breaklines(parse_wkt_lines(text, option))
+    from slipmap.app.fields import read_breaklines
+
+    path, crs = lines_file(text, option, stage, inputs)
+    return read_breaklines(path, crs, key=option)
+
+
+def lines_file_name(text: Any) -> Optional[str]:
+    """A line option's file for a summary (None when given as WKT or unset)."""
+    return None if text is None or is_wkt_line(str(text)) else str(text)

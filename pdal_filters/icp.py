@@ -73,38 +73,13 @@ def outputs(opts):
     return OUTPUTS
 
 
-def _breaklines(opts, inputs):
-    """The given breaklines (None when unset), in the view's CRS."""
-    text = opts["breaklines"]
-    if text is None or not str(text).strip():
-        return None
-    from slipmap.core.breaklines import breaklines
-
-    if _stage.is_wkt_line(text):
-        return breaklines(_stage.parse_wkt_lines(text, "breaklines"))
-    from slipmap.app.fields import read_breaklines
-
-    path, crs = _stage.lines_file(text, "breaklines", STAGE, inputs)
-    return read_breaklines(path, crs)
-
-
-def _breaklines_file(text):
-    """The breaklines' file for the summary (None when given as WKT or unset)."""
-    return None if text is None or _stage.is_wkt_line(text) else str(text)
-
-
 def point_cells(res, xy: np.ndarray) -> np.ndarray:
     """(N,) int32: the row of ``res`` (its cells' order) of the cell each point ``xy`` (N, 2)
     lies in, -1 where that cell was not fitted or lies outside the grid."""
-    k = np.full((res.n_rows, res.n_cols), -1, dtype=np.int32)
-    k[res.row, res.col] = np.arange(len(res), dtype=np.int32)
-    x0, y0 = res.origin_xy
-    col = np.floor((xy[:, 0] - x0) / res.cell_m).astype(np.int64)
-    row = np.floor((y0 - xy[:, 1]) / res.cell_m).astype(np.int64)
-    inside = (row >= 0) & (row < res.n_rows) & (col >= 0) & (col < res.n_cols)
-    out = np.full(len(xy), -1, dtype=np.int32)
-    out[inside] = k[row[inside], col[inside]]
-    return out
+    k = np.full(res.n_rows * res.n_cols, -1, dtype=np.int32)
+    k[res.row * res.n_cols + res.col] = np.arange(len(res), dtype=np.int32)
+    flat = _stage.raster_index(xy, res.origin_xy, res.cell_m, (res.n_rows, res.n_cols))
+    return np.where(flat >= 0, k[np.maximum(flat, 0)], -1).astype(np.int32)
 
 
 def run(ins, outs, *, opts, inputs):
@@ -126,7 +101,7 @@ def run(ins, outs, *, opts, inputs):
         return _stage.stage_node("icp", "empty point view")
     idx = _stage.epochs(ins, opts, STAGE)
     pts = _stage.points_from(ins, STAGE)
-    lines = _breaklines(opts, inputs)
+    lines = _stage.lines_option(opts["breaklines"], "breaklines", STAGE, inputs)
     res = job.compute(pts[idx["before"]], pts[idx["after"]], o, lines=lines)
     cell = point_cells(res, pts[:, :2])
     has = cell >= 0
@@ -134,7 +109,7 @@ def run(ins, outs, *, opts, inputs):
     put()
     summary = {
         **icp_summary(res),
-        "breaklines": job.breaklines_summary(res, _breaklines_file(opts["breaklines"])),
+        "breaklines": job.breaklines_summary(res, _stage.lines_file_name(opts["breaklines"])),
     }
     mag = np.hypot(res.dx, res.dy)
     sig = np.hypot(res.sigma_dx, res.sigma_dy)

@@ -4,8 +4,8 @@
      "module": "slipmap_planes", "function": "planes",
      "add_dimension": ["PlaneId=int32", "Planarity"], "pdalargs": {"min_plane_points": 50}}
 
-Functions: ``planes``, ``roughness``, ``accuracy``, ``displacement``, ``icp``
-(docs/pdal.md). Where this file is: ``python -m slipmap.pdal_filters``.
+Functions: ``planes``, ``roughness``, ``accuracy``, ``displacement``, ``icp``,
+``piv`` (docs/pdal.md). Where this file is: ``python -m slipmap.pdal_filters``.
 
 PDAL compiles this file on its own, under the ``module`` name and without its path, and puts
 ``pdalargs``, ``spatialreference``, ``schema`` and ``metadata`` into its globals before each
@@ -45,6 +45,11 @@ def displacement(ins, outs):
 def icp(ins, outs):
     """Displacement field between two merged epochs: DisplacementX/Y/Z (m), IcpCell (int32)."""
     return _run("icp", ins, outs)
+
+
+def piv(ins, outs):
+    """PIV field between two merged epochs: DisplacementX/Y/Z (m), PivVector (int32)."""
+    return _run("piv", ins, outs)
 
 
 def _run(job, ins, outs):

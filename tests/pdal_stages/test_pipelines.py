@@ -53,6 +53,7 @@ def test_the_pipelines_exist():
         "accuracy_propagation",
         "displacement_fault",
         "icp_landslide",
+        "piv_landslide",
     } <= names
 
 
@@ -85,7 +86,7 @@ def test_pipeline_is_consistent(path):
             assert s.get("extra_dims") == "all" and s.get("forward") == "all"
 
 
-@pytest.mark.parametrize("name", ["displacement_fault", "icp_landslide"])
+@pytest.mark.parametrize("name", ["displacement_fault", "icp_landslide", "piv_landslide"])
 def test_two_epoch_pipelines_tag_epochs(name):
     stages = pipeline_stages(PIPELINE_DIR / f"{name}.json")
     assigns = [s["value"].replace(" ", "") for s in stages if s["type"] == "filters.assign"]
@@ -94,7 +95,7 @@ def test_two_epoch_pipelines_tag_epochs(name):
     assert merge["inputs"] == ["before", "after"]
 
 
-@pytest.mark.parametrize("name", ["planes", "roughness", "accuracy", "displacement", "icp"])
+@pytest.mark.parametrize("name", ["planes", "roughness", "accuracy", "displacement", "icp", "piv"])
 def test_docs_tables_match_option_tables(name):
     doc = (ROOT / "docs" / "pdal.md").read_text()
     job = importlib.import_module("slipmap.pdal_filters." + name)

@@ -514,3 +514,69 @@ def test_icp_pipeline_bindings_equals_cli(pdal_py, field_pair, demo_pair, tmp_pa
     pipe = pdal_py.Pipeline(_pipeline_doc("icp_landslide", files, _field_args(demo_pair)))
     pipe.execute()
     _assert_cli_field(pipe.metadata["metadata"]["filters.python"]["children"], field_pair)
+
+
+# --------------------------------------------------------------------------- piv
+
+PIV_COLUMNS = ("x", "y", "dx", "dy", "dz", "snr", "valid", "near_break")
+
+
+def _assert_cli_piv(kids: dict, cli_dir: Path):
+    """The stage's vectors are the CLI's piv.csv (same points, same code: to 1e-9 m)."""
+    import csv
+
+    with open(cli_dir / "piv.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    cli = {k: np.array([float(r[k]) if r[k] else np.nan for r in rows]) for k in PIV_COLUMNS}
+    cli["snr"][np.isinf(cli["snr"])] = np.nan  # JSON has no infinity: null in the metadata
+    vec = {k: np.array([np.nan if v is None else float(v) for v in kids["vectors"][k]])
+           for k in PIV_COLUMNS}  # fmt: skip
+    assert len(vec["x"]) == len(cli["x"]) > 500
+    for k in PIV_COLUMNS:
+        np.testing.assert_allclose(vec[k], cli[k], rtol=0, atol=1e-9, err_msg=k)
+    assert kids["summary"]["breaklines_given"] and kids["summary"]["n_near_break"] > 0
+
+
+@pytest.fixture(scope="module")
+def piv_cli(demo_pair, tmp_path_factory):
+    out = tmp_path_factory.mktemp("piv_cli")
+    _cli("piv", str(demo_pair / "demo_before.laz"), str(demo_pair / "demo_after.laz"),
+         "--grid", "0.5", "--breaklines", str(demo_pair / "demo_fault.geojson"),
+         "--out", str(out))  # fmt: skip
+    return out
+
+
+def test_piv_pipeline_command_equals_cli(same_python, demo_pair, piv_cli, tmp_path):
+    """The two-reader PIV pipeline by the `pdal` command on the demo pair, the breakline the
+    WGS 84 fault file: the CLI's vectors, and each point its vector's motion."""
+    md = tmp_path / "piv.json"
+    args = {"breaklines": str(demo_pair / "demo_fault.geojson"), "grid_m": 0.5}
+    _run_command(
+        same_python,
+        PIPELINE_DIR / "piv_landslide.json",
+        f"--stage.epoch1.filename={demo_pair / 'demo_before.laz'}",
+        f"--stage.epoch2.filename={demo_pair / 'demo_after.laz'}",
+        f"--writers.las.filename={tmp_path / 'piv.laz'}",
+        f"--filters.python.pdalargs={json.dumps(_slipmap_path(args))}",
+        f"--metadata={md}",
+    )
+    stage = json.loads(md.read_text())["stages"]["filters.python"]
+    assert stage["slipmap"] == "piv"
+    _assert_cli_piv(stage["children"], piv_cli)
+    out = _las(tmp_path / "piv.laz")
+    k = np.asarray(out.PivVector)
+    has = k >= 0
+    dy = np.array([np.nan if v is None else v for v in stage["children"]["vectors"]["dy"]])
+    np.testing.assert_array_equal(np.asarray(out.DisplacementY)[has], dy[k[has]])
+
+
+def test_piv_pipeline_bindings_equals_cli(pdal_py, demo_pair, piv_cli, tmp_path):
+    files = {
+        "INPUT_epoch1.laz": demo_pair / "demo_before.laz",
+        "INPUT_epoch2.laz": demo_pair / "demo_after.laz",
+        "OUTPUT_piv.laz": tmp_path / "piv.laz",
+    }
+    args = {"breaklines": str(demo_pair / "demo_fault.geojson"), "grid_m": 0.5}
+    pipe = pdal_py.Pipeline(_pipeline_doc("piv_landslide", files, args))
+    pipe.execute()
+    _assert_cli_piv(pipe.metadata["metadata"]["filters.python"]["children"], piv_cli)
