@@ -100,9 +100,9 @@ class StraightPlacement:
         station along the candidate, before it was turned).
     on_points : Breaklines or None
         The straight line the decisive points place (``line`` where the candidate is
-        kept), also where the candidate is dropped on its jump or along-share while those
-        points still take sides along a straight line (at most ``max_wrong_share`` on the
-        wrong one); None otherwise.
+        kept), also where the candidate is dropped on its median jump alone (its stations
+        step along ``min_along_share`` of it) while those points take sides along a straight
+        line (at most ``max_wrong_share`` on the wrong one); None otherwise.
     """
 
     line: Optional[Breaklines]
@@ -278,9 +278,12 @@ def place_straight_line(
             "side)", jump, min_jump_m, st_min, 100.0 * along, 100.0 * min_along_share, n_dec,
             turn, 100.0 * share,
         )  # fmt: skip
+        # a step along the line whose median jump fell short (the candidate off the step's
+        # direction, the jumps at the points' feet diluted) keeps its points' line; one
+        # along too little of it is a lobe's flank (the harness's lobes: 38-56 %)
+        steps = along >= min_along_share and share <= max_wrong_share
         return StraightPlacement(
-            None, jump, n_dec, share, off, turn,
-            on_points=placed if share <= max_wrong_share else None,
+            None, jump, n_dec, share, off, turn, on_points=placed if steps else None,
         )  # fmt: skip
     if share > max_wrong_share:
         log.info(

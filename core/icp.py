@@ -2782,11 +2782,12 @@ SCAN_COVER_CELLS = 1.5
 
 
 #: a straight candidate cut to the stretch along which the field steps, or dropped on its
-#: jump, while its decisive points place a line turned by at least this much, was judged
-#: station by station along the unturned line, which leaves the step where the scan's
-#: direction is off (7.5°, its angle step, is 4.6 m over 35 m, about a cell): the placed
-#: line, across the survey, is fitted and judged again (:func:`try_candidates`; issue #29,
-#: stop 59: the ALS slab at a survey's extent)
+#: median jump alone, while its decisive points place a line turned by at least this much,
+#: was judged station by station along the unturned line, which leaves the step where the
+#: scan's direction is off (7.5°, its angle step, is 4.6 m over 35 m, about a cell): the
+#: placed line, across the survey, is fitted and judged again (:func:`try_candidates`;
+#: issue #29, stop 59: the ALS slab at a survey's extent). Candidates dropped because they
+#: step along too little of their length (a lobe's flank) are not tried again
 RETRY_TURN_DEG = 2.0
 
 
@@ -2799,8 +2800,8 @@ def confirm_lines(field, after, straight, *, before, tree, normals, gate_m, cell
     or a tiled run's corridor).
 
     Returns ``(lines, retry)``: the confirmed lines (None when none is), and, with
-    ``again``, for a straight step cut to part of its length or dropped on its jump,
-    whose decisive points place a straight line turned by :data:`RETRY_TURN_DEG` or more
+    ``again``, for a straight step cut to part of its length or dropped on its median jump
+    alone, whose decisive points place a straight line turned by :data:`RETRY_TURN_DEG` or more
     from it, that line across the scan's box as a new candidate (a
     :class:`~slipmap.core.breaklines.StraightStep`) to fit and judge in its place (None
     otherwise)."""
