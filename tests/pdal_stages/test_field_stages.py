@@ -49,7 +49,7 @@ def pair():
 
 
 def _wkt(line):
-    pts = ", ".join(f"{x!r} {y!r}" for x, y in line + ORIGIN[:2])
+    pts = ", ".join(f"{float(x)!r} {float(y)!r}" for x, y in line + ORIGIN[:2])
     return f"LINESTRING ({pts})"
 
 
