@@ -635,3 +635,32 @@ def lines_option(text: Any, option: str, stage: str, inputs: StageInputs):
 def lines_file_name(text: Any) -> Optional[str]:
     """A line option's file for a summary (None when given as WKT or unset)."""
     return None if text is None or is_wkt_line(str(text)) else str(text)
+
+
+# --------------------------------------------------------------------------- field stages
+
+#: what a field stage (icp, piv) writes for each point, besides its index dimension
+DISPLACEMENT_DIMS = ("DisplacementX", "DisplacementY", "DisplacementZ")
+
+
+def field_outputs(index_dim: str) -> Dict[str, str]:
+    """{dimension: dtype} of a field stage: the motion and ``index_dim`` (int32)."""
+    return {**{d: "float64" for d in DISPLACEMENT_DIMS}, index_dim: "int32"}
+
+
+def field_options(breaklines_help: str) -> Tuple[Option, ...]:
+    """The options a field stage adds to its job's: ``breaklines`` and the epoch tagging."""
+    return (Option("breaklines", "str", None, breaklines_help), *EPOCH_OPTIONS)
+
+
+def set_field_outputs(outs, index, motion, *, index_dim: str, stage: str) -> None:
+    """Each point's row ``index`` (N,) of the field's ``motion`` (K, 3), metres, into
+    ``outs``: ``DisplacementX/Y/Z`` (NaN where ``index`` is -1) and ``index_dim``."""
+    index = np.asarray(index, dtype=np.int32)
+    n = len(index)
+    per_point = np.full((n, 3), np.nan)
+    has = index >= 0
+    per_point[has] = np.asarray(motion, dtype=np.float64).reshape(-1, 3)[index[has]]
+    for j, name in enumerate(DISPLACEMENT_DIMS):
+        set_output(outs, name, per_point[:, j], np.float64, n, stage)
+    set_output(outs, index_dim, index, np.int32, n, stage)

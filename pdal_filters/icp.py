@@ -33,16 +33,11 @@ import numpy as np
 
 from slipmap.app import icp as job
 from slipmap.pdal_filters import _stage
-from slipmap.pdal_filters._stage import Option, OptionTable
+from slipmap.pdal_filters._stage import OptionTable
 
 STAGE = "slipmap icp"
 SPEC = job.SPEC
-OUTPUTS = {
-    "DisplacementX": "float64",
-    "DisplacementY": "float64",
-    "DisplacementZ": "float64",
-    "IcpCell": "int32",
-}
+OUTPUTS = _stage.field_outputs("IcpCell")
 
 
 def options_table() -> OptionTable:
@@ -50,18 +45,12 @@ def options_table() -> OptionTable:
     return OptionTable.from_spec(
         STAGE,
         SPEC,
-        extra=[
-            Option(
-                "breaklines",
-                "str",
-                None,
-                "Lines the field may jump across (scarps, a fault), in the points' CRS: WKT "
-                "`LINESTRING`/`MULTILINESTRING`, or the path of an OGR line file (reprojected "
-                "to the view's spatial reference; needs GDAL). Unset: found in the data "
-                "(`detect_breaklines`).",
-            ),
-            *_stage.EPOCH_OPTIONS,
-        ],
+        extra=_stage.field_options(
+            "Lines the field may jump across (scarps, a fault), in the points' CRS: WKT "
+            "`LINESTRING`/`MULTILINESTRING`, or the path of an OGR line file (reprojected "
+            "to the view's spatial reference; needs GDAL). Unset: found in the data "
+            "(`detect_breaklines`)."
+        ),
     )
 
 
@@ -88,25 +77,18 @@ def run(ins, outs, *, opts, inputs):
 
     o = _stage.job_options(SPEC, opts)
     n = _stage.n_points(ins)
-    cell = np.full(n, -1, dtype=np.int32)
-    motion = np.full((n, 3), np.nan)
-
-    def put():
-        for j, name in enumerate(("DisplacementX", "DisplacementY", "DisplacementZ")):
-            _stage.set_output(outs, name, motion[:, j], np.float64, n, STAGE)
-        _stage.set_output(outs, "IcpCell", cell, np.int32, n, STAGE)
-
     if n == 0:
-        put()
+        _stage.set_field_outputs(outs, np.empty(0), np.empty((0, 3)), index_dim="IcpCell",
+                                 stage=STAGE)  # fmt: skip
         return _stage.stage_node("icp", "empty point view")
     idx = _stage.epochs(ins, opts, STAGE)
     pts = _stage.points_from(ins, STAGE)
     lines = _stage.lines_option(opts["breaklines"], "breaklines", STAGE, inputs)
     res = job.compute(pts[idx["before"]], pts[idx["after"]], o, lines=lines)
-    cell = point_cells(res, pts[:, :2])
-    has = cell >= 0
-    motion[has] = np.column_stack([res.dx, res.dy, res.dz])[cell[has]]
-    put()
+    _stage.set_field_outputs(
+        outs, point_cells(res, pts[:, :2]), np.column_stack([res.dx, res.dy, res.dz]),
+        index_dim="IcpCell", stage=STAGE,
+    )  # fmt: skip
     summary = {
         **icp_summary(res),
         "breaklines": job.breaklines_summary(res, _stage.lines_file_name(opts["breaklines"])),

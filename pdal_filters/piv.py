@@ -34,16 +34,11 @@ import numpy as np
 
 from slipmap.app import piv as job
 from slipmap.pdal_filters import _stage
-from slipmap.pdal_filters._stage import Option, OptionTable
+from slipmap.pdal_filters._stage import OptionTable
 
 STAGE = "slipmap piv"
 SPEC = job.SPEC
-OUTPUTS = {
-    "DisplacementX": "float64",
-    "DisplacementY": "float64",
-    "DisplacementZ": "float64",
-    "PivVector": "int32",
-}
+OUTPUTS = _stage.field_outputs("PivVector")
 
 
 def options_table() -> OptionTable:
@@ -51,17 +46,11 @@ def options_table() -> OptionTable:
     return OptionTable.from_spec(
         STAGE,
         SPEC,
-        extra=[
-            Option(
-                "breaklines",
-                "str",
-                None,
-                "Lines the windows must not be smeared across (scarps, a fault), in the points' "
-                "CRS: WKT `LINESTRING`/`MULTILINESTRING`, or the path of an OGR line file "
-                "(reprojected to the view's spatial reference; needs GDAL).",
-            ),
-            *_stage.EPOCH_OPTIONS,
-        ],
+        extra=_stage.field_options(
+            "Lines the windows must not be smeared across (scarps, a fault), in the points' "
+            "CRS: WKT `LINESTRING`/`MULTILINESTRING`, or the path of an OGR line file "
+            "(reprojected to the view's spatial reference; needs GDAL)."
+        ),
     )
 
 
@@ -80,16 +69,9 @@ def run(ins, outs, *, opts, inputs):
 
     o = _stage.job_options(SPEC, opts)
     n = _stage.n_points(ins)
-    vec = np.full(n, -1, dtype=np.int32)
-    motion = np.full((n, 3), np.nan)
-
-    def put():
-        for j, name in enumerate(("DisplacementX", "DisplacementY", "DisplacementZ")):
-            _stage.set_output(outs, name, motion[:, j], np.float64, n, STAGE)
-        _stage.set_output(outs, "PivVector", vec, np.int32, n, STAGE)
-
     if n == 0:
-        put()
+        _stage.set_field_outputs(outs, np.empty(0), np.empty((0, 3)), index_dim="PivVector",
+                                 stage=STAGE)  # fmt: skip
         return _stage.stage_node("piv", "empty point view")
     idx = _stage.epochs(ins, opts, STAGE)
     pts = _stage.points_from(ins, STAGE)
@@ -98,11 +80,11 @@ def run(ins, outs, *, opts, inputs):
     grid, zb, za = job.dems(pts[idx["before"]], pts[idx["after"]], o, wins)
     res = job.piv_of_dems(zb, za, grid, o, wins, lines=lines)
     cols = res.to_columns()
-    vec = _stage.raster_index(pts[:, :2], res.origin_xy, res.spacing_m, res.shape)
-    vec = vec.astype(np.int32)
-    has = vec >= 0
-    motion[has] = np.column_stack([cols["dx"], cols["dy"], cols["dz"]])[vec[has]]
-    put()
+    _stage.set_field_outputs(
+        outs, _stage.raster_index(pts[:, :2], res.origin_xy, res.spacing_m, res.shape),
+        np.column_stack([cols["dx"], cols["dy"], cols["dz"]]), index_dim="PivVector",
+        stage=STAGE,
+    )  # fmt: skip
     mag = np.hypot(res.dx, res.dy)
     summary = {
         "grid_m": grid.cell_m,
