@@ -13,6 +13,9 @@ Run, waits, and records what QGIS shows. The tests here read that record:
   without a style), its legend classes span the data, rasters lie below vectors;
 * the same run with every optional text field typed into and cleared again by key presses;
 * a run cancelled from the dialog leaves no file and no layer behind;
+* the windowed ICP and PIV with a scarp picked as their breaklines layer (WGS 84) on a slab
+  behind a known step: the line reaches the job, the field keeps the step, PIV flags the
+  vectors at it;
 * with laspy, lazrs and scipy made unimportable (a second desktop), all eight algorithms are
   still listed, each says what is missing and how to install it, and Run refuses.
 
@@ -48,6 +51,10 @@ SLIP_ORIGIN = (498000.0, 4234000.0, 20.0)
 DEXTRAL_M = 0.0181
 X0, Y0, SIDE = 512000.0, 4300000.0, 24.0
 SHIFT = (0.40, -0.30, 0.05)
+#: the step pair: the ground north of STEP_Y moves by SHIFT, the ground south of it by
+#: SOUTH_SHIFT; the scarp is given as a line layer in WGS 84 (the user's fault map)
+STEP_Y = Y0 + 12.0
+SOUTH_SHIFT = (0.10, 0.0, 0.0)
 
 #: the layers each algorithm's default run must add to the project (at least)
 LOADED = {
@@ -138,7 +145,33 @@ def data(tmp_path_factory):
         z = rough_surface(xy - [sx, sy], (X0, Y0)) + sz
         write_las(d / f"field_{name}.las", PointCloud(xyz=np.column_stack([xy, z]), crs=UTM12))
     _write_field(d / "strain_field.gpkg", UTM12)
+    _write_step_pair(d)
     return d
+
+
+def _write_step_pair(d):
+    """A slab moving by SHIFT north of a straight scarp at STEP_Y, the ground south of it by
+    SOUTH_SHIFT (64 pts/m2, independent samplings), and the scarp as a line layer in WGS 84
+    reaching 5 m beyond the survey both ways."""
+    from slipmap.core.io.las import PointCloud, write_las
+
+    rng = np.random.default_rng(9)
+    n = int(64 * SIDE * SIDE)
+    before = rng.uniform(0, SIDE, size=(n, 2)) + [X0, Y0]
+    xy = rng.uniform(0, SIDE, size=(n, 2)) + [X0, Y0]  # after: where the points lie now
+    north = xy[:, 1] >= STEP_Y
+    shift = np.where(north[:, None], SHIFT, SOUTH_SHIFT)
+    # the points south (north) of the scarp came from the south (north): each keeps its side
+    src = xy - shift[:, :2]
+    keep = (src[:, 1] >= STEP_Y) == north
+    z_b = rough_surface(before, (X0, Y0))
+    z_a = rough_surface(src[keep], (X0, Y0)) + shift[keep, 2]
+    for name, pts in (("before", np.column_stack([before, z_b])),
+                      ("after", np.column_stack([xy[keep], z_a]))):  # fmt: skip
+        write_las(d / f"step_{name}.las", PointCloud(xyz=pts, crs=UTM12))
+    to_wgs = pyproj.Transformer.from_crs(UTM12, "EPSG:4326", always_xy=True)
+    lon, lat = to_wgs.transform([X0 - 5.0, X0 + SIDE + 5.0], [STEP_Y, STEP_Y])
+    _write_lines(d / "scarp.gpkg", [np.column_stack([lon, lat])], pyproj.CRS.from_epsg(4326))
 
 
 # --------------------------------------------------------------------------- the desktop
@@ -328,12 +361,36 @@ def desktop(provider, data, profile, tmp_path_factory):
             "cancel_at_progress": 3,
         }
     )
+    stepped = tmp / "stepped"
+    stepped.mkdir()
+    step_pair = {
+        "BEFORE": str(data / "step_before.las"),
+        "AFTER": str(data / "step_after.las"),
+        "BREAKLINES": {"layer": "scarp"},
+    }
+    for alg, outputs in (
+        (
+            "windowedicp",
+            {"SUMMARY": str(stepped / "icp.json"), "VECTORS": str(stepped / "icp.gpkg")},
+        ),
+        ("piv", {"SUMMARY": str(stepped / "piv.json"), "VECTORS": str(stepped / "piv.gpkg")}),
+    ):
+        scenarios.append(
+            {
+                "id": f"{alg}-breaklines",
+                "alg": f"slipmap:{alg}",
+                "layers": {"scarp": str(data / "scarp.gpkg")},
+                "values": step_pair,
+                "outputs": outputs,
+            }
+        )
     only = os.environ.get("SLIPMAP_DESKTOP_ONLY")  # scenario ids, comma-separated (debugging)
     if only:
         scenarios = [s for s in scenarios if s["id"] in only.split(",")]
     record = _launch(profile, {"scenarios": scenarios}, tmp, timeout=900)
     by_id = {s["id"]: s for s in record["scenarios"]}
-    return record, by_id, {"full": full, "cancelled": cancelled, "tilted": tilted}
+    dirs = {"full": full, "cancelled": cancelled, "tilted": tilted, "stepped": stepped}
+    return record, by_id, dirs
 
 
 def _scenario(desktop, sid):
@@ -447,6 +504,72 @@ def test_random_tilt_ticked_in_the_dialog_reaches_both_sides(desktop):
     for side in ("left", "right"):
         tilt = summary[side]["variance_components"]["random_tilt"]
         assert tilt["source"] == "estimated" and tilt["sigma_rad"] >= 0.0, tilt
+
+
+def _step_truth(xy):
+    """The step pair's motion (N, 3) at map positions ``xy`` (N, 2)."""
+    return np.where((xy[:, 1] >= STEP_Y)[:, None], SHIFT, SOUTH_SHIFT)
+
+
+def _vectors(path):
+    """x, y and the columns of a vectors GeoPackage, by name (OGR, as a user's script)."""
+    from osgeo import ogr
+
+    ds = ogr.Open(str(path))
+    layer = ds.GetLayer(0)
+    names = [layer.GetLayerDefn().GetFieldDefn(i).GetName()
+             for i in range(layer.GetLayerDefn().GetFieldCount())]  # fmt: skip
+    rows = []
+    for f in layer:
+        g = f.GetGeometryRef()
+        rows.append([g.GetX(), g.GetY()] + [np.nan if f.IsFieldNull(n) else f.GetField(n)
+                                            for n in names])  # fmt: skip
+    cols = np.array(rows, dtype=np.float64)
+    return {"xy": cols[:, :2], **{n: cols[:, 2 + i] for i, n in enumerate(names)}}
+
+
+def test_icp_breaklines_picked_in_the_dialog_keep_the_step(desktop):
+    """The scarp picked as a line layer (WGS 84) in the windowed ICP's own dialog: the run
+    reports the given line, reprojected to the clouds' CRS, and the default spline field
+    jumps across it: every cell 3 m or more from the scarp has its own side's motion (0.43
+    m apart across it) to 5 mm, on noise-free ground sampled at 64 pts/m2."""
+    s = _scenario(desktop, "windowedicp-breaklines")
+    _assert_ran(s)
+    assert "scarp" in s["parameters"]["BREAKLINES"], s["parameters"]
+    summary = json.loads((desktop[2]["stepped"] / "icp.json").read_text())
+    assert summary["model"]["field"] == "spline", summary["model"]
+    lines = summary["breaklines"]
+    assert lines["source"] == "given" and lines["count"] == 1, lines
+    got = np.array(lines["lines"][0])
+    np.testing.assert_allclose(got[:, 1], STEP_Y, atol=0.01)  # through WGS 84 and back
+    v = _vectors(desktop[2]["stepped"] / "icp.gpkg")
+    far = np.abs(v["xy"][:, 1] - STEP_Y) >= 3.0
+    assert far.sum() >= 8 and (v["xy"][far, 1] > STEP_Y).any(), v["xy"]
+    err = np.column_stack([v["dx"], v["dy"], v["dz"]])[far] - _step_truth(v["xy"][far])
+    assert np.all(np.abs(err) < 0.005), np.round(err, 4)
+
+
+def test_piv_breaklines_picked_in_the_dialog_flag_the_vectors_at_the_scarp(desktop):
+    """The scarp picked in PIV's own dialog: the vectors whose final window (16 px of 0.25 m,
+    the defaults) the scarp crosses are flagged (near_break), those whose window it does not
+    reach are not, and the summary counts them; the vectors 3 m or more from it have their
+    own side's motion within the issue's mark, 0.25 cell RMS."""
+    s = _scenario(desktop, "piv-breaklines")
+    _assert_ran(s)
+    summary = json.loads((desktop[2]["stepped"] / "piv.json").read_text())
+    v = _vectors(desktop[2]["stepped"] / "piv.gpkg")
+    flagged = v["near_break"] == 1
+    half = 0.5 * 16 * 0.25  # the final window's half side, metres
+    off = np.abs(v["xy"][:, 1] - STEP_Y)
+    assert 0 < flagged.sum() < len(flagged), flagged.sum()
+    assert np.all(off[flagged] <= half + 0.01), off[flagged]
+    assert not flagged[off > half + 0.26].any(), off[flagged]
+    assert summary["n_near_break"] == int(flagged.sum())
+    far = (off >= 3.0) & (v["valid"] == 1)
+    assert far.sum() >= 40, far.sum()
+    err = np.column_stack([v["dx"], v["dy"]])[far] - _step_truth(v["xy"][far])[:, :2]
+    rms = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+    assert rms <= 0.25 * 0.25, rms
 
 
 def test_cancel_leaves_nothing_behind(desktop):
