@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 import pyproj
 import pytest
-from qgis_scenes import rough_surface
+from qgis_scenes import column, features, rough_surface
 
 pytestmark = pytest.mark.qgis
 
@@ -512,20 +512,9 @@ def _step_truth(xy):
 
 
 def _vectors(path):
-    """x, y and the columns of a vectors GeoPackage, by name (OGR, as a user's script)."""
-    from osgeo import ogr
-
-    ds = ogr.Open(str(path))
-    layer = ds.GetLayer(0)
-    names = [layer.GetLayerDefn().GetFieldDefn(i).GetName()
-             for i in range(layer.GetLayerDefn().GetFieldCount())]  # fmt: skip
-    rows = []
-    for f in layer:
-        g = f.GetGeometryRef()
-        rows.append([g.GetX(), g.GetY()] + [np.nan if f.IsFieldNull(n) else f.GetField(n)
-                                            for n in names])  # fmt: skip
-    cols = np.array(rows, dtype=np.float64)
-    return {"xy": cols[:, :2], **{n: cols[:, 2 + i] for i, n in enumerate(names)}}
+    """x, y (N, 2) and each column (N,) of a vectors GeoPackage, by name."""
+    _, names, rows = features(path)
+    return {"xy": rows[:, :2], **{n: column(names, rows, n) for n in names}}
 
 
 def test_icp_breaklines_picked_in_the_dialog_keep_the_step(desktop):
@@ -550,16 +539,19 @@ def test_icp_breaklines_picked_in_the_dialog_keep_the_step(desktop):
 
 
 def test_piv_breaklines_picked_in_the_dialog_flag_the_vectors_at_the_scarp(desktop):
-    """The scarp picked in PIV's own dialog: the vectors whose final window (16 px of 0.25 m,
-    the defaults) the scarp crosses are flagged (near_break), those whose window it does not
-    reach are not, and the summary counts them; the vectors 3 m or more from it have their
-    own side's motion within the issue's mark, 0.25 cell RMS."""
+    """The scarp picked in PIV's own dialog: the vectors whose final window (the default
+    window and grid: 16 px of 0.25 m) the scarp crosses are flagged (near_break), those
+    whose window it does not reach are not, and the summary counts them; the vectors 3 m or
+    more from it have their own side's motion within the issue's mark, 0.25 cell RMS."""
+    from slipmap.app import piv as piv_job
+
     s = _scenario(desktop, "piv-breaklines")
     _assert_ran(s)
     summary = json.loads((desktop[2]["stepped"] / "piv.json").read_text())
     v = _vectors(desktop[2]["stepped"] / "piv.gpkg")
     flagged = v["near_break"] == 1
-    half = 0.5 * 16 * 0.25  # the final window's half side, metres
+    grid_m = piv_job.SPEC["grid_m"].default
+    half = 0.5 * piv_job.SPEC["windows_px"].default[-1] * grid_m  # the final window, metres
     off = np.abs(v["xy"][:, 1] - STEP_Y)
     assert 0 < flagged.sum() < len(flagged), flagged.sum()
     assert np.all(off[flagged] <= half + 0.01), off[flagged]
@@ -569,7 +561,7 @@ def test_piv_breaklines_picked_in_the_dialog_flag_the_vectors_at_the_scarp(deskt
     assert far.sum() >= 40, far.sum()
     err = np.column_stack([v["dx"], v["dy"]])[far] - _step_truth(v["xy"][far])[:, :2]
     rms = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
-    assert rms <= 0.25 * 0.25, rms
+    assert rms <= 0.25 * grid_m, rms
 
 
 def test_cancel_leaves_nothing_behind(desktop):

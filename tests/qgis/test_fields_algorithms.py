@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pyproj
 import pytest
+from qgis_scenes import column as _col
+from qgis_scenes import features as _features
 from qgis_scenes import rough_surface
 
 import slipmap
@@ -59,29 +61,6 @@ def _run(alg_id, params, **kw):
     import processing
 
     return processing.run(f"slipmap:{alg_id}", params, **kw)
-
-
-def _features(path):
-    from qgis.core import QgsVectorLayer
-
-    layer = QgsVectorLayer(str(path), "out", "ogr")
-    assert layer.isValid(), path
-    names = [f.name() for f in layer.fields()]
-    rows = []
-    for f in layer.getFeatures():
-        p = f.geometry().centroid().asPoint()
-        rows.append(
-            [p.x(), p.y()] + [np.nan if v is None or _is_null(v) else v for v in f.attributes()]
-        )
-    return layer, names, np.array(rows, dtype=np.float64)
-
-
-def _is_null(value):
-    return hasattr(value, "isNull") and value.isNull()
-
-
-def _col(names, rows, name):
-    return rows[:, 2 + names.index(name)]
 
 
 def _raster(path):
