@@ -2596,7 +2596,10 @@ class SlumpField:
     ``t = (p - c) . w`` the offsets of a point from the axis point ``c = axis_xy``. The ground
     is the reference slope ``h(s) = -H - s tan(beta)`` below the axis (``H = axis_height_m``,
     ``beta = slope_deg``), so the field depends on map position alone (as the lobe's does; the
-    real relief would add about ``theta * dz``). Inside the block
+    real relief would add about ``theta * dz``). With ``ground`` the block rotates rigidly
+    over the real relief instead: the axis lies ``H`` above ``ground(axis_xy)`` and ``h`` is a
+    point's own height above the axis (its ``z`` when the points have three columns, else
+    ``ground(xy)``), so every point of the block moves by one rotation. Inside the block
     (``-head_m <= s <= toe_m``, ``|t| <= width_m / 2``) a rotation by ``theta =
     rotation_deg`` that moves the material below the axis downslope,
 
@@ -2624,6 +2627,9 @@ class SlumpField:
         Ground slope ``beta`` (degrees; the ground descends downslope).
     rotation_deg : float
         Rotation ``theta`` (degrees; positive: head down, toe out and up).
+    ground : callable, optional
+        ``ground(xy (M, 2)) -> (M,)`` height of the ground before the slide (metres). None
+        (the default): the reference slope, the field a function of map position.
     """
 
     axis_xy: tuple[float, float]
@@ -2634,8 +2640,11 @@ class SlumpField:
     axis_height_m: float = 8.0
     slope_deg: float = 20.0
     rotation_deg: float = 3.0
+    ground: Optional[Any] = None
 
     def __post_init__(self) -> None:
+        if self.ground is not None and not callable(self.ground):
+            raise InvalidParameterError("ground must be a callable ground(xy) -> heights (m).")
         c = _xy_of(self.axis_xy)
         if c.shape != (1, 2) or not np.all(np.isfinite(c)):
             raise InvalidParameterError(f"axis_xy must be (x, y) in metres, got {self.axis_xy!r}.")
@@ -2665,12 +2674,25 @@ class SlumpField:
         s, t = self._local(xy)
         return (s >= -self.head_m) & (s <= self.toe_m) & (np.abs(t) <= 0.5 * self.width_m)
 
+    def _height(self, xy: Any, s: np.ndarray) -> np.ndarray:
+        """(M,) height of the points above the axis (metres, negative below it)."""
+        if self.ground is None:
+            return -self.axis_height_m - s * math.tan(math.radians(self.slope_deg))
+        axis_z = float(np.ravel(self.ground(np.array([self.axis_xy])))[0]) + self.axis_height_m
+        pts = np.asarray(xy, dtype=np.float64)
+        if pts.ndim == 2 and pts.shape[1] >= 3:
+            z = pts[:, 2]
+        else:
+            z = np.asarray(self.ground(_xy_of(xy)), dtype=np.float64).reshape(-1)
+        return z - axis_z
+
     def __call__(self, xy: Any) -> np.ndarray:
-        """(M, 3) displacement (metres) at (M, 2) points."""
+        """(M, 3) displacement (metres) at (M, 2) points, or (M, 3) points when ``ground``
+        is given (each point then rotates by its own height)."""
         s, t = self._local(xy)
         inside = (s >= -self.head_m) & (s <= self.toe_m) & (np.abs(t) <= 0.5 * self.width_m)
         th = math.radians(self.rotation_deg)
-        h = -self.axis_height_m - s * math.tan(math.radians(self.slope_deg))
+        h = self._height(xy, s)
         ds = s * (math.cos(th) - 1.0) - h * math.sin(th)
         dh = s * math.sin(th) + h * (math.cos(th) - 1.0)
         n, _ = self._axes()
@@ -2767,8 +2789,8 @@ class SumField:
         """(M, 3) displacement (metres) at (M, 2) points."""
         p = _xy_of(xy)
         out = np.zeros((len(p), 3))
-        for f in self.parts:
-            out += np.asarray(f(p), dtype=np.float64)
+        for f in self.parts:  # the points as given: a part may use their height
+            out += np.asarray(f(xy), dtype=np.float64)
         return out
 
     @property
@@ -2786,7 +2808,8 @@ def material_motion(
     field: Any, centres_xy: Any, *, iterations: int = 60, tol_m: float = 1e-6
 ) -> np.ndarray:
     """The motion of the material now (after epoch) at each centre: ``field(p0)`` with
-    ``p0 + field(p0)[:2] = c``.
+    ``p0 + field(p0)[:2] = c`` (in 3-D, ``p0 + field(p0) = c``, for (M, 3) centres: a field
+    that depends on height, such as :class:`SlumpField` with ``ground``).
 
     A windowed-ICP cell reports the motion of the ground now at its centre, so the truth at
     a centre ``c`` is the field at the material's original place ``p0``, found by the
@@ -2799,8 +2822,8 @@ def material_motion(
     ----------
     field : callable
         ``field(xy) -> (M, 3)`` displacement (metres).
-    centres_xy : (M, 2+) array-like
-        Centres (metres, after epoch).
+    centres_xy : (M, 2) or (M, 3) array-like
+        Centres (metres, after epoch); with three columns ``p0`` is found in 3-D.
     iterations : int
         Most fixed-point steps.
     tol_m : float
@@ -2811,12 +2834,14 @@ def material_motion(
     numpy.ndarray
         (M, 3) motion (metres), NaN rows where no material is found.
     """
-    c = _xy_of(centres_xy).copy()
+    raw = np.asarray(centres_xy, dtype=np.float64)
+    dim = 3 if raw.ndim == 2 and raw.shape[1] >= 3 else 2
+    c = raw[:, :3].copy() if dim == 3 else _xy_of(centres_xy).copy()
     p0 = c.copy()
     for _ in range(int(iterations)):
-        p0 = c - np.asarray(field(p0), dtype=np.float64)[:, :2]
+        p0 = c - np.asarray(field(p0), dtype=np.float64)[:, :dim]
     d = np.asarray(field(p0), dtype=np.float64)
-    miss = np.hypot(*(p0 + d[:, :2] - c).T) > float(tol_m)
+    miss = np.linalg.norm(p0 + d[:, :dim] - c, axis=1) > float(tol_m)
     d[miss] = np.nan
     return d
 
@@ -2951,8 +2976,10 @@ def make_landslide_pair(
     points : (N, 3) array-like
         The cloud (metres); not modified.
     field : callable
-        ``field(xy) -> (M, 3)`` displacement (metres): :class:`LobeField`,
-        :class:`SlabField`, :class:`SlumpField`, :class:`FaultField`, :class:`SumField`...
+        ``field(points) -> (M, 3)`` displacement (metres) at the after points' original
+        places, given as (M, 3) x, y, z (the fields of map position read x, y only):
+        :class:`LobeField`, :class:`SlabField`, :class:`SlumpField`, :class:`FaultField`,
+        :class:`SumField`...
     seed : int
         Seed of the split and the resampling.
     after_fraction : float
@@ -2979,7 +3006,7 @@ def make_landslide_pair(
     n_after = min(len(pts) - 1, max(1, int(round(frac * len(pts)))))
     after_index = np.sort(order[:n_after]).astype(np.int64)
     before_index = np.sort(order[n_after:]).astype(np.int64)
-    disp = np.asarray(field(pts[after_index, :2]), dtype=np.float64)
+    disp = np.asarray(field(pts[after_index]), dtype=np.float64)  # x, y, z: a field may use z
     after = pts[after_index] + disp
     before = pts[before_index].copy()
     if als is not None:

@@ -13,7 +13,13 @@ from test_icp import UTM, cloud
 from test_icp_breaklines import _scarp_errors, _scarp_pair
 
 from slipmap.core.icp import _OffsetTree, estimate_normals, windowed_icp
-from slipmap.core.icp_choice import choice_costs, choose_cells
+from slipmap.core.icp_choice import (
+    CENTRE_SHARE_OF_CELL,
+    MIN_CENTRE_POINTS,
+    centre_points,
+    choice_costs,
+    choose_cells,
+)
 from slipmap.core.synthetic import LobeField, SlumpField, material_motion
 
 
@@ -106,6 +112,58 @@ def test_a_cell_whose_centre_the_field_fits_better_keeps_the_field():
     # ... but not those around its centre
     assert c.centre_cell[0] - c.centre_field[0] > 3 * c.centre_se[0]
     assert not choose_cells(c, np.ones(4, bool))[0]
+
+
+def test_centre_points_are_the_disc_or_where_it_is_empty_the_nearest_fifth():
+    """The points around a centre: the disc of a quarter of the cell's side; in a cell with
+    fewer than MIN_CENTRE_POINTS there, its nearest points, the disc's share of the area
+    (pi / 16) of them, against a per-cell sort written out."""
+    rng = np.random.default_rng(5)
+    k, cell = 3, 5.0
+    r = np.concatenate([
+        rng.uniform(0.0, 3.5, 400),  # a full cell
+        rng.uniform(1.3, 3.5, 300),  # a hole at its centre
+        np.r_[rng.uniform(0.0, 1.2, MIN_CENTRE_POINTS - 1), rng.uniform(1.3, 3.5, 50)],
+    ])  # fmt: skip
+    seg = np.repeat(np.arange(k), [400, 300, MIN_CENTRE_POINTS - 1 + 50])
+    perm = rng.permutation(r.size)  # the cells' points interleaved
+    r, seg = r[perm], seg[perm]
+    got = centre_points(r, seg, k, cell_m=cell)
+    disc = r <= CENTRE_SHARE_OF_CELL * cell
+    want = disc.copy()
+    for c in (1, 2):
+        idx = np.flatnonzero(seg == c)
+        m = int(np.ceil(np.pi * CENTRE_SHARE_OF_CELL**2 * idx.size))
+        want[idx] = False
+        want[idx[np.argsort(r[idx], kind="stable")[:m]]] = True
+    np.testing.assert_array_equal(got, want)
+    assert got[seg == 0].sum() == disc[seg == 0].sum() >= MIN_CENTRE_POINTS
+    assert got[seg == 1].sum() == 59  # ceil(0.196 * 300)
+
+
+def test_a_cell_with_an_empty_centre_reports_its_own_fit_where_the_field_is_off():
+    """A cell whose centre holds no point (a vent, a shadow) and whose field is off over
+    all its points reports its own fit, judged around the centre on its nearest points;
+    with the field right it keeps the field (until stop 61 it kept the field always)."""
+    before, after, seg, centres, d, grad, tree, normals = _patch()
+    s = after - centres[seg]
+    keep = ~((seg == 1) & (np.hypot(s[:, 0], s[:, 1]) <= 1.6))  # a hole at cell 1's centre
+    after, seg = after[keep], seg[keep]
+    at = cKDTree(after[:, :2])
+    own = d[seg] + np.einsum("pij,pj->pi", grad[seg], after - centres[seg])
+
+    def exact(xy):
+        return own[at.query(xy)[1]]
+
+    def off(xy):  # 5 cm too low in cell 1
+        return exact(xy) + np.where((seg[at.query(xy)[1]] == 1)[:, None], [0, 0, -0.05], 0.0)
+
+    usable = np.ones(4, dtype=bool)
+    c = _costs(after, seg, centres, off, d, grad, before, tree, normals)
+    assert np.isfinite(c.centre_cell[1]) and c.centre_unexplained[1] < 0.02
+    assert choose_cells(c, usable).tolist() == [False, True, False, False]
+    c = _costs(after, seg, centres, exact, d, grad, before, tree, normals)
+    assert not choose_cells(c, usable).any()
 
 
 def test_the_costs_are_the_reference_costs_of_the_two_residual_sets():

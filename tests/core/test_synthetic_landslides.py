@@ -93,6 +93,35 @@ def test_slump_rotates_the_block_about_its_axis():
     np.testing.assert_allclose(np.sort(np.unique(ring[:, 0])), [E0 - 8.0, E0 + 10.0])
 
 
+def test_slump_over_real_relief_moves_its_block_as_one_rigid_body():
+    """With ``ground`` every point of the block turns by one rotation about the axis, by its
+    own height: distances in the block are kept, whatever the relief; a 2-column call reads
+    the ground's height, and the truth at a centre inverts the motion in 3-D."""
+
+    def ground(xy):
+        xy = np.asarray(xy, dtype=np.float64)
+        return 1500.0 + 1.5 * np.sin(0.4 * (xy[:, 0] - E0)) + 0.8 * np.cos(0.3 * (xy[:, 1] - N0))
+
+    f = SlumpField((E0, N0), azimuth_deg=180.0, head_m=8.0, toe_m=8.0, width_m=12.0,
+                   rotation_deg=3.0, ground=ground)  # fmt: skip
+    rng = np.random.default_rng(7)
+    xy = np.column_stack([E0 + rng.uniform(-5, 5, 200), N0 + rng.uniform(-7, 7, 200)])
+    p = np.column_stack([xy, ground(xy) + rng.normal(0.0, 0.5, 200)])  # points off the ground
+    assert np.all(f.in_block(p))
+    q = p + f(p)
+    i, j = rng.integers(0, 200, (2, 500))
+    np.testing.assert_allclose(np.linalg.norm(q[i] - q[j], axis=1),
+                               np.linalg.norm(p[i] - p[j], axis=1), atol=1e-9)  # fmt: skip
+    # not a field of map position: two heights at one place move differently, by theta * dz
+    two = np.array([[E0, N0 - 4.0, 1500.0], [E0, N0 - 4.0, 1502.0]])
+    dd = f(two)
+    np.testing.assert_allclose(np.linalg.norm(dd[1] - dd[0]), 2.0 * 2 * math.sin(math.radians(1.5)))
+    np.testing.assert_allclose(f(xy), f(np.column_stack([xy, ground(xy)])), atol=1e-12)
+    # the material now at a 3-D centre came from where the field carries it there
+    c = q[:20]
+    np.testing.assert_allclose(material_motion(f, c), f(p[:20]), atol=1e-7)
+
+
 def test_fault_offsets_a_smooth_field_by_its_slip():
     base = LobeField((E0 + 20, N0 + 20), 15.0, 15.0, 0.0, (0.1, -0.3, -0.1))
     f = FaultField(((E0, N0), (E0 + 40, N0 + 40)), slip_m=0.3, throw_m=0.06, base=base)
