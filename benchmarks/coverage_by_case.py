@@ -58,7 +58,7 @@ def main(argv=None) -> int:
             keys += [(r["density"], sub, r["case"]), (r["density"], sub, "all")]
         for key in keys:
             groups[key].append(v)
-        if r["case"] != "slump":
+        if r["case"] not in ("slump", "slump-draped"):
             groups[(r["density"], cls, "all but the slump")].append(v)
         if cls == "far":
             scenes[(r["density"], r["case"], r["file"], r["seed"])].append(v)

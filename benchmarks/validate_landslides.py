@@ -11,9 +11,15 @@ two disjoint halves, the second moved by a known field (:mod:`slipmap.core.synth
 * ``lobe-long``: an elongated lobe 7 m x 16 m, long axis at azimuth 30°, peak 0.6 m down it;
 * ``slab``: a rigid slab translating (0.1, -0.5, -0.2) m away from a straight scarp at 15° to
   the cell grid (a step; a 0.5 m gap opens behind the scarp);
-* ``slump``: a rotational slump, a block 18 m x 18 m rotating 3° about a horizontal axis 8 m
-  above a 20° reference slope (head drops 0.3 m, toe moves 0.6 m out and rises 0.3 m), its
-  outline a discontinuity;
+* ``slump``: a rotational slump, a block 18 m x 18 m rotating 3° about a horizontal axis, its
+  outline a discontinuity. Since stop 61 the block is rigid over lone-star's real relief: the
+  axis lies 8 m above the ground at the block's centre and every point turns by its own
+  height (:class:`~slipmap.core.synthetic.SlumpField` with ``ground``, the ground a 0.5 m
+  mean-height grid of the cloud; head drops about 0.4 m, toe moves out and rises);
+* ``slump-draped`` (only when asked for, ``--cases``): the slump of stops 33–60, the same
+  rotation applied to a 20° reference slope 8 m below the axis and draped over the real
+  relief by map position (a point moves as its map position's point of the reference slope
+  would: not a rigid motion of the real ground, about ``theta * dz`` off it);
 * ``fault``: a broad smooth lobe crossed by a fault at azimuth 60°: 0.3 m strike-slip and
   0.05 m throw.
 
@@ -119,7 +125,9 @@ DENSE_N = 500
 #: OpenPIV's window deformation needs at least 4 windows across)
 PIV_OPTS = {"tls": {"grid_m": 0.15}, "als": {"grid_m": 0.5, "windows_px": (24, 12, 12)}}
 ALS = AlsSampling(line_spacing_m=0.4, point_spacing_m=0.35)
-SCARP_CASES = ("slab", "slump", "fault")
+SCARP_CASES = ("slab", "slump", "slump-draped", "fault")
+#: cases run only when named in --cases
+ASKED_ONLY = ("slump-draped",)
 #: half the length of the slab's scarp and of the fault's trace, metres. Their fields step
 #: along the infinite line through the trace; until stop 57 the lines were 60 m and 80 m
 #: long, which spans the 32 m x 41 m scene but not one of --extent-tiles 3, where cells by
@@ -146,8 +154,37 @@ class TurnedField:
         return getattr(self.field, "breaklines", ())
 
 
-def fields(lo: np.ndarray, hi: np.ndarray) -> dict:
-    """The case fields on a cloud's bounding box ``lo``, ``hi`` (2,) (see the docstring)."""
+def ground_model(pts: np.ndarray, cell_m: float = 0.5):
+    """``ground(xy (M, 2)) -> (M,)`` heights (m) of the cloud ``pts`` (N, 3): the mean height
+    per ``cell_m`` grid cell, empty cells from the nearest full one, bilinear between cell
+    centres (constant beyond the outermost). The slump's rigid block reads its axis height
+    and the heights of 2-column places (the PIV truth) from it."""
+    from scipy.interpolate import RegularGridInterpolator
+    from scipy.ndimage import distance_transform_edt
+
+    grid = common_grid(pts, cell_m=cell_m)
+    z = grid_elevation(pts, grid=grid)
+    empty = ~np.isfinite(z)
+    if empty.any():
+        idx = distance_transform_edt(empty, return_distances=False, return_indices=True)
+        z = z[tuple(idx)]
+    # row 0 is north: ascending y for the interpolator
+    ys = grid.y_max - (np.arange(grid.n_rows) + 0.5) * grid.cell_m
+    xs = grid.x_min + (np.arange(grid.n_cols) + 0.5) * grid.cell_m
+    f = RegularGridInterpolator((ys[::-1], xs), z[::-1], bounds_error=False, fill_value=None)
+
+    def ground(xy):
+        q = np.asarray(xy, dtype=np.float64).reshape(-1, np.shape(xy)[-1])[:, :2]
+        q = np.column_stack([np.clip(q[:, 1], ys[-1], ys[0]), np.clip(q[:, 0], xs[0], xs[-1])])
+        return f(q)
+
+    return ground
+
+
+def fields(lo: np.ndarray, hi: np.ndarray, ground=None) -> dict:
+    """The case fields on a cloud's bounding box ``lo``, ``hi`` (2,) (see the docstring);
+    ``ground`` (:func:`ground_model`) makes the slump a rigid block over the real relief
+    (without it, and as ``slump-draped``, the rotation draped by map position)."""
     c = 0.5 * (lo + hi)
     side = float(np.min(hi - lo))
     az = math.radians(30.0)
@@ -165,7 +202,12 @@ def fields(lo: np.ndarray, hi: np.ndarray) -> dict:
         "lobe-small": LobeField(c + np.array([-6.0, -9.0]), 6.0, 6.0, 0.0, (0.25, -0.35, -0.15)),
         "lobe-long": LobeField(c, 7.0, 16.0, 30.0, (0.6 * down[0], 0.6 * down[1], -0.25)),
         "slab": SlabField((s0 - REACH_M * u, s0 + REACH_M * u), (0.1, -0.5, -0.2)),
-        "slump": SlumpField(tuple(c), azimuth_deg=180.0, head_m=9.0, toe_m=9.0, width_m=18.0),
+        "slump": SlumpField(
+            tuple(c), azimuth_deg=180.0, head_m=9.0, toe_m=9.0, width_m=18.0, ground=ground
+        ),
+        "slump-draped": SlumpField(
+            tuple(c), azimuth_deg=180.0, head_m=9.0, toe_m=9.0, width_m=18.0
+        ),
         "fault": FaultField(
             (
                 c - REACH_M * np.array([math.sin(math.radians(60)), math.cos(math.radians(60))]),
@@ -362,7 +404,8 @@ def scene(cloud, pts, case, fld, density, seed, args, tmp: Path, cells_log: list
             continue
         r = jr.data["result"]
         c = np.column_stack([r.x, r.y])
-        truth = material_motion(fld, c)
+        # in 3-D at the cell's centre height: the rigid slump's motion depends on height
+        truth = material_motion(fld, np.column_stack([c, r.z]))
         dist = distance_m(c, bl) if bl is not None else np.full(len(c), np.inf)
         min_n = DENSE_N if density == "tls" else int(icp_job.SPEC["min_points"].default)
         mask = r.n >= min_n
@@ -637,7 +680,7 @@ def main(argv=None) -> int:
     seeds = range(args.first_seed, args.first_seed + (1 if args.quick else args.seeds))
     cloud = read_las(DATA)
     pts = cloud.xyz
-    flds = fields(pts[:, :2].min(axis=0), pts[:, :2].max(axis=0))
+    flds = fields(pts[:, :2].min(axis=0), pts[:, :2].max(axis=0), ground=ground_model(pts))
     if args.extent_tiles != 1:
         pts, rows = mirror_tiles(pts, args.extent_tiles)
         cloud = cloud.subset(rows)
@@ -647,7 +690,7 @@ def main(argv=None) -> int:
         icp_spline.HORIZONTAL_MODEL = args.horizontal_model
     if args.turn_motion:
         flds = {k: TurnedField(f, args.turn_motion) for k, f in flds.items()}
-    cases = args.cases or list(flds)
+    cases = args.cases or [k for k in flds if k not in ASKED_ONLY]
     results, cells_log = [], []
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="slipmap-landslides-") as tmp:
