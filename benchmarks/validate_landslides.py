@@ -655,6 +655,13 @@ def main(argv=None) -> int:
         "default: the library's)",
     )
     ap.add_argument(
+        "--neighbour-surface",
+        choices=["plane", "quadratic"],
+        default=None,
+        help="the neighbour tests' prediction of a cell (core/fields.py NEIGHBOUR_SURFACE; "
+        "default: the library's)",
+    )
+    ap.add_argument(
         "--extent-tiles",
         type=int,
         default=1,
@@ -688,6 +695,10 @@ def main(argv=None) -> int:
         from slipmap.core import icp_spline
 
         icp_spline.HORIZONTAL_MODEL = args.horizontal_model
+    if args.neighbour_surface is not None:
+        from slipmap.core import fields as core_fields
+
+        core_fields.NEIGHBOUR_SURFACE = args.neighbour_surface
     if args.turn_motion:
         flds = {k: TurnedField(f, args.turn_motion) for k, f in flds.items()}
     cases = args.cases or [k for k in flds if k not in ASKED_ONLY]

@@ -279,8 +279,8 @@ def place_straight_line(
             turn, 100.0 * share,
         )  # fmt: skip
         # a step along the line whose median jump fell short (the candidate off the step's
-        # direction, the jumps at the points' feet diluted) keeps its points' line; one
-        # along too little of it is a lobe's flank (the harness's lobes: 38-56 %)
+        # direction or beside it, the jumps at the points' feet diluted) keeps its points'
+        # line; one along too little of it is a lobe's flank (the harness's lobes: 38-56 %)
         steps = along >= min_along_share and share <= max_wrong_share
         return StraightPlacement(
             None, jump, n_dec, share, off, turn, on_points=placed if steps else None,

@@ -680,6 +680,31 @@ def _neighbour_table(row: np.ndarray, col: np.ndarray, reach: int = 1) -> np.nda
 
 
 _OFFSETS = [(a, b) for a in (-1, 0, 1) for b in (-1, 0, 1) if a or b]
+#: the neighbour tests' prediction of a cell (:func:`neighbour_variance_factor` ``surface``)
+NEIGHBOUR_SURFACE = "plane"
+
+
+def _quadratic_design(off: np.ndarray) -> np.ndarray:
+    """(8, 6) columns ``1, dc, dr, dc², dc dr, dr²`` of the 8 neighbour offsets (rows,
+    columns)."""
+    dr, dc = off[:, 0], off[:, 1]
+    return np.column_stack([np.ones(len(off)), dc, dr, dc * dc, dc * dr, dr * dr])
+
+
+def _quadratic_weights(W: np.ndarray, off: np.ndarray, h_plane: np.ndarray) -> np.ndarray:
+    """(M, 8) prediction weights of the least-squares quadratic through the present
+    neighbours (``W`` (M, 8) 0/1) at the centre; ``h_plane`` (M, 8) where they determine no
+    quadratic."""
+    Xq = _quadratic_design(off)
+    A = np.einsum("ki,ij,il->kjl", W, Xq, Xq)  # (M, 6, 6), integer entries
+    full = np.abs(np.linalg.det(A)) > 0.5  # an integer determinant: 0 where not determined
+    h = h_plane.copy()
+    if full.any():
+        e1 = np.zeros((int(full.sum()), 6, 1))
+        e1[:, 0, 0] = 1.0
+        gq = np.linalg.solve(A[full], e1)[..., 0]
+        h[full] = W[full] * (gq @ Xq.T)
+    return h
 
 
 def _neighbour_args(row, col, values, sigmas, usable):
@@ -737,6 +762,7 @@ def neighbour_variance_factor(
     min_cells: int = 8,
     pair_covariance: Optional[Tuple[np.ndarray, np.ndarray]] = None,
     separated: Optional[np.ndarray] = None,
+    surface: Optional[str] = None,
 ) -> NeighbourVarianceFactor:
     """Variance factor of the formal sigmas of a gridded field, from neighbour agreement.
 
@@ -774,11 +800,21 @@ def neighbour_variance_factor(
         ... (1, 1)`` in rows, columns) lies across a discontinuity of the field (a breakline
         between their centres): that neighbour does not predict the cell, whose motion may
         jump there.
+    surface : {"plane", "quadratic"}, optional
+        The prediction: the plane through the neighbours, or the quadratic surface (six
+        coefficients) where the present neighbours determine one (the plane elsewhere); with
+        all 8 present that is ``mean(edges) + mean(edges) - mean(corners)`` per axis, edges
+        ``1/2`` each and corners ``-1/4``. A smooth field's curvature over 3 x 3 cells is no
+        error of its cells; the quadratic leaves it out of ``r`` (at 2.25 times a cell's
+        variance for ``var(r)`` instead of 1.125). Default :data:`NEIGHBOUR_SURFACE`.
 
     Returns
     -------
     NeighbourVarianceFactor
     """
+    surface = NEIGHBOUR_SURFACE if surface is None else surface
+    if surface not in ("plane", "quadratic"):
+        raise InvalidParameterError(f"surface must be 'plane' or 'quadratic', got {surface!r}")
     if not 3 <= int(min_neighbours) <= 8:
         raise InvalidParameterError(f"min_neighbours must be within [3, 8], got {min_neighbours}")
     if np.size(row) == 0:
@@ -802,6 +838,8 @@ def neighbour_variance_factor(
     rhs = np.broadcast_to(np.array([1.0, 0.0, 0.0]), (W.shape[0], 3))
     g = np.linalg.solve(XtWX, rhs[..., None])[..., 0]  # (M, 3) = (X'WX)^-1 e1
     h = W * (g @ X.T)  # (M, 8)
+    if surface == "quadratic":
+        h = _quadratic_weights(W, off, h)
     idx = np.maximum(nb, 0)
     pred = np.einsum("kj,kjq->kq", h, values[idx])
     var = sigmas[centre] ** 2 + np.einsum("kj,kjq->kq", h * h, sigmas[idx] ** 2)
@@ -835,6 +873,7 @@ def _neighbour_variance_factor_reference(
     min_cells=8,
     pair_covariance=None,
     separated=None,
+    surface="plane",
 ) -> NeighbourVarianceFactor:
     """Slow obvious version of :func:`neighbour_variance_factor` (a loop over cells with
     ``np.linalg.lstsq`` per cell), for testing."""
@@ -853,6 +892,9 @@ def _neighbour_variance_factor_reference(
             continue
         j = [k for _, _, k in nbs]
         h = np.linalg.lstsq(X, np.eye(len(j)), rcond=None)[0][0]  # prediction at (0, 0)
+        Xq = np.array([[1.0, b, a, b * b, a * b, a * a] for a, b, _ in nbs]).reshape(-1, 6)
+        if surface == "quadratic" and np.linalg.matrix_rank(Xq) == 6:
+            h = np.linalg.lstsq(Xq, np.eye(len(j)), rcond=None)[0][0]
         r_i = values[i] - h @ values[j]
         # var(r) = var(e_i - h' e_J) from the full covariance of (cell, neighbours)
         members = [i] + j

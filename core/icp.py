@@ -2789,6 +2789,25 @@ SCAN_COVER_CELLS = 1.5
 #: issue #29, stop 59: the ALS slab at a survey's extent). Candidates dropped because they
 #: step along too little of their length (a lobe's flank) are not tried again
 RETRY_TURN_DEG = 2.0
+#: ... or whose line has an end this share of a cell or more off the candidate's line
+#: (:func:`departure_m`), turned or not: the scan places its line on a lattice of offsets,
+#: and a fault's field fitted along a candidate beside it steps by a fraction of the fault's
+#: step at the candidate (the harness's TLS fault, 32 m, seed 5: the candidate 1.5 m beside
+#: the fault and turned 1.5°, the field's median jump 0.074 m where the fault steps by 0.3 m,
+#: dropped on it; fitted again along the points' line, 0.297 m; docs/fields.md, stop 62)
+RETRY_DEPART_CELLS = 0.2
+
+
+def departure_m(candidate, placed) -> float:
+    """How far the straight line ``placed`` (Breaklines, one straight part) departs from the
+    straight ``candidate`` (Breaklines) over its length: the larger distance of its two ends
+    from the candidate's line (extended), metres."""
+    c = np.asarray(candidate.parts[0], dtype=np.float64)
+    p = np.asarray(placed.parts[0], dtype=np.float64)
+    t = c[-1] - c[0]
+    t = t / max(float(np.hypot(*t)), 1e-12)
+    rel = p[[0, -1]] - c[0]
+    return float(np.max(np.abs(t[0] * rel[:, 1] - t[1] * rel[:, 0])))
 
 
 def confirm_lines(field, after, straight, *, before, tree, normals, gate_m, cell_m, again=True):
@@ -2802,7 +2821,8 @@ def confirm_lines(field, after, straight, *, before, tree, normals, gate_m, cell
     Returns ``(lines, retry)``: the confirmed lines (None when none is), and, with
     ``again``, for a straight step cut to part of its length or dropped on its median jump
     alone, whose decisive points place a straight line turned by :data:`RETRY_TURN_DEG` or more
-    from it, that line across the scan's box as a new candidate (a
+    from it or beside it (an end :data:`RETRY_DEPART_CELLS` of a cell or more off its line),
+    that line across the scan's box as a new candidate (a
     :class:`~slipmap.core.breaklines.StraightStep`) to fit and judge in its place (None
     otherwise)."""
     from .breaklines import DETECT_FLOOR_M
@@ -2819,8 +2839,11 @@ def confirm_lines(field, after, straight, *, before, tree, normals, gate_m, cell
             max_jump_m=SCAN_MAX_JUMP_STEPS * step_m, **near_kw,
         )  # fmt: skip
         retry = None
-        turned = abs(placed.turn_deg) >= RETRY_TURN_DEG and placed.on_points is not None
-        if again and turned and (placed.cut or placed.line is None):
+        moved = placed.on_points is not None and (
+            abs(placed.turn_deg) >= RETRY_TURN_DEG
+            or departure_m(field.lines, placed.on_points) >= RETRY_DEPART_CELLS * cell_m
+        )  # fmt: skip
+        if again and moved and (placed.cut or placed.line is None):
             retry = _across(straight, placed.on_points)
         return placed.line, retry
     from .icp_spline import refine_breaklines
@@ -2851,7 +2874,8 @@ def try_candidates(tries, fit, confirm):
     it. ``fit(lines)`` fits the field with candidate lines and returns the fit (its
     ``.field``); ``confirm(field, straight, again)`` is :func:`confirm_lines` on the
     run's points. A straight candidate placed on part of its length, or dropped, whose
-    decisive points place a line turned from it (:data:`RETRY_TURN_DEG`) is fitted and
+    decisive points place a line turned from it or beside it (:data:`RETRY_TURN_DEG`,
+    :data:`RETRY_DEPART_CELLS`) is fitted and
     judged once more along that line across the survey, and taken where the points confirm
     it there; else the cut line stands (or the candidate stays dropped).
 

@@ -464,3 +464,66 @@ def test_a_line_the_scan_proposes_off_its_direction_is_placed_along_the_whole_sc
     p = _over(line, 0.0, side)
     assert distance_m(p, scarp).max() < 1.0
     assert line.length_m() > side  # across the survey, not a stretch of it
+
+
+class _Lines:
+    def __init__(self, lines):
+        self.lines = lines  # the candidate the stub field was fitted with
+
+
+@pytest.mark.parametrize(
+    "off_m, turn_deg, cut, kept, retried",
+    [
+        (1.5, 0.0, False, False, True),  # dropped, its points' line 1.5 m beside it
+        (1.5, 0.0, True, True, True),  # cut, 1.5 m beside it
+        (0.5, 0.0, False, False, False),  # a tenth of a cell: the candidate was on the step
+        (0.5, 3.0, False, False, True),  # turned (stop 59's rule)
+        (1.5, 0.0, False, True, False),  # placed whole: nothing to try again
+    ],
+)
+def test_a_line_the_points_place_beside_the_candidate_is_tried_again(
+    off_m, turn_deg, cut, kept, retried, monkeypatch
+):
+    """confirm_lines with a stub placement: the straight line the decisive points place is
+    tried again across the survey where the candidate was cut or dropped and that line is
+    turned from it (``RETRY_TURN_DEG``) or has an end a fifth of a cell or more off its line
+    (``RETRY_DEPART_CELLS``; the harness's TLS fault at 32 m, seed 5: the scan's candidate
+    1.5 m beside the fault, dropped, the retry placed along it)."""
+    import dataclasses
+
+    import slipmap.core.breakline_points as bp
+    from slipmap.core.breakline_points import StraightPlacement
+    from slipmap.core.icp import confirm_lines
+
+    box = np.array([[0.0, 0.0], [100.0, 100.0]])
+    cand = dataclasses.replace(_step((0.0, 50.0), (100.0, 50.0)), box_m=box)
+    on = breaklines([np.array([[10.0, 50.0 + off_m], [90.0, 50.0 + off_m]])])
+
+    def placed(field, after, **kw):
+        assert field.lines is cand.line
+        return StraightPlacement(on if kept else None, 0.1, 5000, 0.03, off_m, turn_deg,
+                                 cut=cut, on_points=on)  # fmt: skip
+
+    monkeypatch.setattr(bp, "place_straight_line", placed)
+    kw = dict(before=None, tree=None, normals=None, gate_m=1.0, cell_m=CELL)
+    lines, retry = confirm_lines(_Lines(cand.line), None, cand, **kw)
+    assert lines is (on if kept else None)
+    if not retried:
+        assert retry is None
+        return
+    p = retry.line.parts[0]  # along the points' line, across the box
+    np.testing.assert_allclose(p[:, 1], 50.0 + off_m, atol=1e-9)
+    np.testing.assert_allclose(np.sort(p[:, 0]), [0.0, 100.0], atol=1e-9)
+    assert confirm_lines(_Lines(cand.line), None, cand, again=False, **kw)[1] is None
+
+
+def test_how_far_a_placed_line_departs_from_the_candidate():
+    from slipmap.core.icp import departure_m
+
+    cand = breaklines([np.array([[0.0, 0.0], [100.0, 0.0]])])
+    # shifted 1.5 m and turned: its ends 1.5 - 0.5 and 1.5 + 0.5 m off the candidate's line
+    placed = breaklines([np.array([[10.0, 1.0], [90.0, 2.0]])])
+    assert departure_m(cand, placed) == pytest.approx(2.0, abs=1e-12)
+    beyond = breaklines([np.array([[-50.0, -0.5], [150.0, 0.25]])])  # beyond its ends too
+    assert departure_m(cand, beyond) == pytest.approx(0.5, abs=1e-12)
+    assert departure_m(cand, cand) == 0.0

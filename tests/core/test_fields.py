@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from scipy.stats import chi2
 
 from slipmap.core.errors import InputDataError, InvalidParameterError
 from slipmap.core.fields import (
@@ -355,6 +356,55 @@ def test_variance_factor_fast_equals_loop_reference():
         np.testing.assert_allclose(fast.normalised, ref.normalised, rtol=1e-10)
         np.testing.assert_allclose(fast.variance, ref.variance, rtol=1e-10)
         assert np.isfinite(fast.normalised).all(axis=1).sum() == fast.n_cells
+
+
+@pytest.mark.parametrize("surface", ["plane", "quadratic"])
+def test_variance_factor_fast_equals_loop_reference_per_surface(surface):
+    row, col, values, sig = _noisy_plane_field(8, 1.5, shape=(12, 15), keep=0.7)
+    usable = np.random.default_rng(3).random(row.size) < 0.9
+    sep = np.random.default_rng(4).random((row.size, 8)) < 0.1
+    for mn in (3, 5, 8):
+        kw = dict(usable=usable, min_neighbours=mn, min_cells=1, separated=sep, surface=surface)
+        fast = neighbour_variance_factor(row, col, values, sig, **kw)
+        ref = _neighbour_variance_factor_reference(row, col, values, sig, **kw)
+        assert fast.n_cells == ref.n_cells > 0
+        np.testing.assert_allclose(fast.normalised, ref.normalised, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(fast.variance, ref.variance, rtol=1e-9)
+
+
+def test_a_curved_field_is_no_error_to_the_quadratic_neighbour_test():
+    """A smooth undulating field whose curvature over 3 x 3 cells is several times the
+    cells' noise: the plane through the neighbours calls it error (factor well over 1), the
+    quadratic does not (the known noise scale back within 10 %); with every neighbour the
+    quadratic predicts by edges 1/2 and corners -1/4."""
+    plane, quad = [], []
+    for seed in range(4):
+        row, col, values, sig = _noisy_plane_field(seed, 1.0, keep=1.0)  # no gaps
+        # undulations of 5 m over 10 cells: second differences of up to 5 cm per cell, fourth
+        # differences (what a quadratic misses) of up to 0.5 mm
+        wave = 5.0 * np.cos(col / 10.0) * np.cos(row / 10.0)
+        curved = values + np.column_stack([wave, -0.5 * wave, 0.2 * wave])
+        plane.append(neighbour_variance_factor(row, col, curved, sig, surface="plane").factor)
+        est = neighbour_variance_factor(row, col, curved, sig, surface="quadratic")
+        # the grid's border cells have 5 neighbours, too few for a quadratic: they keep the
+        # plane (measured: the whole grid's factor 1.10-1.13)
+        inner = (row > 0) & (row < row.max()) & (col > 0) & (col < col.max())
+        z2 = est.normalised[inner] ** 2
+        quad.append((est.factor, math.sqrt(np.median(z2) / chi2.ppf(0.5, 1))))
+    assert min(plane) > 2.0, (plane, quad)
+    np.testing.assert_allclose([q[1] for q in quad], 1.0, rtol=0.05)
+    assert max(q[0] for q in quad) < 1.2
+    # the weights with all 8 neighbours: one cell on a field that is a known quadratic
+    rr, cc = np.mgrid[0:3, 0:3]
+    row, col = rr.ravel(), cc.ravel()
+    q = lambda r, c: 1.0 + 2.0 * c - r + 0.5 * c * c + 0.25 * r * c - 0.75 * r * r  # noqa: E731
+    vals = np.asarray(q(row - 1.0, col - 1.0), dtype=np.float64)
+    vals[4] += 0.01  # the centre off the quadratic by 1 cm
+    est = neighbour_variance_factor(
+        row, col, vals, np.full(9, 0.01), min_cells=1, surface="quadratic"
+    )
+    # r = 0.01, var(r) = 0.01² (1 + 4 (1/2)² + 4 (1/4)²) = 2.25 x 0.01²
+    assert est.normalised[4, 0] == pytest.approx(1.0 / 1.5, rel=1e-9)
 
 
 def _correlated_field(seed, *, shape=(24, 30), length_cells=1.5, sigma=0.002):
