@@ -803,8 +803,9 @@ def neighbour_variance_factor(
     surface : {"plane", "quadratic"}, optional
         The prediction: the plane through the neighbours, or the quadratic surface (six
         coefficients) where the present neighbours determine one (the plane elsewhere); with
-        all 8 present that is ``mean(edges) + mean(edges) - mean(corners)`` per axis, edges
-        ``1/2`` each and corners ``-1/4``. A smooth field's curvature over 3 x 3 cells is no
+        all 8 present that is the mean of the two row neighbours plus the mean of the two
+        column neighbours less the mean of the four corners (weights ``1/2`` and ``-1/4``).
+        A smooth field's curvature over 3 x 3 cells is no
         error of its cells; the quadratic leaves it out of ``r`` (at 2.25 times a cell's
         variance for ``var(r)`` instead of 1.125). Default :data:`NEIGHBOUR_SURFACE`.
 
