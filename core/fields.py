@@ -893,9 +893,10 @@ def _neighbour_variance_factor_reference(
             continue
         j = [k for _, _, k in nbs]
         h = np.linalg.lstsq(X, np.eye(len(j)), rcond=None)[0][0]  # prediction at (0, 0)
-        Xq = np.array([[1.0, b, a, b * b, a * b, a * a] for a, b, _ in nbs]).reshape(-1, 6)
-        if surface == "quadratic" and np.linalg.matrix_rank(Xq) == 6:
-            h = np.linalg.lstsq(Xq, np.eye(len(j)), rcond=None)[0][0]
+        if surface == "quadratic":
+            Xq = np.array([[1.0, b, a, b * b, a * b, a * a] for a, b, _ in nbs]).reshape(-1, 6)
+            if np.linalg.matrix_rank(Xq) == 6:
+                h = np.linalg.lstsq(Xq, np.eye(len(j)), rcond=None)[0][0]
         r_i = values[i] - h @ values[j]
         # var(r) = var(e_i - h' e_J) from the full covariance of (cell, neighbours)
         members = [i] + j

@@ -375,7 +375,8 @@ def test_variance_factor_fast_equals_loop_reference_per_surface(surface):
 def test_a_curved_field_is_no_error_to_the_quadratic_neighbour_test():
     """A smooth undulating field whose curvature over 3 x 3 cells is several times the
     cells' noise: the plane through the neighbours calls it error (factor well over 1), the
-    quadratic does not (the known noise scale back within 10 %); with every neighbour the
+    quadratic does not (the known noise scale back within 5 % on the interior cells); with
+    every neighbour the
     quadratic predicts by edges 1/2 and corners -1/4."""
     plane, quad = [], []
     for seed in range(4):
