@@ -662,6 +662,14 @@ def main(argv=None) -> int:
         "default: the library's)",
     )
     ap.add_argument(
+        "--projection-iterations",
+        type=int,
+        default=None,
+        metavar="N",
+        help="iterations of the rigid cells' own robust weights in the field's rigid "
+        "projection (core/icp_spline.py PROJECTION_ITERATIONS; default: the library's)",
+    )
+    ap.add_argument(
         "--extent-tiles",
         type=int,
         default=1,
@@ -699,6 +707,10 @@ def main(argv=None) -> int:
         from slipmap.core import fields as core_fields
 
         core_fields.NEIGHBOUR_SURFACE = args.neighbour_surface
+    if args.projection_iterations is not None:
+        from slipmap.core import icp_spline
+
+        icp_spline.PROJECTION_ITERATIONS = args.projection_iterations
     if args.turn_motion:
         flds = {k: TurnedField(f, args.turn_motion) for k, f in flds.items()}
     cases = args.cases or [k for k in flds if k not in ASKED_ONLY]

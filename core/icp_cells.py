@@ -209,12 +209,33 @@ def mark_undetermined(cov: np.ndarray, undet: np.ndarray) -> np.ndarray:
 
 
 def _seg_weights(v: np.ndarray, seg: np.ndarray, k: int, opts: _Options):
-    """:func:`slipmap.core.icp_options._weights` per segment: (keep, w, psi') of (P,) residuals.
+    """:func:`slipmap.core.icp_options._weights` per segment: (keep, w, psi') of (P,) residuals
+    (``seg`` sorted; :func:`seg_scales`)."""
+    thr, scale = seg_scales(v, seg, k, opts)
+    keep = np.abs(v) <= thr[seg]
+    if opts.robust is None:
+        w = keep.astype(np.float64)
+        return keep, w, w
+    w, dpsi = _robust_weights(v, scale[seg], keep, opts.robust)
+    return keep, w, dpsi
+
+
+def seg_scales(v: np.ndarray, seg: np.ndarray, k: int, opts: _Options):
+    """Each segment's trimming threshold and robust scale, as
+    :func:`slipmap.core.icp_options._weights` finds them from the segment's residuals alone.
 
     The per-segment quantile (trimming) and median (robust scale) are order statistics of |v|
     within each segment of the sorted ``seg``; they equal numpy's ``quantile`` (linear) and
     ``median`` of each segment. Many small segments: one ``lexsort`` of all; few large ones:
     ``np.partition`` per segment (linear time, the same order statistics).
+
+    Returns
+    -------
+    threshold : (K,) float64
+        Largest kept ``|v|`` of each segment (inf: no trimming, or 20 residuals or fewer).
+    scale : (K,) float64
+        ``MAD_TO_SIGMA`` times the median ``|v|`` of the kept, at least 1e-12 (NaN without
+        robust weights).
     """
     a = np.abs(v)
     bounds, counts, loop = _blocks(seg, k)
@@ -247,22 +268,17 @@ def _seg_weights(v: np.ndarray, seg: np.ndarray, k: int, opts: _Options):
             ql = sa[np.minimum(starts + qlo, last)]
             qh = sa[np.minimum(starts + qhi, last)]
             q = ql + (qh - ql) * (pos - qlo)
-    keep = np.ones(v.size, dtype=bool)
-    if trimming:
-        trim = counts > 20
-        keep = ~trim[seg] | (a <= q[seg])
+    thr = np.where(trimming & (counts > 20), q, np.inf)
     if opts.robust is None:
-        w = keep.astype(np.float64)
-        return keep, w, w
+        return thr, np.full(k, np.nan)
     if not loop:  # median of |v| over the kept residuals (kept = the smallest ones)
+        keep = a <= thr[seg]
         nk = np.bincount(seg, weights=keep.astype(np.float64), minlength=k).astype(np.int64)
         lo = np.maximum((nk - 1) // 2, 0)
         hi = np.maximum(nk // 2, 0)
         ml = sa[np.minimum(starts + lo, last)]
         mh = sa[np.minimum(starts + hi, last)]
-    scale = np.maximum(MAD_TO_SIGMA * 0.5 * (ml + mh), 1e-12)[seg]
-    w, dpsi = _robust_weights(v, scale, keep, opts.robust)
-    return keep, w, dpsi
+    return thr, np.maximum(MAD_TO_SIGMA * 0.5 * (ml + mh), 1e-12)
 
 
 def _jacobian(model: str, q: np.ndarray, s: np.ndarray, n: np.ndarray) -> np.ndarray:
