@@ -1479,33 +1479,32 @@ class SplineChunk:
         (cells (M,) int64, t (M,) float64)
             The cells of the chunk's paired points in a cell, and their residuals.
         """
-        s, v, nu, rows = self._rigid_terms(c, report_xy, zc)[1:]
+        s, v, nu, rows = self._rigid_terms(c, report_xy, zc)
         return s, v + nu - np.einsum("ij,ij->i", rows, x[s])
 
     def _rigid_terms(self, c, report_xy, zc):
-        """``(sel (P,) bool, cells (M,), v (M,), n . u (M,), rows (M, 6))`` of the paired
-        points in a cell at coefficients ``c``, the rows about each cell's (x, y) and ``zc``
-        (kept for the same ``c`` and ``zc``: :func:`rigid_projection` iterates on them)."""
+        """``(cells (M,), v (M,), n . u (M,), rows (M, 6))`` of the paired points in a cell
+        at coefficients ``c``, the rows about each cell's (x, y) and ``zc`` (kept for the
+        same ``c`` and ``zc``: :func:`rigid_projection` iterates on them)."""
         key = self._rigid_key
         if key is not None and np.array_equal(key[0], c) and np.array_equal(key[1], zc):
             return self._rigid_cache
+        if self.seg is None:
+            e = np.zeros(0)
+            return np.zeros(0, np.int64), e, e, np.zeros((0, 6))
         ok, nrm, v, _ = self.pairs(c)
-        sel = ok & ~self.gap
-        if self.seg is not None:
-            sel &= self.seg >= 0
-        else:
-            sel &= False
-        s = self.seg[sel] if self.seg is not None else np.zeros(0, np.int64)
+        sel = ok & ~self.gap & (self.seg >= 0)
+        s = self.seg[sel]
         n, u = nrm[sel], self._basis_pts[sel] @ c
         q = self.a[sel] - np.c_[np.asarray(report_xy, dtype=np.float64)[s], zc[s]]
         rows = np.c_[n, np.cross(q, n)]
-        out = (sel, s, v[sel], np.einsum("ij,ij->i", n, u), rows)
+        out = (s, v[sel], np.einsum("ij,ij->i", n, u), rows)
         self._rigid_key, self._rigid_cache = (np.array(c, copy=True), np.array(zc, copy=True)), out
         return out
 
     def _own_rows(self, c, report_xy, x, zc, thr, scale, robust):
         """:meth:`rigid_rows` with the rigid cells' own weights (its ``own``)."""
-        _, s, v, nu, rows = self._rigid_terms(c, report_xy, zc)
+        s, v, nu, rows = self._rigid_terms(c, report_xy, zc)
         t = v + nu - np.einsum("ij,ij->i", rows, x[s])
         keep = np.abs(t) <= thr[s]
         if robust is None:
@@ -1520,15 +1519,7 @@ class SplineChunk:
         cells, ci = np.unique(s, return_inverse=True)
         ci = ci.reshape(-1)
         count = np.bincount(ci, minlength=cells.size).astype(np.float64)
-        nm = np.bincount(
-            (ci[:, None] * 36 + np.arange(36)).ravel(),
-            weights=(w[:, None, None] * rows[:, :, None] * rows[:, None, :]).ravel(),
-            minlength=cells.size * 36,
-        ).reshape(cells.size, 6, 6)  # fmt: skip
-        rhs = np.bincount(
-            (ci[:, None] * 6 + np.arange(6)).ravel(), weights=((w * nu)[:, None] * rows).ravel(),
-            minlength=cells.size * 6,
-        ).reshape(cells.size, 6)  # fmt: skip
+        nm, rhs = _cell_normal_sums(ci, cells.size, w, rows, nu)
         return cells, nm, rhs, zc[cells] * count, count
 
     def rigid_rows(self, c: np.ndarray, weighting: Weighting, report_xy: np.ndarray, own=None):
@@ -1567,18 +1558,24 @@ class SplineChunk:
         count = np.bincount(ci, minlength=cells.size).astype(np.float64)
         q = p - np.c_[np.asarray(report_xy, dtype=np.float64)[s], (sum_z / count)[ci]]
         rows = np.c_[n, np.cross(q, n)]
-        # per-cell sums by bincount (np.add.at's sums in the same order, ~10x faster)
-        nm_p = ws[:, None, None] * rows[:, :, None] * rows[:, None, :]
-        nm = np.bincount(
-            (ci[:, None] * 36 + np.arange(36)).ravel(), weights=nm_p.ravel(),
-            minlength=cells.size * 36,
-        ).reshape(cells.size, 6, 6)  # fmt: skip
-        rhs_p = (ws * np.einsum("ij,ij->i", n, u))[:, None] * rows
-        rhs = np.bincount(
-            (ci[:, None] * 6 + np.arange(6)).ravel(), weights=rhs_p.ravel(),
-            minlength=cells.size * 6,
-        ).reshape(cells.size, 6)  # fmt: skip
+        nm, rhs = _cell_normal_sums(ci, cells.size, ws, rows, np.einsum("ij,ij->i", n, u))
         return cells, nm, rhs, sum_z, count
+
+
+def _cell_normal_sums(ci, n_cells: int, w, rows, y):
+    """Per cell ``sum w r rᵀ`` (C, 6, 6) and ``sum w r y`` (C, 6) of the points' rows ``r``
+    (M, 6), weights ``w`` and observations ``y`` (M,), ``ci`` (M,) their cell in 0..C-1
+    (by bincount: np.add.at's sums in the same order, ~10x faster)."""
+    nm_p = w[:, None, None] * rows[:, :, None] * rows[:, None, :]
+    nm = np.bincount(
+        (ci[:, None] * 36 + np.arange(36)).ravel(), weights=nm_p.ravel(),
+        minlength=n_cells * 36,
+    ).reshape(n_cells, 6, 6)  # fmt: skip
+    rhs_p = (w * y)[:, None] * rows
+    rhs = np.bincount(
+        (ci[:, None] * 6 + np.arange(6)).ravel(), weights=rhs_p.ravel(), minlength=n_cells * 6
+    ).reshape(n_cells, 6)  # fmt: skip
+    return nm, rhs
 
 
 #: ``run(stage, *args) -> [result of every chunk]``: the chunks' methods ``residuals``,
