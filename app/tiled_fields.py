@@ -929,11 +929,12 @@ def _cell_weights(cells, d, ok, converged, flagged, at, cells_res):
     )
     cov_hk, cov_fk = _on_cells(k, at, cov_h), _on_cells(k, at, cells_res.cov_d_formal)
     n_k = _on_cells(k, at, cells_res.n, fill=0)
+    rmse_k = _on_cells(k, at, cells_res.rmse)
 
     def weights(projection):
         return cell_data_weights(
             cells.row, cells.col, d, cov_hk, cov_fk, n_k, projection=projection,
-            usable=ok & converged & ~flagged, fitted=ok,
+            usable=ok & converged & ~flagged, fitted=ok, rmse=rmse_k,
         )[0]  # fmt: skip
 
     return weights

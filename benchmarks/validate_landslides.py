@@ -670,6 +670,15 @@ def main(argv=None) -> int:
         "projection (core/icp_spline.py PROJECTION_ITERATIONS; default: the library's)",
     )
     ap.add_argument(
+        "--noise-quantile",
+        type=float,
+        default=None,
+        metavar="Q",
+        help="the points' noise for the cells' surface share of the floor: this quantile of "
+        "the cells' residual RMS; 0: the floor alike for every cell (core/icp_blocks.py "
+        "NOISE_QUANTILE; default: the library's)",
+    )
+    ap.add_argument(
         "--extent-tiles",
         type=int,
         default=1,
@@ -711,6 +720,10 @@ def main(argv=None) -> int:
         from slipmap.core import icp_spline
 
         icp_spline.PROJECTION_ITERATIONS = args.projection_iterations
+    if args.noise_quantile is not None:
+        from slipmap.core import icp_blocks
+
+        icp_blocks.NOISE_QUANTILE = args.noise_quantile or None
     if args.turn_motion:
         flds = {k: TurnedField(f, args.turn_motion) for k, f in flds.items()}
     cases = args.cases or [k for k in flds if k not in ASKED_ONLY]

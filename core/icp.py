@@ -2341,7 +2341,7 @@ def windowed_icp(
             def weights(projection):
                 return cell_data_weights(
                     cells.row, cells.col, d, cov_d, cov_formal, fits.n, usable=cu0,
-                    projection=projection, fitted=fits.ok,
+                    projection=projection, fitted=fits.ok, rmse=fits.rmse,
                 )[0]  # fmt: skip
 
         if first is not None:  # the refit starts where the candidate's fit ended
@@ -3034,12 +3034,17 @@ def _apply_floor(
     ``1 + SPLINE_FLOOR_SHARE (g_cells - 1)`` (:data:`~slipmap.core.icp_blocks.
     SPLINE_FLOOR_SHARE`) (an unweighted spline fit). ``model_var`` (K, 3): a weighted spline
     field's misfit to the rigid cells (:func:`spline_model_variance`), added to the
-    variances after the floor (a model error does not scale with the residuals)."""
+    variances after the floor (a model error does not scale with the residuals). The floor
+    grows each cell by its surface share (:func:`~slipmap.core.icp_blocks.surface_share`,
+    from the cells' residual RMS)."""
     from .icp_blocks import cell_floor
 
     usable = np.asarray(res.converged, dtype=bool).copy()
     if np.size(res.flagged) == usable.size:
         usable &= ~np.asarray(res.flagged, dtype=bool)
+    from .icp_blocks import surface_share
+
+    share = surface_share(res.rmse, usable)
     fl = cell_floor(
         res.row,
         res.col,
@@ -3049,6 +3054,7 @@ def _apply_floor(
         usable=usable,
         pair_covariance=pair_cov,
         separated=_separated_neighbours(res),
+        share=share,
     )
     res = replace(res, sigma_n_cap=fl.n_cap, sigma_floor_factor=fl.factor)
     if not math.isfinite(fl.factor):
@@ -3060,7 +3066,7 @@ def _apply_floor(
         )
         if model_var is None:
             return res
-    g = fl.scale(res.n)
+    g = fl.scale(res.n, share)
     if cells_floor is not None and math.isfinite(cells_floor.factor):
         from .icp_blocks import SPLINE_FLOOR_SHARE
 

@@ -79,6 +79,10 @@ SPLINE_FLOOR_SHARE = 0.3
 #: below the median, so that cells next to a discontinuity or a wrong minimum (a large
 #: residual however honest the sigmas) weigh less
 FLOOR_QUANTILE = 0.3
+#: the points' noise, for the cells' surface share of the floor (:func:`surface_share`): this
+#: quantile of the usable cells' residual RMS; None: the floor applies to every cell alike
+#: (the model until stop 65)
+NOISE_QUANTILE: Optional[float] = 0.05
 
 
 def block_index(xy: np.ndarray, seg: np.ndarray, block_m: float) -> Tuple[np.ndarray, np.ndarray]:
@@ -372,13 +376,72 @@ class CellFloor:
     n_cells: int
     factor_before: float
 
-    def scale(self, n: np.ndarray) -> np.ndarray:
-        """Per-cell variance multiplier ``factor² + n / n_cap`` (K,)."""
+    def scale(self, n: np.ndarray, share: Optional[np.ndarray] = None) -> np.ndarray:
+        """Per-cell variance multiplier (K,): ``factor² + n / n_cap``, or with the cells'
+        surface ``share`` (K,) (:func:`surface_share`) ``1 + (factor² - 1) share + share n /
+        n_cap``."""
         n = np.asarray(n, dtype=np.float64)
         if not np.isfinite(self.factor):
             return np.ones(n.shape)
-        extra = n / self.n_cap if np.isfinite(self.n_cap) else 0.0 * n
-        return self.factor**2 + extra
+        return _floor_scale(self.factor**2, self.n_cap, n, share)
+
+
+def _floor_scale(a: float, n_cap: float, n: np.ndarray, share=None) -> np.ndarray:
+    """The floor's variance multiplier (K,) at ``a``, ``n_cap`` (see :class:`CellFloor`)."""
+    extra = n / n_cap if np.isfinite(n_cap) else np.zeros(np.shape(n))
+    if share is None:
+        return a + extra
+    share = np.asarray(share, dtype=np.float64)
+    return 1.0 + (a - 1.0) * share + extra * share
+
+
+def surface_share(rmse: np.ndarray, usable: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+    """Each cell's share of its residual variance that the surface's departure from the
+    local planes makes, not the points' noise: ``1 - (s / rmse)²`` in [0, 1], ``s`` the
+    :data:`NOISE_QUANTILE` quantile of the usable cells' residual RMS (the smoothest
+    cells' residuals are mostly the instrument's noise).
+
+    The error a cell's residuals cannot show (:func:`cell_floor`) is the surface's: the
+    point-to-plane residual of a curved, sampled surface is biased alike over the cell (a
+    plane fitted to the first epoch's points near a convex bump lies above the second
+    epoch's points there), while the points' own noise is independent from point to point
+    and already in the block sigmas. So the floor grows a cell's variance by its surface
+    share: a smooth cell, whose residuals are noise, keeps nearly its block sigma, a rough
+    one takes more. Measured on the landslide harness (docs/fields.md, "The surface's share
+    of the floor"): the rigid slump beside the rough cone 1.75 -> 1.33 cm over twelve
+    seeds, the other cases level.
+
+    Parameters
+    ----------
+    rmse : (K,) float64
+        The cells' residual RMS, metres (NaN: no fit).
+    usable : (K,) bool, optional
+        Cells that set the noise level (default: all with a finite, positive RMS).
+
+    Returns
+    -------
+    (K,) float64 or None
+        The shares (1 where the RMS is not finite); None when :data:`NOISE_QUANTILE` is None
+        or no cell is usable (the floor then applies to every cell alike, as before).
+    """
+    if NOISE_QUANTILE is None:
+        return None
+    rm = np.asarray(rmse, dtype=np.float64)
+    good = np.isfinite(rm) & (rm > 0)
+    if usable is not None:
+        good &= np.asarray(usable, dtype=bool)
+    if not good.any():
+        return None
+    noise = float(np.quantile(rm[good], float(NOISE_QUANTILE)))
+    ok = np.isfinite(rm) & (rm > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = np.where(ok, np.clip(1.0 - (noise / np.where(ok, rm, 1.0)) ** 2, 0.0, 1.0), 1.0)
+    log.info(
+        "cells' surface share of their residuals: point noise %.2f cm (the %g quantile of "
+        "the cells' RMS), share median %.2f", 100 * noise, NOISE_QUANTILE,
+        float(np.median(share[good])),
+    )  # fmt: skip
+    return share
 
 
 def cell_floor(
@@ -393,6 +456,7 @@ def cell_floor(
     min_cells: int = 8,
     iterations: int = 8,
     separated: Optional[np.ndarray] = None,
+    share: Optional[np.ndarray] = None,
 ) -> CellFloor:
     """The error a cell's residuals cannot show, from neighbour agreement: a factor and a
     cap on the cell's effective observations.
@@ -402,7 +466,9 @@ def cell_floor(
     the point-to-plane residuals of a curved, sampled surface, errors correlated over more
     than a cell. It does not shrink with the number of points. The cells' variances are
     modelled as ``C_blocks (a + n / n_cap)``: a cell of ``n`` points behaves as
-    ``n / (a + n / n_cap) < n_cap`` independent ones. The two numbers are the field's: ``a``
+    ``n / (a + n / n_cap) < n_cap`` independent ones. With the cells' surface ``share``
+    (:func:`surface_share`) the excess is the surface's and grows with it: ``C_blocks (1 +
+    (a - 1) share + share n / n_cap)``. The two numbers are the field's: ``a``
     (>= 1) makes the sparser half of the tested cells (by ``n``) agree with their neighbours
     as their sigmas say (the :data:`FLOOR_QUANTILE` quantile of their squared normalised
     neighbour residuals that of chi²₁, below the median so that cells next to a scarp weigh
@@ -432,6 +498,9 @@ def cell_floor(
     separated : (K, 8) bool, optional
         Neighbours across a breakline, left out of each cell's prediction
         (:func:`slipmap.core.fields.neighbour_variance_factor`).
+    share : (K,) float64, optional
+        Each cell's surface share of its residual variance (:func:`surface_share`); None:
+        the floor is alike for every cell.
 
     Returns
     -------
@@ -451,7 +520,7 @@ def cell_floor(
         pcov = np.asarray(pair_covariance[1], dtype=np.float64).reshape(len(pairs), -1)
 
     def z2(a, n_cap):
-        g = a + (n / n_cap if np.isfinite(n_cap) else np.zeros(n.shape))
+        g = _floor_scale(a, n_cap, n, share)
         pc = None
         if pair_covariance is not None:
             pc = (pairs, pcov * np.sqrt(g[pairs[:, 0]] * g[pairs[:, 1]])[:, None])

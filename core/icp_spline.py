@@ -2412,7 +2412,7 @@ def rigid_projection_reference(
 
 
 def cell_data_weights(
-    row, col, d, cov_honest, cov_formal, n, *, usable, projection, fitted=None
+    row, col, d, cov_honest, cov_formal, n, *, usable, projection, fitted=None, rmse=None
 ) -> Tuple[np.ndarray, object]:
     """Each cell's data weight ``1 / F`` for the spline field: the share of its points'
     count that behaves as independent observations, from the honest-σ model of the rigid
@@ -2421,11 +2421,13 @@ def cell_data_weights(
     A cell's points share part of their error (the point-to-plane bias of a curved, sampled
     surface, errors correlated over more than a block): the variance of the cell's motion
     is ``F`` times the formal one, ``F = kappa_c (a + n / n_cap)`` (its shrunk block ratio
-    and the cell-wide floor). Weighed as independent points, the cells' data outweigh the
-    penalty ``F``-fold, the variance components take the shared errors for the field's
-    curvature, and the field follows them (on a uniform 0.65 m shift of lone-star the
-    field's error was twice the rigid cells'). Weighed ``1/F`` a cell counts as ``n / F``
-    points. The floor comes from the agreement of neighbouring rigid cells
+    and the cell-wide floor; with the cells' residual RMS, ``rmse``, the floor grows each
+    cell by its surface share ``s_c``: ``F = kappa_c (1 + (a - 1) s_c + s_c n / n_cap)``,
+    :func:`~slipmap.core.icp_blocks.surface_share`). Weighed as independent points, the
+    cells' data outweigh the penalty ``F``-fold, the variance components take the shared
+    errors for the field's curvature, and the field follows them (on a uniform 0.65 m
+    shift of lone-star the field's error was twice the rigid cells'). Weighed ``1/F`` a
+    cell counts as ``n / F`` points. The floor comes from the agreement of neighbouring rigid cells
     (:func:`~slipmap.core.icp_blocks.cell_floor`), here of their motions less the rigid
     projection of the unweighted field (:func:`rigid_projection`): a rigid cell's model
     error on a straining lobe (its weighted mean motion is not the motion at its centre)
@@ -2447,6 +2449,9 @@ def cell_data_weights(
         :func:`rigid_projection` of the unweighted field, metres (NaN: left out).
     fitted : (K,) bool, optional
         Cells with a rigid fit (default: all); the others take the median ``F`` of these.
+    rmse : (K,) float64, optional
+        The rigid cells' residual RMS, metres: the floor by each cell's surface share
+        (without it, alike for every cell).
 
     Returns
     -------
@@ -2456,7 +2461,7 @@ def cell_data_weights(
     floor : CellFloor
         The floor of the cells' residual motions.
     """
-    from .icp_blocks import cell_floor
+    from .icp_blocks import cell_floor, surface_share
 
     fh = np.diagonal(np.asarray(cov_honest), axis1=1, axis2=2)
     ff = np.diagonal(np.asarray(cov_formal), axis1=1, axis2=2)
@@ -2468,14 +2473,15 @@ def cell_data_weights(
     resid[~fitted] = np.nan
     sd = np.sqrt(fh)
     ok = np.all(np.isfinite(resid), axis=1) & np.all(np.isfinite(sd) & (sd > 0), axis=1)
+    share = None if rmse is None else surface_share(rmse, np.asarray(usable, bool) & ok)
     fl = cell_floor(
         np.asarray(row)[ok], np.asarray(col)[ok], resid[ok], sd[ok], np.asarray(n)[ok],
-        usable=np.asarray(usable, dtype=bool)[ok],
+        usable=np.asarray(usable, dtype=bool)[ok], share=None if share is None else share[ok],
     )  # fmt: skip
     if not np.isfinite(fl.factor):
         log.info("spline data weights: no cell-wide floor (%d cells tested): none", fl.n_cells)
         return None, fl
-    f = np.maximum(ratio * fl.scale(n), 1.0)
+    f = np.maximum(ratio * fl.scale(n, share), 1.0)
     f[~fitted] = float(np.median(f[fitted])) if fitted.any() else 1.0
     log.info(
         "spline data weights: the rigid cells' floor about the field a %.2f, n_cap %.0f; "

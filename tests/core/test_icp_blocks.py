@@ -186,3 +186,44 @@ def test_windowed_icp_blocks_on_independent_noise_keep_the_formal_sigma():
     assert 0.8 <= np.median(rs) <= 1.3
     with pytest.raises(InvalidParameterError, match="sigma_model"):
         windowed_icp(before, after, sigma_model="kriging")
+
+
+def test_the_surface_share_is_the_residual_variance_above_the_noise(monkeypatch):
+    """The smoothest cells' RMS is the points' noise: a cell twice as rough has three
+    quarters of its residual variance from the surface; no fit, no share estimate (1)."""
+    from slipmap.core import icp_blocks
+
+    rmse = np.r_[np.full(10, 0.004), np.full(90, 0.008), np.nan]
+    share = icp_blocks.surface_share(rmse)
+    np.testing.assert_allclose(share, np.r_[np.zeros(10), np.full(90, 0.75), 1.0])
+    # the noise from the usable cells only: here the rough ones
+    usable = np.r_[np.zeros(10, bool), np.ones(91, bool)]
+    np.testing.assert_allclose(icp_blocks.surface_share(rmse, usable)[:100], np.r_[np.zeros(100)])
+    monkeypatch.setattr(icp_blocks, "NOISE_QUANTILE", None)
+    assert icp_blocks.surface_share(rmse) is None
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_cell_floor_by_surface_share_covers_smooth_and_rough_cells(seed):
+    """Cell errors with variance ``sigma² (1 + (a - 1) s)``, a = 9, ``s`` each cell's surface
+    share (uniform in [0, 1], independent of its points): ``a`` within 30 %, and the cells
+    of low and of high share each at RMS(error / sigma) 0.85-1.15 (seeds 0-5: 0.93-1.01).
+    The floor alike for every cell (no share) is too wide on the smooth half (below 0.9;
+    0.76-0.85) and too narrow on the rough one (above 1.1; 1.15-1.30). A share of 1
+    everywhere is the model without shares."""
+    rng = np.random.default_rng(100 + seed)
+    row, col, _, sig, n = _grid_field(seed, 1.0, np.inf)
+    share = rng.uniform(0.0, 1.0, len(n))
+    values = 0.05 + rng.normal(size=sig.shape) * sig * np.sqrt(1.0 + 8.0 * share)[:, None]
+    low = share < 0.5
+
+    def rms(fl, s):
+        z = (values - 0.05) / (sig * np.sqrt(fl.scale(n, s))[:, None])
+        return np.sqrt(np.mean(z[low] ** 2)), np.sqrt(np.mean(z[~low] ** 2))
+
+    fl = cell_floor(row, col, values, sig, n, share=share)
+    assert 9.0 / 1.3 <= fl.factor**2 <= 9.0 * 1.3
+    assert all(0.85 <= r <= 1.15 for r in rms(fl, share))
+    smooth, rough = rms(cell_floor(row, col, values, sig, n), None)
+    assert smooth < 0.9 and rough > 1.1
+    np.testing.assert_allclose(fl.scale(n, np.ones(len(n))), fl.scale(n))
