@@ -125,8 +125,11 @@ def test_windowed_icp_on_opencl_equals_numpy(extra):
     except DependencyError as exc:
         pytest.skip(f"no usable OpenCL device: {exc}")
     ref = windowed_icp(before, after, backend="numpy", **kw)
-    # the same pairs; the normals' neighbourhoods summed in another order (1e-15)
-    assert_same_field(fast, ref, atol=1e-10)
+    # the same pairs; the normals' neighbourhoods summed in another order (1e-15). The
+    # spline's data weights differ from cell to cell by their surface share (icp_blocks.
+    # surface_share; F 1-48 on lone-star's lobe), and its solve carries that rounding to
+    # 1-5e-10 m of the motions and sigmas (2-4e-11 m with weights alike): a nanometre bound
+    assert_same_field(fast, ref, atol=1e-9)
 
 
 def test_unknown_backend_is_refused_by_name():
