@@ -408,7 +408,7 @@ def surface_share(rmse: np.ndarray, usable: Optional[np.ndarray] = None) -> Opti
     and already in the block sigmas. So the floor grows a cell's variance by its surface
     share: a smooth cell, whose residuals are noise, keeps nearly its block sigma, a rough
     one takes more. Measured on the landslide harness (docs/fields.md, "The surface's share
-    of the floor"): the rigid slump beside the rough cone 1.75 -> 1.33 cm over twelve
+    of the floor"): the rigid slump beside the rough cone 1.75 -> 1.32 cm over twelve
     seeds, the other cases level.
 
     Parameters
