@@ -3037,13 +3037,11 @@ def _apply_floor(
     variances after the floor (a model error does not scale with the residuals). The floor
     grows each cell by its surface share (:func:`~slipmap.core.icp_blocks.surface_share`,
     from the cells' residual RMS)."""
-    from .icp_blocks import cell_floor
+    from .icp_blocks import cell_floor, surface_share
 
     usable = np.asarray(res.converged, dtype=bool).copy()
     if np.size(res.flagged) == usable.size:
         usable &= ~np.asarray(res.flagged, dtype=bool)
-    from .icp_blocks import surface_share
-
     share = surface_share(res.rmse, usable)
     fl = cell_floor(
         res.row,

@@ -427,13 +427,11 @@ def surface_share(rmse: np.ndarray, usable: Optional[np.ndarray] = None) -> Opti
     if NOISE_QUANTILE is None:
         return None
     rm = np.asarray(rmse, dtype=np.float64)
-    good = np.isfinite(rm) & (rm > 0)
-    if usable is not None:
-        good &= np.asarray(usable, dtype=bool)
+    ok = np.isfinite(rm) & (rm > 0)
+    good = ok if usable is None else ok & np.asarray(usable, dtype=bool)
     if not good.any():
         return None
     noise = float(np.quantile(rm[good], float(NOISE_QUANTILE)))
-    ok = np.isfinite(rm) & (rm > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
         share = np.where(ok, np.clip(1.0 - (noise / np.where(ok, rm, 1.0)) ** 2, 0.0, 1.0), 1.0)
     log.info(

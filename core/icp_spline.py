@@ -2473,10 +2473,11 @@ def cell_data_weights(
     resid[~fitted] = np.nan
     sd = np.sqrt(fh)
     ok = np.all(np.isfinite(resid), axis=1) & np.all(np.isfinite(sd) & (sd > 0), axis=1)
-    share = None if rmse is None else surface_share(rmse, np.asarray(usable, bool) & ok)
+    usable = np.asarray(usable, dtype=bool)
+    share = None if rmse is None else surface_share(rmse, usable & ok)
     fl = cell_floor(
         np.asarray(row)[ok], np.asarray(col)[ok], resid[ok], sd[ok], np.asarray(n)[ok],
-        usable=np.asarray(usable, dtype=bool)[ok], share=None if share is None else share[ok],
+        usable=usable[ok], share=None if share is None else share[ok],
     )  # fmt: skip
     if not np.isfinite(fl.factor):
         log.info("spline data weights: no cell-wide floor (%d cells tested): none", fl.n_cells)
